@@ -1,0 +1,39 @@
+"""Analysis settings (config section ``[analysis]``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from layerwatch.settings_base import Section
+
+__all__ = ["AnalysisSettings", "METRIC_NAMES"]
+
+METRIC_NAMES = (
+    "cosine",
+    "sqeuclidean",
+    "pearson",
+    "spearman",
+    "kendall",
+    "jaccard",
+    "dice",
+    "l1",
+    "euclidean",
+    "hellinger",
+    "sorensen",
+    "clark",
+)
+
+
+class AnalysisSettings(Section):
+    """HOG parameters, similarity measure and block threshold (paper: 8 px, 2x2, 9 bins, 70%)."""
+
+    metric: Literal[METRIC_NAMES] = "cosine"  # type: ignore[valid-type]
+    threshold: float = Field(0.7, ge=0, le=1)
+    cell_px: int = Field(8, ge=2, le=64)
+    block_cells: int = Field(2, ge=1, le=8)
+    bins: int = Field(9, ge=2, le=36)
+    block_norm: Literal["L2-Hys", "L2", "L1", "L1-sqrt"] = "L2-Hys"
+    footprint_margin_mm: float = Field(5.0, ge=0)
+    min_region_blocks: int = Field(1, ge=1)

@@ -1,0 +1,1 @@
+"""layerwatch.monitor"""
