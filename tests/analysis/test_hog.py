@@ -1,0 +1,85 @@
+"""HOG block tensor vs skimage.feature.hog (independent implementation)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from layerwatch.analysis.hog import BLOCK_NORMS, hog_blocks
+from layerwatch.errors import AnalysisError
+
+skfeature = pytest.importorskip("skimage.feature")
+
+
+def _sk(image, cell=8, block=2, bins=9, norm="L2-Hys", gamma=False, channel_axis=None):
+    out = skfeature.hog(
+        image,
+        orientations=bins,
+        pixels_per_cell=(cell, cell),
+        cells_per_block=(block, block),
+        block_norm=norm,
+        transform_sqrt=gamma,
+        feature_vector=False,
+        channel_axis=channel_axis,
+    )
+    return out.reshape(out.shape[0], out.shape[1], -1)
+
+
+def _real_greys(shared_data, n=3):
+    import cv2
+
+    paths = sorted((shared_data / "photos").glob("*.jpg"))[:n]
+    if not paths:
+        pytest.skip("no photos in shared data")
+    return [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)[:240, :320] for p in paths]
+
+
+@pytest.mark.parametrize("norm", BLOCK_NORMS)
+def test_random_images_match_skimage(norm):
+    rng = np.random.default_rng(0)
+    for img in (rng.integers(0, 256, (70, 93), dtype=np.uint8), rng.random((61, 80))):
+        ours = hog_blocks(img, block_norm=norm)
+        assert ours.shape == (img.shape[0] // 8 - 1, img.shape[1] // 8 - 1, 36)
+        np.testing.assert_allclose(ours, _sk(img, norm=norm), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("norm", BLOCK_NORMS)
+def test_real_photos_match_skimage(shared_data, norm):
+    for img in _real_greys(shared_data):
+        np.testing.assert_allclose(hog_blocks(img, block_norm=norm), _sk(img, norm=norm), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize(("cell", "block", "bins", "gamma"), [(4, 2, 9, False), (5, 3, 7, True), (6, 1, 12, False)])
+def test_other_parameters_match_skimage(cell, block, bins, gamma):
+    img = np.random.default_rng(1).integers(0, 256, (64, 75), dtype=np.uint8)
+    ours = hog_blocks(img, cell_px=cell, block_cells=block, bins=bins, gamma=gamma)
+    assert ours.shape[2] == block * block * bins
+    np.testing.assert_allclose(ours, _sk(img, cell, block, bins, gamma=gamma), rtol=0, atol=1e-6)
+
+
+def test_colour_uses_dominant_channel_like_skimage_and_ignores_channel_order():
+    img = np.random.default_rng(2).integers(0, 256, (48, 56, 3), dtype=np.uint8)
+    ours = hog_blocks(img)
+    np.testing.assert_allclose(ours, _sk(img, channel_axis=-1), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(ours, hog_blocks(img[..., ::-1]))  # BGR == RGB
+
+
+def test_energy_and_flat_images():
+    flat = np.full((32, 32), 200, np.uint8)
+    blocks, energy = hog_blocks(flat, return_energy=True)
+    assert not blocks.any() and not energy.any()  # featureless: all-zero blocks
+    step = np.zeros((32, 32), np.uint8)
+    step[:, 16:] = 100
+    blocks, energy = hog_blocks(step, return_energy=True)
+    # a vertical edge: 2 px per row with |g| = 100 in the cell pair at columns 8-23
+    assert energy.max() == pytest.approx(100 * 2 * 16 / 256)
+    assert np.all(np.linalg.norm(blocks, axis=2) <= 1 + 1e-12)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.zeros((8, 8)), np.full((32, 32), np.nan), np.zeros((32, 32), bool), np.zeros((4, 32, 32, 2))],
+)
+def test_bad_images_raise(bad):
+    with pytest.raises(AnalysisError):
+        hog_blocks(bad)
