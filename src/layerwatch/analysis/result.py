@@ -89,13 +89,17 @@ class LayerResult:
     anomalous_area_mm2 : float
         ``S_A``, anomalous area, mm^2.
     outside_area_mm2 : float
-        Anomalous area outside the footprint margin-grown mask, mm^2.
+        Part of ``anomalous_area_mm2`` outside the layer's (undilated)
+        footprint, i.e. in the margin band around the part, mm^2.
     n_blocks, n_anomalous : int
         Blocks considered and blocks below threshold.
     regions : list of Region
         Connected failing regions, largest first.
     heatmap : ndarray, shape (N, M), float32, or None
         Similarity per block in [0, 1]; not written to JSON unless asked.
+    mask : ndarray, shape (N, M), bool, or None
+        Blocks that were considered (footprint plus margin, seen by the
+        camera); written to JSON together with the heatmap.
     timings_ms : dict
         Stage timings in milliseconds (``"warp"``, ``"render"``, ``"hog"``...).
     images : dict
@@ -120,6 +124,7 @@ class LayerResult:
     n_anomalous: int = 0
     regions: list[Region] = field(default_factory=list)
     heatmap: np.ndarray | None = None
+    mask: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     images: dict[str, str] = field(default_factory=dict)
     message: str = ""
@@ -132,8 +137,11 @@ class LayerResult:
     def to_dict(self, include_heatmap: bool = False) -> dict[str, Any]:
         d = asdict(self)
         d.pop("heatmap")
+        d.pop("mask")
         if include_heatmap and self.heatmap is not None:
             d["heatmap"] = np.round(np.asarray(self.heatmap, dtype=np.float64), 4).tolist()
+        if include_heatmap and self.mask is not None:
+            d["mask"] = np.asarray(self.mask, dtype=np.uint8).tolist()
         return _clean(d)
 
     def to_json(self, include_heatmap: bool = False, **kwargs: Any) -> str:
@@ -155,6 +163,7 @@ class LayerResult:
             for r in d.pop("regions", [])
         ]
         heat = d.pop("heatmap", None)
+        mask = d.pop("mask", None)
         known = {f for f in cls.__dataclass_fields__}
         kwargs = {k: v for k, v in d.items() if k in known}
         for key in ("anomaly_ratio", "printed_area_mm2", "anomalous_area_mm2", "outside_area_mm2"):
@@ -163,6 +172,8 @@ class LayerResult:
         res = cls(**kwargs, regions=regions)
         if heat is not None:
             res.heatmap = np.asarray(heat, dtype=np.float32)
+        if mask is not None:
+            res.mask = np.asarray(mask, dtype=bool)
         return res
 
     @classmethod

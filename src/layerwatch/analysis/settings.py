@@ -37,3 +37,9 @@ class AnalysisSettings(Section):
     block_norm: Literal["L2-Hys", "L2", "L1", "L1-sqrt"] = "L2-Hys"
     footprint_margin_mm: float = Field(5.0, ge=0)
     min_region_blocks: int = Field(1, ge=1)
+    # Block pairs whose mean gradient magnitude (grey levels per pixel, 0-255
+    # scale, central differences) is below this in BOTH images are featureless
+    # (similarity 1), so sensor noise (sigma up to ~2.5 levels) on a bare bed
+    # matches an empty reference.
+    min_gradient: float = Field(5.0, ge=0)
+    gamma: bool = False

@@ -1,0 +1,190 @@
+"""Pictures of a layer analysis: heatmap overlay and plain heatmap (PNG).
+
+The overlay follows the paper's Figs. 13 and 15: the similarity heatmap is
+colour-mapped (matplotlib ``RdYlGn``: red = dissimilar, green = similar)
+over the grey top view where blocks were considered, failing regions are
+outlined in magenta, the layer's footprint in cyan, and a caption states
+layer, measure, threshold and a%. :func:`write_overlay` is the one function
+the CLI, reports and dashboard use to write it.
+
+References
+----------
+Petsiuk & Pearce (2022), Figs. 13 and 15.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.errors import AnalysisError
+from layerwatch.geometry.topview import TopView
+
+__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "block_tiles"]
+
+_CMAP = "RdYlGn"
+_FOOTPRINT_RGB = (0, 220, 255)
+_REGION_RGB = (255, 0, 255)
+
+
+def _colormap(values: np.ndarray) -> np.ndarray:
+    """Map values in [0, 1] to RGB uint8 with matplotlib's colormap (no pyplot)."""
+    from matplotlib import colormaps
+
+    rgba = colormaps[_CMAP](np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0), bytes=True)
+    return rgba[..., :3]
+
+
+def _grid(result: LayerResult) -> tuple[int, int]:
+    grid = result.extra.get("grid", {}) if result.extra else {}
+    return int(grid.get("cell_px", 8)), int(grid.get("block_cells", 2))
+
+
+def block_tiles(values: np.ndarray, shape: tuple[int, int], cell_px: int, block_cells: int, fill=0) -> np.ndarray:
+    """Paint per-block values onto their tiles in an (H, W) image.
+
+    Block ``(i, j)`` owns the ``cell_px`` square centred on the block (see
+    :mod:`layerwatch.analysis.scoring`); pixels outside every tile get ``fill``.
+
+    Parameters
+    ----------
+    values : ndarray, shape (N, M)
+    shape : (H, W)
+    cell_px, block_cells : int
+
+    Returns
+    -------
+    ndarray, shape (H, W), dtype of ``values``
+    """
+    n, m = values.shape
+    off = (block_cells - 1) * cell_px // 2
+    out = np.full(shape, fill, dtype=values.dtype)
+    tiles = np.repeat(np.repeat(values, cell_px, axis=0), cell_px, axis=1)
+    h = min(shape[0] - off, tiles.shape[0])
+    w = min(shape[1] - off, tiles.shape[1])
+    out[off : off + h, off : off + w] = tiles[:h, :w]
+    return out
+
+
+def _to_rgb(top: np.ndarray) -> np.ndarray:
+    from layerwatch.analysis.scoring import to_grey255
+
+    grey = np.clip(to_grey255(top, "top view"), 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def _outline(img: np.ndarray, mask: np.ndarray, rgb, thickness: int) -> None:
+    import cv2
+
+    if not mask.any():
+        return
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(img, contours, -1, tuple(int(v) for v in rgb), thickness, lineType=cv2.LINE_AA)
+
+
+def overlay_image(
+    top: np.ndarray,
+    result: LayerResult,
+    topview: TopView,
+    footprint: np.ndarray | None = None,
+    *,
+    alpha: float = 0.45,
+    caption: bool = True,
+) -> np.ndarray:
+    """Heatmap over the top view with failing regions and footprint outlined.
+
+    Parameters
+    ----------
+    top : ndarray, shape (H, W) or (H, W, 3)
+        The photo's top view the result was computed from.
+    result : LayerResult
+        Output of :func:`~layerwatch.analysis.scoring.analyze_layer` (needs
+        ``heatmap``; ``mask`` limits colouring to considered blocks).
+    topview : TopView
+        Geometry of ``top`` (its shape must match).
+    footprint : ndarray, shape (H, W), bool, optional
+        Layer footprint, outlined in cyan.
+    alpha : float
+        Opacity of the heatmap colours.
+    caption : bool
+        Write layer, measure, threshold and a% in the top-left corner.
+
+    Returns
+    -------
+    ndarray, shape (H, W, 3), uint8, RGB
+    """
+    import cv2
+
+    shape = tuple(topview.shape)
+    if np.asarray(top).shape[:2] != shape:
+        raise AnalysisError(f"top view is {np.asarray(top).shape[:2]} px but the TopView is {shape}; pass matching images.")
+    img = _to_rgb(top)
+    if result.heatmap is None:
+        return img
+    heat = np.asarray(result.heatmap, dtype=np.float32)
+    c, b = _grid(result)
+    mask = np.ones(heat.shape, bool) if result.mask is None else np.asarray(result.mask, bool)
+    colours = _colormap(heat)
+    col_px = np.stack([block_tiles(colours[..., k], shape, c, b) for k in range(3)], axis=2)
+    sel = block_tiles(mask, shape, c, b, fill=False)
+    blend = (1 - alpha) * img[sel].astype(np.float32) + alpha * col_px[sel].astype(np.float32)
+    img[sel] = np.clip(blend + 0.5, 0, 255).astype(np.uint8)
+    if footprint is not None:
+        fp = np.asarray(footprint, bool)
+        if fp.shape != shape:
+            raise AnalysisError(f"footprint is {fp.shape} px but the top view is {shape}; pass the matching mask.")
+        _outline(img, fp, _FOOTPRINT_RGB, 1)
+    anomalous = mask & (heat < result.threshold)
+    thick = max(1, round(min(shape) / 300))
+    _outline(img, block_tiles(anomalous, shape, c, b, fill=False), _REGION_RGB, thick)
+    if caption:
+        text = f"layer {result.layer}  {result.metric} < {result.threshold:.2f}  a% = {100 * result.anomaly_ratio:.1f}"
+        scale = max(0.35, min(shape) / 1200)
+        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        cv2.rectangle(img, (0, 0), (tw + 8, th + base + 8), (0, 0, 0), -1)
+        cv2.putText(img, text, (4, th + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def heatmap_image(result: LayerResult, scale: int = 8) -> np.ndarray:
+    """The similarity heatmap alone, colour-mapped, one ``scale`` x ``scale`` square per block.
+
+    Blocks not considered (``result.mask`` False) are drawn dark grey.
+
+    Returns
+    -------
+    ndarray, shape (N*scale, M*scale, 3), uint8, RGB
+    """
+    if result.heatmap is None:
+        raise AnalysisError("the result has no heatmap; analyse the layer with analyze_layer() first.")
+    heat = np.asarray(result.heatmap, dtype=np.float32)
+    rgb = _colormap(heat)
+    if result.mask is not None:
+        rgb[~np.asarray(result.mask, bool)] = (40, 40, 40)
+    s = max(1, int(scale))
+    return np.repeat(np.repeat(rgb, s, axis=0), s, axis=1)
+
+
+def write_png(path: str | Path, rgb: np.ndarray) -> Path:
+    """Write an RGB uint8 image as PNG, creating parent folders."""
+    import cv2
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    arr = np.ascontiguousarray(rgb)
+    if not cv2.imwrite(str(p), arr[..., ::-1] if arr.ndim == 3 else arr):
+        raise AnalysisError(f"could not write {p}; check the folder exists and is writable.")
+    return p
+
+
+def write_overlay(
+    path: str | Path,
+    top: np.ndarray,
+    result: LayerResult,
+    topview: TopView,
+    footprint: np.ndarray | None = None,
+) -> Path:
+    """Render :func:`overlay_image` and write it as PNG; returns the path."""
+    return write_png(path, overlay_image(top, result, topview, footprint))
