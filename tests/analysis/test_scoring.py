@@ -1,0 +1,149 @@
+"""analyze_layer: heatmap, eq. (5) ratio, regions in bed mm, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from analysis_scenes import TOPVIEW, part_scene
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scoring import analyze_layer, block_geometry
+from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
+from layerwatch.errors import AnalysisError
+from layerwatch.geometry.topview import TopView
+
+
+def test_clean_layer_scores_low_and_defects_are_found_where_they_are():
+    ref, photo, foot = part_scene(0)
+    clean = analyze_layer(photo, ref, foot, TOPVIEW, layer=3, z=0.9)
+    assert clean.ok and clean.layer == 3 and clean.z == 0.9
+    assert clean.anomaly_ratio < 0.03
+    assert clean.heatmap.shape == (TOPVIEW.shape[0] // 8 - 1, TOPVIEW.shape[1] // 8 - 1)
+    assert clean.heatmap.dtype == np.float32 and np.isfinite(clean.heatmap).all()
+
+    ref, photo, foot = part_scene(0, "blob")
+    blob = analyze_layer(photo, ref, foot, TOPVIEW)
+    big = blob.regions[0]
+    assert blob.anomaly_ratio > clean.anomaly_ratio + 0.02
+    assert big.centroid_mm == pytest.approx((104.0, 103.0), abs=1.5)  # bed mm, where it was drawn
+    x0, y0, x1, y1 = big.bbox_mm
+    assert x0 < 104 < x1 and y0 < 103 < y1 and x1 > x0 and y1 > y0
+    assert big.outside_fraction < 0.1 and big.min_similarity <= big.mean_similarity < 0.7
+
+    ref, photo, foot = part_scene(0, "spaghetti")
+    spag = analyze_layer(photo, ref, foot, TOPVIEW)
+    top = spag.regions[0]
+    assert top.outside_fraction > 0.9  # beside the part, where the reference is empty
+    assert top.centroid_mm[0] > 120 and spag.outside_area_mm2 >= top.area_mm2 * 0.9
+    assert spag.anomaly_ratio > 0.15
+
+    ref, photo, foot = part_scene(0, "missing")
+    miss = analyze_layer(photo, ref, foot, TOPVIEW)
+    assert miss.regions[0].outside_fraction < 0.3 and miss.anomaly_ratio > 0.2
+
+
+def test_eq5_areas_are_consistent():
+    ref, photo, foot = part_scene(1, "blob")
+    r = analyze_layer(photo, ref, foot, TOPVIEW)
+    tile = (8 / TOPVIEW.px_per_mm) ** 2
+    assert r.printed_area_mm2 == pytest.approx(foot.sum() / TOPVIEW.px_per_mm**2)
+    assert r.anomalous_area_mm2 == pytest.approx(r.n_anomalous * tile)
+    assert r.anomaly_ratio == pytest.approx(r.anomalous_area_mm2 / r.printed_area_mm2)
+    assert sum(g.area_mm2 for g in r.regions) == pytest.approx(r.anomalous_area_mm2)
+    assert r.n_anomalous == int((r.mask & (r.heatmap < r.threshold)).sum())
+    assert [g.area_mm2 for g in r.regions] == sorted((g.area_mm2 for g in r.regions), reverse=True)
+
+
+def test_margin_decides_whether_material_beside_the_part_counts():
+    ref, photo, foot = part_scene(0, "spaghetti")
+    near = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(footprint_margin_mm=5.0))
+    none = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(footprint_margin_mm=0.0))
+    assert near.outside_area_mm2 > 50 > none.outside_area_mm2
+    assert none.n_blocks < near.n_blocks
+
+
+def test_valid_mask_excludes_blocks_the_camera_did_not_see():
+    ref, photo, foot = part_scene(0, "spaghetti")
+    valid = np.ones(foot.shape, bool)
+    valid[:, TOPVIEW.shape[1] // 2 + 60 :] = False  # right side unseen (spaghetti there)
+    r = analyze_layer(photo, ref, foot, TOPVIEW, valid=valid)
+    assert all(g.centroid_mm[0] < 122 for g in r.regions)
+    assert r.printed_area_mm2 == pytest.approx((foot & valid).sum() / TOPVIEW.px_per_mm**2)
+
+
+def test_block_geometry_and_smaller_cells():
+    g8 = block_geometry(8, 2, 6.67)
+    g4 = block_geometry(4, 2, 6.67)
+    assert g8["block_mm"] == pytest.approx(2.4, abs=0.01)  # 16 px / 6.67 px/mm
+    assert g8["paper_block_mm"] == pytest.approx(4.8, abs=0.01)  # the paper's figure (32 px)
+    assert block_geometry(16, 2, 6.67)["block_mm"] == pytest.approx(4.8, abs=0.01)
+    assert g4["block_mm"] == pytest.approx(g8["block_mm"] / 2)
+    assert g4["paper_block_mm"] == pytest.approx(g8["paper_block_mm"] / 2)
+    # and the analysis grid follows: twice the blocks per axis, a quarter of the tile area
+    ref, photo, foot = part_scene(0, "blob")
+    r8 = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(cell_px=8))
+    r4 = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(cell_px=4))
+    assert r4.extra["grid"]["block_mm"] == pytest.approx(r8.extra["grid"]["block_mm"] / 2)
+    assert r4.heatmap.shape[0] == TOPVIEW.shape[0] // 4 - 1
+    assert r4.regions and r4.regions[0].centroid_mm == pytest.approx((104.0, 103.0), abs=1.5)
+
+
+@pytest.mark.parametrize("metric", METRIC_NAMES)
+def test_every_metric_runs_and_json_round_trips(metric):
+    ref, photo, foot = part_scene(2, "blob")
+    r = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(metric=metric))
+    assert r.metric == metric and np.isfinite(r.heatmap).all()
+    assert 0 <= r.heatmap.min() and r.heatmap.max() <= 1
+    back = LayerResult.from_json(r.to_json(include_heatmap=True))
+    np.testing.assert_allclose(back.heatmap, r.heatmap, atol=1e-4)
+    np.testing.assert_array_equal(back.mask, r.mask)
+    assert back.regions == r.regions
+    json.loads(r.to_json())  # without heatmap too
+
+
+def test_blank_images_give_defined_results():
+    foot = np.zeros(TOPVIEW.shape, bool)
+    foot[100:200, 100:200] = True
+    for value in (0, 255):
+        img = np.full(TOPVIEW.shape, value, np.uint8)
+        r = analyze_layer(img, img, foot, TOPVIEW)
+        assert r.ok and r.anomaly_ratio == 0.0 and np.all(r.heatmap == 1.0)
+    black, ref, _ = np.zeros(TOPVIEW.shape, np.uint8), *part_scene(0)[:2]
+    r = analyze_layer(black, ref, foot, TOPVIEW)  # camera saw nothing but the part should be there
+    assert r.anomaly_ratio > 0.9 and np.isfinite(r.heatmap).all()
+    empty = analyze_layer(ref, ref, np.zeros(TOPVIEW.shape, bool), TOPVIEW)
+    assert empty.status == "skipped" and empty.anomaly_ratio == 0.0
+
+
+def test_float_and_colour_inputs():
+    ref, photo, foot = part_scene(0, "blob")
+    r8 = analyze_layer(photo, ref, foot, TOPVIEW)
+    rf = analyze_layer(photo / 255.0, ref / 255.0, foot, TOPVIEW)
+    np.testing.assert_allclose(rf.heatmap, r8.heatmap, atol=1e-4)
+    rc = analyze_layer(np.dstack([photo] * 3), np.dstack([ref] * 3), foot, TOPVIEW)
+    np.testing.assert_array_equal(rc.heatmap, r8.heatmap)
+
+
+def test_bad_input_raises_one_line_analysis_errors():
+    ref, photo, foot = part_scene(0)
+    nan = photo.astype(np.float32) / 255
+    nan[5, 5] = np.nan
+    cases = [
+        (photo[:-8], ref, foot, TOPVIEW),  # sizes differ
+        (photo, ref.astype(np.float32), foot, TOPVIEW),  # dtypes differ
+        (nan, ref.astype(np.float32) / 255, foot, TOPVIEW),  # NaN
+        (photo, ref, foot[:-1], TOPVIEW),  # mask shape
+        (photo, ref, foot, TopView(px_per_mm=5.0, width_mm=45.0, height_mm=45.0)),  # wrong top view
+        (photo.astype(np.int64), ref.astype(np.int64), foot, TOPVIEW),  # dtype not supported
+    ]
+    for args in cases:
+        with pytest.raises(AnalysisError) as info:
+            analyze_layer(*args)
+        assert "\n" not in str(info.value)
+    with pytest.raises(AnalysisError):
+        analyze_layer(photo, ref, foot, TOPVIEW, valid=foot[:, :-1])
+    small = TopView(px_per_mm=1.0, width_mm=10.0, height_mm=10.0)
+    with pytest.raises(AnalysisError):
+        analyze_layer(photo[:10, :10], ref[:10, :10], foot[:10, :10], small)
