@@ -1,1 +1,31 @@
-"""layerwatch.simulate"""
+"""Virtual prints: camera-view photos of each layer with injected failures and ground truth.
+
+See :mod:`layerwatch.simulate.camera_sim` for how the photos differ from the
+reference renderer.
+"""
+
+from layerwatch.simulate.camera_sim import PrintSimulator, SimFrame, simulate_layer, simulate_print
+from layerwatch.simulate.failures import (
+    FAILURE_TYPES,
+    Failure,
+    Scenario,
+    random_scenarios,
+    thin_wall_segments,
+)
+from layerwatch.simulate.scene import default_camera, default_markers
+from layerwatch.simulate.settings import SimSettings
+
+__all__ = [
+    "FAILURE_TYPES",
+    "Failure",
+    "PrintSimulator",
+    "Scenario",
+    "SimFrame",
+    "SimSettings",
+    "default_camera",
+    "default_markers",
+    "random_scenarios",
+    "simulate_layer",
+    "simulate_print",
+    "thin_wall_segments",
+]

@@ -1,0 +1,443 @@
+"""Virtual camera photos of a print after each layer, with injected failures.
+
+How the simulated photo differs from the reference renderer (``render.fast``)
+------------------------------------------------------------------------------
+The reference is an orthographic *top view* of the ideal layer drawn by the
+reference renderer's own bead raster and light model. The simulator shares
+none of that code path:
+
+1. **Geometry.** It builds its own 3-D height field of the *whole printed part*
+   (all layers so far, not one layer) on a bed-aligned grid (8 px/mm by
+   default) with :mod:`layerwatch.simulate.raster`: every bead is a capsule with
+   an elliptical cross-section, and each bead gets random width (6 %), position
+   (0.02 mm) and height (0.01 mm) jitter plus a sinusoidal extrusion-rate
+   wobble along its length, so clean layers are never pixel-identical to the
+   reference. Failures edit this geometry (removed/thinned segments, shifted
+   layers, displaced/tilted part, objects and draped strands with their own
+   height).
+2. **Projection.** The photo is a *perspective camera view* (OpenCV pinhole +
+   radial distortion, pose at ~45 degrees): every camera pixel's ray is marched
+   through the height field (:mod:`layerwatch.simulate.shade`), so walls,
+   occlusion and the parallax of tall layers are physically right — warping
+   the photo with the homography of the top layer's plane aligns the top layer
+   only.
+3. **Appearance.** Blinn-Phong shading under a spot light beside the camera
+   plus an overhead fill, a cavity/ambient-occlusion term, specular highlights,
+   layer lines on walls, a coloured filament, a procedural textured bed with
+   white dot markers (beyond the part) and a dark background.
+4. **Sensor.** Per-frame light position and intensity jitter, slow exposure and
+   white-balance drift, vignetting, Gaussian blur (0.5-1.1 px), shot and read
+   noise, gamma and 8-bit quantisation.
+
+Frames are BGR ``uint8`` (as ``cv2.imread`` returns). Ground-truth masks are
+in the *top view of the top layer's plane*: footprints of removed segments
+(``infill_defect``, ``thin_wall``), footprint XOR displaced footprint
+(``layer_shift``, ``detachment``), and for raised things (``foreign_body``,
+``spaghetti``) the region where the object appears in the warped photo: its
+footprint and its top projected through the camera centre onto the plane.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from layerwatch.errors import CalibrationError, ConfigError
+from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.topview import TopView
+from layerwatch.simulate import failures as fl
+from layerwatch.simulate.raster import capsule_mask, grid_params, stamp_capsules
+from layerwatch.simulate.scene import default_markers
+from layerwatch.simulate.settings import SimSettings
+from layerwatch.simulate.shade import render_view
+
+__all__ = ["SimFrame", "PrintSimulator", "simulate_layer", "simulate_print"]
+
+
+@dataclass
+class SimFrame:
+    """One simulated photo.
+
+    Attributes
+    ----------
+    photo : ndarray, uint8, shape (h, w, 3)
+        Camera view, BGR.
+    truth : ndarray, bool, shape topview.shape, or None
+        Where the layer differs from the plan (None: no failure active).
+    meta : dict
+        ``layer``, ``z``, ``failures`` (active types), ``failed``, ``light``,
+        ``exposure``, ``blur_px``, ``seconds``.
+    """
+
+    photo: np.ndarray
+    truth: np.ndarray | None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def layer(self) -> int:
+        return int(self.meta["layer"])
+
+
+def _clip_disc(p0, p1, c, R):
+    """Parameter interval ``[ti, to]`` of each segment inside the disc (ti >= to: none)."""
+    d = p1 - p0
+    f = p0 - c
+    a = np.maximum((d * d).sum(1), 1e-12)
+    b = 2 * (f * d).sum(1)
+    cc = (f * f).sum(1) - R * R
+    disc = b * b - 4 * a * cc
+    sq = np.sqrt(np.maximum(disc, 0))
+    ti = np.clip((-b - sq) / (2 * a), 0, 1)
+    to = np.clip((-b + sq) / (2 * a), 0, 1)
+    to = np.where(disc > 0, to, ti)
+    return ti, to
+
+
+class PrintSimulator:
+    """Incremental simulator of one print (height field kept between frames).
+
+    Parameters
+    ----------
+    toolpath : Toolpath
+    camera : CameraModel
+        With a pose; its ``image_size`` is the photo size.
+    topview : TopView
+        Frame of the truth masks.
+    failures : sequence of Failure
+    seed : int
+        Seed of print imperfections and camera effects.
+    settings : SimSettings, optional
+    """
+
+    def __init__(
+        self,
+        toolpath: Toolpath,
+        camera: CameraModel,
+        topview: TopView,
+        failures: Sequence[fl.Failure] = (),
+        seed: int = 0,
+        settings: SimSettings | None = None,
+    ) -> None:
+        if not camera.has_pose:
+            raise CalibrationError("the simulator needs a camera with a pose; use default_camera().")
+        if toolpath.n_layers == 0:
+            raise ConfigError("the toolpath has no layers to simulate; check the G-code.")
+        self.tp, self.camera, self.topview = toolpath, camera, topview
+        self.settings = settings or SimSettings()
+        self.seed = int(seed)
+        self.failures = [fl.resolve(f, toolpath) for f in failures]
+        st = self.settings
+        m = st.grid_margin_mm
+        self.grid = TopView(st.grid_px_per_mm, topview.width_mm + 2 * m, topview.height_mm + 2 * m,
+                            topview.center_mm)
+        self.gp = grid_params(self.grid)
+        self._rays()
+        self.markers = (np.asarray(st.markers_mm, float).reshape(-1, 2) if st.markers_mm
+                        else default_markers(topview))
+        side = st.bed_size_mm or 2.4 * max(topview.width_mm, topview.height_mm)
+        cx, cy = topview.center_mm
+        self.bed = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
+        self.albedo = np.array([st.bed_rgb, st.filament_rgb, st.filament_rgb, (0.05, 0.05, 0.06),
+                                (0.55, 0.56, 0.6), (0.1, 0.25, 0.75)], np.float64)
+        self.spec = np.array([[0.04, 8], [0.25, 30], [0.35, 40], [0.15, 12], [0.9, 60], [0.3, 25]],
+                             np.float64)
+        w, h = camera.image_size
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+        self.vignette = (1 - st.vignetting * r2)[..., None].astype(np.float32)
+        nrng = np.random.default_rng([self.seed, 99])
+        self.noise_bank = nrng.standard_normal((h + 32, w + 32, 3), dtype=np.float32)
+        self.lut = (np.clip(np.linspace(0, 1, 4096), 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+        self._reset()
+
+    # ---------------------------------------------------------------- set-up
+    def _rays(self) -> None:
+        w, h = self.camera.image_size
+        uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)),
+                      -1).reshape(-1, 1, 2)
+        n = cv2.undistortPoints(uv, self.camera.K, self.camera.dist).reshape(h, w, 2)
+        d = np.concatenate([n, np.ones((h, w, 1))], -1)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        self.dirs = np.ascontiguousarray((d @ self.camera.R).astype(np.float32))
+        self.C = self.camera.center_mm.astype(np.float64)
+
+    def _reset(self) -> None:
+        self.h = np.zeros(self.grid.shape, np.float32)
+        self.mat = np.zeros(self.grid.shape, np.uint8)
+        self.next_layer = 0
+
+    # -------------------------------------------------------------- geometry
+    def layer_segments(self, i: int):
+        """Actual beads of layer ``i``: ``(p0, p1, w, scale, removed)``.
+
+        ``removed`` maps the index of a patch failure to ``(p0, p1, w)`` of the
+        pieces it removed or under-extruded (nominal geometry, bed mm).
+        """
+        tp = self.tp
+        sl = tp.layer_slice(i)
+        p0, p1 = tp.start[sl].copy(), tp.end[sl].copy()
+        w = tp.width[sl].astype(np.float64)
+        scale = np.ones(len(p0))
+        removed = {}
+        for k, rf in enumerate(self.failures):
+            if rf.type in ("infill_defect", "thin_wall") and rf.failure.active(i):
+                sel = rf.select[sl]
+                ti, to = _clip_disc(p0, p1, rf.center, rf.failure.size_mm / 2)
+                hit = sel & (to > ti) & (scale > 0.99)
+                if not hit.any():
+                    removed[k] = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+                    continue
+                d = p1[hit] - p0[hit]
+                a0, a1 = p0[hit] + ti[hit, None] * d, p0[hit] + to[hit, None] * d
+                removed[k] = (a0, a1, w[hit])
+                keep = ~hit
+                parts = [(p0[keep], p1[keep], w[keep], scale[keep])]
+                pre, post = ti[hit] > 1e-9, to[hit] < 1 - 1e-9
+                parts.append((p0[hit][pre], a0[pre], w[hit][pre], scale[hit][pre]))
+                parts.append((a1[post], p1[hit][post], w[hit][post], scale[hit][post]))
+                if rf.failure.mode == "under":
+                    parts.append((a0, a1, w[hit], np.full(len(a0), 0.3)))
+                p0, p1, w, scale = (np.concatenate(x) for x in zip(*parts))
+        for rf in self.failures:
+            if rf.type == "layer_shift" and i >= rf.failure.onset:
+                p0, p1 = p0 + rf.offset, p1 + rf.offset
+        return p0, p1, w, scale, removed
+
+    def _deposit(self, i: int) -> None:
+        st = self.settings
+        lay = self.tp.layers[i]
+        lh = lay.height if lay.height > 0 else 0.2
+        p0, p1, w, scale, _ = self.layer_segments(i)
+        n = len(p0)
+        if n == 0:
+            return
+        rng = np.random.default_rng([self.seed, 1, i])
+        jit = rng.normal(0, st.position_jitter_mm, (n, 2))
+        rows = np.empty((n, 10))
+        rows[:, 0:2] = p0 + jit
+        rows[:, 2:4] = p1 + jit
+        rows[:, 4] = w / 2 * scale * np.clip(1 + rng.normal(0, st.width_jitter, n), 0.6, 1.4)
+        rows[:, 5] = lay.z - lh / 2 + rng.normal(0, st.z_jitter_mm, n) - (1 - scale) * lh * 0.4
+        rows[:, 6] = 0.0
+        rows[:, 7] = lh / 2 * np.where(scale < 1, 0.5, 1.0)
+        rows[:, 8] = st.extrusion_noise * rng.uniform(0.3, 1.0, n)
+        rows[:, 9] = rng.uniform(0, 2 * np.pi, n)
+        stamp_capsules(self.h, self.mat, self.h, rows, np.full(n, fl.MAT_PART, np.uint8), *self.gp)
+
+    def advance(self, index: int) -> None:
+        """Deposit layers up to ``index`` (rebuilding when going backwards)."""
+        if index < self.next_layer - 1:
+            self._reset()
+        while self.next_layer <= index:
+            self._deposit(self.next_layer)
+            self.next_layer += 1
+
+    # ----------------------------------------------------------------- frame
+    def _detach(self, rf, h, mat):
+        s, ux0, vy0 = self.gp
+        G = np.array([[s, 0, ux0], [0, -s, vy0], [0, 0, 1]])
+        M = G @ _affine_mm(rf) @ np.linalg.inv(G)
+        hs = cv2.warpAffine(h, M[:2], h.shape[::-1], flags=cv2.INTER_LINEAR)
+        ms = cv2.warpAffine(mat, M[:2], h.shape[::-1], flags=cv2.INTER_NEAREST)
+        xy = self.grid.to_mm(np.stack(np.meshgrid(np.arange(h.shape[1]), np.arange(h.shape[0])), -1))
+        nrm = rf.offset / max(np.linalg.norm(rf.offset), 1e-9)
+        lift = rf.tilt * np.maximum(((xy - rf.center) @ nrm) + 25.0, 0).astype(np.float32)
+        hs = np.where(hs > 0, hs + lift, 0).astype(np.float32)
+        return hs, ms
+
+    def _apparent(self, before, after, zl) -> np.ndarray:
+        """Top-view mask of raised/draped things seen through the camera on plane ``zl``."""
+        ch = after > before + 1e-4
+        v, u = np.nonzero(ch)
+        out = np.zeros(self.topview.shape, np.uint8)
+        if len(u) == 0:
+            return out.astype(bool)
+        xy = self.grid.to_mm(np.stack([u, v], -1).astype(float))
+        C = self.C
+        pts = []
+        for z in (before[v, u], 0.5 * (before[v, u] + after[v, u]), after[v, u]):
+            k = (C[2] - zl) / np.maximum(C[2] - z, 1e-3)
+            pts.append(C[:2] + (xy - C[:2]) * k[:, None])
+        uv = np.round(self.topview.to_px(np.concatenate(pts))).astype(int)
+        H, W = out.shape
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        out[uv[ok, 1], uv[ok, 0]] = 1
+        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+        return out.astype(bool)
+
+    def frame(self, index: int) -> SimFrame:
+        """Simulate the photo taken after layer ``index`` (0-based)."""
+        if not 0 <= index < self.tp.n_layers:
+            raise ConfigError(f"layer {index} does not exist (0..{self.tp.n_layers - 1}).")
+        t0 = time.perf_counter()
+        self.advance(index)
+        tp, tv, st = self.tp, self.topview, self.settings
+        lay = tp.layers[index]
+        h, mat = self.h.copy(), self.mat.copy()
+        truth = np.zeros(tv.shape, bool)
+        active = []
+        nominal = None
+        for k, rf in enumerate(self.failures):
+            f = rf.failure
+            if not f.active(index):
+                continue
+            active.append(f.type)
+            if f.type in ("layer_shift", "detachment"):
+                if nominal is None:
+                    sl = tp.layer_slice(index)
+                    nominal = (tp.start[sl], tp.end[sl], tp.width[sl] / 2.0)
+                fp = capsule_mask(*nominal, tv)
+                if f.type == "layer_shift":
+                    moved = capsule_mask(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
+                else:
+                    h, mat = self._detach(rf, h, mat)
+                    moved = capsule_mask(*(_apply_affine(rf, p) for p in nominal[:2]), nominal[2], tv)
+                truth |= fp ^ moved
+        for k, rf in enumerate(self.failures):
+            f = rf.failure
+            if not f.active(index):
+                continue
+            if f.type in ("infill_defect", "thin_wall"):
+                a0, a1, w = self.layer_segments(index)[4][k]
+                truth |= capsule_mask(a0, a1, w / 2.0, tv)
+            elif f.type in ("foreign_body", "spaghetti"):
+                rows = rf.capsules.copy()
+                if f.type == "foreign_body":
+                    rows[:, 5] = lay.z
+                else:
+                    rows = rows[: rf.per_layer * (index - f.onset + 1)]
+                before = h.copy()
+                stamp_capsules(h, mat, before, rows, rf.capsule_mat[: len(rows)], *self.gp)
+                truth |= self._apparent(before, h, lay.z)
+        photo, info = self._photograph(h, mat, index, lay.height)
+        meta = {
+            "layer": index,
+            "z": lay.z,
+            "failures": active,
+            "failed": bool(truth.any()),
+            **info,
+            "seconds": time.perf_counter() - t0,
+        }
+        return SimFrame(photo, truth if active else None, meta)
+
+    def _photograph(self, h, mat, index, layer_h):
+        st = self.settings
+        s = self.gp[0]
+        rng = np.random.default_rng([self.seed, 2, index])
+        gy, gx = np.gradient(h)
+        nz = np.full_like(h, 1.0 / s)
+        nrm = np.stack([-gx, gy, nz], -1)
+        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+        small = cv2.resize(h, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+        blur = cv2.resize(cv2.GaussianBlur(small, (0, 0), 0.4 * s), h.shape[::-1])
+        ao = np.clip(1.0 - 0.35 * (blur - h), 0.35, 1.0).astype(np.float32)
+        rows, cols = np.any(h > 0, 1), np.any(h > 0, 0)
+        if rows.any():
+            v0, v1 = np.flatnonzero(rows)[[0, -1]]
+            u0, u1 = np.flatnonzero(cols)[[0, -1]]
+            (xa, ya), (xb, yb) = self.grid.to_mm(np.array([[u0 - 1, v1 + 1], [u1 + 1, v0 - 1]]))
+            bbox = np.array([xa, ya, xb, yb])
+            zmax = float(h.max())
+        else:
+            bbox, zmax = np.zeros(4), 0.0
+        cam = self.C
+        target = np.array([*self.topview.center_mm, 0.0])
+        off = np.asarray(st.light_offset_mm, float)
+        R = self.camera.R  # camera axes in bed frame are rows of R
+        lpos = cam + R[0] * off[0] + (-R[1]) * off[2] + R[2] * off[1]
+        lpos = lpos + rng.normal(0, st.light_jitter_mm, 3)
+        axis = target - lpos
+        dref = np.linalg.norm(axis)
+        axis /= dref
+        inten = st.light_intensity * (1 + rng.normal(0, st.light_intensity_jitter))
+        amb = st.ambient * (1 + rng.normal(0, 0.1))
+        light = np.array([*lpos, *axis, np.cos(np.deg2rad(30)), np.cos(np.deg2rad(60)), inten, amb,
+                          st.fill, dref])
+        w, hh = self.camera.image_size
+        rad = np.empty((hh, w, 3), np.float32)
+        render_view(self.dirs, self.C, h, mat, nrm.astype(np.float32), ao, *self.gp, zmax, bbox,
+                    self.albedo, self.spec, light, self.bed, np.asarray(st.bed_rgb, float),
+                    np.asarray(st.background_rgb, float), self.markers, st.marker_diameter_mm / 2,
+                    float(layer_h), self.seed, rad)
+        # camera: exposure and white-balance drift, vignetting, blur, noise, gamma
+        ph = np.random.default_rng([self.seed, 3]).uniform(0, 2 * np.pi, 4)
+        expo = st.exposure * (1 + st.exposure_drift * np.sin(2 * np.pi * index / 37 + ph[0])
+                              + rng.normal(0, st.exposure_drift / 3))
+        wb = 1 + st.colour_drift * np.sin(2 * np.pi * index / 53 + ph[1:]) + rng.normal(0, 0.01, 3)
+        gain = (expo * wb).astype(np.float32)
+        img = rad * self.vignette
+        img *= gain
+        sigma = float(rng.uniform(*st.blur_px))
+        img = cv2.GaussianBlur(img, (0, 0), sigma)
+        oy, ox = rng.integers(0, 32, 2)
+        noise = self.noise_bank[oy:oy + hh, ox:ox + w]
+        sd = np.sqrt(st.read_noise**2 + st.shot_noise**2 * np.clip(img, 0, None))
+        img += noise * sd
+        idx = np.clip(img * 4095, 0, 4095).astype(np.int16)
+        photo = self.lut[idx][..., ::-1]
+        info = {"light_mm": lpos.round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
+        return np.ascontiguousarray(photo), info
+
+
+def _affine_mm(rf) -> np.ndarray:
+    """3x3 bed-mm affine of a detachment: rotate about the centre, then translate."""
+    c, a = rf.center, rf.angle
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    M = np.eye(3)
+    M[:2, :2] = R
+    M[:2, 2] = c - R @ c + rf.offset
+    return M
+
+
+def _apply_affine(rf, p: np.ndarray) -> np.ndarray:
+    M = _affine_mm(rf)
+    return p @ M[:2, :2].T + M[:2, 2]
+
+
+def simulate_print(
+    toolpath: Toolpath,
+    camera: CameraModel,
+    topview: TopView,
+    failures: Sequence[fl.Failure] = (),
+    seed: int = 0,
+    layers: Iterable[int] | None = None,
+    settings: SimSettings | None = None,
+) -> Iterator[SimFrame]:
+    """Simulate the photos of a print, layer after layer (incremental height field).
+
+    Parameters
+    ----------
+    toolpath, camera, topview
+        The print, a posed camera (e.g. :func:`~layerwatch.simulate.scene.default_camera`)
+        and the top view of the truth masks.
+    failures : sequence of Failure
+    seed : int
+    layers : iterable of int, optional
+        Layer indices to photograph (ascending is fastest); default all.
+    settings : SimSettings, optional
+
+    Yields
+    ------
+    SimFrame
+    """
+    sim = PrintSimulator(toolpath, camera, topview, failures, seed, settings)
+    for i in range(toolpath.n_layers) if layers is None else layers:
+        yield sim.frame(int(i))
+
+
+def simulate_layer(
+    toolpath: Toolpath,
+    index: int,
+    camera: CameraModel,
+    topview: TopView,
+    failures: Sequence[fl.Failure] = (),
+    seed: int = 0,
+    settings: SimSettings | None = None,
+) -> SimFrame:
+    """Simulate the photo taken after layer ``index``; same result as in :func:`simulate_print`."""
+    return PrintSimulator(toolpath, camera, topview, failures, seed, settings).frame(index)

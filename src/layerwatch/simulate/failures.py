@@ -1,0 +1,358 @@
+"""Failure descriptions, their resolution against a toolpath, and scenario sampling.
+
+A :class:`Failure` is a small frozen record (type, onset layer, size, seed and
+optional type parameters); :func:`resolve` turns it into concrete geometry for
+one toolpath (patch centre, shift vector, object capsules, strands), drawn
+deterministically from its seed. A :class:`Scenario` is a named tuple of
+failures (empty = clean control).
+
+Failure types (paper, Section 3): ``infill_defect`` (a), ``foreign_body`` (b),
+``spaghetti`` (c), ``detachment`` (d), ``thin_wall`` (e), ``layer_shift`` (f).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from layerwatch.errors import ConfigError
+from layerwatch.gcode.toolpath import FEATURES, Toolpath
+
+__all__ = [
+    "FAILURE_TYPES",
+    "Failure",
+    "Scenario",
+    "ResolvedFailure",
+    "resolve",
+    "thin_wall_segments",
+    "random_scenarios",
+]
+
+FAILURE_TYPES: tuple[str, ...] = (
+    "infill_defect",
+    "foreign_body",
+    "spaghetti",
+    "detachment",
+    "thin_wall",
+    "layer_shift",
+)
+#: Default number of layers a patch defect stays missing (infill_defect, thin_wall).
+DEFAULT_DURATION = 3
+_INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
+_WALLS = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
+#: Material ids of the simulator's height field.
+MAT_BED, MAT_PART, MAT_STRAND, MAT_DARK, MAT_METAL, MAT_TOOL = range(6)
+
+
+@dataclass(frozen=True)
+class Failure:
+    """One injected failure.
+
+    Parameters
+    ----------
+    type : str
+        One of :data:`FAILURE_TYPES`.
+    onset : int
+        First layer index (0-based) where the failure is present.
+    size_mm : float
+        Patch / object / strand-cloud diameter, mm; for ``layer_shift`` and
+        ``detachment`` the displacement length, mm.
+    seed : int
+        Seed of the failure's own random choices (position, shape, direction).
+    center_mm : tuple of float or None
+        Where it happens on the bed, mm; None draws a point on the onset layer.
+    duration : int or None
+        Layers it stays visible (``infill_defect``/``thin_wall``; default 3);
+        other types last until the end of the print.
+    offset_mm : tuple of float or None
+        Displacement ``(dx, dy)`` for ``layer_shift``/``detachment``; None draws
+        a random direction of length ``size_mm``.
+    mode : str
+        ``infill_defect``: ``"missing"`` (segments removed) or ``"under"``
+        (under-extruded: beads at 30 % width).
+    """
+
+    type: str
+    onset: int
+    size_mm: float = 8.0
+    seed: int = 0
+    center_mm: tuple[float, float] | None = None
+    duration: int | None = None
+    offset_mm: tuple[float, float] | None = None
+    mode: str = "missing"
+
+    def __post_init__(self) -> None:
+        if self.type not in FAILURE_TYPES:
+            raise ConfigError(
+                f"unknown failure type '{self.type}'; use one of {', '.join(FAILURE_TYPES)}."
+            )
+        if self.onset < 0 or not self.size_mm > 0:
+            raise ConfigError("a failure needs onset >= 0 and size_mm > 0; fix the scenario.")
+        if self.mode not in ("missing", "under"):
+            raise ConfigError(f"failure mode must be 'missing' or 'under', got '{self.mode}'.")
+
+    def active(self, index: int) -> bool:
+        """True when the failure is present in the frame taken after layer ``index``."""
+        if index < self.onset:
+            return False
+        if self.type in ("infill_defect", "thin_wall"):
+            dur = DEFAULT_DURATION if self.duration is None else self.duration
+            return index < self.onset + dur
+        return True
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A named set of failures for one simulated print (empty = clean control)."""
+
+    failures: tuple[Failure, ...] = ()
+    name: str = "clean"
+
+    @property
+    def label(self) -> str:
+        return "+".join(f.type for f in self.failures) or "clean"
+
+
+@dataclass
+class ResolvedFailure:
+    """A failure made concrete for one toolpath (bed mm throughout)."""
+
+    failure: Failure
+    center: np.ndarray  # (2,)
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,)
+    angle: float = 0.0  # detachment rotation, rad
+    tilt: float = 0.0  # detachment tilt slope, mm/mm
+    select: np.ndarray | None = None  # bool (S,) segments a patch may remove
+    capsules: np.ndarray | None = None  # (N, 10) object capsules, b filled per frame
+    capsule_mat: np.ndarray | None = None  # uint8 (N,)
+    per_layer: int = 0  # spaghetti: strand segments added per layer
+
+    @property
+    def type(self) -> str:
+        return self.failure.type
+
+
+def _layer_points(tp: Toolpath, index: int, select: np.ndarray | None = None) -> np.ndarray:
+    sl = tp.layer_slice(index)
+    mid = 0.5 * (tp.start[sl] + tp.end[sl])
+    if select is not None:
+        mid = mid[select[sl]]
+    return mid
+
+
+def thin_wall_segments(tp: Toolpath, index: int, max_wall_mm: float = 2.2) -> np.ndarray:
+    """Segments of layer ``index`` that belong to thin walls.
+
+    A segment is in a thin wall when the layer's footprint is at most
+    ``max_wall_mm`` thick around its midpoint (twice the largest inscribed
+    radius within ``max_wall_mm`` of it).
+
+    Returns
+    -------
+    ndarray, bool, shape (n_segments_of_layer,)
+    """
+    import cv2
+
+    from layerwatch.geometry.topview import TopView
+    from layerwatch.simulate.raster import capsule_mask
+
+    sl = tp.layer_slice(index)
+    n = sl.stop - sl.start
+    if n == 0:
+        return np.zeros(0, bool)
+    x0, y0, x1, y1 = tp.layers[index].bounds
+    pad = 2.0
+    tv = TopView(10.0, x1 - x0 + 2 * pad, y1 - y0 + 2 * pad, ((x0 + x1) / 2, (y0 + y1) / 2))
+    fp = capsule_mask(tp.start[sl], tp.end[sl], tp.width[sl] / 2.0, tv).astype(np.uint8)
+    dist = cv2.distanceTransform(fp, cv2.DIST_L2, 5) / tv.px_per_mm
+    k = int(round(max_wall_mm * tv.px_per_mm)) | 1
+    local = cv2.dilate(dist, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    uv = np.round(tv.to_px(0.5 * (tp.start[sl] + tp.end[sl]))).astype(int)
+    uv[:, 0] = uv[:, 0].clip(0, fp.shape[1] - 1)
+    uv[:, 1] = uv[:, 1].clip(0, fp.shape[0] - 1)
+    thick = 2.0 * local[uv[:, 1], uv[:, 0]]
+    walls = np.isin(tp.feature[sl], _WALLS + (0,))
+    return walls & (thick <= max_wall_mm) & (thick > 0)
+
+
+def _selection(tp: Toolpath, f: Failure) -> np.ndarray:
+    """Per-segment bool: which segments a patch defect may remove."""
+    sel = np.zeros(tp.n_segments, bool)
+    dur = DEFAULT_DURATION if f.duration is None else f.duration
+    for i in range(f.onset, min(f.onset + dur, tp.n_layers)):
+        sl = tp.layer_slice(i)
+        if f.type == "thin_wall":
+            sel[sl] = thin_wall_segments(tp, i)
+            if not sel[sl].any():  # no thin walls: gaps in the outer perimeters
+                sel[sl] = tp.feature[sl] == FEATURES.index("external_perimeter")
+        else:
+            feats = tp.feature[sl]
+            sel[sl] = np.isin(feats, _INFILL)
+            if not sel[sl].any():
+                sel[sl] = True
+    return sel
+
+
+def _strands(rng: np.random.Generator, center: np.ndarray, radius: float, n_seg: int) -> np.ndarray:
+    """Smooth random-walk strands (capsules, b = NaN: draped on the surface)."""
+    rows = []
+    pos = center + rng.normal(0, radius / 3, 2)
+    heading = rng.uniform(0, 2 * np.pi)
+    turn = 0.0
+    for k in range(n_seg):
+        if k % 40 == 0:  # a new strand now and then
+            pos = center + rng.normal(0, radius / 3, 2)
+            heading = rng.uniform(0, 2 * np.pi)
+        turn = 0.8 * turn + rng.normal(0, 0.25)
+        heading += turn
+        if np.linalg.norm(pos - center) > radius:
+            heading = np.arctan2(*(center - pos)[::-1]) + rng.normal(0, 0.5)
+        step = 0.8 * np.array([np.cos(heading), np.sin(heading)])
+        r = rng.uniform(0.2, 0.3)
+        rows.append([*pos, *(pos + step), r, np.nan, 0.0, 1.6 * r, 0.1, rng.uniform(0, 6.3)])
+        pos = pos + step
+    return np.array(rows, dtype=np.float64).reshape(-1, 10)
+
+
+def _object(rng: np.random.Generator, center: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Capsules of a foreign object lying on the layer (b = 0: layer z added per frame)."""
+    kind = rng.integers(3)
+    ang = rng.uniform(0, np.pi)
+    d = np.array([np.cos(ang), np.sin(ang)])
+    nrm = np.array([-d[1], d[0]])
+    rows, mats = [], []
+
+    def cap(p0, p1, r, c, a, m):
+        rows.append([*p0, *p1, r, 0.0, c, a, 0.0, 0.0])
+        mats.append(m)
+
+    if kind == 0:  # a dark blob (burnt plastic lump)
+        for _ in range(3):
+            off = rng.normal(0, size / 8, 2)
+            cap(center + off - d * size / 8, center + off + d * size / 8, size / 3, 0.0, size * 0.3, MAT_DARK)
+    elif kind == 1:  # a screw lying on the part
+        r = max(size * 0.09, 0.6)
+        a0, a1 = center - d * size / 2, center + d * size / 2
+        cap(a0, a1, r, r, r, MAT_METAL)
+        cap(a0 - d * r, a0 - d * r, 2.0 * r, 0.0, 2.2 * r, MAT_METAL)
+    else:  # a hex key (L-shaped tool)
+        r = max(size * 0.05, 0.5)
+        a0, a1 = center - d * size / 2, center + d * size / 2
+        cap(a0, a1, r, r, r, MAT_TOOL)
+        cap(a1, a1 + nrm * size * 0.4, r, r, r, MAT_TOOL)
+    return np.array(rows, np.float64), np.array(mats, np.uint8)
+
+
+def resolve(f: Failure, tp: Toolpath) -> ResolvedFailure:
+    """Make a failure concrete for ``tp`` (deterministic from ``f.seed``).
+
+    Raises
+    ------
+    ConfigError
+        If the onset layer does not exist in the toolpath.
+    """
+    if f.onset >= tp.n_layers:
+        raise ConfigError(
+            f"failure onset layer {f.onset} is beyond the print's {tp.n_layers} layers; lower it."
+        )
+    rng = np.random.default_rng([f.seed, FAILURE_TYPES.index(f.type)])
+    sel = _selection(tp, f) if f.type in ("infill_defect", "thin_wall") else None
+    if f.center_mm is not None:
+        center = np.asarray(f.center_mm, float)
+    else:
+        pts = _layer_points(tp, f.onset, sel)
+        if len(pts) == 0:
+            pts = _layer_points(tp, f.onset)
+        center = pts[rng.integers(len(pts))] if len(pts) else np.zeros(2)
+    r = ResolvedFailure(f, center=center, select=sel)
+    if f.type in ("layer_shift", "detachment"):
+        if f.offset_mm is not None:
+            r.offset = np.asarray(f.offset_mm, float)
+        else:
+            a = rng.uniform(0, 2 * np.pi)
+            r.offset = f.size_mm * np.array([np.cos(a), np.sin(a)])
+        if f.type == "detachment":
+            b = tp.layers[f.onset].bounds
+            r.center = np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
+            r.angle = np.deg2rad(rng.uniform(3.0, 8.0)) * rng.choice([-1, 1])
+            r.tilt = np.tan(np.deg2rad(rng.uniform(0.5, 1.5)))
+    elif f.type == "foreign_body":
+        r.capsules, r.capsule_mat = _object(rng, center, f.size_mm)
+    elif f.type == "spaghetti":
+        r.per_layer = max(int(round(f.size_mm * 4)), 10)
+        remaining = tp.n_layers - f.onset
+        r.capsules = _strands(rng, center, f.size_mm / 2, r.per_layer * remaining)
+        r.capsule_mat = np.full(len(r.capsules), MAT_STRAND, np.uint8)
+    return r
+
+
+_SIZES = {
+    "infill_defect": (5.0, 12.0),
+    "foreign_body": (5.0, 14.0),
+    "spaghetti": (10.0, 25.0),
+    "detachment": (2.0, 6.0),
+    "thin_wall": (5.0, 10.0),
+    "layer_shift": (1.5, 5.0),
+}
+
+
+def _valid_onsets(tp: Toolpath, kind: str) -> list[int]:
+    first = min(2, tp.n_layers - 1)
+    layers = list(range(first, tp.n_layers))
+    if kind == "infill_defect":
+        ok = [i for i in layers if np.isin(tp.feature[tp.layer_slice(i)], _INFILL).sum() >= 5]
+        return ok or layers
+    if kind == "thin_wall":
+        ok = [i for i in layers if thin_wall_segments(tp, i).sum() >= 3]
+        return ok or [
+            i for i in layers
+            if (tp.feature[tp.layer_slice(i)] == FEATURES.index("external_perimeter")).any()
+        ]
+    return layers
+
+
+def random_scenarios(
+    tp: Toolpath,
+    n: int,
+    seed: int = 0,
+    types: tuple[str, ...] = FAILURE_TYPES,
+    clean_fraction: float = 1.0 / 7.0,
+) -> list[Scenario]:
+    """Sample ``n`` single-failure scenarios (and clean controls) for an evaluation.
+
+    Types cycle through ``types`` (a fraction ``clean_fraction`` of clean
+    controls interleaved); onsets are drawn among layers where the type makes
+    sense (infill present, thin walls present — else outer perimeters — and
+    never the first two layers); sizes from a per-type range in mm.
+
+    Returns
+    -------
+    list of Scenario
+    """
+    rng = np.random.default_rng(seed)
+    onsets = {t: _valid_onsets(tp, t) for t in types}
+    out: list[Scenario] = []
+    kinds = list(types)
+    n_clean = int(round(n * clean_fraction))
+    order = ["clean"] * n_clean + [kinds[k % len(kinds)] for k in range(n - n_clean)]
+    rng.shuffle(order)
+    for k, kind in enumerate(order):
+        if kind == "clean" or not onsets.get(kind):
+            out.append(Scenario((), name=f"s{k:03d}-clean"))
+            continue
+        lo, hi = _SIZES[kind]
+        f = Failure(
+            kind,
+            onset=int(rng.choice(onsets[kind])),
+            size_mm=float(rng.uniform(lo, hi)),
+            seed=int(rng.integers(2**31)),
+            mode="under" if (kind == "infill_defect" and rng.random() < 0.3) else "missing",
+        )
+        out.append(Scenario((f,), name=f"s{k:03d}-{kind}"))
+    return out
+
+
+def with_onset(f: Failure, onset: int) -> Failure:
+    """Copy of ``f`` starting at another layer."""
+    return replace(f, onset=onset)
