@@ -36,6 +36,8 @@ Dalal & Triggs (2005), "Histograms of Oriented Gradients for Human Detection".
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -44,7 +46,6 @@ from layerwatch.errors import AnalysisError
 __all__ = ["hog_blocks", "BLOCK_NORMS", "hog_cell_histograms", "gradients"]
 
 BLOCK_NORMS = ("L2-Hys", "L2", "L1", "L1-sqrt")
-_EPS = 1e-5
 
 
 def gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,10 +85,115 @@ def _bin_edges(bins: int) -> np.ndarray:
     return np.array([np.float32(width * np.float32(i)) for i in range(bins + 1)], dtype=np.float64)
 
 
-@njit(cache=True, nogil=True)
-def _cell_hist_kernel(g_row, g_col, theta, cell_px, n_cr, n_cc, edges, out):  # pragma: no cover - jit
+@njit(cache=True, nogil=True, inline="always")
+def _bin_of(gr, gc, mag, cos_e, sin_e, edges):  # pragma: no cover - jit
+    """Orientation bin of one gradient as skimage assigns it, or -1 (no bin).
+
+    skimage bins ``rad2deg(arctan2(gr, gc)) % 180`` against the edges. We fold
+    the gradient into the upper half plane and count the edges ``e`` with
+    ``angle >= e`` through the sign of ``sin(angle - e)``; only when a
+    gradient lies within 1e-9 rad of an edge do we fall back to skimage's
+    degree arithmetic (libm atan2), which decides ties exactly as it does.
+    """
     bins = edges.size - 1
-    inv_w = bins / 180.0
+    fr, fc = gr, gc
+    if fr < 0.0 or (fr == 0.0 and fc < 0.0):
+        fr = -fr
+        fc = -fc
+    # an edge at 180 degrees bounds nothing: folded angles are < 180
+    last = bins if edges[bins] < 180.0 else bins - 1
+    b = 0
+    close = False
+    for i in range(1, last + 1):
+        t = fr * cos_e[i] - fc * sin_e[i]
+        if t >= 0.0:
+            b += 1
+        if abs(t) <= 1e-9 * mag:
+            close = True
+    if close:
+        ang = math.atan2(gr, gc) * (180.0 / np.pi)
+        if ang >= 180.0:
+            ang = 0.0
+        elif ang < 0.0:
+            ang += 180.0
+        b = 0
+        while b < bins and ang >= edges[b + 1]:
+            b += 1
+    # b == bins: at or above the last (float32) edge, outside every bin
+    return b if b < bins else -1
+
+
+@njit(cache=True, nogil=True)
+def _hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pragma: no cover - jit
+    """Fused gradient + binning + cell accumulation for a grey image of any real dtype."""
+    h, w = img.shape
+    bins = edges.size - 1
+    area = cell_px * cell_px
+    acc = np.zeros(bins, dtype=np.float32)
+    for ci in range(n_cr):
+        for cj in range(n_cc):
+            acc[:] = 0.0
+            for r in range(ci * cell_px, ci * cell_px + cell_px):
+                row_in = 0 < r < h - 1
+                for c in range(cj * cell_px, cj * cell_px + cell_px):
+                    gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
+                    gc = float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0
+                    if gr == 0.0 and gc == 0.0:
+                        continue
+                    mag = math.sqrt(gr * gr + gc * gc)
+                    b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
+                    if b >= 0:  # single-precision accumulation, as skimage's cell_hog
+                        acc[b] = np.float32(np.float64(acc[b]) + mag)
+            for b in range(bins):
+                out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+
+
+@njit(cache=True, nogil=True)
+def _hist_from_u8(img, cell_px, n_cr, n_cc, lut, bins, out):  # pragma: no cover - jit
+    """uint8 fast path: integer gradients, bin looked up in a table made with numpy's arctan2."""
+    h, w = img.shape
+    area = cell_px * cell_px
+    acc = np.zeros(bins, dtype=np.float32)
+    for ci in range(n_cr):
+        for cj in range(n_cc):
+            acc[:] = 0.0
+            for r in range(ci * cell_px, ci * cell_px + cell_px):
+                row_in = 0 < r < h - 1
+                for c in range(cj * cell_px, cj * cell_px + cell_px):
+                    gr = np.int32(img[r + 1, c]) - np.int32(img[r - 1, c]) if row_in else np.int32(0)
+                    gc = np.int32(img[r, c + 1]) - np.int32(img[r, c - 1]) if 0 < c < w - 1 else np.int32(0)
+                    if gr == 0 and gc == 0:
+                        continue
+                    b = lut[gr + 255, gc + 255]
+                    if b >= 0:
+                        mag = math.sqrt(np.float64(gr * gr + gc * gc))
+                        acc[b] = np.float32(np.float64(acc[b]) + mag)
+            for b in range(bins):
+                out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+
+
+_U8_LUTS: dict[int, np.ndarray] = {}
+
+
+def _u8_bin_table(bins: int) -> np.ndarray:
+    """Bin of every integer gradient (g_row, g_col) in [-255, 255]^2, -1 for none.
+
+    Computed with skimage's own arithmetic (numpy ``arctan2``, ``rad2deg``,
+    ``% 180``, float32 edges), so uint8 images bin exactly as in skimage.
+    """
+    if bins not in _U8_LUTS:
+        g = np.arange(-255, 256, dtype=np.float64)
+        ang = np.rad2deg(np.arctan2(g[:, None], g[None, :])) % 180
+        edges = _bin_edges(bins)
+        b = np.searchsorted(edges, ang, side="right") - 1
+        b[(b < 0) | (b >= bins)] = -1
+        _U8_LUTS[bins] = b.astype(np.int8 if bins < 127 else np.int16)
+    return _U8_LUTS[bins]
+
+
+@njit(cache=True, nogil=True)
+def _hist_from_gradients(g_row, g_col, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pragma: no cover - jit
+    bins = edges.size - 1
     area = cell_px * cell_px
     acc = np.zeros(bins, dtype=np.float32)
     for ci in range(n_cr):
@@ -97,26 +203,12 @@ def _cell_hist_kernel(g_row, g_col, theta, cell_px, n_cr, n_cc, edges, out):  # 
                 for c in range(cj * cell_px, cj * cell_px + cell_px):
                     gr = g_row[r, c]
                     gc = g_col[r, c]
-                    mag = np.sqrt(gr * gr + gc * gc)
-                    if mag == 0.0:
+                    if gr == 0.0 and gc == 0.0:
                         continue
-                    # == np.remainder(rad2deg(theta), 180) for theta in [-pi, pi]
-                    ang = theta[r, c] * (180.0 / np.pi)
-                    if ang >= 180.0:
-                        ang = 0.0
-                    elif ang < 0.0:
-                        ang += 180.0
-                    b = int(ang * inv_w)
-                    if b > bins - 1:
-                        b = bins - 1
-                    while b > 0 and ang < edges[b]:
-                        b -= 1
-                    while b < bins - 1 and ang >= edges[b + 1]:
-                        b += 1
-                    if ang < edges[b] or ang >= edges[b + 1]:
-                        continue  # outside every bin (float32 edge < 180)
-                    # single-precision accumulation, as skimage's cell_hog
-                    acc[b] = np.float32(np.float64(acc[b]) + mag)
+                    mag = math.sqrt(gr * gr + gc * gc)
+                    b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
+                    if b >= 0:
+                        acc[b] = np.float32(np.float64(acc[b]) + mag)
             for b in range(bins):
                 out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
 
@@ -145,12 +237,19 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
     if gamma:
         if np.any(img < 0):
             raise AnalysisError("gamma=True needs non-negative intensities; pass gamma=False.")
-        img = np.sqrt(img)
+        img = np.sqrt(img.astype(np.float64))
     n_cr, n_cc = img.shape[0] // cell_px, img.shape[1] // cell_px
-    g_row, g_col = gradients(img)
-    theta = np.arctan2(g_row, g_col)
+    edges = _bin_edges(bins)
+    rad = np.deg2rad(edges)
+    cos_e, sin_e = np.cos(rad), np.sin(rad)
     out = np.zeros((n_cr, n_cc, bins), dtype=np.float64)
-    _cell_hist_kernel(g_row, g_col, theta, int(cell_px), n_cr, n_cc, _bin_edges(bins), out)
+    if img.dtype == np.uint8:
+        _hist_from_u8(img, int(cell_px), n_cr, n_cc, _u8_bin_table(bins), bins, out)
+    elif img.ndim == 2:
+        _hist_from_image(img, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
+    else:
+        g_row, g_col = gradients(img)
+        _hist_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
     return out
 
 
@@ -162,10 +261,13 @@ def _check_image(image: np.ndarray) -> np.ndarray:
         )
     if arr.dtype.kind not in "uif":
         raise AnalysisError(f"HOG needs a numeric image, got dtype {arr.dtype}; convert to uint8 or float.")
-    img = arr.astype(np.float64, copy=False)
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[..., 0]
-    if not np.all(np.isfinite(img)):
+    img = arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
+    # grey uint8/uint16/float32/float64 go to the kernel as they are (it
+    # subtracts in float64); colour and other integer types become float64
+    if img.ndim == 3 or img.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        img = img.astype(np.float64)
+    img = np.ascontiguousarray(img)
+    if img.dtype.kind == "f" and not np.all(np.isfinite(img)):
         raise AnalysisError("image contains NaN or infinite values; replace them before the analysis.")
     return img
 
@@ -189,26 +291,53 @@ def normalize_blocks(hist: np.ndarray, block_cells: int = 2, block_norm: str = "
     """
     if block_norm not in BLOCK_NORMS:
         raise AnalysisError(f"unknown block_norm {block_norm!r}; use one of {', '.join(BLOCK_NORMS)}.")
-    b = block_cells
+    b = int(block_cells)
     n = hist.shape[0] - b + 1
     m = hist.shape[1] - b + 1
+    out = np.empty((n, m, b * b * hist.shape[2]), dtype=np.float64)
+    _normalize_kernel(np.ascontiguousarray(hist, dtype=np.float64), b, BLOCK_NORMS.index(block_norm), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _normalize_kernel(hist, b, method, out):  # pragma: no cover - jit
+    """skimage's _hog_normalize_block for every block; method indexes BLOCK_NORMS."""
+    n, m, k = out.shape
     bins = hist.shape[2]
-    blocks = np.empty((n, m, b, b, bins), dtype=np.float64)
-    for di in range(b):
-        for dj in range(b):
-            blocks[:, :, di, dj, :] = hist[di : di + n, dj : dj + m, :]
-    blocks = blocks.reshape(n, m, b * b * bins)
-    if block_norm == "L1":
-        blocks /= blocks.sum(axis=2, keepdims=True) + _EPS  # hist >= 0: |x| = x
-    elif block_norm == "L1-sqrt":
-        blocks /= blocks.sum(axis=2, keepdims=True) + _EPS
-        np.sqrt(blocks, out=blocks)
-    else:
-        blocks /= np.sqrt(np.einsum("nmk,nmk->nm", blocks, blocks) + _EPS**2)[..., None]
-        if block_norm == "L2-Hys":
-            np.minimum(blocks, 0.2, out=blocks)
-            blocks /= np.sqrt(np.einsum("nmk,nmk->nm", blocks, blocks) + _EPS**2)[..., None]
-    return blocks
+    eps = 1e-5
+    v = np.empty(k, dtype=np.float64)
+    for i in range(n):
+        for j in range(m):
+            t = 0
+            for di in range(b):
+                for dj in range(b):
+                    for o in range(bins):
+                        v[t] = hist[i + di, j + dj, o]
+                        t += 1
+            if method >= 2:  # L1, L1-sqrt (histograms are >= 0, so |x| = x)
+                den = eps
+                for t in range(k):
+                    den += v[t]
+                for t in range(k):
+                    x = v[t] / den
+                    out[i, j, t] = math.sqrt(x) if method == 3 else x
+                continue
+            s2 = 0.0
+            for t in range(k):
+                s2 += v[t] * v[t]
+            den = math.sqrt(s2 + eps * eps)
+            if method == 1:
+                for t in range(k):
+                    out[i, j, t] = v[t] / den
+                continue
+            s2 = 0.0  # L2-Hys: clip at 0.2 and renormalise
+            for t in range(k):
+                x = min(v[t] / den, 0.2)
+                v[t] = x
+                s2 += x * x
+            den = math.sqrt(s2 + eps * eps)
+            for t in range(k):
+                out[i, j, t] = v[t] / den
 
 
 def hog_blocks(

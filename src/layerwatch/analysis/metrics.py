@@ -109,11 +109,11 @@ class _Pair:
     def _absdiff(self):
         return np.abs(self.a - self.b).sum(axis=-1)
 
-    def _empty_a(self):
-        return np.abs(self.a).sum(axis=-1) <= _TINY
+    def _empty_a(self):  # all-zero block: Euclidean norm <= 1e-12
+        return self.get("aa") <= _TINY * _TINY
 
     def _empty_b(self):
-        return np.abs(self.b).sum(axis=-1) <= _TINY
+        return self.get("bb") <= _TINY * _TINY
 
     def _const_a(self):
         return np.ptp(self.a, axis=-1) <= _TINY

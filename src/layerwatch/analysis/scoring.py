@@ -15,10 +15,12 @@ cells of 16 px (or of 8-px cells at half the scale, 3.33 px/mm). We could not
 reconcile it with 8-px cells at 6.67 px/mm and report the geometric value;
 :func:`block_geometry` gives both numbers, and 4-px cells halve them.
 
-Which blocks count. Blocks overlapping the footprint grown by
-``settings.footprint_margin_mm`` (so spaghetti or a detached part beside the
-print counts although the reference is empty there) and lying wholly inside
-``valid`` (pixels the camera saw). A block is anomalous when its similarity is
+Which blocks count. Blocks that have a cell within
+``settings.footprint_margin_mm`` of a cell containing footprint pixels (cell
+centre to cell centre, so the margin is resolved to whole cells, 1.2 mm for
+the defaults; spaghetti or a detached part beside the print counts although
+the reference is empty there) and that lie wholly inside ``valid`` (pixels
+the camera saw). A block is anomalous when its similarity is
 below ``settings.threshold`` (T_S); anomalous blocks in connected groups
 (8-connectivity) smaller than ``settings.min_region_blocks`` are dropped.
 
@@ -79,13 +81,18 @@ def block_geometry(cell_px: int = 8, block_cells: int = 2, px_per_mm: float = 6.
 
 
 def to_grey255(image: np.ndarray, name: str = "image") -> np.ndarray:
-    """Grey float32 (H, W) on a 0-255 scale (see module notes); raises on NaN/bad dtype."""
+    """Grey (H, W) image on a 0-255 scale (see module notes); raises on NaN/bad dtype.
+
+    Grey uint8 input is returned unchanged (no copy); everything else becomes float32.
+    """
     arr = np.asarray(image)
     if arr.ndim == 3 and arr.shape[2] in (1, 3, 4):
         arr = arr[..., :3] if arr.shape[2] == 4 else arr
     elif arr.ndim != 2:
         raise AnalysisError(f"{name} must be (H, W) grey or (H, W, 3) colour, got shape {arr.shape}.")
     if arr.dtype == np.uint8:
+        if arr.ndim == 2:
+            return arr
         scale = 1.0
     elif arr.dtype == np.uint16:
         scale = 1.0 / 257.0
@@ -108,24 +115,35 @@ def _mask(arr, shape, name) -> np.ndarray:
     return m.astype(bool, copy=False)
 
 
-def _box_sums(mask: np.ndarray, r0: np.ndarray, c0: np.ndarray, size: int) -> np.ndarray:
-    """Pixel counts of ``mask`` in squares ``[r0, r0+size) x [c0, c0+size)``, shape (len r0, len c0)."""
+def _integral(mask: np.ndarray) -> np.ndarray:
+    """Summed-area table of a bool mask, shape (H+1, W+1), int32 (TopView caps H*W at 64e6)."""
     import cv2
 
-    integ = cv2.integral(mask.view(np.uint8)).astype(np.int64, copy=False)
-    r1 = np.minimum(r0 + size, mask.shape[0])
-    c1 = np.minimum(c0 + size, mask.shape[1])
+    return cv2.integral(mask.view(np.uint8))
+
+
+def _box_sums(integ: np.ndarray, r0: np.ndarray, c0: np.ndarray, size: int) -> np.ndarray:
+    """Pixel counts in squares ``[r0, r0+size) x [c0, c0+size)`` from a summed-area table."""
+    r1 = np.minimum(r0 + size, integ.shape[0] - 1)
+    c1 = np.minimum(c0 + size, integ.shape[1] - 1)
     return integ[r1][:, c1] - integ[r0][:, c1] - integ[r1][:, c0] + integ[r0][:, c0]
 
 
-def _dilate(mask: np.ndarray, radius_px: float) -> np.ndarray:
-    """Pixels within ``radius_px`` (Euclidean) of the mask."""
-    if radius_px <= 0 or not mask.any():
-        return mask
-    import cv2
+def _near_blocks(cell_counts: np.ndarray, block_cells: int, margin_cells: float) -> np.ndarray:
+    """Blocks with a cell whose centre is within ``margin_cells`` of a footprint cell."""
+    from scipy import ndimage
 
-    dist = cv2.distanceTransform((~mask).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return dist <= radius_px
+    occ = cell_counts > 0
+    if not occ.any():
+        return np.zeros((occ.shape[0] - block_cells + 1, occ.shape[1] - block_cells + 1), bool)
+    near = ndimage.distance_transform_edt(~occ) <= margin_cells + 1e-9 if margin_cells > 0 else occ
+    b = block_cells
+    n, m = near.shape[0] - b + 1, near.shape[1] - b + 1
+    out = np.zeros((n, m), bool)
+    for di in range(b):
+        for dj in range(b):
+            out |= near[di : di + n, dj : dj + m]
+    return out
 
 
 def _regions(anom, heat, foot_frac, grid, topview) -> tuple[np.ndarray, list[Region]]:
@@ -251,12 +269,14 @@ def analyze_layer(
 
     n, m = heat.shape
     rows, cols = np.arange(n) * c, np.arange(m) * c
-    grown = _dilate(foot, st.footprint_margin_mm * topview.px_per_mm)
-    considered = _box_sums(grown, rows, cols, b * c) > 0
+    foot_int = _integral(foot)
+    cells_r, cells_c = np.arange(n + b - 1) * c, np.arange(m + b - 1) * c
+    margin_cells = st.footprint_margin_mm * topview.px_per_mm / c
+    considered = _near_blocks(_box_sums(foot_int, cells_r, cells_c, c), b, margin_cells)
     if valid is not None:
-        considered &= _box_sums(~seen, rows, cols, b * c) == 0
+        considered &= _box_sums(_integral(~seen), rows, cols, b * c) == 0
     off = (b - 1) * c // 2
-    foot_frac = _box_sums(foot, rows + off, cols + off, c) / float(c * c)
+    foot_frac = _box_sums(foot_int, rows + off, cols + off, c) / float(c * c)
     anom, regions = _regions(
         considered & (heat < st.threshold), heat, foot_frac,
         {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}, topview,
@@ -264,7 +284,8 @@ def analyze_layer(
     t3 = time.perf_counter()
 
     tile_mm2 = (c / topview.px_per_mm) ** 2
-    printed = float(np.count_nonzero(foot & seen)) / topview.px_per_mm**2
+    n_printed = int(foot_int[-1, -1]) if valid is None else int(np.count_nonzero(foot & seen))
+    printed = n_printed / topview.px_per_mm**2
     anom_area = float(anom.sum()) * tile_mm2
     outside = float((1.0 - foot_frac[anom]).sum()) * tile_mm2
     res = LayerResult(
