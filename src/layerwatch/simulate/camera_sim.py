@@ -51,10 +51,10 @@ from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.simulate import failures as fl
-from layerwatch.simulate.raster import capsule_mask, grid_params, stamp_capsules
+from layerwatch.simulate.raster import capsule_mask, grid_params, solid_area, stamp_capsules
 from layerwatch.simulate.scene import default_markers
 from layerwatch.simulate.settings import SimSettings
-from layerwatch.simulate.shade import render_view
+from layerwatch.simulate.shade import bed_albedo_image, finish, render_view
 
 __all__ = ["SimFrame", "PrintSimulator", "simulate_layer", "simulate_print"]
 
@@ -68,7 +68,11 @@ class SimFrame:
     photo : ndarray, uint8, shape (h, w, 3)
         Camera view, BGR.
     truth : ndarray, bool, shape topview.shape, or None
-        Where the layer differs from the plan (None: no failure active).
+        Where the layer differs from the plan (None: no failure active); exact
+        footprints (e.g. the removed beads of an infill patch).
+    truth_area : ndarray, bool, shape topview.shape, or None
+        ``truth`` closed over gaps up to 3 mm (the failed *region*, e.g. the
+        whole patch): the reference for localisation IoU.
     meta : dict
         ``layer``, ``z``, ``failures`` (active types), ``failed``, ``light``,
         ``exposure``, ``blur_px``, ``seconds``.
@@ -77,6 +81,7 @@ class SimFrame:
     photo: np.ndarray
     truth: np.ndarray | None
     meta: dict = field(default_factory=dict)
+    truth_area: np.ndarray | None = None
 
     @property
     def layer(self) -> int:
@@ -149,7 +154,10 @@ class PrintSimulator:
         w, h = camera.image_size
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
-        self.vignette = (1 - st.vignetting * r2)[..., None].astype(np.float32)
+        self.vignette = (1 - st.vignetting * r2).astype(np.float32)
+        self.bed_alb = bed_albedo_image(self.dirs, self.C, self.bed, np.asarray(st.bed_rgb, float),
+                                        np.asarray(st.background_rgb, float), self.markers,
+                                        st.marker_diameter_mm / 2, self.seed)
         nrng = np.random.default_rng([self.seed, 99])
         self.noise_bank = nrng.standard_normal((h + 32, w + 32, 3), dtype=np.float32)
         self.lut = (np.clip(np.linspace(0, 1, 4096), 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
@@ -202,7 +210,7 @@ class PrintSimulator:
                 parts.append((a1[post], p1[hit][post], w[hit][post], scale[hit][post]))
                 if rf.failure.mode == "under":
                     parts.append((a0, a1, w[hit], np.full(len(a0), 0.3)))
-                p0, p1, w, scale = (np.concatenate(x) for x in zip(*parts))
+                p0, p1, w, scale = (np.concatenate(x) for x in zip(*parts, strict=True))
         for rf in self.failures:
             if rf.type == "layer_shift" and i >= rf.failure.onset:
                 p0, p1 = p0 + rf.offset, p1 + rf.offset
@@ -267,7 +275,7 @@ class PrintSimulator:
         H, W = out.shape
         ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
         out[uv[ok, 1], uv[ok, 0]] = 1
-        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
         return out.astype(bool)
 
     def frame(self, index: int) -> SimFrame:
@@ -276,13 +284,13 @@ class PrintSimulator:
             raise ConfigError(f"layer {index} does not exist (0..{self.tp.n_layers - 1}).")
         t0 = time.perf_counter()
         self.advance(index)
-        tp, tv, st = self.tp, self.topview, self.settings
+        tp, tv = self.tp, self.topview
         lay = tp.layers[index]
         h, mat = self.h.copy(), self.mat.copy()
         truth = np.zeros(tv.shape, bool)
         active = []
         nominal = None
-        for k, rf in enumerate(self.failures):
+        for rf in self.failures:
             f = rf.failure
             if not f.active(index):
                 continue
@@ -291,12 +299,12 @@ class PrintSimulator:
                 if nominal is None:
                     sl = tp.layer_slice(index)
                     nominal = (tp.start[sl], tp.end[sl], tp.width[sl] / 2.0)
-                fp = capsule_mask(*nominal, tv)
+                fp = solid_area(*nominal, tv)
                 if f.type == "layer_shift":
-                    moved = capsule_mask(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
+                    moved = solid_area(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
                 else:
                     h, mat = self._detach(rf, h, mat)
-                    moved = capsule_mask(*(_apply_affine(rf, p) for p in nominal[:2]), nominal[2], tv)
+                    moved = solid_area(*(_apply_affine(rf, p) for p in nominal[:2]), nominal[2], tv)
                 truth |= fp ^ moved
         for k, rf in enumerate(self.failures):
             f = rf.failure
@@ -323,7 +331,8 @@ class PrintSimulator:
             **info,
             "seconds": time.perf_counter() - t0,
         }
-        return SimFrame(photo, truth if active else None, meta)
+        area = _close(truth, tv, 3.0) if active else None
+        return SimFrame(photo, truth if active else None, meta, area)
 
     def _photograph(self, h, mat, index, layer_h):
         st = self.settings
@@ -361,27 +370,29 @@ class PrintSimulator:
         w, hh = self.camera.image_size
         rad = np.empty((hh, w, 3), np.float32)
         render_view(self.dirs, self.C, h, mat, nrm.astype(np.float32), ao, *self.gp, zmax, bbox,
-                    self.albedo, self.spec, light, self.bed, np.asarray(st.bed_rgb, float),
-                    np.asarray(st.background_rgb, float), self.markers, st.marker_diameter_mm / 2,
-                    float(layer_h), self.seed, rad)
+                    self.albedo, self.spec, light, self.bed_alb,
+                    np.asarray(st.background_rgb, float), float(layer_h), rad)
         # camera: exposure and white-balance drift, vignetting, blur, noise, gamma
         ph = np.random.default_rng([self.seed, 3]).uniform(0, 2 * np.pi, 4)
         expo = st.exposure * (1 + st.exposure_drift * np.sin(2 * np.pi * index / 37 + ph[0])
                               + rng.normal(0, st.exposure_drift / 3))
         wb = 1 + st.colour_drift * np.sin(2 * np.pi * index / 53 + ph[1:]) + rng.normal(0, 0.01, 3)
         gain = (expo * wb).astype(np.float32)
-        img = rad * self.vignette
-        img *= gain
         sigma = float(rng.uniform(*st.blur_px))
-        img = cv2.GaussianBlur(img, (0, 0), sigma)
-        oy, ox = rng.integers(0, 32, 2)
-        noise = self.noise_bank[oy:oy + hh, ox:ox + w]
-        sd = np.sqrt(st.read_noise**2 + st.shot_noise**2 * np.clip(img, 0, None))
-        img += noise * sd
-        idx = np.clip(img * 4095, 0, 4095).astype(np.int16)
-        photo = self.lut[idx][..., ::-1]
+        img = cv2.GaussianBlur(rad, (0, 0), sigma)
+        oy, ox = (int(v) for v in rng.integers(0, 32, 2))
+        photo = np.empty((hh, w, 3), np.uint8)
+        finish(img, self.vignette, gain.astype(np.float64), self.noise_bank, oy, ox,
+               st.read_noise, st.shot_noise, self.lut, photo)
         info = {"light_mm": lpos.round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
-        return np.ascontiguousarray(photo), info
+        return photo, info
+
+
+def _close(mask: np.ndarray, tv: TopView, mm: float) -> np.ndarray:
+    k = max(int(round(mm * tv.px_per_mm)) | 1, 3)
+    m = cv2.copyMakeBorder(mask.astype(np.uint8), k, k, k, k, cv2.BORDER_CONSTANT, value=0)
+    m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return m[k:-k, k:-k].astype(bool) | mask
 
 
 def _affine_mm(rf) -> np.ndarray:

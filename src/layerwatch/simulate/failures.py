@@ -155,7 +155,7 @@ def thin_wall_segments(tp: Toolpath, index: int, max_wall_mm: float = 2.2) -> np
     import cv2
 
     from layerwatch.geometry.topview import TopView
-    from layerwatch.simulate.raster import capsule_mask
+    from layerwatch.simulate.raster import solid_area
 
     sl = tp.layer_slice(index)
     n = sl.stop - sl.start
@@ -164,7 +164,7 @@ def thin_wall_segments(tp: Toolpath, index: int, max_wall_mm: float = 2.2) -> np
     x0, y0, x1, y1 = tp.layers[index].bounds
     pad = 2.0
     tv = TopView(10.0, x1 - x0 + 2 * pad, y1 - y0 + 2 * pad, ((x0 + x1) / 2, (y0 + y1) / 2))
-    fp = capsule_mask(tp.start[sl], tp.end[sl], tp.width[sl] / 2.0, tv).astype(np.uint8)
+    fp = solid_area(tp.start[sl], tp.end[sl], tp.width[sl] / 2.0, tv).astype(np.uint8)
     dist = cv2.distanceTransform(fp, cv2.DIST_L2, 5) / tv.px_per_mm
     k = int(round(max_wall_mm * tv.px_per_mm)) | 1
     local = cv2.dilate(dist, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))

@@ -70,7 +70,7 @@ def box_part(
             ends.append([[cx + xs[1], cy + ys[1]]])
             feats.append(inf)
         if fin:
-            x0 = cx + h + 4.0
+            x0 = cx + h + 6.0
             a, b = _loop(x0, cy - 6.0, x0 + width, cy + 6.0)
             starts.append(a)
             ends.append(b)

@@ -139,3 +139,24 @@ def capsule_mask(start: np.ndarray, end: np.ndarray, half_width, topview) -> np.
         s, ux0, vy0 = grid_params(topview)
         _capsule_mask(out, p0, p1, r, s, ux0, vy0)
     return out
+
+
+def solid_area(start: np.ndarray, end: np.ndarray, half_width, topview, close_mm: float = 3.0):
+    """Area covered by a layer: its capsule footprint closed over gaps up to ``close_mm``.
+
+    Sparse infill leaves gaps between beads; the *area* of the layer (what a
+    shifted or displaced layer uncovers) closes them with a disc of diameter
+    ``close_mm``.
+
+    Returns
+    -------
+    ndarray, bool, shape topview.shape
+    """
+    import cv2
+
+    fp = capsule_mask(start, end, half_width, topview).astype(np.uint8)
+    k = max(int(round(close_mm * topview.px_per_mm)) | 1, 3)
+    pad = k
+    fp = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+    fp = cv2.morphologyEx(fp, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return fp[pad:-pad, pad:-pad].astype(bool)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["render_view"]
+__all__ = ["render_view", "bed_albedo_image", "finish"]
 
 
 @njit(cache=True, inline="always")
@@ -67,13 +67,15 @@ def _bed_albedo(x, y, bed, bed_rgb, bg_rgb, markers, marker_r, seed, out):
 @njit(cache=True)
 def render_view(
     dirs, C, h, mat, nrm, ao, s, ux0, vy0, zmax, bbox,
-    albedo, spec, light, bed, bed_rgb, bg_rgb, markers, marker_r, layer_h, seed, out,
+    albedo, spec, light, bed_alb, bg_rgb, layer_h, out,
 ):
     """Ray-cast and shade one camera frame (linear radiance, float32 (h, w, 3)).
 
     ``light`` = ``[Lx, Ly, Lz, ax, ay, az, cos_in, cos_out, I, ambient, fill, dref]``;
     ``bbox`` = ``(xmin, ymin, xmax, ymax)`` of cells with height > 0 (mm);
-    ``albedo`` (nmat, 3) and ``spec`` (nmat, 2) = (ks, shininess) per material.
+    ``albedo`` (nmat, 3) and ``spec`` (nmat, 2) = (ks, shininess) per material;
+    ``bed_alb`` (h, w, 3): albedo of the bare bed seen by each pixel
+    (:func:`bed_albedo_image`).
     """
     Hc, Wc = dirs.shape[0], dirs.shape[1]
     Hg, Wg = h.shape
@@ -157,7 +159,8 @@ def render_view(
                 ks, shin = spec[m, 0], spec[m, 1]
             else:
                 px, py, pz = C[0] + t_bed * d0, C[1] + t_bed * d1, 0.0
-                _bed_albedo(px, py, bed, bed_rgb, bg_rgb, markers, marker_r, seed, alb)
+                for c in range(3):
+                    alb[c] = bed_alb[i, j, c]
                 nx, ny, nz = 0.0, 0.0, 1.0
                 u = int(ux0 + s * px + 0.5)
                 v = int(vy0 - s * py + 0.5)
@@ -180,3 +183,45 @@ def render_view(
             sp = ks * ndh**shin * inten * (1.0 if ndl > 0 else 0.0)
             for c in range(3):
                 out[i, j, c] = alb[c] * (amb + ndl * inten * (0.55 + 0.45 * occ)) + sp
+
+
+@njit(cache=True)
+def bed_albedo_image(dirs, C, bed, bed_rgb, bg_rgb, markers, marker_r, seed):
+    """Albedo of the bare bed (textured sheet, dot markers, background) per pixel, (h, w, 3)."""
+    Hc, Wc = dirs.shape[0], dirs.shape[1]
+    out = np.empty((Hc, Wc, 3), np.float32)
+    alb = np.zeros(3)
+    for i in range(Hc):
+        for j in range(Wc):
+            d2 = dirs[i, j, 2]
+            if d2 > -1e-6:
+                for c in range(3):
+                    out[i, j, c] = bg_rgb[c]
+                continue
+            t = C[2] / (-d2)
+            _bed_albedo(C[0] + t * dirs[i, j, 0], C[1] + t * dirs[i, j, 1], bed, bed_rgb, bg_rgb,
+                        markers, marker_r, seed, alb)
+            for c in range(3):
+                out[i, j, c] = alb[c]
+    return out
+
+
+@njit(cache=True)
+def finish(img, vignette, gain, noise, oy, ox, read, shot, lut, out):
+    """Sensor model: vignetting x gain, shot + read noise, gamma LUT; RGB float -> BGR uint8.
+
+    ``noise`` is a bank of standard normals larger than the image; ``(oy, ox)``
+    picks this frame's window; ``lut`` maps ``round(4095 * x)`` to 8 bits.
+    """
+    H, W = img.shape[0], img.shape[1]
+    r2, s2 = read * read, shot * shot
+    for i in range(H):
+        for j in range(W):
+            vg = vignette[i, j]
+            for c in range(3):
+                x = img[i, j, c] * vg * gain[c]
+                sd = np.sqrt(r2 + s2 * max(x, 0.0))
+                x += sd * noise[i + oy, j + ox, c]
+                k = int(x * 4095.0 + 0.5)
+                k = min(max(k, 0), 4095)
+                out[i, j, 2 - c] = lut[k]
