@@ -318,7 +318,7 @@ class PrintSimulator:
                 if f.type == "foreign_body":
                     rows[:, 5] = lay.z
                 else:
-                    rows = rows[: rf.per_layer * (index - f.onset + 1)]
+                    rows = rows[: rf.per_layer * (index - f.onset + 3)]
                 before = h.copy()
                 stamp_capsules(h, mat, before, rows, rf.capsule_mat[: len(rows)], *self.gp)
                 truth |= self._apparent(before, h, lay.z)

@@ -200,17 +200,20 @@ def _strands(rng: np.random.Generator, center: np.ndarray, radius: float, n_seg:
     pos = center + rng.normal(0, radius / 3, 2)
     heading = rng.uniform(0, 2 * np.pi)
     turn = 0.0
+    lift, phase = 1.0, 0.0
     for k in range(n_seg):
-        if k % 40 == 0:  # a new strand now and then
+        if k % 40 == 0:  # a new strand now and then, with its own loops above the surface
             pos = center + rng.normal(0, radius / 3, 2)
             heading = rng.uniform(0, 2 * np.pi)
+            lift, phase = rng.uniform(0.3, 2.5), rng.uniform(0, 2 * np.pi)
         turn = 0.8 * turn + rng.normal(0, 0.25)
         heading += turn
         if np.linalg.norm(pos - center) > radius:
             heading = np.arctan2(*(center - pos)[::-1]) + rng.normal(0, 0.5)
         step = 0.8 * np.array([np.cos(heading), np.sin(heading)])
-        r = rng.uniform(0.2, 0.3)
-        rows.append([*pos, *(pos + step), r, np.nan, 0.0, 1.6 * r, 0.1, rng.uniform(0, 6.3)])
+        r = rng.uniform(0.22, 0.4)
+        c = lift * abs(np.sin(0.25 * k + phase))
+        rows.append([*pos, *(pos + step), r, np.nan, c, 1.6 * r, 0.1, rng.uniform(0, 6.3)])
         pos = pos + step
     return np.array(rows, dtype=np.float64).reshape(-1, 10)
 
@@ -280,9 +283,9 @@ def resolve(f: Failure, tp: Toolpath) -> ResolvedFailure:
     elif f.type == "foreign_body":
         r.capsules, r.capsule_mat = _object(rng, center, f.size_mm)
     elif f.type == "spaghetti":
-        r.per_layer = max(int(round(f.size_mm * 4)), 10)
+        r.per_layer = max(int(round(f.size_mm * 10)), 20)
         remaining = tp.n_layers - f.onset
-        r.capsules = _strands(rng, center, f.size_mm / 2, r.per_layer * remaining)
+        r.capsules = _strands(rng, center, f.size_mm / 2, r.per_layer * (remaining + 2))
         r.capsule_mat = np.full(len(r.capsules), MAT_STRAND, np.uint8)
     return r
 

@@ -89,7 +89,7 @@ def default_camera(
             rvec, tvec = pose(d)
             uv = cv2.projectPoints(corners, rvec, tvec, K, np.asarray(dist, float))[0].reshape(-1, 2)
             span = max(np.ptp(uv[:, 0]) / w, np.ptp(uv[:, 1]) / h)
-            inside = np.all((uv > 0) & (uv < [w - 1, h - 1]))
+            inside = np.all((uv > [0.07 * w, 0.09 * h]) & (uv < [0.93 * w, 0.91 * h]))
             if inside and span <= fill:
                 break
             d *= 1.03
