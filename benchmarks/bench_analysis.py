@@ -96,7 +96,7 @@ def naive_analysis(top, ref, foot, metrics=("cosine",), threshold=0.7):
     return out
 
 
-def run(repeat: int = 7) -> dict[str, float]:
+def run(repeat: int = 25) -> dict[str, float]:
     ref, photo, foot = part_scene(0, "spaghetti", topview=TOPVIEW)
     assert photo.shape == (600, 600)
     settings = AnalysisSettings()
@@ -104,7 +104,7 @@ def run(repeat: int = 7) -> dict[str, float]:
     ours_one = _best(lambda: analyze_layer(photo, ref, foot, TOPVIEW, settings), repeat)
     ours_all = _best(lambda: analyze_layer(photo, ref, foot, TOPVIEW, settings, all_metrics=True), repeat)
     res = analyze_layer(photo, ref, foot, TOPVIEW, settings)
-    naive_one = _best(lambda: naive_analysis(photo, ref, foot), 2)
+    naive_one = _best(lambda: naive_analysis(photo, ref, foot), 3)
     naive_all = _best(lambda: naive_analysis(photo, ref, foot, METRIC_NAMES), 1)
     figures = {
         "ours_one_ms": ours_one,

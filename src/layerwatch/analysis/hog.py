@@ -150,26 +150,31 @@ def _hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pra
 
 @njit(cache=True, nogil=True)
 def _hist_from_u8(img, cell_px, n_cr, n_cc, lut, bins, out):  # pragma: no cover - jit
-    """uint8 fast path: integer gradients, bin looked up in a table made with numpy's arctan2."""
+    """uint8 fast path: integer gradients, bin looked up in a table made with numpy's arctan2.
+
+    Rows are walked in image order with one accumulator per cell of the
+    current cell row, which adds each cell's pixels in skimage's order.
+    """
     h, w = img.shape
     area = cell_px * cell_px
-    acc = np.zeros(bins, dtype=np.float32)
+    acc = np.zeros((n_cc, bins), dtype=np.float32)
     for ci in range(n_cr):
+        acc[:] = 0.0
+        for r in range(ci * cell_px, ci * cell_px + cell_px):
+            row_in = 0 < r < h - 1
+            for c in range(n_cc * cell_px):
+                gr = np.int32(img[r + 1, c]) - np.int32(img[r - 1, c]) if row_in else np.int32(0)
+                gc = np.int32(img[r, c + 1]) - np.int32(img[r, c - 1]) if 0 < c < w - 1 else np.int32(0)
+                if gr == 0 and gc == 0:
+                    continue
+                b = lut[gr + 255, gc + 255]
+                if b >= 0:
+                    mag = math.sqrt(np.float64(gr * gr + gc * gc))
+                    cj = c // cell_px
+                    acc[cj, b] = np.float32(np.float64(acc[cj, b]) + mag)
         for cj in range(n_cc):
-            acc[:] = 0.0
-            for r in range(ci * cell_px, ci * cell_px + cell_px):
-                row_in = 0 < r < h - 1
-                for c in range(cj * cell_px, cj * cell_px + cell_px):
-                    gr = np.int32(img[r + 1, c]) - np.int32(img[r - 1, c]) if row_in else np.int32(0)
-                    gc = np.int32(img[r, c + 1]) - np.int32(img[r, c - 1]) if 0 < c < w - 1 else np.int32(0)
-                    if gr == 0 and gc == 0:
-                        continue
-                    b = lut[gr + 255, gc + 255]
-                    if b >= 0:
-                        mag = math.sqrt(np.float64(gr * gr + gc * gc))
-                        acc[b] = np.float32(np.float64(acc[b]) + mag)
             for b in range(bins):
-                out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+                out[ci, cj, b] = np.float32(np.float64(acc[cj, b]) / area)
 
 
 _U8_LUTS: dict[int, np.ndarray] = {}
@@ -301,7 +306,11 @@ def normalize_blocks(hist: np.ndarray, block_cells: int = 2, block_norm: str = "
 
 @njit(cache=True, nogil=True)
 def _normalize_kernel(hist, b, method, out):  # pragma: no cover - jit
-    """skimage's _hog_normalize_block for every block; method indexes BLOCK_NORMS."""
+    """skimage's _hog_normalize_block for every block; method indexes BLOCK_NORMS.
+
+    Divisions are done as multiplications by the reciprocal (results agree
+    with skimage to a few ulp).
+    """
     n, m, k = out.shape
     bins = hist.shape[2]
     eps = 1e-5
@@ -309,35 +318,34 @@ def _normalize_kernel(hist, b, method, out):  # pragma: no cover - jit
     for i in range(n):
         for j in range(m):
             t = 0
+            s2 = 0.0
+            s1 = 0.0
             for di in range(b):
                 for dj in range(b):
                     for o in range(bins):
-                        v[t] = hist[i + di, j + dj, o]
+                        x = hist[i + di, j + dj, o]
+                        v[t] = x
+                        s1 += x
+                        s2 += x * x
                         t += 1
             if method >= 2:  # L1, L1-sqrt (histograms are >= 0, so |x| = x)
-                den = eps
+                inv = 1.0 / (s1 + eps)
                 for t in range(k):
-                    den += v[t]
-                for t in range(k):
-                    x = v[t] / den
-                    out[i, j, t] = math.sqrt(x) if method == 3 else x
+                    out[i, j, t] = math.sqrt(v[t] * inv) if method == 3 else v[t] * inv
                 continue
-            s2 = 0.0
-            for t in range(k):
-                s2 += v[t] * v[t]
-            den = math.sqrt(s2 + eps * eps)
+            inv = 1.0 / math.sqrt(s2 + eps * eps)
             if method == 1:
                 for t in range(k):
-                    out[i, j, t] = v[t] / den
+                    out[i, j, t] = v[t] * inv
                 continue
             s2 = 0.0  # L2-Hys: clip at 0.2 and renormalise
             for t in range(k):
-                x = min(v[t] / den, 0.2)
+                x = min(v[t] * inv, 0.2)
                 v[t] = x
                 s2 += x * x
-            den = math.sqrt(s2 + eps * eps)
+            inv = 1.0 / math.sqrt(s2 + eps * eps)
             for t in range(k):
-                out[i, j, t] = v[t] / den
+                out[i, j, t] = v[t] * inv
 
 
 def hog_blocks(
