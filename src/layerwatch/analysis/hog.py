@@ -28,6 +28,15 @@ input give identical descriptors.
 Block geometry: block ``(i, j)`` covers pixel rows
 ``[i*cell_px, i*cell_px + block_cells*cell_px)`` and the same columns.
 
+Speed: one fused Numba pass per image builds the cell histograms. For uint8
+images the gradients are integers in [-255, 255], so the bin of every
+possible gradient is tabulated once with numpy's own ``arctan2``/``rad2deg``/
+``% 180`` (identical to skimage's arithmetic); other dtypes fold the gradient
+into the upper half plane and compare it with each bin edge by the sign of a
+cross product, falling back to skimage's degree arithmetic within 1e-9 rad
+of an edge. float32 images are differenced in float64 (skimage subtracts in
+float32), a difference far below 1e-6 after normalisation.
+
 References
 ----------
 Petsiuk & Pearce (2022), Section 2.4 (HOG, 8-px cells, 2x2 blocks, 9 bins);

@@ -90,7 +90,7 @@ def overlay_image(
     topview: TopView,
     footprint: np.ndarray | None = None,
     *,
-    alpha: float = 0.45,
+    alpha: float = 0.75,
     caption: bool = True,
 ) -> np.ndarray:
     """Heatmap over the top view with failing regions and footprint outlined.
@@ -107,7 +107,8 @@ def overlay_image(
     footprint : ndarray, shape (H, W), bool, optional
         Layer footprint, outlined in cyan.
     alpha : float
-        Opacity of the heatmap colours.
+        Opacity of the heatmap colour on a block of similarity 0; a block of
+        similarity 1 gets 30 % of it.
     caption : bool
         Write layer, measure, threshold and a% in the top-left corner.
 
@@ -129,7 +130,10 @@ def overlay_image(
     colours = _colormap(heat)
     col_px = np.stack([block_tiles(colours[..., k], shape, c, b) for k in range(3)], axis=2)
     sel = block_tiles(mask, shape, c, b, fill=False)
-    blend = (1 - alpha) * img[sel].astype(np.float32) + alpha * col_px[sel].astype(np.float32)
+    # opacity grows with dissimilarity: matching areas get a light green tint,
+    # failing blocks a strong red, so the photo stays readable
+    weight = block_tiles(alpha * (0.3 + 0.7 * (1.0 - np.clip(heat, 0, 1))), shape, c, b)[sel][:, None]
+    blend = (1 - weight) * img[sel].astype(np.float32) + weight * col_px[sel].astype(np.float32)
     img[sel] = np.clip(blend + 0.5, 0, 255).astype(np.uint8)
     if footprint is not None:
         fp = np.asarray(footprint, bool)
