@@ -66,13 +66,15 @@ def _bed_albedo(x, y, bed, bed_rgb, bg_rgb, markers, marker_r, seed, out):
 
 @njit(cache=True)
 def render_view(
-    dirs, C, h, mat, nrm, ao, s, ux0, vy0, zmax, bbox,
+    dirs, C, h, mat, nrm, wn, ao, s, ux0, vy0, zmax, bbox,
     albedo, spec, light, bed_alb, bg_rgb, layer_h, out,
 ):
     """Ray-cast and shade one camera frame (linear radiance, float32 (h, w, 3)).
 
     ``light`` = ``[Lx, Ly, Lz, ax, ay, az, cos_in, cos_out, I, ambient, fill, dref]``;
     ``bbox`` = ``(xmin, ymin, xmax, ymax)`` of cells with height > 0 (mm);
+    ``nrm`` (H, W, 3) surface normals, ``wn`` (H, W, 2) smoothed horizontal
+    gradients used as wall normals;
     ``albedo`` (nmat, 3) and ``spec`` (nmat, 2) = (ks, shininess) per material;
     ``bed_alb`` (h, w, 3): albedo of the bare bed seen by each pixel
     (:func:`bed_albedo_image`).
@@ -144,7 +146,7 @@ def render_view(
                 for c in range(3):
                     alb[c] = albedo[m, c]
                 if wall:
-                    nx, ny = nrm[gv, gu, 0], nrm[gv, gu, 1]
+                    nx, ny = wn[gv, gu, 0], wn[gv, gu, 1]
                     nn = np.sqrt(nx * nx + ny * ny)
                     if nn < 0.2:
                         nx, ny, nn = -d0, -d1, np.sqrt(d0 * d0 + d1 * d1)
