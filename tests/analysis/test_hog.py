@@ -83,3 +83,15 @@ def test_energy_and_flat_images():
 def test_bad_images_raise(bad):
     with pytest.raises(AnalysisError):
         hog_blocks(bad)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+@pytest.mark.parametrize("bins", [2, 4, 8, 9])
+def test_gradients_exactly_on_bin_edges_match_skimage(dtype, bins):
+    """Ramps and steps put gradients at exactly 0/45/90/135 degrees: edges for 2, 4 and 8 bins."""
+    r, c = np.mgrid[0:40, 0:48]
+    rng = np.random.default_rng(bins)
+    img = np.where(r < 20, r + c, 3 * (c // 6)) + (r > 30) * 10 + rng.integers(0, 2, r.shape) * (c > 40)
+    img = img.astype(dtype)
+    ours = hog_blocks(img, cell_px=8, bins=bins)
+    np.testing.assert_allclose(ours, _sk(img, bins=bins), rtol=0, atol=1e-6)
