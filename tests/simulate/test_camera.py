@@ -100,3 +100,18 @@ def test_clean_frame_differs_from_reference_but_aligns(part, camera, topview):
     area = solid_area(part.start[sl], part.end[sl], part.width[sl] / 2, topview)
     seen = _filament(_warp_plane(fr.photo, camera, topview, part.layers[idx].z))
     assert _iou(seen & area, ref.mask | area) > 0.85
+
+
+def test_top_view_warper_lines_up_the_top_layer(tall_part, camera, topview):
+    warp = pytest.importorskip("layerwatch.geometry.warp")
+    top = tall_part.n_layers - 1
+    fr = simulate_layer(tall_part, top, camera, topview, seed=3)
+    sl = tall_part.layer_slice(top)
+    area = solid_area(tall_part.start[sl], tall_part.end[sl], tall_part.width[sl] / 2, topview)
+    img, valid = warp.TopViewWarper(camera, topview).warp(fr.photo, tall_part.layers[top].z)
+    assert valid[area].all()
+    seen = _filament(img) if img.ndim == 3 else None
+    if seen is not None:
+        assert (seen & area).sum() >= 0.9 * area.sum()
+        ours = _filament(_warp_plane(fr.photo, camera, topview, tall_part.layers[top].z))
+        assert _iou(seen, ours) > 0.9

@@ -4,7 +4,13 @@ See :mod:`layerwatch.simulate.camera_sim` for how the photos differ from the
 reference renderer.
 """
 
-from layerwatch.simulate.camera_sim import PrintSimulator, SimFrame, simulate_layer, simulate_print
+from layerwatch.simulate.camera_sim import (
+    PrintSimulator,
+    SimFrame,
+    save_frame,
+    simulate_layer,
+    simulate_print,
+)
 from layerwatch.simulate.failures import (
     FAILURE_TYPES,
     Failure,
@@ -25,6 +31,7 @@ __all__ = [
     "default_camera",
     "default_markers",
     "random_scenarios",
+    "save_frame",
     "simulate_layer",
     "simulate_print",
     "thin_wall_segments",

@@ -56,7 +56,7 @@ from layerwatch.simulate.scene import default_markers
 from layerwatch.simulate.settings import SimSettings
 from layerwatch.simulate.shade import bed_albedo_image, finish, render_view
 
-__all__ = ["SimFrame", "PrintSimulator", "simulate_layer", "simulate_print"]
+__all__ = ["SimFrame", "PrintSimulator", "save_frame", "simulate_layer", "simulate_print"]
 
 
 @dataclass
@@ -113,7 +113,7 @@ class PrintSimulator:
         With a pose; its ``image_size`` is the photo size.
     topview : TopView
         Frame of the truth masks.
-    failures : sequence of Failure
+    failures : sequence of Failure, or a Scenario
     seed : int
         Seed of print imperfections and camera effects.
     settings : SimSettings, optional
@@ -135,6 +135,8 @@ class PrintSimulator:
         self.tp, self.camera, self.topview = toolpath, camera, topview
         self.settings = settings or SimSettings()
         self.seed = int(seed)
+        if isinstance(failures, fl.Scenario):
+            failures = failures.failures
         self.failures = [fl.resolve(f, toolpath) for f in failures]
         st = self.settings
         m = st.grid_margin_mm
@@ -460,3 +462,27 @@ def simulate_layer(
 ) -> SimFrame:
     """Simulate the photo taken after layer ``index``; same result as in :func:`simulate_print`."""
     return PrintSimulator(toolpath, camera, topview, failures, seed, settings).frame(index)
+
+
+def save_frame(frame: SimFrame, folder, stem: str | None = None) -> dict:
+    """Write a frame as ``<stem>.png`` (photo), ``<stem>_truth.png`` and ``<stem>_area.png``
+    (masks, 0/255, only when a failure is active) and ``<stem>.json`` (meta).
+
+    ``stem`` defaults to ``layer_<NNNN>``. Returns the written paths by kind.
+    """
+    import json
+    from pathlib import Path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    stem = stem or f"layer_{frame.layer:04d}"
+    out = {"photo": folder / f"{stem}.png", "meta": folder / f"{stem}.json"}
+    cv2.imwrite(str(out["photo"]), frame.photo)
+    if frame.truth is not None:
+        out["truth"] = folder / f"{stem}_truth.png"
+        cv2.imwrite(str(out["truth"]), frame.truth.astype(np.uint8) * 255)
+        if frame.truth_area is not None:
+            out["area"] = folder / f"{stem}_area.png"
+            cv2.imwrite(str(out["area"]), frame.truth_area.astype(np.uint8) * 255)
+    out["meta"].write_text(json.dumps(frame.meta, indent=1))
+    return out
