@@ -45,11 +45,14 @@ Dalal & Triggs (2005), "Histograms of Oriented Gradients for Human Detection".
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from numba import njit
 
+from layerwatch.analysis.hog_kernels import (
+    hist_from_gradients,
+    hist_from_image,
+    hist_from_u8,
+    normalize_kernel,
+)
 from layerwatch.errors import AnalysisError
 
 __all__ = ["hog_blocks", "BLOCK_NORMS", "hog_cell_histograms", "gradients"]
@@ -94,98 +97,6 @@ def _bin_edges(bins: int) -> np.ndarray:
     return np.array([np.float32(width * np.float32(i)) for i in range(bins + 1)], dtype=np.float64)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _bin_of(gr, gc, mag, cos_e, sin_e, edges):  # pragma: no cover - jit
-    """Orientation bin of one gradient as skimage assigns it, or -1 (no bin).
-
-    skimage bins ``rad2deg(arctan2(gr, gc)) % 180`` against the edges. We fold
-    the gradient into the upper half plane and count the edges ``e`` with
-    ``angle >= e`` through the sign of ``sin(angle - e)``; only when a
-    gradient lies within 1e-9 rad of an edge do we fall back to skimage's
-    degree arithmetic (libm atan2), which decides ties exactly as it does.
-    """
-    bins = edges.size - 1
-    fr, fc = gr, gc
-    if fr < 0.0 or (fr == 0.0 and fc < 0.0):
-        fr = -fr
-        fc = -fc
-    # an edge at 180 degrees bounds nothing: folded angles are < 180
-    last = bins if edges[bins] < 180.0 else bins - 1
-    b = 0
-    close = False
-    for i in range(1, last + 1):
-        t = fr * cos_e[i] - fc * sin_e[i]
-        if t >= 0.0:
-            b += 1
-        if abs(t) <= 1e-9 * mag:
-            close = True
-    if close:
-        ang = math.atan2(gr, gc) * (180.0 / np.pi)
-        if ang >= 180.0:
-            ang = 0.0
-        elif ang < 0.0:
-            ang += 180.0
-        b = 0
-        while b < bins and ang >= edges[b + 1]:
-            b += 1
-    # b == bins: at or above the last (float32) edge, outside every bin
-    return b if b < bins else -1
-
-
-@njit(cache=True, nogil=True)
-def _hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pragma: no cover - jit
-    """Fused gradient + binning + cell accumulation for a grey image of any real dtype."""
-    h, w = img.shape
-    bins = edges.size - 1
-    area = cell_px * cell_px
-    acc = np.zeros(bins, dtype=np.float32)
-    for ci in range(n_cr):
-        for cj in range(n_cc):
-            acc[:] = 0.0
-            for r in range(ci * cell_px, ci * cell_px + cell_px):
-                row_in = 0 < r < h - 1
-                for c in range(cj * cell_px, cj * cell_px + cell_px):
-                    gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
-                    gc = float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0
-                    if gr == 0.0 and gc == 0.0:
-                        continue
-                    mag = math.sqrt(gr * gr + gc * gc)
-                    b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
-                    if b >= 0:  # single-precision accumulation, as skimage's cell_hog
-                        acc[b] = np.float32(np.float64(acc[b]) + mag)
-            for b in range(bins):
-                out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
-
-
-@njit(cache=True, nogil=True)
-def _hist_from_u8(img, cell_px, n_cr, n_cc, lut, bins, out):  # pragma: no cover - jit
-    """uint8 fast path: integer gradients, bin looked up in a table made with numpy's arctan2.
-
-    Rows are walked in image order with one accumulator per cell of the
-    current cell row, which adds each cell's pixels in skimage's order.
-    """
-    h, w = img.shape
-    area = cell_px * cell_px
-    acc = np.zeros((n_cc, bins), dtype=np.float32)
-    for ci in range(n_cr):
-        acc[:] = 0.0
-        for r in range(ci * cell_px, ci * cell_px + cell_px):
-            row_in = 0 < r < h - 1
-            for c in range(n_cc * cell_px):
-                gr = np.int32(img[r + 1, c]) - np.int32(img[r - 1, c]) if row_in else np.int32(0)
-                gc = np.int32(img[r, c + 1]) - np.int32(img[r, c - 1]) if 0 < c < w - 1 else np.int32(0)
-                if gr == 0 and gc == 0:
-                    continue
-                b = lut[gr + 255, gc + 255]
-                if b >= 0:
-                    mag = math.sqrt(np.float64(gr * gr + gc * gc))
-                    cj = c // cell_px
-                    acc[cj, b] = np.float32(np.float64(acc[cj, b]) + mag)
-        for cj in range(n_cc):
-            for b in range(bins):
-                out[ci, cj, b] = np.float32(np.float64(acc[cj, b]) / area)
-
-
 _U8_LUTS: dict[int, np.ndarray] = {}
 
 
@@ -203,28 +114,6 @@ def _u8_bin_table(bins: int) -> np.ndarray:
         b[(b < 0) | (b >= bins)] = -1
         _U8_LUTS[bins] = b.astype(np.int8 if bins < 127 else np.int16)
     return _U8_LUTS[bins]
-
-
-@njit(cache=True, nogil=True)
-def _hist_from_gradients(g_row, g_col, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pragma: no cover - jit
-    bins = edges.size - 1
-    area = cell_px * cell_px
-    acc = np.zeros(bins, dtype=np.float32)
-    for ci in range(n_cr):
-        for cj in range(n_cc):
-            acc[:] = 0.0
-            for r in range(ci * cell_px, ci * cell_px + cell_px):
-                for c in range(cj * cell_px, cj * cell_px + cell_px):
-                    gr = g_row[r, c]
-                    gc = g_col[r, c]
-                    if gr == 0.0 and gc == 0.0:
-                        continue
-                    mag = math.sqrt(gr * gr + gc * gc)
-                    b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
-                    if b >= 0:
-                        acc[b] = np.float32(np.float64(acc[b]) + mag)
-            for b in range(bins):
-                out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
 
 
 def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamma: bool = False) -> np.ndarray:
@@ -258,12 +147,12 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
     cos_e, sin_e = np.cos(rad), np.sin(rad)
     out = np.zeros((n_cr, n_cc, bins), dtype=np.float64)
     if img.dtype == np.uint8:
-        _hist_from_u8(img, int(cell_px), n_cr, n_cc, _u8_bin_table(bins), bins, out)
+        hist_from_u8(img, int(cell_px), n_cr, n_cc, _u8_bin_table(bins), bins, out)
     elif img.ndim == 2:
-        _hist_from_image(img, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
+        hist_from_image(img, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
     else:
         g_row, g_col = gradients(img)
-        _hist_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
+        hist_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
     return out
 
 
@@ -309,52 +198,8 @@ def normalize_blocks(hist: np.ndarray, block_cells: int = 2, block_norm: str = "
     n = hist.shape[0] - b + 1
     m = hist.shape[1] - b + 1
     out = np.empty((n, m, b * b * hist.shape[2]), dtype=np.float64)
-    _normalize_kernel(np.ascontiguousarray(hist, dtype=np.float64), b, BLOCK_NORMS.index(block_norm), out)
+    normalize_kernel(np.ascontiguousarray(hist, dtype=np.float64), b, BLOCK_NORMS.index(block_norm), out)
     return out
-
-
-@njit(cache=True, nogil=True)
-def _normalize_kernel(hist, b, method, out):  # pragma: no cover - jit
-    """skimage's _hog_normalize_block for every block; method indexes BLOCK_NORMS.
-
-    Divisions are done as multiplications by the reciprocal (results agree
-    with skimage to a few ulp).
-    """
-    n, m, k = out.shape
-    bins = hist.shape[2]
-    eps = 1e-5
-    v = np.empty(k, dtype=np.float64)
-    for i in range(n):
-        for j in range(m):
-            t = 0
-            s2 = 0.0
-            s1 = 0.0
-            for di in range(b):
-                for dj in range(b):
-                    for o in range(bins):
-                        x = hist[i + di, j + dj, o]
-                        v[t] = x
-                        s1 += x
-                        s2 += x * x
-                        t += 1
-            if method >= 2:  # L1, L1-sqrt (histograms are >= 0, so |x| = x)
-                inv = 1.0 / (s1 + eps)
-                for t in range(k):
-                    out[i, j, t] = math.sqrt(v[t] * inv) if method == 3 else v[t] * inv
-                continue
-            inv = 1.0 / math.sqrt(s2 + eps * eps)
-            if method == 1:
-                for t in range(k):
-                    out[i, j, t] = v[t] * inv
-                continue
-            s2 = 0.0  # L2-Hys: clip at 0.2 and renormalise
-            for t in range(k):
-                x = min(v[t] * inv, 0.2)
-                v[t] = x
-                s2 += x * x
-            inv = 1.0 / math.sqrt(s2 + eps * eps)
-            for t in range(k):
-                out[i, j, t] = v[t] * inv
 
 
 def hog_blocks(
