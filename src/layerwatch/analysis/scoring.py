@@ -161,32 +161,42 @@ def _regions(anom, heat, foot_frac, grid, topview) -> tuple[np.ndarray, list[Reg
     anom = keep[labels]
     off = (b - 1) * c // 2
     tile_mm2 = (c / topview.px_per_mm) ** 2
-    regions = []
-    for k, sl in enumerate(ndimage.find_objects(labels), start=1):
-        if sl is None or not keep[k]:
-            continue
-        sel = labels[sl] == k
-        ii, jj = np.nonzero(sel)
-        ii = ii + sl[0].start
-        jj = jj + sl[1].start
-        vals = heat[ii, jj].astype(np.float64)
-        # tile extents in pixel coordinates (OpenCV: pixel p spans [p-0.5, p+0.5])
-        u0, u1 = jj.min() * c + off - 0.5, jj.max() * c + off + c - 0.5
-        v0, v1 = ii.min() * c + off - 0.5, ii.max() * c + off + c - 0.5
-        (x0, y0), (x1, y1) = topview.to_mm(np.array([[u0, v1], [u1, v0]]))
-        centre_px = np.stack([jj * c + (b * c - 1) / 2.0, ii * c + (b * c - 1) / 2.0], axis=1)
-        cx, cy = topview.to_mm(centre_px).mean(axis=0)
-        regions.append(
-            Region(
-                area_mm2=float(len(ii) * tile_mm2),
-                bbox_mm=(float(x0), float(y0), float(x1), float(y1)),
-                centroid_mm=(float(cx), float(cy)),
-                n_blocks=int(len(ii)),
-                mean_similarity=float(vals.mean()),
-                min_similarity=float(vals.min()),
-                outside_fraction=float(np.clip(1.0 - foot_frac[ii, jj].mean(), 0.0, 1.0)),
-            )
+    ids = np.nonzero(keep)[0]
+    if ids.size == 0:
+        return anom, []
+    # per-region statistics in one pass each (bincount over labels)
+    ii, jj = np.indices(labels.shape)
+    cnt = counts[ids].astype(np.float64)
+
+    def per(values):
+        return np.bincount(lab, weights=np.asarray(values, np.float64).ravel(), minlength=n + 1)[ids]
+
+    mean_s = per(heat) / cnt
+    inside = per(foot_frac) / cnt
+    min_s = np.asarray(ndimage.minimum(heat, labels, ids), dtype=np.float64).reshape(-1)
+    # tile extents in pixel coordinates (OpenCV: pixel p spans [p-0.5, p+0.5])
+    slices = ndimage.find_objects(labels)
+    r0 = np.array([slices[k - 1][0].start for k in ids])
+    r1 = np.array([slices[k - 1][0].stop - 1 for k in ids])
+    c0 = np.array([slices[k - 1][1].start for k in ids])
+    c1 = np.array([slices[k - 1][1].stop - 1 for k in ids])
+    lo = topview.to_mm(np.stack([c0 * c + off - 0.5, r1 * c + off + c - 0.5], axis=1))
+    hi = topview.to_mm(np.stack([c1 * c + off + c - 0.5, r0 * c + off - 0.5], axis=1))
+    centre_u = per(jj * c + (b * c - 1) / 2.0) / cnt
+    centre_v = per(ii * c + (b * c - 1) / 2.0) / cnt
+    centre = topview.to_mm(np.stack([centre_u, centre_v], axis=1))
+    regions = [
+        Region(
+            area_mm2=float(cnt[t] * tile_mm2),
+            bbox_mm=(float(lo[t, 0]), float(lo[t, 1]), float(hi[t, 0]), float(hi[t, 1])),
+            centroid_mm=(float(centre[t, 0]), float(centre[t, 1])),
+            n_blocks=int(cnt[t]),
+            mean_similarity=float(mean_s[t]),
+            min_similarity=float(min_s[t]),
+            outside_fraction=float(np.clip(1.0 - inside[t], 0.0, 1.0)),
         )
+        for t in range(ids.size)
+    ]
     regions.sort(key=lambda r: (-r.area_mm2, r.min_similarity))
     return anom, regions
 
