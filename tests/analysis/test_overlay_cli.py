@@ -91,3 +91,18 @@ def test_compare_cli_errors_are_one_line(tmp_path, capsys):
         assert main(args) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("error:") and "\n" not in err
+
+
+def test_anomalous_blocks_follow_min_region_filter():
+    from layerwatch.analysis.overlay import anomalous_blocks
+    from layerwatch.analysis.settings import AnalysisSettings
+
+    ref, photo, foot = part_scene(0, "blob")  # one big region and small specks
+    counts = []
+    for k in (1, 4):
+        res = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(min_region_blocks=k))
+        anom = anomalous_blocks(res)
+        assert anom.sum() == res.n_anomalous == sum(g.n_blocks for g in res.regions)
+        assert all(g.n_blocks >= k for g in res.regions)
+        counts.append(len(res.regions))
+    assert counts[1] == 1 < counts[0]

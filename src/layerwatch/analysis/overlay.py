@@ -22,7 +22,7 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "block_tiles"]
+__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "block_tiles", "anomalous_blocks"]
 
 _CMAP = "RdYlGn"
 _FOOTPRINT_RGB = (0, 220, 255)
@@ -37,9 +37,23 @@ def _colormap(values: np.ndarray) -> np.ndarray:
     return rgba[..., :3]
 
 
-def _grid(result: LayerResult) -> tuple[int, int]:
+def _grid(result: LayerResult) -> tuple[int, int, int]:
     grid = result.extra.get("grid", {}) if result.extra else {}
-    return int(grid.get("cell_px", 8)), int(grid.get("block_cells", 2))
+    return int(grid.get("cell_px", 8)), int(grid.get("block_cells", 2)), int(grid.get("min_region_blocks", 1))
+
+
+def anomalous_blocks(result: LayerResult) -> np.ndarray:
+    """Blocks counted as anomalous in ``result`` (considered, below T_S, in kept regions), (N, M) bool."""
+    from scipy import ndimage
+
+    heat = np.asarray(result.heatmap, dtype=np.float32)
+    mask = np.ones(heat.shape, bool) if result.mask is None else np.asarray(result.mask, bool)
+    anom = mask & (heat < result.threshold)
+    min_blocks = _grid(result)[2]
+    if min_blocks > 1 and anom.any():
+        labels, _ = ndimage.label(anom, structure=np.ones((3, 3), dtype=bool))
+        anom = (np.bincount(labels.ravel()) >= min_blocks)[labels] & anom
+    return anom
 
 
 def block_tiles(values: np.ndarray, shape: tuple[int, int], cell_px: int, block_cells: int, fill=0) -> np.ndarray:
@@ -125,7 +139,7 @@ def overlay_image(
     if result.heatmap is None:
         return img
     heat = np.asarray(result.heatmap, dtype=np.float32)
-    c, b = _grid(result)
+    c, b, _ = _grid(result)
     mask = np.ones(heat.shape, bool) if result.mask is None else np.asarray(result.mask, bool)
     colours = _colormap(heat)
     col_px = np.stack([block_tiles(colours[..., k], shape, c, b) for k in range(3)], axis=2)
@@ -140,7 +154,7 @@ def overlay_image(
         if fp.shape != shape:
             raise AnalysisError(f"footprint is {fp.shape} px but the top view is {shape}; pass the matching mask.")
         _outline(img, fp, _FOOTPRINT_RGB, 1)
-    anomalous = mask & (heat < result.threshold)
+    anomalous = anomalous_blocks(result)
     thick = max(1, round(min(shape) / 300))
     _outline(img, block_tiles(anomalous, shape, c, b, fill=False), _REGION_RGB, thick)
     if caption:

@@ -34,8 +34,8 @@ of BGR/RGB order). Intensities are put on a 0-255 scale: uint8 as is, uint16
 mean gradient magnitude on that scale is below ``settings.min_gradient`` in
 *both* images are featureless (set to zero, similarity 1): sensor noise on a
 bare bed then matches an empty reference, while material where the reference
-is flat (or a flat photo where the reference has structure) still scores low. Both images must have the same size and
-dtype.
+is flat (or a flat photo where the reference has structure) still scores
+low. Both images must have the same size and dtype.
 
 References
 ----------
@@ -232,7 +232,9 @@ def analyze_layer(
     layer, z : int, float
         Layer index and height (mm), copied into the result.
     all_metrics : bool
-        Also score every measure of Table 2 into ``result.extra["per_metric"]``.
+        Also score every measure of Table 2 into ``result.extra["per_metric"]``
+        (``{name: {"anomaly_ratio", "n_anomalous", "mean_similarity"}}``, same
+        blocks and threshold, before the ``min_region_blocks`` filter).
 
     Returns
     -------
@@ -310,7 +312,10 @@ def analyze_layer(
         res.message = "no printed area of this layer is visible in the top view"
     vals = heat[considered]
     res.extra = {
-        "grid": {"cell_px": c, "block_cells": b, **block_geometry(c, b, topview.px_per_mm)},
+        "grid": {
+            "cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks,
+            **block_geometry(c, b, topview.px_per_mm),
+        },
         "similarity_mean": float(vals.mean()) if vals.size else 1.0,
         "similarity_min": float(vals.min()) if vals.size else 1.0,
     }
