@@ -12,7 +12,41 @@ __all__ = ["RenderSettings"]
 
 
 class RenderSettings(Section):
-    """How the reference of a layer is rendered."""
+    """How the reference of a layer is rendered.
+
+    Attributes
+    ----------
+    backend : {"fast", "blender"}
+        CPU rasteriser (default) or Blender Cycles through the ``blender`` executable.
+    material_rgb, bed_rgb : tuple of float
+        Linear albedo of the filament and of the bed, each channel in [0, 1].
+    light : {"ring", "directional"}
+        Ring light around the camera axis (paper) or one directional light.
+    light_azimuth_deg, light_elevation_deg : float
+        Direction of the directional light (azimuth from +X towards +Y), and
+        the elevation of the ring light's rays above the bed.
+    ambient : float
+        Ambient light fraction added to the diffuse term.
+    layers_visible_below : int
+        Layers below the current one that stay visible in gaps; they darken
+        linearly with depth and anything deeper is shown at the darkest level.
+    depth_darkening : float
+        Brightness lost at ``layers_visible_below`` layers of depth, in [0, 1].
+    relief : float
+        Exaggeration of the height map's slopes in the shading, so bead
+        edges stand out at a few pixels per bead.
+    smooth_px : float
+        Gaussian sigma (px) applied to the height map before the normals
+        are taken (anti-aliasing of the bead profile); 0 disables it.
+    markers_mm : list of (x, y) or None
+        Bed markers (white dots) drawn on the bed, bed mm; ``None`` draws none.
+    marker_diameter_mm : float
+        Diameter of the drawn markers, mm.
+    blender_samples : int
+        Cycles samples per pixel of the Blender backend.
+    blender_timeout_s : float
+        Seconds after which a Blender render is abandoned (RenderError).
+    """
 
     backend: Literal["fast", "blender"] = "fast"
     material_rgb: tuple[float, float, float] = (0.85, 0.85, 0.82)
@@ -20,4 +54,12 @@ class RenderSettings(Section):
     light: Literal["ring", "directional"] = "ring"
     light_azimuth_deg: float = 225.0
     light_elevation_deg: float = 45.0
+    ambient: float = Field(0.15, ge=0, le=1)
     layers_visible_below: int = Field(3, ge=0)
+    depth_darkening: float = Field(0.45, ge=0, le=1)
+    relief: float = Field(4.0, gt=0, le=20)
+    smooth_px: float = Field(0.7, ge=0, le=5)
+    markers_mm: list[tuple[float, float]] | None = None
+    marker_diameter_mm: float = Field(6.0, gt=0)
+    blender_samples: int = Field(16, ge=1, le=4096)
+    blender_timeout_s: float = Field(600.0, gt=0)
