@@ -198,3 +198,30 @@ def test_figure11_cases():
         assert s["disjoint"][name] < min(s["shifted"][name], 0.6), name
     for name in ("cosine", "jaccard", "dice", "hellinger", "sorensen"):  # no overlap -> 0
         assert s["disjoint"][name] < 1e-3, name
+
+
+def test_unit_norm_blocks_make_cosine_dice_sqeuclidean_equal():
+    rng = np.random.default_rng(9)
+    a, b = _unit_blocks(rng, 50), _unit_blocks(rng, 50)
+    s = similarity_all(a, b, ["cosine", "dice", "sqeuclidean", "euclidean"])
+    np.testing.assert_allclose(s["dice"], s["cosine"], atol=1e-6)
+    np.testing.assert_allclose(s["sqeuclidean"], s["cosine"], atol=1e-6)
+    np.testing.assert_allclose(s["euclidean"], 1 - np.sqrt(1 - s["cosine"].astype(float)), atol=1e-5)
+
+
+def test_never_nan_property():
+    pytest.importorskip("hypothesis")
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+    from hypothesis.extra.numpy import arrays
+
+    values = st.sampled_from([0.0, 0.0, 0.2, 1 / 6, 0.5, 1.0, 1e-300, 3.0, -0.1])
+    pair = arrays(np.float64, (2, 3, 12), elements=values)
+
+    @settings(max_examples=60, deadline=None, database=None)
+    @given(pair)
+    def check(ab):
+        for s in similarity_all(ab[0], ab[1]).values():
+            assert np.all(np.isfinite(s)) and s.min() >= 0 and s.max() <= 1
+
+    check()

@@ -28,6 +28,10 @@ kendall         s = (tau_b + 1) / 2, tau-b with tie correction
 Inputs outside those bounds (negative values, norms above 1) are allowed;
 the result is clipped to ``[0, 1]``.
 
+Note for L2 / L2-Hys blocks (unit norm): cosine, dice and sqeuclidean are
+then the same number (``a.b``), and euclidean is ``1 - sqrt(1 - a.b)``; they
+differ only for L1-type normalisations or empty blocks.
+
 Corrections to Table 2: the paper's printed Jaccard, Dice and Hellinger
 formulas are not the standard ones. We implement Jaccard and Dice in the
 inner-product (Tanimoto / Dice) forms of Cha (2007), Table "inner product
