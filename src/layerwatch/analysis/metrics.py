@@ -32,12 +32,14 @@ Note for L2 / L2-Hys blocks (unit norm): cosine, dice and sqeuclidean are
 then the same number (``a.b``), and euclidean is ``1 - sqrt(1 - a.b)``; they
 differ only for L1-type normalisations or empty blocks.
 
-Corrections to Table 2: the paper's printed Jaccard, Dice and Hellinger
-formulas are not the standard ones. We implement Jaccard and Dice in the
-inner-product (Tanimoto / Dice) forms of Cha (2007), Table "inner product
-family", which are the generalisations of the set measures to non-negative
-vectors, and the standard Hellinger distance of the blocks normalised to
-unit sum (Cha 2007, "fidelity family"; bounded by 1).
+Corrections to Table 2: the Jaccard, Dice and Hellinger entries of the
+paper's Table 2 are misprinted (project issue 7); we do not reproduce the
+printed forms. We implement Jaccard and Dice in the inner-product
+(Tanimoto / Dice) forms of Cha (2007), "inner product family", which
+generalise the set measures to non-negative vectors, and the standard
+Hellinger distance ``sqrt(1 - sum sqrt(p q))`` of the blocks normalised to
+unit sum (Cha 2007, "fidelity family"; bounded by 1), computed in the
+equivalent stable form ``|sqrt(p) - sqrt(q)| / sqrt(2)``.
 
 Degenerate blocks (flat, featureless image areas give all-zero blocks):
 
