@@ -133,41 +133,50 @@ def hist_from_gradients(g_row, g_col, cell_px, n_cr, n_cc, cos_e, sin_e, edges, 
 def normalize_kernel(hist, b, method, out):  # pragma: no cover - jit
     """skimage's _hog_normalize_block for every block; method indexes BLOCK_NORMS.
 
-    Divisions are done as multiplications by the reciprocal (results agree
-    with skimage to a few ulp).
+    Block sums are assembled from per-cell sums and divisions are done as
+    multiplications by the reciprocal (results agree with skimage to a few ulp).
     """
     n, m, k = out.shape
-    bins = hist.shape[2]
+    n_r, n_c, bins = hist.shape
     eps = 1e-5
-    v = np.empty(k, dtype=np.float64)
+    cell_s1 = np.zeros((n_r, n_c))
+    cell_s2 = np.zeros((n_r, n_c))
+    for r in range(n_r):
+        for c in range(n_c):
+            s1 = 0.0
+            s2 = 0.0
+            for o in range(bins):
+                x = hist[r, c, o]
+                s1 += x
+                s2 += x * x
+            cell_s1[r, c] = s1
+            cell_s2[r, c] = s2
     for i in range(n):
         for j in range(m):
-            t = 0
-            s2 = 0.0
             s1 = 0.0
+            s2 = 0.0
+            for di in range(b):
+                for dj in range(b):
+                    s1 += cell_s1[i + di, j + dj]
+                    s2 += cell_s2[i + di, j + dj]
+            if method >= 2:  # L1, L1-sqrt (histograms are >= 0, so |x| = x)
+                inv = 1.0 / (s1 + eps)
+            else:
+                inv = 1.0 / math.sqrt(s2 + eps * eps)
+            t = 0
+            h2 = 0.0
             for di in range(b):
                 for dj in range(b):
                     for o in range(bins):
-                        x = hist[i + di, j + dj, o]
-                        v[t] = x
-                        s1 += x
-                        s2 += x * x
+                        x = hist[i + di, j + dj, o] * inv
+                        if method == 3:
+                            x = math.sqrt(x)
+                        elif method == 0:  # L2-Hys: clip at 0.2, renormalise below
+                            x = min(x, 0.2)
+                            h2 += x * x
+                        out[i, j, t] = x
                         t += 1
-            if method >= 2:  # L1, L1-sqrt (histograms are >= 0, so |x| = x)
-                inv = 1.0 / (s1 + eps)
+            if method == 0:
+                inv = 1.0 / math.sqrt(h2 + eps * eps)
                 for t in range(k):
-                    out[i, j, t] = math.sqrt(v[t] * inv) if method == 3 else v[t] * inv
-                continue
-            inv = 1.0 / math.sqrt(s2 + eps * eps)
-            if method == 1:
-                for t in range(k):
-                    out[i, j, t] = v[t] * inv
-                continue
-            s2 = 0.0  # L2-Hys: clip at 0.2 and renormalise
-            for t in range(k):
-                x = min(v[t] * inv, 0.2)
-                v[t] = x
-                s2 += x * x
-            inv = 1.0 / math.sqrt(s2 + eps * eps)
-            for t in range(k):
-                out[i, j, t] = v[t] * inv
+                    out[i, j, t] *= inv
