@@ -88,6 +88,19 @@ class SimFrame:
         return int(self.meta["layer"])
 
 
+_CACHE: dict = {}
+
+
+def _cached(key, value=None):
+    """Tiny cache of per-camera arrays (rays, bed albedo, noise) shared by simulators."""
+    if value is None:
+        return _CACHE.get(key)
+    if len(_CACHE) >= 8:
+        _CACHE.pop(next(iter(_CACHE)))
+    _CACHE[key] = value
+    return value
+
+
 def _clip_disc(p0, p1, c, R):
     """Parameter interval ``[ti, to]`` of each segment inside the disc (ti >= to: none)."""
     d = p1 - p0
@@ -157,24 +170,35 @@ class PrintSimulator:
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
         self.vignette = (1 - st.vignetting * r2).astype(np.float32)
-        self.bed_alb = bed_albedo_image(self.dirs, self.C, self.bed, np.asarray(st.bed_rgb, float),
-                                        np.asarray(st.background_rgb, float), self.markers,
-                                        st.marker_diameter_mm / 2, self.seed)
-        nrng = np.random.default_rng([self.seed, 99])
-        self.noise_bank = nrng.standard_normal((h + 32, w + 32, 3), dtype=np.float32)
+        bkey = self._key + ("bed", self.bed.tobytes(), self.markers.tobytes(), st.bed_rgb,
+                            st.background_rgb, st.marker_diameter_mm, self.seed)
+        self.bed_alb = _cached(bkey) if _cached(bkey) is not None else _cached(bkey, bed_albedo_image(
+            self.dirs, self.C, self.bed, np.asarray(st.bed_rgb, float),
+            np.asarray(st.background_rgb, float), self.markers, st.marker_diameter_mm / 2, self.seed))
+        nkey = ("noise", w, h)
+        self.noise_bank = _cached(nkey)
+        if self.noise_bank is None:
+            nrng = np.random.default_rng(20261123)
+            self.noise_bank = _cached(nkey, nrng.standard_normal((h + 32, w + 32, 3), np.float32))
         self.lut = (np.clip(np.linspace(0, 1, 4096), 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
         self._reset()
 
     # ---------------------------------------------------------------- set-up
     def _rays(self) -> None:
-        w, h = self.camera.image_size
-        uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)),
-                      -1).reshape(-1, 1, 2)
-        n = cv2.undistortPoints(uv, self.camera.K, self.camera.dist).reshape(h, w, 2)
-        d = np.concatenate([n, np.ones((h, w, 1))], -1)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        self.dirs = np.ascontiguousarray((d @ self.camera.R).astype(np.float32))
-        self.C = self.camera.center_mm.astype(np.float64)
+        cam = self.camera
+        key = ("rays", cam.image_size, cam.K.tobytes(), cam.dist.tobytes(), cam.rvec.tobytes())
+        dirs = _cached(key)
+        if dirs is None:
+            w, h = cam.image_size
+            uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64),
+                                      np.arange(h, dtype=np.float64)), -1).reshape(-1, 1, 2)
+            n = cv2.undistortPoints(uv, cam.K, cam.dist).reshape(h, w, 2)
+            d = np.concatenate([n, np.ones((h, w, 1))], -1)
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+            dirs = _cached(key, np.ascontiguousarray((d @ cam.R).astype(np.float32)))
+        self.dirs = dirs
+        self.C = cam.center_mm.astype(np.float64)
+        self._key = key + (cam.tvec.tobytes(),)
 
     def _reset(self) -> None:
         self.h = np.zeros(self.grid.shape, np.float32)

@@ -30,6 +30,25 @@ def grid_params(topview) -> tuple[float, float, float]:
     return s, (w - 1) / 2.0 - s * cx, (h - 1) / 2.0 + s * cy
 
 
+@njit(cache=True, inline="always")
+def _row_span(x0, y0, dx, dy, y, r, ux0, s, umin, umax):
+    """Columns ``[a, b]`` a capsule of radius ``r`` can cover on the row at height ``y``."""
+    if abs(dy) < 1e-12:
+        return umin, umax
+    ta, tb = (y - r - y0) / dy, (y + r - y0) / dy
+    if ta > tb:
+        ta, tb = tb, ta
+    ta, tb = max(ta, 0.0), min(tb, 1.0)
+    if ta > tb:
+        return 1, 0
+    xa, xb = x0 + ta * dx, x0 + tb * dx
+    if xa > xb:
+        xa, xb = xb, xa
+    a = max(int(np.floor(ux0 + s * (xa - r))), umin)
+    b = min(int(np.ceil(ux0 + s * (xb + r))), umax)
+    return a, b
+
+
 @njit(cache=True)
 def stamp_capsules(h, mat, base, seg, mat_id, s, ux0, vy0):
     """Stamp capsules into a height field, keeping the per-cell maximum.
@@ -71,7 +90,8 @@ def stamp_capsules(h, mat, base, seg, mat_id, s, ux0, vy0):
         L = np.sqrt(L2)
         for v in range(vmin, vmax + 1):
             y = (vy0 - v) / s
-            for u in range(umin, umax + 1):
+            ua, ub = _row_span(x0, y0, dx, dy, y, rmax, ux0, s, umin, umax)
+            for u in range(ua, ub + 1):
                 x = (u - ux0) / s
                 t = 0.0
                 if L2 > 0.0:
@@ -105,7 +125,8 @@ def _capsule_mask(out, p0, p1, r, s, ux0, vy0):
         L2 = dx * dx + dy * dy
         for v in range(vmin, vmax + 1):
             y = (vy0 - v) / s
-            for u in range(umin, umax + 1):
+            ua, ub = _row_span(x0, y0, dx, dy, y, rr, ux0, s, umin, umax)
+            for u in range(ua, ub + 1):
                 x = (u - ux0) / s
                 t = 0.0
                 if L2 > 0.0:
