@@ -147,3 +147,19 @@ def test_bad_input_raises_one_line_analysis_errors():
     small = TopView(px_per_mm=1.0, width_mm=10.0, height_mm=10.0)
     with pytest.raises(AnalysisError):
         analyze_layer(photo[:10, :10], ref[:10, :10], foot[:10, :10], small)
+
+
+def test_real_photo_pair_smoke(shared_data):
+    """Two consecutive real camera frames: runs, finite, some but not all blocks differ."""
+    import cv2
+
+    paths = [shared_data / "photos" / f"caxton_nozzle_sample{n}.jpg" for n in ("0021", "0022")]
+    if not all(p.is_file() for p in paths):
+        pytest.skip("caxton photos not in shared data")
+    a, b = (cv2.imread(str(p))[60:660, 340:940] for p in paths)  # colour, BGR
+    tv = TopView(px_per_mm=6.67, width_mm=600 / 6.67, height_mm=600 / 6.67)
+    r = analyze_layer(a, b, np.ones((600, 600), bool), tv, all_metrics=True)
+    assert r.ok and np.isfinite(r.heatmap).all() and 0.0 < r.anomaly_ratio < 0.6
+    assert r.regions and set(r.extra["per_metric"]) == set(METRIC_NAMES)
+    same = analyze_layer(a, a, np.ones((600, 600), bool), tv)
+    assert same.anomaly_ratio == 0.0 and np.all(same.heatmap == 1.0)
