@@ -1,0 +1,210 @@
+"""Footprint masks: where material should be in a layer (S_P of the paper).
+
+Two independent sources:
+
+* :func:`gcode_mask` — the union of the layer's bead capsules (same kernel
+  as the fast renderer, pixel centre inside a capsule);
+* :func:`stl_mask` — the model's cross-section at height ``z`` (manifold3d
+  slice of the mesh), rasterised by an even-odd scanline fill so holes stay empty (checked
+  against ``cv2.fillPoly`` in the tests).
+
+References
+----------
+Petsiuk & Pearce (2022), eq. (5): the anomaly ratio counts only blocks of
+the printed area S_P.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from layerwatch.errors import RenderError
+from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.topview import TopView
+from layerwatch.render.raster import raster_capsules
+
+__all__ = ["gcode_mask", "stl_mask", "load_mesh", "slice_polygons", "fill_polygons"]
+
+log = logging.getLogger(__name__)
+
+def gcode_mask(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray:
+    """Footprint of layer ``index``: union of its bead capsules.
+
+    Parameters
+    ----------
+    toolpath : Toolpath
+    index : int
+        Layer index (negative counts from the end).
+    topview : TopView
+
+    Returns
+    -------
+    ndarray, shape (H, W), bool
+        True where a pixel centre lies within half a bead width of a segment
+        of the layer. Empty layers give an all-False mask.
+    """
+    from layerwatch.render.fast import _check_index, segment_pixels
+
+    index = _check_index(toolpath, index)
+    shape = topview.shape
+    mask = np.zeros(shape, bool)
+    sl = toolpath.layer_slice(index)
+    if toolpath.layers[index].n_segments == 0:
+        return mask
+    p0, p1, r = segment_pixels(toolpath, sl, topview)
+    dummy = np.zeros(p0.shape[0], np.float64)
+    height = np.zeros(shape, np.float32)
+    clipped = raster_capsules(height, mask, p0, p1, r, dummy, dummy, False, True)
+    if clipped:
+        log.warning("layer %d: %d segments clipped by the observed square", index, clipped)
+    return mask
+
+
+def load_mesh(mesh_or_path):
+    """Load an STL/3MF/OBJ (or take a ``trimesh.Trimesh``) and make it watertight.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        A watertight mesh (holes filled, normals fixed when needed).
+
+    Raises
+    ------
+    RenderError
+        Unreadable file, empty mesh, or a mesh that cannot be repaired.
+    """
+    import trimesh
+
+    if isinstance(mesh_or_path, trimesh.Trimesh):
+        mesh = mesh_or_path.copy()
+        name = "mesh"
+    else:
+        p = Path(mesh_or_path)
+        name = str(p)
+        if not p.is_file():
+            raise RenderError(f"mesh file {p} not found; give the path of the part's STL/3MF.")
+        try:
+            loaded = trimesh.load(p, force="mesh")
+        except Exception as exc:  # trimesh raises many types on bad files
+            raise RenderError(f"{p}: cannot read mesh ({exc}); export it again as binary STL.") from None
+        mesh = loaded
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise RenderError(f"{name}: contains no triangles; export the part as STL/3MF.")
+    if not mesh.is_watertight:
+        mesh.merge_vertices()
+        trimesh.repair.fix_normals(mesh)
+        trimesh.repair.fill_holes(mesh)
+        if not mesh.is_watertight:
+            raise RenderError(
+                f"{name}: mesh is not watertight and could not be repaired; "
+                "repair it (e.g. PrusaSlicer 'Fix model') and try again."
+            )
+        log.warning("%s: mesh was not watertight; holes were filled", name)
+    return mesh
+
+
+def slice_polygons(mesh, z: float) -> list[np.ndarray]:
+    """Cross-section of a watertight mesh at height ``z`` as closed polygons.
+
+    Returns
+    -------
+    list of ndarray, shape (K, 2), float64
+        Outer boundaries and holes in bed mm (manifold3d winding: outer
+        counter-clockwise, holes clockwise).
+    """
+    import manifold3d
+
+    man = manifold3d.Manifold(
+        manifold3d.Mesh(
+            vert_properties=np.asarray(mesh.vertices, np.float32),
+            tri_verts=np.asarray(mesh.faces, np.uint32),
+        )
+    )
+    if man.status() != manifold3d.Error.NoError:
+        raise RenderError(f"mesh is not a valid solid ({man.status()}); repair the STL and try again.")
+    return [np.asarray(p, np.float64) for p in man.slice(float(z)).to_polygons()]
+
+
+@njit(cache=True)
+def _fill_even_odd(mask, xs0, ys0, xs1, ys1):
+    """Scanline fill, even-odd rule, pixel centres only (exact area on average)."""
+    H, W = mask.shape
+    n = xs0.shape[0]
+    cross = np.empty(n, np.float64)
+    for v in range(H):
+        y = float(v)
+        k = 0
+        for i in range(n):
+            a, b = ys0[i], ys1[i]
+            if (a <= y < b) or (b <= y < a):
+                t = (y - a) / (b - a)
+                cross[k] = xs0[i] + t * (xs1[i] - xs0[i])
+                k += 1
+        if k < 2:
+            continue
+        xs = np.sort(cross[:k])
+        for j in range(0, k - 1, 2):
+            u0 = max(int(math.ceil(xs[j])), 0)
+            u1 = min(int(math.ceil(xs[j + 1])) - 1, W - 1)
+            for u in range(u0, u1 + 1):
+                mask[v, u] = True
+
+
+def fill_polygons(polygons: list[np.ndarray], topview: TopView) -> np.ndarray:
+    """Rasterise closed polygons with the even-odd rule (holes stay empty).
+
+    A pixel is set when its centre is inside (left-closed, right-open spans),
+    so the pixel count times ``1 / px_per_mm**2`` estimates the area without
+    the outline bias of ``cv2.fillPoly``.
+
+    Parameters
+    ----------
+    polygons : list of ndarray, shape (K, 2)
+        Polygons in bed mm (orientation irrelevant).
+    topview : TopView
+
+    Returns
+    -------
+    ndarray, shape (H, W), bool
+    """
+    mask = np.zeros(topview.shape, bool)
+    polys = [topview.to_px(p) for p in polygons if len(p) >= 3]
+    if polys:
+        a = np.concatenate(polys)
+        b = np.concatenate([np.roll(p, -1, axis=0) for p in polys])
+        _fill_even_odd(mask, a[:, 0].copy(), a[:, 1].copy(), b[:, 0].copy(), b[:, 1].copy())
+    return mask
+
+
+def stl_mask(mesh_or_path, z: float, topview: TopView, *, offset_mm=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Footprint of the model at height ``z``: its slice, rasterised.
+
+    Parameters
+    ----------
+    mesh_or_path : str or Path or trimesh.Trimesh
+        The part (STL, 3MF, OBJ). Non-watertight meshes are repaired or refused.
+    z : float
+        Slicing height in bed mm (for a layer, use its middle: ``z - h / 2``).
+    topview : TopView
+    offset_mm : tuple of float
+        Translation ``(dx, dy, dz)`` from mesh coordinates to bed mm (where the
+        slicer placed the part).
+
+    Returns
+    -------
+    ndarray, shape (H, W), bool
+
+    Raises
+    ------
+    RenderError
+        Missing/unreadable file or a mesh that cannot be made watertight.
+    """
+    mesh = load_mesh(mesh_or_path)
+    off = np.asarray(offset_mm, np.float64)
+    polys = slice_polygons(mesh, float(z) - off[2])
+    return fill_polygons([p + off[:2] for p in polys], topview)
