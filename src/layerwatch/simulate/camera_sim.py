@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 
 from layerwatch.errors import CalibrationError, ConfigError
-from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.simulate import failures as fl
@@ -89,6 +89,7 @@ class SimFrame:
 
 
 _CACHE: dict = {}
+_SKIRT = FEATURES.index("skirt")
 
 
 def _cached(key, value=None):
@@ -203,13 +204,16 @@ class PrintSimulator:
     def _reset(self) -> None:
         self.h = np.zeros(self.grid.shape, np.float32)
         self.mat = np.zeros(self.grid.shape, np.uint8)
+        self.hf, self.matf = self.h.copy(), self.mat.copy()  # skirt: never detaches
+        self.has_fixed = False
         self.next_layer = 0
 
     # -------------------------------------------------------------- geometry
     def layer_segments(self, i: int):
-        """Actual beads of layer ``i``: ``(p0, p1, w, scale, removed)``.
+        """Actual beads of layer ``i``: ``(p0, p1, w, scale, removed, skirt)``.
 
-        ``removed`` maps the index of a patch failure to ``(p0, p1, w)`` of the
+        ``skirt`` flags beads not attached to the part (skirt/brim lines), which
+        stay put when the part detaches. ``removed`` maps the index of a patch failure to ``(p0, p1, w)`` of the
         pieces it removed or under-extruded (nominal geometry, bed mm).
         """
         tp = self.tp
@@ -217,6 +221,7 @@ class PrintSimulator:
         p0, p1 = tp.start[sl].copy(), tp.end[sl].copy()
         w = tp.width[sl].astype(np.float64)
         scale = np.ones(len(p0))
+        fx = tp.feature[sl] == _SKIRT
         removed = {}
         for k, rf in enumerate(self.failures):
             if rf.type in ("infill_defect", "thin_wall") and rf.failure.active(i):
@@ -230,23 +235,24 @@ class PrintSimulator:
                 a0, a1 = p0[hit] + ti[hit, None] * d, p0[hit] + to[hit, None] * d
                 removed[k] = (a0, a1, w[hit])
                 keep = ~hit
-                parts = [(p0[keep], p1[keep], w[keep], scale[keep])]
+                parts = [(p0[keep], p1[keep], w[keep], scale[keep], fx[keep])]
                 pre, post = ti[hit] > 1e-9, to[hit] < 1 - 1e-9
-                parts.append((p0[hit][pre], a0[pre], w[hit][pre], scale[hit][pre]))
-                parts.append((a1[post], p1[hit][post], w[hit][post], scale[hit][post]))
+                wh, sh, fh = w[hit], scale[hit], fx[hit]
+                parts.append((p0[hit][pre], a0[pre], wh[pre], sh[pre], fh[pre]))
+                parts.append((a1[post], p1[hit][post], wh[post], sh[post], fh[post]))
                 if rf.failure.mode == "under":
-                    parts.append((a0, a1, w[hit], np.full(len(a0), 0.3)))
-                p0, p1, w, scale = (np.concatenate(x) for x in zip(*parts, strict=True))
+                    parts.append((a0, a1, wh, np.full(len(a0), 0.3), fh))
+                p0, p1, w, scale, fx = (np.concatenate(x) for x in zip(*parts, strict=True))
         for rf in self.failures:
             if rf.type == "layer_shift" and i >= rf.failure.onset:
                 p0, p1 = p0 + rf.offset, p1 + rf.offset
-        return p0, p1, w, scale, removed
+        return p0, p1, w, scale, removed, fx
 
     def _deposit(self, i: int) -> None:
         st = self.settings
         lay = self.tp.layers[i]
         lh = lay.height if lay.height > 0 else 0.2
-        p0, p1, w, scale, _ = self.layer_segments(i)
+        p0, p1, w, scale, _, fx = self.layer_segments(i)
         n = len(p0)
         if n == 0:
             return
@@ -261,7 +267,12 @@ class PrintSimulator:
         rows[:, 7] = lh / 2 * np.where(scale < 1, 0.5, 1.0)
         rows[:, 8] = st.extrusion_noise * rng.uniform(0.3, 1.0, n)
         rows[:, 9] = rng.uniform(0, 2 * np.pi, n)
-        stamp_capsules(self.h, self.mat, self.h, rows, np.full(n, fl.MAT_PART, np.uint8), *self.gp)
+        mats = np.full(n, fl.MAT_PART, np.uint8)
+        part = ~fx
+        stamp_capsules(self.h, self.mat, self.h, rows[part], mats[part], *self.gp)
+        if fx.any():
+            self.has_fixed = True
+            stamp_capsules(self.hf, self.matf, self.hf, rows[fx], mats[fx], *self.gp)
 
     def advance(self, index: int) -> None:
         """Deposit layers up to ``index`` (rebuilding when going backwards)."""
@@ -332,6 +343,9 @@ class PrintSimulator:
                     h, mat = self._detach(rf, h, mat)
                     moved = solid_area(*(_apply_affine(rf, p) for p in nominal[:2]), nominal[2], tv)
                 truth |= fp ^ moved
+        if self.has_fixed:  # the skirt stays on the bed whatever the part does
+            top = self.hf > h
+            h[top], mat[top] = self.hf[top], self.matf[top]
         for k, rf in enumerate(self.failures):
             f = rf.failure
             if not f.active(index):
