@@ -45,12 +45,12 @@ def test_thin_wall_segments_find_the_fin_only(part):
 
 
 def test_patch_failures_heal_after_their_duration(part, camera, topview):
+    dur = DEFAULT_DURATION["infill_defect"]
     f = Failure("infill_defect", onset=3, size_mm=8.0, center_mm=(0.0, 0.0))
-    assert [f.active(i) for i in range(2, 3 + DEFAULT_DURATION + 1)] == [False] + [True] * (
-        DEFAULT_DURATION
-    ) + [False]
-    frames = list(simulate_print(part, camera, topview, Scenario((f,), "x"), layers=[2, 3, 7]))
-    assert [fr.truth is None for fr in frames] == [True, False, True]
+    assert [f.active(i) for i in range(2, 3 + dur + 1)] == [False] + [True] * dur + [False]
+    f = Failure("infill_defect", onset=3, size_mm=8.0, center_mm=(0.0, 0.0), duration=2)
+    frames = list(simulate_print(part, camera, topview, Scenario((f,), "x"), layers=[2, 3, 4, 5]))
+    assert [fr.truth is None for fr in frames] == [True, False, False, True]
 
 
 def test_under_extrusion_keeps_thin_beads(part, camera, topview):

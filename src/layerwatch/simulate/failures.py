@@ -37,8 +37,10 @@ FAILURE_TYPES: tuple[str, ...] = (
     "thin_wall",
     "layer_shift",
 )
-#: Default number of layers a patch defect stays missing (infill_defect, thin_wall).
-DEFAULT_DURATION = 3
+#: Default number of layers a patch defect stays missing: the hole deepens by one layer per
+#: frame, so a sparse-infill patch (which looks like the layer below when one layer deep)
+#: becomes visible as a pit.
+DEFAULT_DURATION = {"infill_defect": 6, "thin_wall": 4}
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
 _WALLS = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 #: Material ids of the simulator's height field.
@@ -63,7 +65,8 @@ class Failure:
     center_mm : tuple of float or None
         Where it happens on the bed, mm; None draws a point on the onset layer.
     duration : int or None
-        Layers it stays visible (``infill_defect``/``thin_wall``; default 3);
+        Layers the patch stays missing (``infill_defect`` default 6,
+        ``thin_wall`` default 4; the hole deepens layer by layer);
         other types last until the end of the print.
     offset_mm : tuple of float or None
         Displacement ``(dx, dy)`` for ``layer_shift``/``detachment``; None draws
@@ -92,13 +95,19 @@ class Failure:
         if self.mode not in ("missing", "under"):
             raise ConfigError(f"failure mode must be 'missing' or 'under', got '{self.mode}'.")
 
+    @property
+    def layers(self) -> int:
+        """Number of layers a patch failure lasts (``duration`` or the type's default)."""
+        if self.duration is not None:
+            return int(self.duration)
+        return DEFAULT_DURATION.get(self.type, 1 << 30)
+
     def active(self, index: int) -> bool:
         """True when the failure is present in the frame taken after layer ``index``."""
         if index < self.onset:
             return False
         if self.type in ("infill_defect", "thin_wall"):
-            dur = DEFAULT_DURATION if self.duration is None else self.duration
-            return index < self.onset + dur
+            return index < self.onset + self.layers
         return True
 
 
@@ -179,8 +188,7 @@ def thin_wall_segments(tp: Toolpath, index: int, max_wall_mm: float = 2.2) -> np
 def _selection(tp: Toolpath, f: Failure) -> np.ndarray:
     """Per-segment bool: which segments a patch defect may remove."""
     sel = np.zeros(tp.n_segments, bool)
-    dur = DEFAULT_DURATION if f.duration is None else f.duration
-    for i in range(f.onset, min(f.onset + dur, tp.n_layers)):
+    for i in range(f.onset, min(f.onset + f.layers, tp.n_layers)):
         sl = tp.layer_slice(i)
         if f.type == "thin_wall":
             sel[sl] = thin_wall_segments(tp, i)
