@@ -315,6 +315,16 @@ class PrintSimulator:
         out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
         return out.astype(bool)
 
+    def _rest_height(self, h: np.ndarray, rows: np.ndarray) -> float:
+        """Highest surface point under the capsules' bounding box, mm."""
+        r = rows[:, 4].max()
+        lo = rows[:, [0, 1]].min(0).clip(None, rows[:, [2, 3]].min(0)) - r
+        hi = rows[:, [0, 1]].max(0).clip(rows[:, [2, 3]].max(0)) + r
+        (u0, v1), (u1, v0) = np.round(self.grid.to_px(np.array([lo, hi]))).astype(int)
+        H, W = h.shape
+        win = h[max(v0, 0) : min(v1 + 1, H), max(u0, 0) : min(u1 + 1, W)]
+        return float(win.max()) if win.size else 0.0
+
     def frame(self, index: int) -> SimFrame:
         """Simulate the photo taken after layer ``index`` (0-based)."""
         if not 0 <= index < self.tp.n_layers:
@@ -355,8 +365,8 @@ class PrintSimulator:
                 truth |= capsule_mask(a0, a1, w / 2.0, tv)
             elif f.type in ("foreign_body", "spaghetti"):
                 rows = rf.capsules.copy()
-                if f.type == "foreign_body":
-                    rows[:, 5] = lay.z
+                if f.type == "foreign_body":  # rests on the highest point under it
+                    rows[:, 5] = self._rest_height(h, rows)
                 else:
                     rows = rows[: rf.per_layer * (index - f.onset + 3)]
                 before = h.copy()
