@@ -32,3 +32,8 @@ class MarkerSettings(Section):
     positions_mm: list[tuple[float, float]] | None = None
     diameter_mm: float = Field(6.0, gt=0)
     aruco_dictionary: str = "DICT_4X4_50"
+    # Where the camera stands, seen from the markers' centre: degrees counter-clockwise
+    # from bed +X (-90 = in front of the printer). Only used to break the symmetry of a
+    # symmetric dot layout (a square looks the same from four sides); ArUco ids need no cue.
+    camera_azimuth_deg: float = -90.0
+    max_pose_error_px: float = Field(3.0, gt=0)

@@ -1,0 +1,197 @@
+"""Detection of the bed markers in a camera photo.
+
+Two kinds (``MarkerSettings.kind``):
+
+* ``"dots"``: white discs on a darker bed. A white top-hat (rectangular
+  kernel, a few percent of the image) removes glare and slow shading; the
+  bright residue is thresholded (Otsu, with a minimum contrast) and every
+  contour is scored for circularity, solidity and contrast. Centres are the
+  centroids of a sub-pixel *coverage* estimate at full resolution, i.e. the
+  area centroids of the imaged discs (:mod:`~layerwatch.geometry.pose`
+  corrects their small perspective bias). Which four of the candidates are
+  the markers, and in which order, is decided by the pose solver.
+* ``"aruco"``: ArUco tags (``cv2.aruco.ArucoDetector``); tag ``i`` sits at
+  ``positions_mm[i]`` and its centre is the intersection of its diagonals
+  (exact under perspective), so the order is given by the ids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from layerwatch.errors import MarkerError
+
+__all__ = ["Blob", "detect_dots", "detect_aruco", "photo_problem", "to_grey"]
+
+
+@dataclass(frozen=True)
+class Blob:
+    """A marker candidate: ``center`` (u, v) px, ``area`` px², quality ``score`` (higher is better)."""
+
+    center: tuple[float, float]
+    area: float
+    circularity: float
+    contrast: float
+    score: float
+
+
+def to_grey(photo: np.ndarray) -> np.ndarray:
+    """uint8 grey image ``(h, w)`` of a BGR/grey photo (uint8 or uint16)."""
+    import cv2
+
+    from layerwatch.geometry.warp import check_image
+
+    img = check_image(photo)
+    if img.dtype != np.uint8:
+        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY) if img.shape[2] >= 3 else img[..., 0]
+    return np.ascontiguousarray(img)
+
+
+def photo_problem(photo: np.ndarray) -> str | None:
+    """A short reason why a photo is unusable (overexposed, dark, blurred, flat), or None."""
+    import cv2
+
+    g = to_grey(photo)
+    small = cv2.resize(g, (320, max(1, int(320 * g.shape[0] / g.shape[1]))), interpolation=cv2.INTER_AREA)
+    if np.mean(small >= 250) > 0.4:
+        return "the photo is overexposed (most pixels are white); lower the exposure or light"
+    if np.percentile(small, 99) < 40:
+        return "the photo is too dark; add light or raise the exposure"
+    if small.std() < 3:
+        return "the photo is almost uniform; check the camera feed"
+    lap = cv2.Laplacian(small, cv2.CV_32F)
+    if float(lap.var()) < 4.0:
+        return "the photo is badly blurred; refocus the camera"
+    return None
+
+
+def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, float, float] | None:
+    """Coverage centroid ``(u, v, area)`` of the bright blob in ``box`` (x, y, w, h) at full resolution."""
+    x, y, w, h = box
+    H, W = grey.shape
+    pad = max(3, int(0.6 * max(w, h)))
+    x0, y0, x1, y1 = max(x - pad, 0), max(y - pad, 0), min(x + w + pad, W), min(y + h + pad, H)
+    roi = grey[y0:y1, x0:x1].astype(np.float32)
+    border = np.concatenate([roi[0], roi[-1], roi[:, 0], roi[:, -1]])
+    bg = float(np.median(border))
+    peak = float(np.percentile(roi, 99.5))
+    if peak - bg < 20:
+        return None
+    cov = np.clip((roi - bg) / (peak - bg) * 1.15 - 0.075, 0.0, 1.0)  # soft background floor
+    import cv2
+
+    # keep only the component under the candidate (neighbours and texture out)
+    n, lab = cv2.connectedComponents((cov > 0.5).astype(np.uint8))
+    if n < 2:
+        return None
+    cy, cx = (y + h / 2 - y0), (x + w / 2 - x0)
+    yy, xx = np.nonzero(lab)
+    k = lab[yy, xx][np.argmin((yy - cy) ** 2 + (xx - cx) ** 2)]
+    keep = cv2.dilate((lab == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    cov = np.where(keep, cov, 0.0)
+    s = float(cov.sum())
+    if s <= 0:
+        return None
+    gy, gx = np.mgrid[0 : roi.shape[0], 0 : roi.shape[1]]
+    return float((cov * gx).sum() / s + x0), float((cov * gy).sum() / s + y0), s
+
+
+def detect_dots(photo: np.ndarray, *, max_candidates: int = 12, min_contrast: float = 35.0,
+                max_side_px: int = 1280) -> list[Blob]:
+    """Find bright circular blobs (white dot markers).
+
+    Parameters
+    ----------
+    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
+        BGR or grey camera frame.
+    max_candidates : int
+        At most this many blobs are returned, best first.
+    min_contrast : float
+        Minimum brightness above the local background, grey levels.
+    max_side_px : int
+        Detection runs on a copy downscaled to this longest side; centres are
+        refined at full resolution.
+
+    Returns
+    -------
+    list of Blob
+        Sorted by decreasing ``score``; may be empty.
+    """
+    import cv2
+
+    grey = to_grey(photo)
+    H, W = grey.shape
+    f = min(1.0, max_side_px / max(H, W))
+    work = cv2.resize(grey, (int(W * f), int(H * f)), interpolation=cv2.INTER_AREA) if f < 1 else grey
+    k = int(max(9, 0.12 * min(work.shape))) | 1
+    tophat = cv2.morphologyEx(work, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    otsu, _ = cv2.threshold(tophat, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    bw = (tophat > max(float(otsu), min_contrast)).astype(np.uint8)
+    contours, _ = cv2.findContours(bw, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    blobs: list[Blob] = []
+    for c in contours:
+        area = cv2.contourArea(c)
+        if area < 6 or area > 0.6 * k * k:
+            continue
+        per = cv2.arcLength(c, True)
+        circ = 4 * np.pi * area / max(per * per, 1e-9)
+        hull = cv2.contourArea(cv2.convexHull(c))
+        solidity = area / max(hull, 1e-9)
+        if circ < 0.6 or solidity < 0.85:
+            continue
+        if len(c) >= 5:
+            (_, _), (a, b), _ = cv2.fitEllipse(c)
+            if min(a, b) <= 0 or max(a, b) / min(a, b) > 5:
+                continue
+        x, y, w, h = cv2.boundingRect(c)
+        mask = np.zeros((h, w), np.uint8)
+        cv2.drawContours(mask, [c - [x, y]], -1, 1, -1)
+        contrast = float(tophat[y : y + h, x : x + w][mask > 0].mean())
+        box = (int(x / f), int(y / f), int(np.ceil(w / f)), int(np.ceil(h / f)))
+        ref = _refine(grey, box)
+        if ref is None:
+            continue
+        score = min(circ, 1.0) * solidity * min(contrast / 100.0, 1.5)
+        blobs.append(Blob((ref[0], ref[1]), ref[2], float(circ), contrast, float(score)))
+    blobs.sort(key=lambda b: -b.score)
+    return blobs[:max_candidates]
+
+
+def _aruco_dictionary(name: str):
+    import cv2
+
+    const = getattr(cv2.aruco, name, None)
+    if not isinstance(const, int):
+        raise MarkerError(f"unknown ArUco dictionary {name!r}; use e.g. DICT_4X4_50 or DICT_APRILTAG_36h11.")
+    return cv2.aruco.getPredefinedDictionary(const)
+
+
+def detect_aruco(photo: np.ndarray, dictionary: str = "DICT_4X4_50") -> dict[int, np.ndarray]:
+    """Detect ArUco/AprilTag markers: ``{id: centre (2,) float64 px}``.
+
+    The centre is the intersection of the tag's diagonals. Raises
+    :class:`MarkerError` when an id is seen twice.
+    """
+    import cv2
+
+    grey = to_grey(photo)
+    det = cv2.aruco.ArucoDetector(_aruco_dictionary(dictionary), cv2.aruco.DetectorParameters())
+    corners, ids, _ = det.detectMarkers(grey)
+    out: dict[int, np.ndarray] = {}
+    if ids is None:
+        return out
+    for quad, i in zip(corners, ids.reshape(-1)):
+        p = quad.reshape(4, 2).astype(np.float64)
+        a, b, c, d = p
+        # intersection of lines a-c and b-d
+        l1, l2 = np.cross([*a, 1], [*c, 1]), np.cross([*b, 1], [*d, 1])
+        q = np.cross(l1, l2)
+        centre = q[:2] / q[2] if abs(q[2]) > 1e-12 else p.mean(0)
+        if int(i) in out:
+            raise MarkerError(f"ArUco id {int(i)} appears twice in the photo; remove the duplicate tag.")
+        out[int(i)] = centre
+    return out
