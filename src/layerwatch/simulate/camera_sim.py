@@ -89,6 +89,7 @@ class SimFrame:
 
 
 _CACHE: dict = {}
+_TILT_ARM_MM = 25.0  # a detached part pivots about a line this far behind its centre
 _SKIRT = FEATURES.index("skirt")
 
 
@@ -291,9 +292,22 @@ class PrintSimulator:
         ms = cv2.warpAffine(mat, M[:2], h.shape[::-1], flags=cv2.INTER_NEAREST)
         xy = self.grid.to_mm(np.stack(np.meshgrid(np.arange(h.shape[1]), np.arange(h.shape[0])), -1))
         nrm = rf.offset / max(np.linalg.norm(rf.offset), 1e-9)
-        lift = rf.tilt * np.maximum(((xy - rf.center) @ nrm) + 25.0, 0).astype(np.float32)
+        lift = rf.tilt * np.maximum(((xy - rf.center) @ nrm) + _TILT_ARM_MM, 0).astype(np.float32)
         hs = np.where(hs > 0, hs + lift, 0).astype(np.float32)
         return hs, ms
+
+    def _seen_detached(self, rf, p: np.ndarray, z: float) -> np.ndarray:
+        """Where points ``p`` (N, 2) of plane ``z`` appear on that plane after detachment.
+
+        The part is moved by the rigid affine and lifted by the tilt; the lift
+        shifts the points' images along the camera rays (parallax).
+        """
+        q = _apply_affine(rf, p)
+        nrm = rf.offset / max(np.linalg.norm(rf.offset), 1e-9)
+        lift = rf.tilt * np.maximum((q - rf.center) @ nrm + _TILT_ARM_MM, 0)
+        C = self.C
+        k = (C[2] - z) / np.maximum(C[2] - z - lift, 1e-3)
+        return C[:2] + (q - C[:2]) * k[:, None]
 
     def _apparent(self, before, after, zl) -> np.ndarray:
         """Top-view mask of raised/draped things seen through the camera on plane ``zl``."""
@@ -351,7 +365,8 @@ class PrintSimulator:
                     moved = solid_area(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
                 else:
                     h, mat = self._detach(rf, h, mat)
-                    moved = solid_area(*(_apply_affine(rf, p) for p in nominal[:2]), nominal[2], tv)
+                    moved = solid_area(*(self._seen_detached(rf, p, lay.z) for p in nominal[:2]),
+                                       nominal[2], tv)
                 truth |= fp ^ moved
         if self.has_fixed:  # the skirt stays on the bed whatever the part does
             top = self.hf > h
