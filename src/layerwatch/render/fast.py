@@ -215,7 +215,7 @@ class StackRenderer:
             surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
         shade_height(
             surf,
-            z - 0.5 * lh,
+            z,
             self.topview.px_per_mm * s.relief,
             self._lights,
             s.ambient,
@@ -223,6 +223,12 @@ class StackRenderer:
             s.depth_darkening,
             light,
         )
+        if s.cavity > 0:
+            # ambient occlusion of valleys: how far a pixel lies below its neighbourhood
+            k = 2 * int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
+            top = cv2.dilate(self.height, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+            occl = np.minimum((top - self.height) * np.float32(1.0 / lh), 1.0)
+            light *= 1.0 - np.float32(s.cavity) * occl
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
         image = np.clip(albedo * light * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return Rendered(image, self.height.copy(), mask, index, float(z), light, int(clipped))

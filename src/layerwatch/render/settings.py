@@ -38,6 +38,10 @@ class RenderSettings(Section):
     smooth_px : float
         Gaussian sigma (px) applied to the height map before the normals
         are taken (anti-aliasing of the bead profile); 0 disables it.
+    cavity, cavity_radius_mm : float
+        Ambient occlusion of valleys: brightness lost where the surface lies
+        one layer height below the highest point within the radius (gaps
+        between beads, lower layers next to walls).
     markers_mm : list of (x, y) or None
         Bed markers (white dots) drawn on the bed, bed mm; ``None`` draws none.
     marker_diameter_mm : float
@@ -56,9 +60,11 @@ class RenderSettings(Section):
     light_elevation_deg: float = 45.0
     ambient: float = Field(0.15, ge=0, le=1)
     layers_visible_below: int = Field(3, ge=0)
-    depth_darkening: float = Field(0.45, ge=0, le=1)
-    relief: float = Field(4.0, gt=0, le=20)
+    depth_darkening: float = Field(0.5, ge=0, le=1)
+    relief: float = Field(1.5, gt=0, le=20)
     smooth_px: float = Field(0.7, ge=0, le=5)
+    cavity: float = Field(0.4, ge=0, le=1)
+    cavity_radius_mm: float = Field(0.35, gt=0, le=5)
     markers_mm: list[tuple[float, float]] | None = None
     marker_diameter_mm: float = Field(6.0, gt=0)
     blender_samples: int = Field(16, ge=1, le=4096)
