@@ -118,6 +118,24 @@ def render_plane(camera: CameraModel, texture: np.ndarray, texture_from_plane: n
     return img
 
 
+def _draw_aruco(tex, A, markers_mm, side_mm, px_per_mm, dictionary):
+    import cv2
+
+    from layerwatch.geometry.markers import _aruco_dictionary
+
+    d = _aruco_dictionary(dictionary)
+    n = int(round(side_mm * px_per_mm))
+    for i, (mx, my) in enumerate(np.asarray(markers_mm, float).reshape(-1, 2)):
+        tag = cv2.aruco.generateImageMarker(d, i, n, borderBits=1).astype(np.float32)
+        quiet = max(2, n // 5)
+        tag = cv2.copyMakeBorder(tag, quiet, quiet, quiet, quiet, cv2.BORDER_CONSTANT, value=255)
+        cu, cv_ = int(round(A[0, 0] * mx + A[0, 2])), int(round(A[1, 1] * my + A[1, 2]))
+        r0, c0 = cv_ - tag.shape[0] // 2, cu - tag.shape[1] // 2
+        if r0 < 0 or c0 < 0 or r0 + tag.shape[0] > tex.shape[0] or c0 + tag.shape[1] > tex.shape[1]:
+            continue
+        tex[r0 : r0 + tag.shape[0], c0 : c0 + tag.shape[1]] = tag[..., None] * (235 / 255)
+
+
 def _bed_texture(center, extent_mm, px_per_mm, bed_rgb, texture, markers_mm, radius_mm, marker_rgb, rng):
     import cv2
 
@@ -159,6 +177,7 @@ def render_bed_scene(camera: CameraModel, markers_mm: np.ndarray, marker_diamete
                      bed_extent_mm: float = 260.0, bed_center_mm=None, background_rgb=(90, 90, 95),
                      px_per_mm: float = 10.0, glare: float = 0.0, exposure: float = 1.0,
                      noise: float = 2.0, blur: float = 0.6, supersample: int = 3,
+                     plane_z_mm: float = 0.0, aruco_dictionary: str | None = None,
                      seed: int = 0) -> np.ndarray:
     """Photograph a bare bed with white dot markers through ``camera``.
 
@@ -187,6 +206,11 @@ def render_bed_scene(camera: CameraModel, markers_mm: np.ndarray, marker_diamete
         Gaussian sensor noise sigma (grey levels) and blur sigma (px).
     supersample : int
         Rays per pixel along each axis.
+    plane_z_mm : float
+        Height of the textured plane (tests of the per-layer warp), mm.
+    aruco_dictionary : str or None
+        Draw ArUco tags (id ``i`` at ``markers_mm[i]``, side
+        ``marker_diameter_mm``, white quiet zone) instead of dots.
     seed : int
         Seed of texture grain and noise.
 
@@ -200,9 +224,12 @@ def render_bed_scene(camera: CameraModel, markers_mm: np.ndarray, marker_diamete
     rng = np.random.default_rng(seed)
     markers = np.asarray(markers_mm, float).reshape(-1, 2)
     center = np.asarray(bed_center_mm if bed_center_mm is not None else markers.mean(0), float)
-    tex, A = _bed_texture(center, bed_extent_mm, px_per_mm, bed_rgb, texture, markers,
+    dots = markers if aruco_dictionary is None else np.empty((0, 2))
+    tex, A = _bed_texture(center, bed_extent_mm, px_per_mm, bed_rgb, texture, dots,
                           marker_diameter_mm / 2.0, marker_rgb, rng)
-    img = render_plane(camera, tex, A, background_rgb=background_rgb, supersample=supersample)
+    if aruco_dictionary is not None:
+        _draw_aruco(tex, A, markers, marker_diameter_mm, px_per_mm, aruco_dictionary)
+    img = render_plane(camera, tex, A, z_mm=plane_z_mm, background_rgb=background_rgb, supersample=supersample)
     h, w = img.shape[:2]
     if glare > 0:
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
