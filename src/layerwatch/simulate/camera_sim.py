@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -51,56 +50,16 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.simulate import failures as fl
+from layerwatch.simulate.frame import SimFrame, save_frame
+from layerwatch.simulate.photo import Photographer
 from layerwatch.simulate.raster import capsule_mask, grid_params, solid_area, stamp_capsules
-from layerwatch.simulate.scene import default_markers
 from layerwatch.simulate.settings import SimSettings
-from layerwatch.simulate.shade import bed_albedo_image, finish, render_view
 
 __all__ = ["SimFrame", "PrintSimulator", "save_frame", "simulate_layer", "simulate_print"]
 
 
-@dataclass
-class SimFrame:
-    """One simulated photo.
-
-    Attributes
-    ----------
-    photo : ndarray, uint8, shape (h, w, 3)
-        Camera view, BGR.
-    truth : ndarray, bool, shape topview.shape, or None
-        Where the layer differs from the plan (None: no failure active); exact
-        footprints (e.g. the removed beads of an infill patch).
-    truth_area : ndarray, bool, shape topview.shape, or None
-        ``truth`` closed over gaps up to 3 mm (the failed *region*, e.g. the
-        whole patch): the reference for localisation IoU.
-    meta : dict
-        ``layer``, ``z``, ``failures`` (active types), ``failed``, ``light``,
-        ``exposure``, ``blur_px``, ``seconds``.
-    """
-
-    photo: np.ndarray
-    truth: np.ndarray | None
-    meta: dict = field(default_factory=dict)
-    truth_area: np.ndarray | None = None
-
-    @property
-    def layer(self) -> int:
-        return int(self.meta["layer"])
-
-
-_CACHE: dict = {}
 _TILT_ARM_MM = 25.0  # a detached part pivots about a line this far behind its centre
 _SKIRT = FEATURES.index("skirt")
-
-
-def _cached(key, value=None):
-    """Tiny cache of per-camera arrays (rays, bed albedo, noise) shared by simulators."""
-    if value is None:
-        return _CACHE.get(key)
-    if len(_CACHE) >= 8:
-        _CACHE.pop(next(iter(_CACHE)))
-    _CACHE[key] = value
-    return value
 
 
 def _clip_disc(p0, p1, c, R):
@@ -158,50 +117,11 @@ class PrintSimulator:
         self.grid = TopView(st.grid_px_per_mm, topview.width_mm + 2 * m, topview.height_mm + 2 * m,
                             topview.center_mm)
         self.gp = grid_params(self.grid)
-        self._rays()
-        self.markers = (np.asarray(st.markers_mm, float).reshape(-1, 2) if st.markers_mm
-                        else default_markers(topview))
-        side = st.bed_size_mm or 2.4 * max(topview.width_mm, topview.height_mm)
-        cx, cy = topview.center_mm
-        self.bed = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
-        self.albedo = np.array([st.bed_rgb, st.filament_rgb, st.filament_rgb, (0.05, 0.05, 0.06),
-                                (0.55, 0.56, 0.6), (0.1, 0.25, 0.75)], np.float64)
-        self.spec = np.array([[0.04, 8], [0.25, 30], [0.35, 40], [0.15, 12], [0.9, 60], [0.3, 25]],
-                             np.float64)
-        w, h = camera.image_size
-        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
-        self.vignette = (1 - st.vignetting * r2).astype(np.float32)
-        bkey = self._key + ("bed", self.bed.tobytes(), self.markers.tobytes(), st.bed_rgb,
-                            st.background_rgb, st.marker_diameter_mm, self.seed)
-        self.bed_alb = _cached(bkey) if _cached(bkey) is not None else _cached(bkey, bed_albedo_image(
-            self.dirs, self.C, self.bed, np.asarray(st.bed_rgb, float),
-            np.asarray(st.background_rgb, float), self.markers, st.marker_diameter_mm / 2, self.seed))
-        nkey = ("noise", w, h)
-        self.noise_bank = _cached(nkey)
-        if self.noise_bank is None:
-            nrng = np.random.default_rng(20261123)
-            self.noise_bank = _cached(nkey, nrng.standard_normal((h + 32, w + 32, 3), np.float32))
-        self.lut = (np.clip(np.linspace(0, 1, 4096), 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+        self.cam = Photographer(camera, topview, self.grid, st, self.seed)
+        self.C = self.cam.C
         self._reset()
 
     # ---------------------------------------------------------------- set-up
-    def _rays(self) -> None:
-        cam = self.camera
-        key = ("rays", cam.image_size, cam.K.tobytes(), cam.dist.tobytes(), cam.rvec.tobytes())
-        dirs = _cached(key)
-        if dirs is None:
-            w, h = cam.image_size
-            uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64),
-                                      np.arange(h, dtype=np.float64)), -1).reshape(-1, 1, 2)
-            n = cv2.undistortPoints(uv, cam.K, cam.dist).reshape(h, w, 2)
-            d = np.concatenate([n, np.ones((h, w, 1))], -1)
-            d /= np.linalg.norm(d, axis=-1, keepdims=True)
-            dirs = _cached(key, np.ascontiguousarray((d @ cam.R).astype(np.float32)))
-        self.dirs = dirs
-        self.C = cam.center_mm.astype(np.float64)
-        self._key = key + (cam.tvec.tobytes(),)
-
     def _reset(self) -> None:
         self.h = np.zeros(self.grid.shape, np.float32)
         self.mat = np.zeros(self.grid.shape, np.uint8)
@@ -387,7 +307,7 @@ class PrintSimulator:
                 before = h.copy()
                 stamp_capsules(h, mat, before, rows, rf.capsule_mat[: len(rows)], *self.gp)
                 truth |= self._apparent(before, h, lay.z)
-        photo, info = self._photograph(h, mat, index, lay.height)
+        photo, info = self.cam.shoot(h, mat, index, lay.height)
         meta = {
             "layer": index,
             "z": lay.z,
@@ -398,68 +318,6 @@ class PrintSimulator:
         }
         area = _close(truth, tv, 3.0) if active else None
         return SimFrame(photo, truth if active else None, meta, area)
-
-    def _photograph(self, h, mat, index, layer_h):
-        st = self.settings
-        s = self.gp[0]
-        rng = np.random.default_rng([self.seed, 2, index])
-        # one-cell ledges of lower layers poking out under a tall wall (grid quantisation of
-        # the bead jitter) would read as dark stripes: fold them into the wall
-        k3 = np.ones((3, 3), np.uint8)
-        mx, mn = cv2.dilate(h, k3), cv2.erode(h, k3)
-        ledge = (mx - h > 1.0) & (h - mn > 0.1)
-        h = np.where(ledge, mx, h)
-        gy, gx = np.gradient(h)
-        wy, wx = np.gradient(cv2.GaussianBlur(h, (0, 0), 1.5))
-        wn = np.ascontiguousarray(np.stack([-wx, wy], -1), dtype=np.float32)
-        nz = np.full_like(h, 1.0 / s)
-        nrm = np.stack([-gx, gy, nz], -1)
-        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-        small = cv2.resize(h, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
-        blur = cv2.resize(cv2.GaussianBlur(small, (0, 0), 0.4 * s), h.shape[::-1])
-        ao = np.clip(1.0 - 0.35 * (blur - h), 0.35, 1.0).astype(np.float32)
-        rows, cols = np.any(h > 0, 1), np.any(h > 0, 0)
-        if rows.any():
-            v0, v1 = np.flatnonzero(rows)[[0, -1]]
-            u0, u1 = np.flatnonzero(cols)[[0, -1]]
-            (xa, ya), (xb, yb) = self.grid.to_mm(np.array([[u0 - 1, v1 + 1], [u1 + 1, v0 - 1]]))
-            bbox = np.array([xa, ya, xb, yb])
-            zmax = float(h.max())
-        else:
-            bbox, zmax = np.zeros(4), 0.0
-        cam = self.C
-        target = np.array([*self.topview.center_mm, 0.0])
-        off = np.asarray(st.light_offset_mm, float)
-        R = self.camera.R  # camera axes in bed frame are rows of R
-        lpos = cam + R[0] * off[0] + (-R[1]) * off[2] + R[2] * off[1]
-        lpos = lpos + rng.normal(0, st.light_jitter_mm, 3)
-        axis = target - lpos
-        dref = np.linalg.norm(axis)
-        axis /= dref
-        inten = st.light_intensity * (1 + rng.normal(0, st.light_intensity_jitter))
-        amb = st.ambient * (1 + rng.normal(0, 0.1))
-        light = np.array([*lpos, *axis, np.cos(np.deg2rad(30)), np.cos(np.deg2rad(60)), inten, amb,
-                          st.fill, dref])
-        w, hh = self.camera.image_size
-        rad = np.empty((hh, w, 3), np.float32)
-        render_view(self.dirs, self.C, h, mat, nrm.astype(np.float32), wn, ao, *self.gp, zmax, bbox,
-                    self.albedo, self.spec, light, self.bed_alb,
-                    np.asarray(st.background_rgb, float), float(layer_h), rad)
-        # camera: exposure and white-balance drift, vignetting, blur, noise, gamma
-        ph = np.random.default_rng([self.seed, 3]).uniform(0, 2 * np.pi, 4)
-        expo = st.exposure * (1 + st.exposure_drift * np.sin(2 * np.pi * index / 37 + ph[0])
-                              + rng.normal(0, st.exposure_drift / 3))
-        wb = 1 + st.colour_drift * np.sin(2 * np.pi * index / 53 + ph[1:]) + rng.normal(0, 0.01, 3)
-        gain = (expo * wb).astype(np.float32)
-        sigma = float(rng.uniform(*st.blur_px))
-        img = cv2.GaussianBlur(rad, (0, 0), sigma)
-        oy, ox = (int(v) for v in rng.integers(0, 32, 2))
-        photo = np.empty((hh, w, 3), np.uint8)
-        finish(img, self.vignette, gain.astype(np.float64), self.noise_bank, oy, ox,
-               st.read_noise, st.shot_noise, self.lut, photo)
-        info = {"light_mm": lpos.round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
-        return photo, info
-
 
 def _close(mask: np.ndarray, tv: TopView, mm: float) -> np.ndarray:
     k = max(int(round(mm * tv.px_per_mm)) | 1, 3)
@@ -525,27 +383,3 @@ def simulate_layer(
 ) -> SimFrame:
     """Simulate the photo taken after layer ``index``; same result as in :func:`simulate_print`."""
     return PrintSimulator(toolpath, camera, topview, failures, seed, settings).frame(index)
-
-
-def save_frame(frame: SimFrame, folder, stem: str | None = None) -> dict:
-    """Write a frame as ``<stem>.png`` (photo), ``<stem>_truth.png`` and ``<stem>_area.png``
-    (masks, 0/255, only when a failure is active) and ``<stem>.json`` (meta).
-
-    ``stem`` defaults to ``layer_<NNNN>``. Returns the written paths by kind.
-    """
-    import json
-    from pathlib import Path
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    stem = stem or f"layer_{frame.layer:04d}"
-    out = {"photo": folder / f"{stem}.png", "meta": folder / f"{stem}.json"}
-    cv2.imwrite(str(out["photo"]), frame.photo)
-    if frame.truth is not None:
-        out["truth"] = folder / f"{stem}_truth.png"
-        cv2.imwrite(str(out["truth"]), frame.truth.astype(np.uint8) * 255)
-        if frame.truth_area is not None:
-            out["area"] = folder / f"{stem}_area.png"
-            cv2.imwrite(str(out["area"]), frame.truth_area.astype(np.uint8) * 255)
-    out["meta"].write_text(json.dumps(frame.meta, indent=1))
-    return out

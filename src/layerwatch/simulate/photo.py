@@ -1,0 +1,166 @@
+"""The virtual camera rig: rays per pixel, lights, bed albedo and the sensor model.
+
+A :class:`Photographer` holds what depends only on the camera and the bed
+(ray directions through the lens distortion, the bare bed's albedo seen by
+each pixel, vignetting, a noise bank; shared between simulators through a
+small cache) and turns a height field into a BGR photo with
+:func:`~layerwatch.simulate.shade.render_view` and
+:func:`~layerwatch.simulate.shade.finish`.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.topview import TopView
+from layerwatch.simulate.scene import default_markers
+from layerwatch.simulate.settings import SimSettings
+from layerwatch.simulate.shade import bed_albedo_image, finish, render_view
+
+__all__ = ["Photographer"]
+
+_CACHE: dict = {}
+
+
+def _cached(key, value=None):
+    """Tiny cache of per-camera arrays (rays, bed albedo, noise) shared by simulators."""
+    if value is None:
+        return _CACHE.get(key)
+    if len(_CACHE) >= 8:
+        _CACHE.pop(next(iter(_CACHE)))
+    _CACHE[key] = value
+    return value
+
+
+class Photographer:
+    """Camera, lights and sensor of the simulator.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        Posed camera; ``image_size`` is the photo size.
+    topview : TopView
+        Its centre is the light's aim; its corners the default markers.
+    grid : TopView
+        Geometry of the height fields handed to :meth:`shoot`.
+    settings : SimSettings
+    seed : int
+    """
+
+    def __init__(self, camera: CameraModel, topview: TopView, grid: TopView, settings: SimSettings,
+                 seed: int) -> None:
+        from layerwatch.simulate.raster import grid_params
+
+        self.camera, self.topview, self.grid = camera, topview, grid
+        self.settings, self.seed = settings, int(seed)
+        self.gp = grid_params(grid)
+        st = settings
+        self._rays()
+        self.markers = (np.asarray(st.markers_mm, float).reshape(-1, 2) if st.markers_mm
+                        else default_markers(topview))
+        side = st.bed_size_mm or 2.4 * max(topview.width_mm, topview.height_mm)
+        cx, cy = topview.center_mm
+        self.bed = np.array([cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2])
+        self.albedo = np.array([st.bed_rgb, st.filament_rgb, st.filament_rgb, (0.05, 0.05, 0.06),
+                                (0.55, 0.56, 0.6), (0.1, 0.25, 0.75)], np.float64)
+        self.spec = np.array([[0.04, 8], [0.25, 30], [0.35, 40], [0.15, 12], [0.9, 60], [0.3, 25]],
+                             np.float64)
+        w, h = camera.image_size
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+        self.vignette = (1 - st.vignetting * r2).astype(np.float32)
+        bkey = self._key + ("bed", self.bed.tobytes(), self.markers.tobytes(), st.bed_rgb,
+                            st.background_rgb, st.marker_diameter_mm, self.seed)
+        self.bed_alb = _cached(bkey) if _cached(bkey) is not None else _cached(bkey, bed_albedo_image(
+            self.dirs, self.C, self.bed, np.asarray(st.bed_rgb, float),
+            np.asarray(st.background_rgb, float), self.markers, st.marker_diameter_mm / 2, self.seed))
+        nkey = ("noise", w, h)
+        self.noise_bank = _cached(nkey)
+        if self.noise_bank is None:
+            nrng = np.random.default_rng(20261123)
+            self.noise_bank = _cached(nkey, nrng.standard_normal((h + 32, w + 32, 3), np.float32))
+        self.lut = (np.clip(np.linspace(0, 1, 4096), 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+
+    def _rays(self) -> None:
+        cam = self.camera
+        key = ("rays", cam.image_size, cam.K.tobytes(), cam.dist.tobytes(), cam.rvec.tobytes())
+        dirs = _cached(key)
+        if dirs is None:
+            w, h = cam.image_size
+            uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64),
+                                      np.arange(h, dtype=np.float64)), -1).reshape(-1, 1, 2)
+            n = cv2.undistortPoints(uv, cam.K, cam.dist).reshape(h, w, 2)
+            d = np.concatenate([n, np.ones((h, w, 1))], -1)
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+            dirs = _cached(key, np.ascontiguousarray((d @ cam.R).astype(np.float32)))
+        self.dirs = dirs
+        self.C = cam.center_mm.astype(np.float64)
+        self._key = key + (cam.tvec.tobytes(),)
+
+    def shoot(self, h: np.ndarray, mat: np.ndarray, index: int, layer_h: float):
+        """Photo of height field ``h`` (float32 (H, W) mm) with materials ``mat`` (uint8).
+
+        Returns ``(photo, info)``: BGR uint8 (h, w, 3) and a dict of the frame's
+        light position, exposure and blur.
+        """
+        st = self.settings
+        s = self.gp[0]
+        rng = np.random.default_rng([self.seed, 2, index])
+        # one-cell ledges of lower layers poking out under a tall wall (grid quantisation of
+        # the bead jitter) would read as dark stripes: fold them into the wall
+        k3 = np.ones((3, 3), np.uint8)
+        mx, mn = cv2.dilate(h, k3), cv2.erode(h, k3)
+        ledge = (mx - h > 1.0) & (h - mn > 0.1)
+        h = np.where(ledge, mx, h)
+        gy, gx = np.gradient(h)
+        wy, wx = np.gradient(cv2.GaussianBlur(h, (0, 0), 1.5))
+        wn = np.ascontiguousarray(np.stack([-wx, wy], -1), dtype=np.float32)
+        nz = np.full_like(h, 1.0 / s)
+        nrm = np.stack([-gx, gy, nz], -1)
+        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+        small = cv2.resize(h, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+        blur = cv2.resize(cv2.GaussianBlur(small, (0, 0), 0.4 * s), h.shape[::-1])
+        ao = np.clip(1.0 - 0.35 * (blur - h), 0.35, 1.0).astype(np.float32)
+        rows, cols = np.any(h > 0, 1), np.any(h > 0, 0)
+        if rows.any():
+            v0, v1 = np.flatnonzero(rows)[[0, -1]]
+            u0, u1 = np.flatnonzero(cols)[[0, -1]]
+            (xa, ya), (xb, yb) = self.grid.to_mm(np.array([[u0 - 1, v1 + 1], [u1 + 1, v0 - 1]]))
+            bbox = np.array([xa, ya, xb, yb])
+            zmax = float(h.max())
+        else:
+            bbox, zmax = np.zeros(4), 0.0
+        cam = self.C
+        target = np.array([*self.topview.center_mm, 0.0])
+        off = np.asarray(st.light_offset_mm, float)
+        R = self.camera.R  # camera axes in bed frame are rows of R
+        lpos = cam + R[0] * off[0] + (-R[1]) * off[2] + R[2] * off[1]
+        lpos = lpos + rng.normal(0, st.light_jitter_mm, 3)
+        axis = target - lpos
+        dref = np.linalg.norm(axis)
+        axis /= dref
+        inten = st.light_intensity * (1 + rng.normal(0, st.light_intensity_jitter))
+        amb = st.ambient * (1 + rng.normal(0, 0.1))
+        light = np.array([*lpos, *axis, np.cos(np.deg2rad(30)), np.cos(np.deg2rad(60)), inten, amb,
+                          st.fill, dref])
+        w, hh = self.camera.image_size
+        rad = np.empty((hh, w, 3), np.float32)
+        render_view(self.dirs, self.C, h, mat, nrm.astype(np.float32), wn, ao, *self.gp, zmax, bbox,
+                    self.albedo, self.spec, light, self.bed_alb,
+                    np.asarray(st.background_rgb, float), float(layer_h), rad)
+        # camera: exposure and white-balance drift, vignetting, blur, noise, gamma
+        ph = np.random.default_rng([self.seed, 3]).uniform(0, 2 * np.pi, 4)
+        expo = st.exposure * (1 + st.exposure_drift * np.sin(2 * np.pi * index / 37 + ph[0])
+                              + rng.normal(0, st.exposure_drift / 3))
+        wb = 1 + st.colour_drift * np.sin(2 * np.pi * index / 53 + ph[1:]) + rng.normal(0, 0.01, 3)
+        gain = (expo * wb).astype(np.float32)
+        sigma = float(rng.uniform(*st.blur_px))
+        img = cv2.GaussianBlur(rad, (0, 0), sigma)
+        oy, ox = (int(v) for v in rng.integers(0, 32, 2))
+        photo = np.empty((hh, w, 3), np.uint8)
+        finish(img, self.vignette, gain.astype(np.float64), self.noise_bank, oy, ox,
+               st.read_noise, st.shot_noise, self.lut, photo)
+        info = {"light_mm": lpos.round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
+        return photo, info
