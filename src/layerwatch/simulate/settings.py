@@ -15,7 +15,7 @@ class SimSettings(Section):
     grid_px_per_mm: float = Field(8.0, gt=0, le=40, description="height-field resolution")
     grid_margin_mm: float = Field(10.0, ge=0, description="height field beyond the observed square")
     filament_rgb: tuple[float, float, float] = (0.85, 0.50, 0.16)
-    bed_rgb: tuple[float, float, float] = (0.16, 0.15, 0.14)
+    bed_rgb: tuple[float, float, float] = (0.08, 0.075, 0.07)
     background_rgb: tuple[float, float, float] = (0.05, 0.05, 0.06)
     bed_size_mm: float | None = Field(None, description="bed square side; None = 2.4 x observed")
     marker_diameter_mm: float = Field(6.0, gt=0)
