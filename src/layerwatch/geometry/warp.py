@@ -87,6 +87,7 @@ class TopViewWarper:
         self.cache_size = int(cache_size)
         self._lookups: dict[tuple[int, int], tuple[CameraModel, np.ndarray, np.ndarray]] = {}
         self._maps: OrderedDict = OrderedDict()
+        self._invalid: dict = {}
 
     # ------------------------------------------------------------ lookups
     def _lookup(self, size: tuple[int, int]):
@@ -125,7 +126,7 @@ class TopViewWarper:
         import cv2
 
         size = tuple(int(v) for v in (image_size or self.camera.image_size))
-        key = (size, round(float(z), 4))
+        key = self._key(z, size)
         hit = self._maps.get(key)
         if hit is not None:
             self._maps.move_to_end(key)
@@ -149,10 +150,11 @@ class TopViewWarper:
             valid &= depth_ok
             src[~depth_ok] = _FAR
         map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)
+        self._invalid[key] = None if valid.all() else np.flatnonzero(~valid)
         out = (map1, map2, valid)
         self._maps[key] = out
         while len(self._maps) > self.cache_size:
-            self._maps.popitem(last=False)
+            self._invalid.pop(self._maps.popitem(last=False)[0], None)
         return out
 
     def _in_front(self, cam: CameraModel, z: float) -> np.ndarray | None:
@@ -199,7 +201,14 @@ class TopViewWarper:
         h, w = photo.shape[:2]
         map1, map2, valid = self.maps(z, (w, h))
         top = cv2.remap(photo, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        bad = self._invalid.get((self._key(z, (w, h))))
+        if bad is not None:  # partly seen: blank what the camera did not see (no border blends)
+            top.reshape(len(valid.flat), -1)[bad] = 0
         return top, valid
+
+    @staticmethod
+    def _key(z, size):
+        return (tuple(int(v) for v in size), round(float(z), 4))
 
 
 def occlusion_hint(camera: CameraModel, topview: TopView, z: float,

@@ -1,0 +1,141 @@
+"""The top-view warper: sub-pixel alignment for planes Z = 0..100 mm, distortion, resolution, masks."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from layerwatch.errors import LayerwatchError, WarpError
+from layerwatch.geometry.homography import top_from_image
+from layerwatch.geometry.markers import detect_dots
+from layerwatch.geometry.synthetic import render_bed_scene
+from layerwatch.geometry.warp import TopViewWarper, occlusion_hint
+
+DOTS = np.array([[-30.0, -30.0], [30.0, -30.0], [30.0, 30.0], [-30.0, 30.0]])
+
+
+def _dot_centres(top: np.ndarray, expected_px: np.ndarray) -> np.ndarray:
+    blobs = detect_dots(top, max_candidates=10)
+    c = np.array([b.center for b in blobs])
+    return np.array([c[np.argmin(np.linalg.norm(c - e, axis=1))] for e in expected_px])
+
+
+@pytest.mark.parametrize("z", [0.0, 33.3, 66.7, 100.0])
+def test_dots_on_plane_z_land_within_a_pixel(topview, z):
+    from tests.geometry.conftest import posed_camera
+
+    camera = posed_camera(eye=(20.0, -230.0, 320.0))  # far enough to see the raised planes whole
+    photo = render_bed_scene(camera, DOTS, 6.0, plane_z_mm=z, noise=2.0, blur=0.8, supersample=2,
+                             bed_extent_mm=140, seed=int(z))
+    top, valid = TopViewWarper(camera, topview).warp(photo, z)
+    assert valid.all()
+    assert top.shape == (600, 600, 3) and valid.dtype == bool
+    expected = topview.to_px(DOTS)
+    err = np.linalg.norm(_dot_centres(top, expected) - expected, axis=1)
+    assert err.max() <= 1.0, err
+
+
+def _float_map(warper, z, size):
+    map1, map2, _ = warper.maps(z, size)
+    return cv2.convertMaps(map1, map2, cv2.CV_32FC2)[0]
+
+
+@pytest.mark.parametrize("z", [0.0, 50.0, 100.0])
+def test_remap_table_matches_projectpoints_with_distortion(topview, z):
+    """Every top-view pixel samples the photo where cv2.projectPoints (with distortion) puts its bed point."""
+    from tests.geometry.conftest import posed_camera
+
+    camera = posed_camera(eye=(20.0, -230.0, 320.0), dist=(-0.2, 0.05, 0.001, 0.0, 0.0))
+    src = _float_map(TopViewWarper(camera, topview), z, camera.image_size)
+    v, u = np.mgrid[0:600:37, 0:600:37]
+    u = np.r_[u.ravel(), 0, 599, 599, 0]
+    v = np.r_[v.ravel(), 0, 0, 599, 599]  # include the four corners
+    xy = topview.to_mm(np.c_[u, v].astype(float))
+    ref = cv2.projectPoints(np.c_[xy, np.full(len(xy), z)], camera.rvec, camera.tvec, camera.K,
+                            camera.dist)[0].reshape(-1, 2)
+    got = src[v, u]
+    inside = (ref[:, 0] > 0) & (ref[:, 0] < 959) & (ref[:, 1] > 0) & (ref[:, 1] < 539)
+    assert inside.sum() > 0.95 * len(ref)
+    # fixed-point tables quantise to 1/32 px; bilinear lookups add a little more
+    assert np.abs(got[inside] - ref[inside]).max() < 0.15
+
+
+def test_strong_distortion_matches_naive_undistort_then_warp(topview):
+    from tests.geometry.conftest import posed_camera
+
+    cam = posed_camera(dist=(-0.3, 0.09, 0.001, -0.001, 0.0))
+    photo = render_bed_scene(cam, topview.corners_mm, 6.0, texture="pei", noise=0, blur=1.0, supersample=2)
+    top, valid = TopViewWarper(cam, topview).warp(photo, 0.0)
+    und = cv2.undistort(photo, cam.K, cam.dist)
+    naive = cv2.warpPerspective(und, top_from_image(cam, topview, 0.0), (600, 600), flags=cv2.INTER_LINEAR)
+    inner = valid.copy()
+    inner[:20], inner[-20:], inner[:, :20], inner[:, -20:] = False, False, False, False
+    diff = np.abs(top.astype(int) - naive.astype(int))[inner]
+    assert diff.mean() < 2.0
+    # ignoring the distortion would be visibly wrong: the grid lines move
+    nodist = replace(cam, dist=np.zeros(5))
+    wrong, _ = TopViewWarper(nodist, topview).warp(photo, 0.0)
+    assert np.abs(wrong.astype(int) - naive.astype(int))[inner].mean() > 3 * diff.mean()
+
+
+def test_photo_of_another_resolution_uses_scaled_K(camera, topview):
+    small = camera.scaled_to((480, 270))
+    photo = render_bed_scene(small, DOTS, 6.0, supersample=3, bed_extent_mm=140, seed=3)
+    top, _ = TopViewWarper(camera, topview).warp(photo, 0.0)  # model from 960x540
+    expected = topview.to_px(DOTS)
+    assert np.linalg.norm(_dot_centres(top, expected) - expected, axis=1).max() <= 1.0
+
+
+def test_wrong_aspect_and_bad_arrays_raise_clear_errors(camera, topview):
+    w = TopViewWarper(camera, topview)
+    with pytest.raises(WarpError, match="aspect ratio"):
+        w.warp(np.zeros((480, 480, 3), np.uint8), 0.0)
+    with pytest.raises(WarpError, match="8-bit"):
+        w.warp(np.zeros((540, 960, 3), np.float64), 0.0)
+    with pytest.raises(WarpError, match="NumPy"):
+        w.warp("photo.jpg", 0.0)
+    with pytest.raises(WarpError, match="finite"):
+        w.warp(np.zeros((540, 960), np.uint8), float("nan"))
+    with pytest.raises(LayerwatchError, match="pose"):
+        TopViewWarper(replace(camera, rvec=None, tvec=None), topview)
+
+
+def test_validity_mask_marks_what_the_camera_did_not_see(topview):
+    from layerwatch.geometry.topview import TopView
+    from tests.geometry.conftest import posed_camera
+
+    cam = posed_camera(eye=(0.0, -120.0, 60.0), target=(0.0, 60.0, 0.0))  # low camera, near edge cut off
+    wide = TopView(4.0, 200.0, 200.0, (0.0, 0.0))
+    photo = np.full((540, 960, 3), 200, np.uint8)
+    top, valid = TopViewWarper(cam, wide).warp(photo, 0.0)
+    assert 0.05 < valid.mean() < 0.95
+    assert np.all(top[~valid] == 0) and np.all(top[valid][:, 0] > 0)
+    # the mask is exactly where the projected bed point falls inside the photo
+    v, u = np.mgrid[0:800:23, 0:800:23]
+    xy = wide.to_mm(np.c_[u.ravel(), v.ravel()].astype(float))
+    uv = cv2.projectPoints(np.c_[xy, np.zeros(len(xy))], cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(-1, 2)
+    depth = (np.c_[xy, np.zeros(len(xy))] @ cam.R.T + cam.tvec)[:, 2]
+    inside = (depth > 0) & (uv[:, 0] >= 1) & (uv[:, 0] <= 958) & (uv[:, 1] >= 1) & (uv[:, 1] <= 538)
+    outside = (depth <= 0) | (uv[:, 0] < -1) | (uv[:, 0] > 960) | (uv[:, 1] < -1) | (uv[:, 1] > 540)
+    got = valid[v.ravel(), u.ravel()]
+    assert got[inside].all() and not got[outside].any()
+
+
+def test_tables_are_cached_per_height(camera, topview):
+    w = TopViewWarper(camera, topview, cache_size=2)
+    a = w.maps(1.0)
+    assert w.maps(1.0) is a
+    w.maps(2.0), w.maps(3.0)
+    assert w.maps(1.0) is not a
+
+
+def test_occlusion_hint_flags_the_far_side_of_a_tall_part(camera, topview):
+    occ = occlusion_hint(camera, topview, 0.0, (-10, -10, 10, 10), 40.0)
+    near, far = topview.to_px([[0, -20]]), topview.to_px([[0, 20]])
+    assert occ[int(far[0, 1]), int(far[0, 0])]          # behind the part, seen from the front
+    assert not occ[int(near[0, 1]), int(near[0, 0])]    # in front of it
+    assert not occlusion_hint(camera, topview, 40.0, (-10, -10, 10, 10), 40.0)[299, 299]  # its own top
+    assert not occlusion_hint(camera, topview, 0.0, (-10, -10, 10, 10), 0.0).any()
