@@ -24,16 +24,54 @@ import numpy as np
 from numba import njit
 
 from layerwatch.errors import RenderError
-from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.gcode.toolpath import Toolpath, feature_code
 from layerwatch.geometry.topview import TopView
 from layerwatch.render.raster import raster_capsules
 
-__all__ = ["gcode_mask", "stl_mask", "load_mesh", "slice_polygons", "fill_polygons"]
+__all__ = ["closed_loops", "gcode_mask", "stl_mask", "load_mesh", "slice_polygons", "fill_polygons"]
 
 log = logging.getLogger(__name__)
 
-def gcode_mask(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray:
+def closed_loops(
+    start: np.ndarray, end: np.ndarray, tol: float = 1e-3, close_mm: float = 1.0
+) -> list[np.ndarray]:
+    """Closed chains of consecutive segments (perimeter loops), as polygons.
+
+    Parameters
+    ----------
+    start, end : ndarray, shape (S, 2)
+        Segments of one layer in print order, mm.
+    tol : float
+        Largest gap between consecutive segments of one chain, mm.
+    close_mm : float
+        Largest gap between a chain's end and its start (slicers leave a
+        seam gap of a fraction of the bead width), mm.
+
+    Returns
+    -------
+    list of ndarray, shape (K, 2)
+        Vertices of every chain of >= 3 segments whose end comes back to its start.
+    """
+    n = start.shape[0]
+    if n == 0:
+        return []
+    breaks = np.flatnonzero(np.hypot(*(start[1:] - end[:-1]).T) > tol) + 1
+    bounds = np.concatenate([[0], breaks, [n]])
+    loops = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        if b - a >= 3 and np.hypot(*(end[b - 1] - start[a])) <= close_mm:
+            loops.append(start[a:b])
+    return loops
+
+
+def gcode_mask(toolpath: Toolpath, index: int, topview: TopView, *, solid: bool = False) -> np.ndarray:
     """Footprint of layer ``index``: union of its bead capsules.
+
+    With ``solid=True`` the inside of the layer's closed external-perimeter
+    loops is added (even-odd rule: one external perimeter per contour or
+    hole, so holes stay empty), so sparse-infill layers give the part's
+    cross-section. Without feature tags (all segments "unknown") every
+    closed loop is used.
 
     Parameters
     ----------
@@ -46,7 +84,8 @@ def gcode_mask(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray:
     -------
     ndarray, shape (H, W), bool
         True where a pixel centre lies within half a bead width of a segment
-        of the layer. Empty layers give an all-False mask.
+        of the layer (plus the filled loops with ``solid``). Empty layers
+        give an all-False mask.
     """
     from layerwatch.render.fast import _check_index, segment_pixels
 
@@ -62,6 +101,15 @@ def gcode_mask(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray:
     clipped = raster_capsules(height, mask, p0, p1, r, dummy, dummy, False, True)
     if clipped:
         log.warning("layer %d: %d segments clipped by the observed square", index, clipped)
+    if solid:
+        feat = toolpath.feature[sl]
+        sel = feat == feature_code("external_perimeter")
+        if not sel.any():
+            sel = feat == feature_code("unknown")
+        if sel.any():
+            wmax = float(np.max(toolpath.width[sl][sel]))
+            loops = closed_loops(toolpath.start[sl][sel], toolpath.end[sl][sel], close_mm=2.0 * wmax)
+            mask |= fill_polygons(loops, topview)
     return mask
 
 
@@ -131,11 +179,15 @@ def slice_polygons(mesh, z: float) -> list[np.ndarray]:
 
 
 @njit(cache=True)
-def _fill_even_odd(mask, xs0, ys0, xs1, ys1):
-    """Scanline fill, even-odd rule, pixel centres only (exact area on average)."""
+def _fill_scanline(mask, xs0, ys0, xs1, ys1, nonzero):
+    """Scanline polygon fill at pixel centres (exact area on average).
+
+    ``nonzero`` False: even-odd rule; True: nonzero winding rule.
+    """
     H, W = mask.shape
     n = xs0.shape[0]
     cross = np.empty(n, np.float64)
+    wind = np.empty(n, np.int64)
     for v in range(H):
         y = float(v)
         k = 0
@@ -144,19 +196,24 @@ def _fill_even_odd(mask, xs0, ys0, xs1, ys1):
             if (a <= y < b) or (b <= y < a):
                 t = (y - a) / (b - a)
                 cross[k] = xs0[i] + t * (xs1[i] - xs0[i])
+                wind[k] = 1 if b > a else -1
                 k += 1
         if k < 2:
             continue
-        xs = np.sort(cross[:k])
-        for j in range(0, k - 1, 2):
-            u0 = max(int(math.ceil(xs[j])), 0)
-            u1 = min(int(math.ceil(xs[j + 1])) - 1, W - 1)
-            for u in range(u0, u1 + 1):
-                mask[v, u] = True
+        order = np.argsort(cross[:k])
+        acc = 0
+        for jj in range(k - 1):
+            j = order[jj]
+            acc = acc + wind[j] if nonzero else 1 - acc
+            if acc != 0:
+                u0 = max(int(math.ceil(cross[j])), 0)
+                u1 = min(int(math.ceil(cross[order[jj + 1]])) - 1, W - 1)
+                for u in range(u0, u1 + 1):
+                    mask[v, u] = True
 
 
-def fill_polygons(polygons: list[np.ndarray], topview: TopView) -> np.ndarray:
-    """Rasterise closed polygons with the even-odd rule (holes stay empty).
+def fill_polygons(polygons: list[np.ndarray], topview: TopView, *, nonzero: bool = False) -> np.ndarray:
+    """Rasterise closed polygons, even-odd (default) or nonzero winding rule.
 
     A pixel is set when its centre is inside (left-closed, right-open spans),
     so the pixel count times ``1 / px_per_mm**2`` estimates the area without
@@ -165,7 +222,9 @@ def fill_polygons(polygons: list[np.ndarray], topview: TopView) -> np.ndarray:
     Parameters
     ----------
     polygons : list of ndarray, shape (K, 2)
-        Polygons in bed mm (orientation irrelevant).
+        Polygons in bed mm (orientation matters only for ``nonzero``).
+    nonzero : bool
+        Nonzero winding rule (counter-clockwise adds, clockwise removes).
     topview : TopView
 
     Returns
@@ -177,7 +236,7 @@ def fill_polygons(polygons: list[np.ndarray], topview: TopView) -> np.ndarray:
     if polys:
         a = np.concatenate(polys)
         b = np.concatenate([np.roll(p, -1, axis=0) for p in polys])
-        _fill_even_odd(mask, a[:, 0].copy(), a[:, 1].copy(), b[:, 0].copy(), b[:, 1].copy())
+        _fill_scanline(mask, a[:, 0].copy(), a[:, 1].copy(), b[:, 0].copy(), b[:, 1].copy(), nonzero)
     return mask
 
 
