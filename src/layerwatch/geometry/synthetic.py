@@ -223,7 +223,8 @@ def render_bed_scene(camera: CameraModel, markers_mm: np.ndarray, marker_diamete
 
     rng = np.random.default_rng(seed)
     markers = np.asarray(markers_mm, float).reshape(-1, 2)
-    center = np.asarray(bed_center_mm if bed_center_mm is not None else markers.mean(0), float)
+    center = np.asarray(bed_center_mm if bed_center_mm is not None
+                        else (markers.mean(0) if len(markers) else (0.0, 0.0)), float)
     dots = markers if aruco_dictionary is None else np.empty((0, 2))
     tex, A = _bed_texture(center, bed_extent_mm, px_per_mm, bed_rgb, texture, dots,
                           marker_diameter_mm / 2.0, marker_rgb, rng)
