@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from layerwatch.errors import CalibrationError
-from layerwatch.geometry.calibration import BoardSpec, approximate_intrinsics, calibrate_intrinsics, find_board
+from layerwatch.geometry.calibration import (
+    BoardSpec,
+    approximate_intrinsics,
+    calibrate_intrinsics,
+    find_board,
+)
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.synthetic import chessboard_texture, render_plane
 
@@ -21,7 +26,7 @@ def _views(n: int, seed: int = 0):
     tex, A, corners = chessboard_texture(9, 6, 20.0, px_per_mm=8.0)
     centre = corners[:, :2].mean(0)
     out = []
-    for k in range(n):
+    for _ in range(n):
         ax = rng.uniform(-0.45, 0.45, 3) * [1, 1, 0.3]
         R = cv2.Rodrigues(ax)[0]
         # board centre straight ahead at 300-380 mm, a little off axis

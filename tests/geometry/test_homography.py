@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
-from dataclasses import replace
 
 from layerwatch.errors import CalibrationError
-from layerwatch.geometry.homography import apply_homography, image_from_plane, image_from_top, top_from_image
+from layerwatch.geometry.homography import (
+    apply_homography,
+    image_from_plane,
+    image_from_top,
+    top_from_image,
+)
 
 
 @pytest.mark.parametrize("z", [0.0, 7.3, 55.0])

@@ -7,12 +7,12 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from tests.geometry.conftest import posed_camera, rotation_error_deg
 
 from layerwatch.errors import LayerwatchError, MarkerError
 from layerwatch.geometry.pose import camera_moved, locate_bed, solve_pose
 from layerwatch.geometry.settings import MarkerSettings
 from layerwatch.geometry.synthetic import project_points, render_bed_scene
-from tests.geometry.conftest import posed_camera, rotation_error_deg
 
 SCENES = {
     "plain": dict(texture="plain", noise=3.0, blur=1.2),

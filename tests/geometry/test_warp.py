@@ -104,8 +104,9 @@ def test_wrong_aspect_and_bad_arrays_raise_clear_errors(camera, topview):
 
 
 def test_validity_mask_marks_what_the_camera_did_not_see(topview):
-    from layerwatch.geometry.topview import TopView
     from tests.geometry.conftest import posed_camera
+
+    from layerwatch.geometry.topview import TopView
 
     cam = posed_camera(eye=(0.0, -120.0, 60.0), target=(0.0, 60.0, 0.0))  # low camera, near edge cut off
     wide = TopView(4.0, 200.0, 200.0, (0.0, 0.0))

@@ -73,7 +73,7 @@ class CameraModel:
     approximate: bool = False
     errors: dict[str, float] = field(default_factory=dict)
     created: str = field(
-        default_factory=lambda: _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        default_factory=lambda: _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     )
 
     def __post_init__(self) -> None:

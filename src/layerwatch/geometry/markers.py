@@ -184,7 +184,7 @@ def detect_aruco(photo: np.ndarray, dictionary: str = "DICT_4X4_50") -> dict[int
     out: dict[int, np.ndarray] = {}
     if ids is None:
         return out
-    for quad, i in zip(corners, ids.reshape(-1)):
+    for quad, i in zip(corners, ids.reshape(-1), strict=True):
         p = quad.reshape(4, 2).astype(np.float64)
         a, b, c, d = p
         # intersection of lines a-c and b-d

@@ -83,7 +83,7 @@ def _candidates(camera, image_points, obj):
     except cv2.error:
         return []
     out = []
-    for r, t in zip(rvecs, tvecs):
+    for r, t in zip(rvecs, tvecs, strict=True):
         if _plausible(r, t, obj) is None:
             out.append((reprojection_rms(camera, r, t, image_points, obj[:, :2]), r.reshape(3), t.reshape(3)))
     return out

@@ -201,7 +201,7 @@ class TopViewWarper:
         h, w = photo.shape[:2]
         map1, map2, valid = self.maps(z, (w, h))
         top = cv2.remap(photo, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        bad = self._invalid.get((self._key(z, (w, h))))
+        bad = self._invalid.get(self._key(z, (w, h)))
         if bad is not None:  # partly seen: blank what the camera did not see (no border blends)
             top.reshape(len(valid.flat), -1)[bad] = 0
         return top, valid
