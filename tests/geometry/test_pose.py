@@ -87,7 +87,7 @@ def test_bad_photos_give_clear_marker_errors(camera, topview, bed_photo, case):
     elif case == "blurred":
         photo, match = cv2.GaussianBlur(bed_photo, (0, 0), 25), "blurred"
     elif case == "occluded":
-        photo, match = _cover(bed_photo, camera, topview.corners_mm[2]), "of the 4 bed markers"
+        photo, match = _cover(bed_photo, camera, topview.corners_mm[2]), "covered"
     else:
         photo = render_bed_scene(camera, np.r_[topview.corners_mm, [[0.0, 0.0]]], 6.0, supersample=1)
         photo = _cover(photo, camera, topview.corners_mm[3])  # 4 dots seen, one of them wrong

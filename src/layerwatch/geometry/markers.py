@@ -100,6 +100,35 @@ def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, fl
     return float((cov * gx).sum() / s + x0), float((cov * gy).sum() / s + y0), s
 
 
+def _score_contour(c, grey, tophat, f, k) -> Blob | None:
+    """A :class:`Blob` for one contour of the thresholded top-hat, or None when it is no dot."""
+    import cv2
+
+    area = cv2.contourArea(c)
+    if area < 6 or area > 0.6 * k * k:
+        return None
+    per = cv2.arcLength(c, True)
+    circ = 4 * np.pi * area / max(per * per, 1e-9)
+    hull = cv2.contourArea(cv2.convexHull(c))
+    solidity = area / max(hull, 1e-9)
+    if circ < 0.6 or solidity < 0.85:
+        return None
+    if len(c) >= 5:
+        (_, _), (a, b), _ = cv2.fitEllipse(c)
+        if min(a, b) <= 0 or max(a, b) / min(a, b) > 5:
+            return None
+    x, y, w, h = cv2.boundingRect(c)
+    mask = np.zeros((h, w), np.uint8)
+    cv2.drawContours(mask, [c - [x, y]], -1, 1, -1)
+    contrast = float(tophat[y : y + h, x : x + w][mask > 0].mean())
+    box = (int(x / f), int(y / f), int(np.ceil(w / f)), int(np.ceil(h / f)))
+    ref = _refine(grey, box)
+    if ref is None:
+        return None
+    score = min(circ, 1.0) * solidity * min(contrast / 100.0, 1.5)
+    return Blob((ref[0], ref[1]), ref[2], float(circ), contrast, float(score))
+
+
 def detect_dots(photo: np.ndarray, *, max_candidates: int = 12, min_contrast: float = 35.0,
                 max_side_px: int = 1280) -> list[Blob]:
     """Find bright circular blobs (white dot markers).
@@ -129,34 +158,26 @@ def detect_dots(photo: np.ndarray, *, max_candidates: int = 12, min_contrast: fl
     work = cv2.resize(grey, (int(W * f), int(H * f)), interpolation=cv2.INTER_AREA) if f < 1 else grey
     k = int(max(9, 0.12 * min(work.shape))) | 1
     tophat = cv2.morphologyEx(work, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
-    otsu, _ = cv2.threshold(tophat, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-    bw = (tophat > max(float(otsu), min_contrast)).astype(np.uint8)
-    contours, _ = cv2.findContours(bw, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    # several thresholds (as in a blob detector): a dot sitting in glare only separates
+    # from the glare's residue at a high level, a dim dot only shows at a low one
+    top = float(tophat.max())
+    levels = [lv for lv in (min_contrast, 60.0, 90.0, 130.0, 180.0) if lv < top - 10] or [min_contrast]
     blobs: list[Blob] = []
-    for c in contours:
-        area = cv2.contourArea(c)
-        if area < 6 or area > 0.6 * k * k:
+    for level in levels:
+        bw = (tophat > level).astype(np.uint8)
+        contours, _ = cv2.findContours(bw, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        if len(contours) > 2000:  # texture, not markers: a higher level will do
             continue
-        per = cv2.arcLength(c, True)
-        circ = 4 * np.pi * area / max(per * per, 1e-9)
-        hull = cv2.contourArea(cv2.convexHull(c))
-        solidity = area / max(hull, 1e-9)
-        if circ < 0.6 or solidity < 0.85:
-            continue
-        if len(c) >= 5:
-            (_, _), (a, b), _ = cv2.fitEllipse(c)
-            if min(a, b) <= 0 or max(a, b) / min(a, b) > 5:
+        for c in contours:
+            blob = _score_contour(c, grey, tophat, f, k)
+            if blob is None:
                 continue
-        x, y, w, h = cv2.boundingRect(c)
-        mask = np.zeros((h, w), np.uint8)
-        cv2.drawContours(mask, [c - [x, y]], -1, 1, -1)
-        contrast = float(tophat[y : y + h, x : x + w][mask > 0].mean())
-        box = (int(x / f), int(y / f), int(np.ceil(w / f)), int(np.ceil(h / f)))
-        ref = _refine(grey, box)
-        if ref is None:
-            continue
-        score = min(circ, 1.0) * solidity * min(contrast / 100.0, 1.5)
-        blobs.append(Blob((ref[0], ref[1]), ref[2], float(circ), contrast, float(score)))
+            r = 0.6 * np.sqrt(blob.area)
+            same = [i for i, o in enumerate(blobs) if np.hypot(o.center[0] - blob.center[0], o.center[1] - blob.center[1]) < r]
+            if not same:
+                blobs.append(blob)
+            elif all(blob.score > blobs[i].score for i in same):
+                blobs = [o for i, o in enumerate(blobs) if i not in same] + [blob]
     blobs.sort(key=lambda b: -b.score)
     return blobs[:max_candidates]
 
