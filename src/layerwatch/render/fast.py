@@ -230,7 +230,10 @@ class StackRenderer:
             occl = np.minimum((top - self.height) * np.float32(1.0 / lh), 1.0)
             light *= 1.0 - np.float32(s.cavity) * occl
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
-        image = np.clip(albedo * light * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        img = albedo * light
+        if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
+            img = cv2.GaussianBlur(img, (0, 0), s.image_blur_px, borderType=cv2.BORDER_REPLICATE)
+        image = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return Rendered(image, self.height.copy(), mask, index, float(z), light, int(clipped))
 
 

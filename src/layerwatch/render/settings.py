@@ -42,6 +42,9 @@ class RenderSettings(Section):
         Ambient occlusion of valleys: brightness lost where the surface lies
         one layer height below the highest point within the radius (gaps
         between beads, lower layers next to walls).
+    image_blur_px : float
+        Gaussian sigma (px) of the final image (camera optics / warp
+        resampling); 0 disables it.
     markers_mm : list of (x, y) or None
         Bed markers (white dots) drawn on the bed, bed mm; ``None`` draws none.
     marker_diameter_mm : float
@@ -63,8 +66,9 @@ class RenderSettings(Section):
     depth_darkening: float = Field(0.5, ge=0, le=1)
     relief: float = Field(1.5, gt=0, le=20)
     smooth_px: float = Field(0.7, ge=0, le=5)
-    cavity: float = Field(0.4, ge=0, le=1)
+    cavity: float = Field(0.1, ge=0, le=1)
     cavity_radius_mm: float = Field(0.35, gt=0, le=5)
+    image_blur_px: float = Field(1.0, ge=0, le=5)
     markers_mm: list[tuple[float, float]] | None = None
     marker_diameter_mm: float = Field(6.0, gt=0)
     blender_samples: int = Field(16, ge=1, le=4096)
