@@ -22,6 +22,7 @@ light), Fig. 4.
 from __future__ import annotations
 
 import logging
+import threading
 import weakref
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -237,7 +238,8 @@ class StackRenderer:
         return Rendered(image, self.height.copy(), mask, index, float(z), light, int(clipped))
 
 
-_LAST: dict[str, object] = {}
+_LAST: dict[str, object] = {}  # the most recent renderer (holds one toolpath alive)
+_LOCK = threading.Lock()
 
 
 def render_layer(
@@ -271,12 +273,13 @@ def render_layer(
     """
     settings = settings or RenderSettings()
     key = (topview, settings.model_dump_json())
-    ref = _LAST.get("toolpath")
-    renderer = _LAST.get("renderer")
-    if ref is None or ref() is not toolpath or _LAST.get("key") != key:
-        renderer = StackRenderer(toolpath, topview, settings)
-        _LAST.update(toolpath=weakref.ref(toolpath), key=key, renderer=renderer)
-    return renderer.render(index)  # type: ignore[union-attr]
+    with _LOCK:
+        ref = _LAST.get("toolpath")
+        renderer = _LAST.get("renderer")
+        if ref is None or ref() is not toolpath or _LAST.get("key") != key:
+            renderer = StackRenderer(toolpath, topview, settings)
+            _LAST.update(toolpath=weakref.ref(toolpath), key=key, renderer=renderer)
+        return renderer.render(index)  # type: ignore[union-attr]
 
 
 def render_stack(
