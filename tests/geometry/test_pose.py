@@ -78,7 +78,17 @@ def _cover(photo, camera, xy_mm, r_px=30):
     return out
 
 
-@pytest.mark.parametrize("case", ["blank", "overexposed", "blurred", "occluded", "extra dot"])
+def _halo(photo, camera, xy_mm):
+    """A reflection spilling over one marker: a bright blurred spot a little off its centre."""
+    out = photo.astype(np.float32)
+    u, v = project_points(camera, [xy_mm])[0]
+    spot = np.zeros(photo.shape[:2], np.float32)
+    cv2.circle(spot, (int(u) + 6, int(v) - 4), 14, 1.0, -1)
+    out += 200 * cv2.GaussianBlur(spot, (0, 0), 3)[..., None]
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("case", ["blank", "overexposed", "blurred", "occluded", "extra dot", "halo"])
 def test_bad_photos_give_clear_marker_errors(camera, topview, bed_photo, case):
     if case == "blank":
         photo, match = render_bed_scene(camera, np.empty((0, 2)), 6.0, supersample=1), "found 0 of the 4"
@@ -88,6 +98,8 @@ def test_bad_photos_give_clear_marker_errors(camera, topview, bed_photo, case):
         photo, match = cv2.GaussianBlur(bed_photo, (0, 0), 25), "blurred"
     elif case == "occluded":
         photo, match = _cover(bed_photo, camera, topview.corners_mm[2]), "covered"
+    elif case == "halo":
+        photo, match = _halo(bed_photo, camera, topview.corners_mm[2]), "expected size|fit"
     else:
         photo = render_bed_scene(camera, np.r_[topview.corners_mm, [[0.0, 0.0]]], 6.0, supersample=1)
         photo = _cover(photo, camera, topview.corners_mm[3])  # 4 dots seen, one of them wrong

@@ -89,8 +89,8 @@ def _candidates(camera, image_points, obj):
     return out
 
 
-def _disc_bias(camera, rvec, tvec, markers_mm, radius_mm) -> np.ndarray:
-    """Area centroid of each imaged disc minus the image of its centre, (n, 2) px."""
+def _disc_bias(camera, rvec, tvec, markers_mm, radius_mm, *, areas: bool = False) -> np.ndarray:
+    """Area centroid of each imaged disc minus the image of its centre, (n, 2) px (or the areas, (n,) px²)."""
     import cv2
 
     a = np.linspace(0, 2 * np.pi, 96, endpoint=False)
@@ -103,7 +103,7 @@ def _disc_bias(camera, rvec, tvec, markers_mm, radius_mm) -> np.ndarray:
         xs, ys = np.roll(x, -1), np.roll(y, -1)
         cr = x * ys - xs * y
         A = cr.sum() / 2
-        out.append(np.array([((x + xs) * cr).sum(), ((y + ys) * cr).sum()]) / (6 * A) - c)
+        out.append(abs(A) if areas else np.array([((x + xs) * cr).sum(), ((y + ys) * cr).sum()]) / (6 * A) - c)
     return np.array(out)
 
 
@@ -213,6 +213,19 @@ def match_dots(camera: CameraModel, blobs, layout_mm: np.ndarray, *, azimuth_deg
     return pick[2], pick[0]
 
 
+def _check_dot_sizes(cam, blobs, pts, layout, radius_mm, limit: float = 2.0) -> None:
+    """Refuse a dot whose imaged area is far from what the pose predicts (glare, a covering object)."""
+    want = _disc_bias(cam, cam.rvec, cam.tvec, layout, radius_mm, areas=True)
+    centres = np.array([b.center for b in blobs])
+    for k, p in enumerate(pts):
+        got = blobs[int(np.argmin(np.linalg.norm(centres - p, axis=1)))].area
+        ratio = got / max(want[k], 1e-9)
+        if not 1 / limit <= ratio <= limit:
+            x, y = layout[k]
+            raise MarkerError(f"the marker at bed ({x:g}, {y:g}) mm looks {ratio:.1f}x its expected size "
+                              "(glare, a reflection or something covering it); fix the lighting or clear the marker.")
+
+
 def locate_bed(camera: CameraModel, photo: np.ndarray, markers, topview) -> CameraModel:
     """Find the bed markers in a photo and return ``camera`` with its bed pose.
 
@@ -258,6 +271,7 @@ def locate_bed(camera: CameraModel, photo: np.ndarray, markers, topview) -> Came
                                 max_error_px=markers.max_pose_error_px)
             posed = solve_pose(cam, pts, layout, max_error_px=markers.max_pose_error_px,
                                marker_radius_mm=markers.diameter_mm / 2.0)
+            _check_dot_sizes(posed, blobs, pts, layout, markers.diameter_mm / 2.0)
     except MarkerError as exc:
         why = photo_problem(photo)
         if why:
