@@ -60,6 +60,7 @@ def run(layers: int = 60) -> dict[str, float]:
         top, valid = warper.warp(photo, float(z))
         times.append(time.perf_counter() - t)
     ours = float(np.median(times)) * 1e3
+    ours_best = float(np.min(times)) * 1e3
     t = time.perf_counter()
     for _ in range(20):
         warper.warp(photo, float(zs[-1]))
@@ -72,17 +73,20 @@ def run(layers: int = 60) -> dict[str, float]:
         naive = cv2.warpPerspective(und, top_from_image(cam, tv, float(z)), (600, 600), flags=cv2.INTER_LINEAR)
         base_times.append(time.perf_counter() - t)
     base = float(np.median(base_times)) * 1e3
+    base_best = float(np.min(base_times)) * 1e3
     agree = float(np.abs(naive[20:-20, 20:-20].astype(int) - warper.warp(photo, float(zs[14]))[0][20:-20, 20:-20]).mean())
-    return {"ours_ms": ours, "cached_ms": cached, "setup_ms": setup_ms, "baseline_ms": base,
+    return {"ours_ms": ours, "ours_best_ms": ours_best, "baseline_best_ms": base_best, "cached_ms": cached, "setup_ms": setup_ms, "baseline_ms": base,
             "ratio": base / ours, "mean_abs_diff": agree}
 
 
 def report(r: dict[str, float]) -> None:
-    print(f"warp 1920x1080 -> 600x600, new Z each layer: {r['ours_ms']:.2f} ms/warp "
+    print(f"warp 1920x1080 -> 600x600, new Z each layer: {r['ours_ms']:.2f} ms/warp median, "
+          f"{r['ours_best_ms']:.2f} ms best "
           f"(same Z, cached table: {r['cached_ms']:.2f} ms; one-off setup {r['setup_ms']:.0f} ms)")
-    print(f"baseline cv2.undistort + cv2.warpPerspective: {r['baseline_ms']:.2f} ms/warp")
-    print(f"speed-up vs baseline: {r['ratio']:.1f}x   (target <= 5 ms/warp: "
-          f"{'met' if r['ours_ms'] <= 5 else 'NOT met'}); mean |ours - baseline| = {r['mean_abs_diff']:.2f} grey levels")
+    print(f"baseline cv2.undistort + cv2.warpPerspective: {r['baseline_ms']:.2f} ms/warp median, "
+          f"{r['baseline_best_ms']:.2f} ms best")
+    print(f"speed-up vs baseline: {r['ratio']:.1f}x median, {r['baseline_best_ms'] / r['ours_best_ms']:.1f}x best   (target <= 5 ms/warp: "
+          f"{'met' if r['ours_ms'] <= 5 else 'NOT met (median; machine loaded?)'}); mean |ours - baseline| = {r['mean_abs_diff']:.2f} grey levels")
 
 
 def test_bench_warp():
