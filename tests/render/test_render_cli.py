@@ -71,3 +71,18 @@ def test_cli_on_bundled_example(tmp_path, example_gcode):
     img = cv2.imread(str(out / "layer_0011.png"), cv2.IMREAD_GRAYSCALE)
     assert img is not None and img.shape == (600, 600)
     assert (img > 100).mean() > 0.01
+
+
+def test_cli_on_shared_real_gcode(tmp_path, shared_data):
+    """A real slicer file from ../shared/data: top view centred on the part, a few layers."""
+    src = shared_data / "gcode" / "prusaslicer-2.8.1_mini-cube_ascii.gcode"
+    if not src.is_file():
+        pytest.skip(f"{src.name} not in the shared data")
+    from layerwatch.gcode import read_toolpath  # noqa: F401  (must exist)
+
+    out = tmp_path / "refs"
+    assert main(["render", str(src), "--layers", "2:4", "-o", str(out), "--mask"]) == 0
+    img = cv2.imread(str(out / "layer_0003.png"), cv2.IMREAD_GRAYSCALE)
+    m = cv2.imread(str(out / "layer_0003_mask.png"), cv2.IMREAD_GRAYSCALE)
+    assert img is not None and m is not None and (m > 0).sum() > 500
+    assert img[m > 0].mean() > img[m == 0].mean() + 40
