@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from geometry_scenes import DIST_TRUE, K_TRUE, _views
 
 from layerwatch.errors import CalibrationError
 from layerwatch.geometry.calibration import (
@@ -13,29 +14,7 @@ from layerwatch.geometry.calibration import (
     calibrate_intrinsics,
     find_board,
 )
-from layerwatch.geometry.camera import CameraModel
-from layerwatch.geometry.synthetic import chessboard_texture, render_plane
-
-K_TRUE = np.array([[620.0, 0, 322.0], [0, 618.0, 236.0], [0, 0, 1]])
-DIST_TRUE = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
-
-
-def _views(n: int, seed: int = 0):
-    """Board photos (640x480) from ``n`` random tilted poses, noise and blur added."""
-    rng = np.random.default_rng(seed)
-    tex, A, corners = chessboard_texture(9, 6, 20.0, px_per_mm=8.0)
-    centre = corners[:, :2].mean(0)
-    out = []
-    for _ in range(n):
-        ax = rng.uniform(-0.45, 0.45, 3) * [1, 1, 0.3]
-        R = cv2.Rodrigues(ax)[0]
-        # board centre straight ahead at 300-380 mm, a little off axis
-        t = np.array([rng.uniform(-25, 25), rng.uniform(-20, 20), rng.uniform(300, 380)]) - R @ [*centre, 0]
-        cam = CameraModel(K=K_TRUE, dist=DIST_TRUE, image_size=(640, 480), rvec=cv2.Rodrigues(R)[0].ravel(), tvec=t)
-        img = render_plane(cam, tex, A, background_rgb=(128, 128, 128), supersample=2)
-        img = cv2.GaussianBlur(img, (0, 0), 0.7) + rng.normal(0, 2.0, img.shape)
-        out.append(np.clip(img, 0, 255).astype(np.uint8))
-    return out
+from layerwatch.geometry.synthetic import chessboard_texture
 
 
 @pytest.fixture(scope="module")

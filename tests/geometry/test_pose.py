@@ -7,7 +7,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-from tests.geometry.conftest import posed_camera, rotation_error_deg
+from geometry_scenes import posed_camera, rotation_error_deg
 
 from layerwatch.errors import LayerwatchError, MarkerError
 from layerwatch.geometry.pose import camera_moved, locate_bed, solve_pose

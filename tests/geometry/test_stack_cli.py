@@ -69,7 +69,7 @@ def test_calibrate_markers_then_warp_cli(tmp_path, camera, topview, bed_photo, c
 
 
 def test_calibrate_board_cli(tmp_path):
-    from tests.geometry.test_calibration import _views
+    from geometry_scenes import _views
 
     paths = []
     for k, v in enumerate(_views(4, seed=5)):

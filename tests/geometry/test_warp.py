@@ -25,7 +25,7 @@ def _dot_centres(top: np.ndarray, expected_px: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("z", [0.0, 33.3, 66.7, 100.0])
 def test_dots_on_plane_z_land_within_a_pixel(topview, z):
-    from tests.geometry.conftest import posed_camera
+    from geometry_scenes import posed_camera
 
     camera = posed_camera(eye=(20.0, -230.0, 320.0))  # far enough to see the raised planes whole
     photo = render_bed_scene(camera, DOTS, 6.0, plane_z_mm=z, noise=2.0, blur=0.8, supersample=2,
@@ -46,7 +46,7 @@ def _float_map(warper, z, size):
 @pytest.mark.parametrize("z", [0.0, 50.0, 100.0])
 def test_remap_table_matches_projectpoints_with_distortion(topview, z):
     """Every top-view pixel samples the photo where cv2.projectPoints (with distortion) puts its bed point."""
-    from tests.geometry.conftest import posed_camera
+    from geometry_scenes import posed_camera
 
     camera = posed_camera(eye=(20.0, -230.0, 320.0), dist=(-0.2, 0.05, 0.001, 0.0, 0.0))
     src = _float_map(TopViewWarper(camera, topview), z, camera.image_size)
@@ -64,7 +64,7 @@ def test_remap_table_matches_projectpoints_with_distortion(topview, z):
 
 
 def test_strong_distortion_matches_naive_undistort_then_warp(topview):
-    from tests.geometry.conftest import posed_camera
+    from geometry_scenes import posed_camera
 
     cam = posed_camera(dist=(-0.3, 0.09, 0.001, -0.001, 0.0))
     photo = render_bed_scene(cam, topview.corners_mm, 6.0, texture="pei", noise=0, blur=1.0, supersample=2)
@@ -104,7 +104,7 @@ def test_wrong_aspect_and_bad_arrays_raise_clear_errors(camera, topview):
 
 
 def test_validity_mask_marks_what_the_camera_did_not_see(topview):
-    from tests.geometry.conftest import posed_camera
+    from geometry_scenes import posed_camera
 
     from layerwatch.geometry.topview import TopView
 
