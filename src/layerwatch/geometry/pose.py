@@ -277,8 +277,11 @@ def locate_bed(camera: CameraModel, photo: np.ndarray, markers, topview) -> Came
         if why:
             raise MarkerError(f"{str(exc).rstrip('.')} ({why}).") from None
         raise
+    import datetime as _dt
+
     return replace(camera, rvec=posed.rvec, tvec=posed.tvec, markers_mm=layout.copy(),
-                   marker_kind=markers.kind, errors={**camera.errors, "pose_px": posed.errors["pose_px"]})
+                   marker_kind=markers.kind, errors={**camera.errors, "pose_px": posed.errors["pose_px"]},
+                   created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
 
 
 @dataclass(frozen=True)
