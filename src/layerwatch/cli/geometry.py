@@ -59,7 +59,12 @@ def calibrate(
     from layerwatch.cli import console
     from layerwatch.config import load_config
     from layerwatch.errors import CalibrationError
-    from layerwatch.geometry.calibration import BoardSpec, approximate_intrinsics, calibrate_intrinsics, read_photo
+    from layerwatch.geometry.calibration import (
+        BoardSpec,
+        approximate_intrinsics,
+        calibrate_intrinsics,
+        read_photo,
+    )
     from layerwatch.geometry.camera import CameraModel
 
     if not board and markers is None:
