@@ -1,0 +1,106 @@
+"""Layer detection: slicer tags first, else the Z of extruding moves.
+
+Travel-only Z changes (Z-hops) never start a layer because only extruding
+segments are looked at. Vase/spiral prints (Z rising on almost every
+segment) are binned on the layer height.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["assign_layers"]
+
+
+def _runs(ids: np.ndarray) -> np.ndarray:
+    """Start indices of runs of equal ``ids`` plus the end, shape (L+1,)."""
+    n = ids.shape[0]
+    if n == 0:
+        return np.zeros(1, np.int64)
+    cuts = np.flatnonzero(ids[1:] != ids[:-1]) + 1
+    return np.concatenate([[0], cuts, [n]]).astype(np.int64)
+
+
+def _revolution_height(xy: np.ndarray, z: np.ndarray) -> float | None:
+    """Z rise per turn around the print's centroid (spiral layer height), mm."""
+    c = xy.mean(axis=0)
+    theta = np.unwrap(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+    turns = abs(theta[-1] - theta[0]) / (2 * np.pi)
+    rise = float(z[-1] - z[0])
+    return rise / turns if turns >= 1 and rise > 0 else None
+
+
+def assign_layers(
+    seg_z: np.ndarray,
+    seg_line: np.ndarray,
+    tag_lines: np.ndarray,
+    tag_z: np.ndarray,
+    style: str | None,
+    layer_height_hint: float | None = None,
+    seg_xy: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
+    """Split the segment list into layers.
+
+    Parameters
+    ----------
+    seg_z : ndarray, shape (S,), float64
+        Z of each extruding segment, mm.
+    seg_line : ndarray, shape (S,), int64
+        Source line of each segment (non-decreasing).
+    tag_lines, tag_z : ndarray, shape (T,)
+        Lines of the slicer's layer tags and the Z they name (NaN if none).
+    style : str or None
+        Tag style name, ``None`` when the file has no layer tags.
+    layer_height_hint : float, optional
+        Layer height from the file header, used for spiral binning.
+    seg_xy : ndarray, shape (S, 2), optional
+        Segment end points; a spiral's height per turn when nothing else says.
+
+    Returns
+    -------
+    bounds : ndarray, shape (L+1,), int64
+        Segment index where each layer starts, then ``S``.
+    z : ndarray, shape (L,), float64
+        Z of each layer's top, mm.
+    detection : str
+        ``"tags:<style>"``, ``"z"`` or ``"spiral"``.
+    warnings : list of str
+    """
+    warnings: list[str] = []
+    n = seg_z.shape[0]
+    if n == 0:
+        return np.zeros(1, np.int64), np.zeros(0), "none", warnings
+    if style is not None and tag_lines.size:
+        ids = np.searchsorted(tag_lines, seg_line, side="right") - 1
+        np.maximum(ids, 0, out=ids)  # moves before the first tag (purge line) join layer 0
+        bounds = _runs(ids)
+        z = np.empty(bounds.size - 1)
+        for k in range(bounds.size - 1):
+            a, b = bounds[k], bounds[k + 1]
+            tz = tag_z[ids[a]]
+            z[k] = tz if np.isfinite(tz) else float(np.median(seg_z[a:b]))
+        return bounds, z, f"tags:{style}", warnings
+    dz = np.abs(np.diff(seg_z))
+    changes = int(np.count_nonzero(dz > 1e-4))
+    if n > 50 and changes > 0.3 * n:
+        h = layer_height_hint
+        plateau = _runs(np.round(seg_z, 4))
+        sizes = np.diff(plateau)
+        flat_z = seg_z[plateau[:-1][sizes >= 10]]
+        steps = np.diff(np.unique(flat_z))
+        if h is None and steps.size:
+            h = float(np.median(steps))
+        if h is None and seg_xy is not None:
+            h = _revolution_height(seg_xy, seg_z)
+        if h is None or not (0.01 <= h <= 2.0):
+            rise = float(seg_z.max() - seg_z.min())
+            h = 0.2 if rise <= 0 else min(0.2, rise)
+            warnings.append(f"spiral print without a known layer height; binned every {h:g} mm")
+        z0 = float(seg_z[0])
+        k = np.ceil((seg_z - z0) / h - 1e-6).astype(np.int64)
+        k = np.maximum.accumulate(np.maximum(k, 0))
+        bounds = _runs(k)
+        z = z0 + k[bounds[:-1]] * h
+        return bounds, z, "spiral", warnings
+    bounds = _runs(np.round(seg_z, 4))
+    return bounds, seg_z[bounds[:-1]].astype(np.float64), "z", warnings
