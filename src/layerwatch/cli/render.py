@@ -44,6 +44,17 @@ def parse_layers(spec: str | None, n_layers: int) -> list[int]:
     return sorted(set(out))
 
 
+def _part_bounds(toolpath) -> tuple[float, float, float, float]:
+    """Bounds of the part, mm: layers above the first (skips purge lines), else all."""
+    import numpy as np
+
+    b = np.array([la.bounds for la in toolpath.layers[1:]], dtype=float).reshape(-1, 4)
+    b = b[np.isfinite(b).all(axis=1)]
+    if len(b) == 0:
+        return toolpath.bounds
+    return (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
+
+
 def render(
     file: Annotated[Path, typer.Argument(help="G-code file (.gcode/.bgcode).")],
     layers: Annotated[str | None, typer.Option("--layers", "-l", help="Layers: 10:20 (end excluded), 5, 1,4,9, ::10 or all.")] = None,
@@ -98,7 +109,7 @@ def render(
     if config is None:  # centre the observed square on the part
         from layerwatch.geometry.topview import TopView
 
-        x0, y0, x1, y1 = toolpath.bounds
+        x0, y0, x1, y1 = _part_bounds(toolpath)
         topview = TopView(topview.px_per_mm, topview.width_mm, topview.height_mm, ((x0 + x1) / 2, (y0 + y1) / 2))
     try:
         outdir.mkdir(parents=True, exist_ok=True)
