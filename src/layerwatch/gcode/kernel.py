@@ -23,8 +23,9 @@ import numpy as np
 ST_LINES, ST_SEG, ST_TRAVEL, ST_CMT, ST_BAD, ST_FIRST_BAD, ST_UNKNOWN, ST_ABSURD = 0, 1, 2, 3, 4, 5, 6, 7
 ST_FIRST_ABSURD, ST_TOOLON, ST_ARCS, ST_ARC_BAD, ST_FIRST_ARC_BAD, ST_NONL, ST_FWRETRACT = 8, 9, 10, 11, 12, 13, 14
 N_STATS = 16
-#: probe state columns: logical x, y, z, offsets x, y, z, e, feed (mm/min), abs_xyz, e_rel_flag, tool, inch
-N_PROBE = 12
+#: probe state columns: logical x, y, z, offsets x, y, z, e, feed (mm/min), abs_xyz, e_rel_flag, tool, inch,
+#: tool-on (M101 dialect, 1 when the extruder is switched on)
+N_PROBE = 13
 ABSURD_MM = 1.0e5
 #: first characters of ';' comments worth handing to the tag decoder
 _TAG_FIRST = np.zeros(256, np.bool_)
@@ -162,6 +163,7 @@ def run_kernel(buf, probes, chord_tol):  # noqa: C901 - a state machine is one b
                 probe_state[npb, 9] = 1.0 if e_rel else 0.0
                 probe_state[npb, 10] = tool
                 probe_state[npb, 11] = 1.0 if scale != 1.0 else 0.0
+                probe_state[npb, 12] = 1.0 if (toolon_mode and tool_on) else 0.0
             npb += 1
         if i == n:
             break

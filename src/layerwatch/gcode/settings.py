@@ -30,3 +30,6 @@ class SnapshotSettings(Section):
     park_xy_mm: tuple[float, float] | None = None
     travel_feed_mm_min: float = Field(9000.0, gt=0)
     settle_ms: int = Field(500, ge=0, le=60000)
+    retract_feed_mm_min: float = Field(2400.0, gt=0)
+    light_tool: int = Field(1, ge=0, le=15)
+    indicator_pin: int = Field(4, ge=0, le=255)
