@@ -1,11 +1,109 @@
-"""CLI verbs for the gcode stage (filled in by its issue)."""
+"""CLI verbs for the gcode stage: ``layerwatch gcode info|prepare``."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import typer
 
 __all__ = ["register"]
 
+gcode_app = typer.Typer(
+    name="gcode", help="Read G-code into layers; insert snapshot blocks.", no_args_is_help=True
+)
+
+_PROFILES = ("paper", "octoprint", "klipper", "timelapse", "m240")
+
+
+def _read_with_progress(path: Path):
+    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
+
+    from layerwatch.cli import err_console
+    from layerwatch.gcode import read_toolpath
+
+    big = path.is_file() and path.stat().st_size > 5_000_000
+    if not big:
+        return read_toolpath(path)
+    with Progress(
+        TextColumn("parsing"), BarColumn(), DownloadColumn(), console=err_console, transient=True
+    ) as bar:
+        task = bar.add_task("parse", total=path.stat().st_size)
+        return read_toolpath(path, progress=lambda done, total: bar.update(task, completed=done, total=total))
+
+
+@gcode_app.command("info")
+def info(file: Path = typer.Argument(..., help="A .gcode (or .bgcode) file.")) -> None:
+    """Print layers, Z range, detection method, extrusion length and bounds."""
+    from rich.table import Table
+
+    from layerwatch.cli import console, err_console
+
+    tp = _read_with_progress(file)
+    table = Table(title=f"{file.name}", show_header=False)
+    table.add_column("field", style="bold")
+    table.add_column("value")
+    zs = [lay.z for lay in tp.layers]
+    table.add_row("slicer", tp.slicer or "unknown")
+    table.add_row("layers", str(tp.n_layers))
+    table.add_row("detection", tp.detection)
+    table.add_row("Z range (mm)", f"{min(zs):.3f} .. {max(zs):.3f}" if zs else "-")
+    if tp.n_layers:
+        h = sorted(lay.height for lay in tp.layers)
+        table.add_row("layer height (mm)", f"{h[len(h) // 2]:.3f} (median)")
+    table.add_row("segments", str(tp.n_segments))
+    table.add_row("extrusion (mm of filament)", f"{tp.extrusion_mm:.1f}")
+    table.add_row("filament diameter (mm)", f"{tp.filament_diameter:g}")
+    b = tp.bounds
+    table.add_row("bounds X (mm)", f"{b[0]:.2f} .. {b[2]:.2f}")
+    table.add_row("bounds Y (mm)", f"{b[1]:.2f} .. {b[3]:.2f}")
+    console.print(table)
+    for w in tp.warnings:
+        err_console.print(f"[yellow]warning:[/] {w}", highlight=False)
+
+
+@gcode_app.command("prepare")
+def prepare(
+    file: Path = typer.Argument(..., help="Input .gcode file."),
+    output: Path = typer.Option(..., "-o", "--output", help="Where to write the new G-code."),
+    profile: str = typer.Option("octoprint", "--profile", "-p", help="|".join(_PROFILES)),
+    every: int = typer.Option(1, "--every", min=1, help="Snapshot after every Nth layer."),
+    lift: float = typer.Option(5.0, "--lift", help="Z lift for the photo, mm."),
+    retract: float = typer.Option(1.0, "--retract", help="Retraction before parking, mm."),
+    park: str = typer.Option("", "--park", help="Park position 'X,Y' in mm (default: back corner)."),
+    volume: str = typer.Option("", "--volume", help="Printer volume 'X,Y,Z' max in mm."),
+) -> None:
+    """Insert a snapshot block (paper Table 1) after every (Nth) layer."""
+    from layerwatch.cli import console
+    from layerwatch.errors import ConfigError, GcodeError
+    from layerwatch.gcode.postprocess import insert_snapshots
+    from layerwatch.gcode.reader import load_bytes
+    from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
+
+    if profile not in _PROFILES:
+        raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
+    try:
+        park_xy = tuple(float(v) for v in park.split(",")) if park else None
+        vol = tuple(float(v) for v in volume.split(",")) if volume else None
+    except ValueError as exc:
+        raise ConfigError("--park/--volume take numbers like '200,200'.") from exc
+    if park_xy is not None and len(park_xy) != 2:
+        raise ConfigError("--park takes two numbers 'X,Y' in mm.")
+    printer = PrinterProfile() if vol is None else PrinterProfile(volume_max_mm=vol)
+    snap = SnapshotSettings(
+        profile=profile, every_n_layers=every, lift_mm=lift, retract_mm=retract, park_xy_mm=park_xy
+    )
+    data, _name = load_bytes(file)
+    out = insert_snapshots(data, snap, printer)
+    try:
+        output.write_bytes(out)
+    except OSError as exc:
+        raise GcodeError(f"{output}: cannot write ({exc.strerror}); choose another -o path.") from exc
+    n = out.count(b"; layerwatch snapshot block end")
+    console.print(f"wrote {output} with {n} snapshot block(s), profile {profile}")
+    if profile == "klipper":
+        console.print("Klipper: add the LAYERWATCH_SNAPSHOT macro (layerwatch.gcode.postprocess.KLIPPER_MACRO).")
+
 
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the root app."""
+    app.add_typer(gcode_app, name="gcode")
