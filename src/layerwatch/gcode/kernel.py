@@ -93,7 +93,7 @@ def _grow_1(a, k):
 
 
 @nb.njit(cache=True)
-def run_kernel(buf, probes, chord_tol):  # noqa: C901 - a state machine is one big loop
+def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a state machine is one big loop
     """Lex and execute ``buf``.
 
     Parameters
@@ -104,6 +104,8 @@ def run_kernel(buf, probes, chord_tol):  # noqa: C901 - a state machine is one b
         Sorted 1-based line numbers at whose *start* the modal state is recorded.
     chord_tol : float
         Maximum chord error when linearising arcs, mm.
+    e_rel_init : bool
+        Start in relative-E mode (files that never say M82/M83 but assume M83).
 
     Returns
     -------
@@ -140,7 +142,7 @@ def run_kernel(buf, probes, chord_tol):  # noqa: C901 - a state machine is one b
     e = 0.0
     feed = 0.0
     abs_xyz = True
-    e_rel = False
+    e_rel = e_rel_init
     scale = 1.0
     tool = 0
     tool_on = False

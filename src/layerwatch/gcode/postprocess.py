@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from layerwatch.gcode.reader import read_toolpath, run
+from layerwatch.gcode.reader import guess_relative_e, read_toolpath, run
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
 
 __all__ = ["insert_snapshots", "KLIPPER_MACRO", "trigger_lines", "snapshot_block"]
@@ -166,4 +166,6 @@ def insert_snapshots(data: bytes, snapshot: SnapshotSettings, printer: PrinterPr
         parts.append(nl.join(s.encode() for s in block) + nl)
         prev = off
     parts.append(data[prev:])
+    if guess_relative_e(data):  # make the assumed relative-E mode explicit for the firmware and re-parsing
+        parts.insert(0, b"M83 ; layerwatch: this file's E values are relative" + nl)
     return b"".join(parts)

@@ -52,12 +52,26 @@ def load_bytes(source: str | Path | bytes | bytearray | memoryview) -> tuple[byt
     return data, name
 
 
+_MODE = re.compile(rb"(?m)^[ \t]*(?:N\d+[ \t]*)?(?:M8[23]|G91|G92[^;\n]*E)(?![0-9])")
+_EVAL = re.compile(rb"(?m)^G[01][ \t][^;\n]*E(-?[0-9.]+)")
+
+
+def guess_relative_e(data: bytes) -> bool:
+    """True when a file never sets the E mode yet its E values are relative (e.g. Kiri:Moto)."""
+    if _MODE.search(data):
+        return False
+    vals = np.array([float(v) for v in _EVAL.findall(data[:262144])[:4000] if v not in (b"-", b".")])
+    return vals.size > 20 and float(np.mean(np.diff(vals) > 0)) < 0.5
+
+
 def run(data: bytes, probes: np.ndarray | None = None):
     """Run the numba kernel over ``data`` (see :func:`layerwatch.gcode.kernel.run_kernel`)."""
     buf = np.frombuffer(data, dtype=np.uint8)
     if probes is None:
         probes = np.zeros(0, np.int64)
-    return K.run_kernel(buf, np.ascontiguousarray(probes, np.int64), CHORD_TOL_MM)
+    return K.run_kernel(
+        buf, np.ascontiguousarray(probes, np.int64), CHORD_TOL_MM, guess_relative_e(data)
+    )
 
 
 def _bead_width(seg: np.ndarray, height: np.ndarray, d: float) -> np.ndarray:

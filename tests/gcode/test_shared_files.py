@@ -1,0 +1,95 @@
+"""Every real slicer file in ../shared/data/gcode parses; layer counts match the slicer's tags;
+the post-processor's output re-parses to the same layers and per-layer extrusion."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from layerwatch.errors import GcodeError
+from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
+
+from gcode_refs import reference_extrusion, shared_gcode_files
+
+FILES = shared_gcode_files()
+GCODE = [p for p in FILES if p.suffix == ".gcode"]
+IDS = [p.name for p in FILES]
+
+# independent tag counters (line-anchored regexes over the whole text)
+TAG_COUNTERS = {
+    "tags:prusaslicer": lambda t: len(re.findall(r"(?m)^;LAYER_CHANGE\s*$", t)),
+    "tags:cura": lambda t: len(set(re.findall(r"(?m)^;LAYER:(-?\d+)\s*$", t))),
+    "tags:simplify3d": lambda t: len(re.findall(r"(?m)^; layer \d+, Z = ", t)),
+    "tags:kisslicer": lambda t: len(re.findall(r"(?m)^; BEGIN_LAYER_OBJECT z=", t)),
+}
+
+
+@pytest.mark.parametrize("path", FILES, ids=IDS)
+def test_parses(path):
+    if path.suffix == ".bgcode":
+        try:
+            tp = read_toolpath(path)
+        except GcodeError as exc:
+            assert "ASCII" in str(exc) and path.name in str(exc)
+            return
+    else:
+        tp = read_toolpath(path)
+    if "plasma" in path.name:  # a CNC file: no extrusion, said in a warning
+        assert tp.n_layers == 0 and any("no extruding" in w for w in tp.warnings)
+        return
+    assert tp.n_layers >= 5
+    assert tp.extrusion_mm > 10
+    assert np.all(tp.e > 0)
+    assert sum(lay.n_segments for lay in tp.layers) == tp.n_segments
+    assert all(lay.line_start < lay.line_stop for lay in tp.layers)
+    med = float(np.median(tp.width))
+    assert 0.2 < med < 3.0, med
+    if tp.detection.startswith("tags:") and tp.detection in TAG_COUNTERS:
+        text = path.read_bytes().decode("latin-1")
+        assert tp.n_layers == TAG_COUNTERS[tp.detection](text)
+
+
+def test_detection_methods_cover_dialects():
+    if not FILES:
+        pytest.skip("shared data absent")
+    det = {p.name: read_toolpath(p).detection for p in GCODE}
+    assert det["fullcontrol_ripple-vase_g91.gcode"] == "spiral"
+    assert det["prusaslicer-2.7.4_spiral-vase.gcode"] == "tags:prusaslicer"
+    assert det["cura-4.10.0_m83_multi-object.gcode"] == "tags:cura"
+    assert det["simplify3d-4.1.2_zlift.gcode"] == "tags:simplify3d"
+    assert det["slic3r-1.2.9_reprapfirmware.gcode"] == "z"
+
+
+@pytest.mark.parametrize(
+    "name", ["cura-4.10.0_m83_multi-object.gcode", "slic3r-1.2.9_reprapfirmware.gcode", "simplify3d-4.1.2_zlift.gcode"]
+)
+def test_extrusion_matches_gcodeparser_reference(name):
+    path = next((p for p in GCODE if p.name == name), None)
+    if path is None:
+        pytest.skip("shared data absent")
+    tp = read_toolpath(path)
+    total, count = reference_extrusion(path.read_text(errors="replace"))
+    assert tp.n_segments == count
+    assert tp.extrusion_mm == pytest.approx(total, rel=1e-9)
+
+
+@pytest.mark.parametrize("path", GCODE, ids=[p.name for p in GCODE])
+def test_postprocess_round_trip(path):
+    data = path.read_bytes()
+    before = read_toolpath(data)
+    profile = ["klipper", "octoprint", "paper", "m240", "timelapse"][len(path.name) % 5]
+    out = insert_snapshots(data, SnapshotSettings(profile=profile), PrinterProfile())
+    after = read_toolpath(out)
+    assert after.n_layers == before.n_layers
+    np.testing.assert_allclose([lay.z for lay in after.layers], [lay.z for lay in before.layers])
+    np.testing.assert_allclose(
+        [lay.extrusion_mm for lay in after.layers],
+        [lay.extrusion_mm for lay in before.layers],
+        rtol=1e-12,
+        atol=1e-9,
+    )
+    assert out.count(b"; layerwatch snapshot block end") == before.n_layers
