@@ -1,11 +1,49 @@
-"""CLI verbs for the demo stage (filled in by its issue)."""
+"""``layerwatch demo``: a simulated print with a failure, through the real pipeline."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
 __all__ = ["register"]
 
 
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Results folder.")] = Path("demo-out"),
+    layers: Annotated[int | None, typer.Option("--layers", "-n", min=1, help="Simulate only the first N layers.")] = None,
+    failure: Annotated[str, typer.Option("--failure", help="Injected failure type (spaghetti, layer_shift, ...).")] = "spaghetti",
+    onset: Annotated[int, typer.Option("--onset", min=1, help="First failed layer (0-based).")] = 15,
+    seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
+    keep_going: Annotated[bool, typer.Option("--keep-going", help="Do not stop at the pause; simulate every layer.")] = False,
+) -> None:
+    """Simulate the bundled example part with a failure part-way; stop where a printer would pause."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from layerwatch.cli import console
+    from layerwatch.errors import ConfigError
+    from layerwatch.evaluate.demo import run_demo
+    from layerwatch.simulate import FAILURE_TYPES
+
+    if failure not in FAILURE_TYPES:
+        raise ConfigError(f"unknown --failure {failure!r}; use one of {', '.join(FAILURE_TYPES)}.")
+    cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*cols, console=console, transient=True) as bar:
+        task = bar.add_task("simulating + analysing", total=None)
+        res = run_demo(out, layers=layers, failure=failure, onset=onset, seed=seed, stop_at_pause=not keep_going,
+                       progress=lambda d, n, text: bar.update(task, completed=d, total=n, description=text))
+    for note in res.notes:
+        console.print(f"[dim]{note}[/]")
+    console.print(f"injected [bold]{res.failure}[/] from layer {res.onset}; decision rule: {res.policy}")
+    if res.paused_at is None:
+        console.print("[yellow]no pause: the print ran to the end without a pause decision.[/]")
+    else:
+        late = res.paused_at - res.onset
+        console.print(f"[bold red]PAUSE[/] at layer {res.paused_at} ({late} layer(s) after the onset): {res.reason}")
+    console.print(f"results in {res.out} (summary.md, overlays/, stack.png) in {res.seconds:.1f} s")
+
+
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the root app."""
+    app.command("demo")(demo)
