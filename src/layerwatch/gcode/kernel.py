@@ -40,7 +40,7 @@ def _is_digit(c):
 
 @nb.njit(cache=True)
 def _parse_num(buf, i, n):
-    """Parse a decimal number at ``buf[i:]``; returns (value, next_i, ok)."""
+    """Parse a decimal number at ``buf[i:]`` (no exponent: ``E`` is an axis); returns (value, next_i, ok)."""
     while i < n and (buf[i] == 32 or buf[i] == 9):
         i += 1
     sign = 1.0
@@ -62,19 +62,6 @@ def _parse_num(buf, i, n):
             scale *= 0.1
             i += 1
             nd += 1
-    if nd > 0 and i < n and (buf[i] == 101 or buf[i] == 69) and i + 1 < n:
-        j = i + 1
-        es = 1
-        if buf[j] == 45 or buf[j] == 43:
-            es = -1 if buf[j] == 45 else 1
-            j += 1
-        if j < n and _is_digit(buf[j]):
-            ex = 0
-            while j < n and _is_digit(buf[j]):
-                ex = min(ex * 10 + (buf[j] - 48), 400)
-                j += 1
-            val *= 10.0 ** (es * ex)
-            i = j
     return sign * val, i, nd > 0
 
 
@@ -217,7 +204,13 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
                 first = False
                 v, i2, ok = _parse_num(buf, i + 1, n)
                 i = i2
-                if not ok:
+                if not ok:  # a bare axis letter (G28 X) names the axis
+                    if c == 88:
+                        hx = True
+                    elif c == 89:
+                        hy = True
+                    elif c == 90:
+                        hz = True
                     continue
                 if c == 71:  # G
                     g = int(v + 1e-6)
