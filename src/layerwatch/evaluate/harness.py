@@ -1,0 +1,234 @@
+"""Run simulated prints through the pipeline and score every measure at every block threshold.
+
+For each simulated layer photo the harness warps it, renders the reference
+(the same :class:`~layerwatch.monitor.pipeline.LayerPipeline` the monitor
+uses), computes HOG blocks of both images once and then, for each of the
+twelve measures and each block threshold ``T_S`` of :data:`THRESHOLDS`:
+
+* the anomaly ratio a% (eq. 5) over the considered blocks;
+* for layers with a failure, the pixel IoU between the anomalous blocks'
+  tiles and the simulator's failed region (``SimFrame.truth_area``).
+
+Sampling. Single-failure scenarios (:func:`~layerwatch.simulate.random_scenarios`)
+contribute the layer before the onset (a clean negative) and ``frames_after``
+layers from the onset; clean control prints contribute layers spread over
+the whole height. Every photo gets its own camera/lighting noise.
+
+References
+----------
+Petsiuk & Pearce (2022), Section 3, Figs. 13-15.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
+from layerwatch.config import JobConfig
+from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
+
+__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "tile_fraction"]
+
+#: block thresholds T_S scanned for every measure
+THRESHOLDS = np.round(np.arange(0.20, 0.901, 0.05), 2)
+
+
+@dataclass
+class LayerRecord:
+    """Scores of one simulated layer photo.
+
+    Attributes
+    ----------
+    scenario : str
+    kind : str
+        Failure type present in the photo, or ``"clean"``.
+    layer : int
+    size_mm : float
+        Failure size (0 for clean).
+    a : ndarray, shape (12, T), float32
+        a% per measure (:data:`METRIC_NAMES` order) and threshold (:data:`THRESHOLDS`).
+    iou : ndarray, shape (12, T), float32, or None
+        Pixel IoU of anomalous tiles vs ``truth_area`` (failed layers only).
+    clean_high : tuple of int
+        ``(blocks on printed area with cosine > 0.7, blocks on printed area)`` (clean layers only).
+    """
+
+    scenario: str
+    kind: str
+    layer: int
+    size_mm: float
+    a: np.ndarray
+    iou: np.ndarray | None = None
+    clean_high: tuple[int, int] = (0, 0)
+
+
+@dataclass
+class EvalData:
+    """All records of an evaluation run plus its set-up."""
+
+    records: list[LayerRecord] = field(default_factory=list)
+    metrics: tuple[str, ...] = METRIC_NAMES
+    thresholds: np.ndarray = field(default_factory=lambda: THRESHOLDS.copy())
+    setup: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    errors: list[str] = field(default_factory=list)
+
+
+def tile_fraction(mask: np.ndarray, n: int, m: int, cell_px: int, block_cells: int) -> np.ndarray:
+    """Share of each block's tile (its central cell) covered by ``mask``, shape (n, m) float32."""
+    off = (block_cells - 1) * cell_px // 2
+    c = cell_px
+    sub = np.zeros((n * c, m * c), np.float32)
+    h = min(n * c, mask.shape[0] - off)
+    w = min(m * c, mask.shape[1] - off)
+    sub[:h, :w] = mask[off : off + h, off : off + w]
+    return sub.reshape(n, c, m, c).mean(axis=(1, 3))
+
+
+def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 3,
+                clean_share: float = 0.4) -> list[tuple[object, list[int]]]:
+    """Scenarios and the layers to photograph in each, about ``n_layers`` frames in all.
+
+    Returns
+    -------
+    list of (Scenario, list of int)
+    """
+    from layerwatch.simulate import FAILURE_TYPES, Scenario, random_scenarios
+
+    per_fail = frames_after + 1
+    n_clean_frames = int(round(n_layers * clean_share))
+    n_fail = max(len(FAILURE_TYPES), int(round((n_layers - n_clean_frames) / per_fail)))
+    plan = []
+    for s in random_scenarios(tp, n_fail, seed=seed, clean_fraction=0.0):
+        f = s.failures[0]
+        last = tp.n_layers - 1
+        layers = sorted({max(f.onset - 1, 0), *(min(f.onset + k, last) for k in range(frames_after))})
+        plan.append((s, layers))
+    rng = np.random.default_rng(seed + 1)
+    per_clean = max(4, min(12, tp.n_layers // 2))
+    k = 0
+    while n_clean_frames > 0:
+        take = min(per_clean, n_clean_frames)
+        layers = sorted(rng.choice(np.arange(1, tp.n_layers), size=min(take, tp.n_layers - 1), replace=False).tolist())
+        plan.append((Scenario((), name=f"clean{k:02d}"), layers))
+        n_clean_frames -= len(layers)
+        k += 1
+    return plan
+
+
+def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
+    from layerwatch.analysis.hog import hog_blocks
+    from layerwatch.analysis.metrics import similarity_all
+    from layerwatch.analysis.scoring import analyze_layer, to_grey255
+
+    res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid)
+    considered = res.mask
+    c, b = settings.cell_px, settings.block_cells
+    args = {"cell_px": c, "block_cells": b, "bins": settings.bins, "block_norm": settings.block_norm,
+            "gamma": settings.gamma}
+    h_t, e_t = hog_blocks(to_grey255(top), **args, return_energy=True)
+    h_r, e_r = hog_blocks(to_grey255(ref.image), **args, return_energy=True)
+    flat = (e_t < settings.min_gradient) & (e_r < settings.min_gradient)
+    h_t[flat] = 0.0
+    h_r[flat] = 0.0
+    sims = similarity_all(h_t, h_r, METRIC_NAMES)
+    n, m = considered.shape
+    tile_px = float(c * c)
+    tile_mm2 = (c / pipe.topview.px_per_mm) ** 2
+    printed = res.printed_area_mm2
+    T = THRESHOLDS
+    a = np.zeros((len(METRIC_NAMES), len(T)), np.float32)
+    iou = None
+    truth_tiles = truth_px = None
+    if frame.truth_area is not None:
+        iou = np.zeros_like(a)
+        truth_tiles = tile_fraction(frame.truth_area, n, m, c, b)[considered] * tile_px
+        truth_px = float(np.count_nonzero(frame.truth_area))
+    for k, name in enumerate(METRIC_NAMES):
+        s = sims[name][considered]
+        below = s[:, None] < T[None, :]  # (blocks, T)
+        cnt = below.sum(axis=0)
+        a[k] = np.minimum(1.0, cnt * tile_mm2 / printed) if printed > 0 else 0.0
+        if iou is not None:
+            inter = (below * truth_tiles[:, None]).sum(axis=0)
+            union = cnt * tile_px + truth_px - inter
+            iou[k] = np.where(union > 0, inter / np.maximum(union, 1e-9), 1.0)
+    clean_high = (0, 0)
+    if frame.truth_area is None:
+        on_print = tile_fraction(ref.footprint, n, m, c, b) >= 0.5
+        on_print &= considered
+        cos = sims["cosine"]
+        clean_high = (int(np.count_nonzero(cos[on_print] > 0.7)), int(np.count_nonzero(on_print)))
+    return a, iou, clean_high
+
+
+def run_evaluation(
+    toolpath: Toolpath,
+    config: JobConfig,
+    camera: CameraModel,
+    n_layers: int = 200,
+    seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
+    match_camera: bool = False,
+) -> EvalData:
+    """Simulate about ``n_layers`` layer photos and score them (see module notes).
+
+    Parameters
+    ----------
+    toolpath : Toolpath
+    config : JobConfig
+        Top view, render and analysis settings (margin, HOG parameters).
+    camera : CameraModel
+        Posed camera of the simulated photos (also used by the pipeline).
+    n_layers : int
+        Approximate number of layer photos.
+    seed : int
+    progress : callable, optional
+        ``progress(done, total)``.
+    match_camera : bool
+        Camera-matched references (see :class:`~layerwatch.monitor.pipeline.LayerPipeline`).
+
+    Returns
+    -------
+    EvalData
+    """
+    from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.simulate import PrintSimulator
+
+    t0 = time.perf_counter()
+    tv = config.topview.topview()
+    plan = plan_frames(toolpath, n_layers, seed=seed)
+    total = sum(len(ls) for _, ls in plan)
+    data = EvalData(setup={
+        "n_frames": total, "n_scenarios": len(plan), "image_size": list(camera.image_size),
+        "analysis": config.analysis.model_dump(), "match_camera": match_camera,
+        "toolpath": toolpath.source, "toolpath_layers": toolpath.n_layers, "seed": seed,
+    })
+    pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
+    done = 0
+    for k, (scen, layers) in enumerate(plan):
+        sim = PrintSimulator(toolpath, camera, tv, scen, seed=seed * 1000 + k)
+        size = scen.failures[0].size_mm if scen.failures else 0.0
+        for i in layers:
+            frame = sim.frame(i)
+            ref = pipe.reference(i)
+            try:
+                top, valid = pipe.warper.warp(frame.photo, ref.z)
+                top = top.mean(axis=2).astype(np.uint8) if top.ndim == 3 else top
+                a, iou, clean_high = _score(top, ref, valid, pipe, config.analysis, frame)
+            except Exception as exc:  # noqa: BLE001 - reported, run continues
+                data.errors.append(f"{scen.name} layer {i}: {type(exc).__name__}: {exc}")
+                continue
+            kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
+            data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
+                                            a, iou, clean_high))
+            done += 1
+            if progress is not None:
+                progress(done, total)
+    data.seconds = time.perf_counter() - t0
+    return data

@@ -1,0 +1,112 @@
+"""Turn evaluation records into per-measure, per-failure-type figures and a recommendation.
+
+Choice of the recommended setting. For each measure and block threshold
+``T_S`` the layer score is a%. We pick the (measure, ``T_S``) pair with the
+highest *worst-type* ROC AUC (ties: higher mean AUC), i.e. the setting whose
+hardest failure type is still best separated from clean layers. The pause
+ratio is then set just above the highest a% seen on a clean layer (x 1.1,
+at least 2 %), so the sample has no false alarm; the report gives the
+detection rate per type at that ratio and the Clopper-Pearson bound on the
+false-alarm rate the sample size allows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from layerwatch.evaluate.harness import EvalData
+from layerwatch.evaluate.stats import discriminative_power, false_alarm_rate, roc_auc
+
+__all__ = ["Summary", "summarize"]
+
+
+@dataclass
+class Summary:
+    """Figures of an evaluation (arrays indexed [measure, type] unless said otherwise)."""
+
+    metrics: tuple[str, ...]
+    types: tuple[str, ...]
+    thresholds: np.ndarray
+    n_clean: int
+    n_failed: dict[str, int]
+    auc: np.ndarray            # (M, K, T) AUROC per measure, type, block threshold
+    best_t: np.ndarray         # (M,) index of each measure's best threshold (worst-type AUC)
+    a_failed: np.ndarray       # (M, K) mean a% on failed layers at the measure's best T
+    a_clean: np.ndarray        # (M,) mean a% on clean layers at the measure's best T
+    dp: np.ndarray             # (M, K) discriminative power (percentage points)
+    dprime: np.ndarray         # (M, K) standardised
+    iou: np.ndarray            # (M, K) mean IoU on failed layers with size >= 5 mm
+    fa_rate: np.ndarray        # (M,) false alarms / 1000 clean layers at the measure's pause ratio
+    pause_ratio: np.ndarray    # (M,)
+    tpr: np.ndarray            # (M, K) share of failed layers above the pause ratio
+    rec_metric: int
+    rec_t: int
+    fa_upper: float
+    clean_block_share: float   # share of clean printed-area blocks with cosine > 0.7
+    scores: dict               # raw a% arrays of the recommended setting: {"clean": ..., type: ...}
+
+
+def summarize(data: EvalData) -> Summary:
+    """Compute every figure of the report from the records."""
+    from layerwatch.simulate import FAILURE_TYPES
+
+    recs = data.records
+    metrics, T = data.metrics, data.thresholds
+    A = np.stack([r.a for r in recs]) if recs else np.zeros((0, len(metrics), len(T)))
+    kinds = np.array([r.kind for r in recs])
+    types = tuple(t for t in FAILURE_TYPES if (kinds == t).any())
+    clean = kinds == "clean"
+    M, K, NT = len(metrics), len(types), len(T)
+    auc = np.full((M, K, NT), np.nan)
+    for k, t in enumerate(types):
+        pos = kinds == t
+        for m in range(M):
+            for j in range(NT):
+                auc[m, k, j] = roc_auc(A[pos, m, j], A[clean, m, j])
+    worst = np.nanmin(auc, axis=1) if K else np.zeros((M, NT))
+    mean = np.nanmean(auc, axis=1) if K else np.zeros((M, NT))
+    best_t = np.array([int(np.lexsort((-mean[m], -worst[m]))[0]) for m in range(M)])
+    a_failed = np.full((M, K), np.nan)
+    a_clean = np.zeros(M)
+    dp = np.full((M, K), np.nan)
+    dprime = np.full((M, K), np.nan)
+    iou = np.full((M, K), np.nan)
+    tpr = np.full((M, K), np.nan)
+    pause = np.zeros(M)
+    fa = np.zeros(M)
+    big = np.array([r.size_mm >= 5.0 and r.iou is not None for r in recs])
+    for m in range(M):
+        j = best_t[m]
+        c = A[clean, m, j]
+        a_clean[m] = c.mean() if c.size else np.nan
+        pause[m] = max(0.02, 1.1 * c.max()) if c.size else 0.1
+        pause[m] = min(pause[m], 0.99)
+        fa[m] = false_alarm_rate(int((c > pause[m]).sum()), int(c.size))[0]
+        for k, t in enumerate(types):
+            f = A[kinds == t, m, j]
+            a_failed[m, k] = f.mean()
+            dp[m, k], dprime[m, k] = discriminative_power(f, c)
+            tpr[m, k] = (f > pause[m]).mean()
+            sel = (kinds == t) & big
+            if sel.any():
+                iou[m, k] = float(np.mean([recs[i].iou[m, j] for i in np.flatnonzero(sel)]))
+    order = np.lexsort((-np.array([mean[m, best_t[m]] for m in range(M)]),
+                        -np.array([worst[m, best_t[m]] for m in range(M)])))
+    rec = int(order[0]) if M else 0
+    n_clean = int(clean.sum())
+    fa_upper = false_alarm_rate(0, n_clean)[1] if n_clean else float("nan")
+    hi = sum(r.clean_high[0] for r in recs if r.kind == "clean")
+    tot = sum(r.clean_high[1] for r in recs if r.kind == "clean")
+    jr = best_t[rec]
+    scores = {"clean": A[clean, rec, jr]}
+    for t in types:
+        scores[t] = A[kinds == t, rec, jr]
+    return Summary(
+        metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
+        n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,
+        a_failed=a_failed, a_clean=a_clean, dp=dp, dprime=dprime, iou=iou, fa_rate=fa,
+        pause_ratio=pause, tpr=tpr, rec_metric=rec, rec_t=int(jr), fa_upper=fa_upper,
+        clean_block_share=hi / tot if tot else float("nan"), scores=scores,
+    )
