@@ -96,11 +96,14 @@ def assign_layers(
             rise = float(seg_z.max() - seg_z.min())
             h = 0.2 if rise <= 0 else min(0.2, rise)
             warnings.append(f"spiral print without a known layer height; binned every {h:g} mm")
-        z0 = float(seg_z[0])
-        k = np.ceil((seg_z - z0) / h - 1e-6).astype(np.int64)
-        k = np.maximum.accumulate(np.maximum(k, 0))
+        # base one step below the first segment: its own layer top is z0 (flat start) or the
+        # first segment ends a rising turn that began one increment lower
+        d0 = float(seg_z[1] - seg_z[0]) if n > 1 else 0.0
+        zb = float(seg_z[0]) - (d0 if 1e-6 < d0 < h else h)
+        k = np.ceil((seg_z - zb) / h - 1e-6).astype(np.int64)
+        k = np.maximum.accumulate(np.maximum(k, 1))
         bounds = _runs(k)
-        z = z0 + k[bounds[:-1]] * h
+        z = zb + k[bounds[:-1]] * h
         return bounds, z, "spiral", warnings
     bounds = _runs(np.round(seg_z, 4))
     return bounds, seg_z[bounds[:-1]].astype(np.float64), "z", warnings
