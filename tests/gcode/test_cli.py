@@ -1,0 +1,51 @@
+"""`layerwatch gcode info|prepare` through layerwatch.cli.main."""
+
+from __future__ import annotations
+
+import pytest
+
+from layerwatch.cli import main
+from layerwatch.gcode import read_toolpath
+
+from gcode_refs import shared_gcode_files
+
+
+def test_info_on_example(example_gcode, capsys):
+    assert main(["gcode", "info", str(example_gcode)]) == 0
+    out = capsys.readouterr().out
+    assert "layers" in out and "33" in out and "detection" in out and "tags:prusaslicer" in out
+
+
+@pytest.mark.parametrize("path", [p for p in shared_gcode_files() if p.suffix == ".gcode"][:20:4],
+                         ids=lambda p: p.name)
+def test_info_on_shared(path, capsys):
+    assert main(["gcode", "info", str(path)]) == 0
+    assert "Z range" in capsys.readouterr().out
+
+
+def test_prepare_klipper_round_trip(example_gcode, tmp_path, capsys):
+    out = tmp_path / "out.gcode"
+    assert main(["gcode", "prepare", str(example_gcode), "--profile", "klipper", "-o", str(out)]) == 0
+    a, b = read_toolpath(example_gcode), read_toolpath(out)
+    assert a.n_layers == b.n_layers == 33
+    assert [lay.extrusion_mm for lay in a.layers] == pytest.approx([lay.extrusion_mm for lay in b.layers])
+    assert out.read_bytes().count(b"LAYERWATCH_SNAPSHOT LAYER=") == 33
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["gcode", "info", "/nonexistent/file.gcode"],
+        ["gcode", "prepare", "/nonexistent.gcode", "-o", "x.gcode"],
+        ["gcode", "prepare", "{ex}", "--profile", "nope", "-o", "{tmp}/o.gcode"],
+        ["gcode", "prepare", "{ex}", "--park", "1,2,3", "-o", "{tmp}/o.gcode"],
+        ["gcode", "info", "{junk}"],
+    ],
+)
+def test_bad_input_exit_2(argv, example_gcode, tmp_path, capsys):
+    junk = tmp_path / "junk.gcode"
+    junk.write_bytes(b"\x00\x01\x02" * 100)
+    argv = [a.format(ex=example_gcode, tmp=tmp_path, junk=junk) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "Traceback" not in err
