@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from gcode_refs import shared_gcode_files
 
 from layerwatch.cli import main
 from layerwatch.gcode import read_toolpath
-
-from gcode_refs import shared_gcode_files
 
 
 def test_info_on_example(example_gcode, capsys):

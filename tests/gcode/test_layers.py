@@ -64,7 +64,7 @@ def test_z_fallback_ignores_z_hops():
 
 
 def test_spiral_binned_on_layer_height():
-    lines, e, z = ["G90\nM83\n; layer_height = 0.25\nG1 X10 Y0 Z0.25\n"], 0.0, 0.25
+    lines = ["G90\nM83\n; layer_height = 0.25\nG1 X10 Y0 Z0.25\n"]
     for k in range(1, 40 * 8 + 1):  # 8 turns of 40 steps, rising 0.25 per turn
         a = 2 * math.pi * k / 40
         z = 0.25 + 0.25 * k / 40

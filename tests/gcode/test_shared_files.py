@@ -7,13 +7,12 @@ import re
 
 import numpy as np
 import pytest
+from gcode_refs import reference_extrusion, shared_gcode_files
 
 from layerwatch.errors import GcodeError
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
-
-from gcode_refs import reference_extrusion, shared_gcode_files
 
 FILES = shared_gcode_files()
 GCODE = [p for p in FILES if p.suffix == ".gcode"]

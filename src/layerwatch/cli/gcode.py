@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -32,7 +33,7 @@ def _read_with_progress(path: Path):
 
 
 @gcode_app.command("info")
-def info(file: Path = typer.Argument(..., help="A .gcode (or .bgcode) file.")) -> None:
+def info(file: Annotated[Path, typer.Argument(help="A .gcode (or .bgcode) file.")]) -> None:
     """Print layers, Z range, detection method, extrusion length and bounds."""
     from rich.table import Table
 
@@ -63,14 +64,14 @@ def info(file: Path = typer.Argument(..., help="A .gcode (or .bgcode) file.")) -
 
 @gcode_app.command("prepare")
 def prepare(
-    file: Path = typer.Argument(..., help="Input .gcode file."),
-    output: Path = typer.Option(..., "-o", "--output", help="Where to write the new G-code."),
-    profile: str = typer.Option("octoprint", "--profile", "-p", help="|".join(_PROFILES)),
-    every: int = typer.Option(1, "--every", min=1, help="Snapshot after every Nth layer."),
-    lift: float = typer.Option(5.0, "--lift", help="Z lift for the photo, mm."),
-    retract: float = typer.Option(1.0, "--retract", help="Retraction before parking, mm."),
-    park: str = typer.Option("", "--park", help="Park position 'X,Y' in mm (default: back corner)."),
-    volume: str = typer.Option("", "--volume", help="Printer volume 'X,Y,Z' max in mm."),
+    file: Annotated[Path, typer.Argument(help="Input .gcode file.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Where to write the new G-code.")],
+    profile: Annotated[str, typer.Option("--profile", "-p", help="|".join(_PROFILES))] = "octoprint",
+    every: Annotated[int, typer.Option("--every", min=1, help="Snapshot after every Nth layer.")] = 1,
+    lift: Annotated[float, typer.Option("--lift", help="Z lift for the photo, mm.")] = 5.0,
+    retract: Annotated[float, typer.Option("--retract", help="Retraction before parking, mm.")] = 1.0,
+    park: Annotated[str, typer.Option("--park", help="Park 'X,Y' in mm (default: back corner).")] = "",
+    volume: Annotated[str, typer.Option("--volume", help="Printer volume 'X,Y,Z' max, mm.")] = "",
 ) -> None:
     """Insert a snapshot block (paper Table 1) after every (Nth) layer."""
     from layerwatch.cli import console

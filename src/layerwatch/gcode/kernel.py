@@ -96,7 +96,8 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
 
     Returns
     -------
-    seg : (S, 6) float64  x0, y0, x1, y1, z, e (physical mm, filament mm)
+    seg_a, seg_b : (S, 2) float64  segment start / end XY (physical mm)
+    seg_z, seg_e : (S,) float64  Z (mm) and filament (mm)
     seg_line : (S,) int64 ; seg_tool : (S,) uint8
     travel_line : (T,) int64
     cmt : (C, 2) int64  byte offset of the ';' and its line
@@ -104,14 +105,24 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
     stats : (N_STATS,) int64
     """
     n = buf.shape[0]
+    # capacity: lines that start with G (arcs grow the arrays on demand)
     cap = 16
+    at_start = True
     for k in range(n):
-        if buf[k] == 10:
-            cap += 1
-    seg = np.empty((cap, 6), np.float64)
+        c = buf[k]
+        if c == 10:
+            at_start = True
+        elif at_start and c != 32 and c != 9:
+            if c == 71 or c == 103:
+                cap += 1
+            at_start = False
+    seg_a = np.empty((cap, 2), np.float64)
+    seg_b = np.empty((cap, 2), np.float64)
+    seg_z = np.empty(cap, np.float64)
+    seg_e = np.empty(cap, np.float64)
     seg_line = np.empty(cap, np.int64)
     seg_tool = np.empty(cap, np.uint8)
-    travel_line = np.empty(cap, np.int64)
+    travel_line = np.empty(cap // 4 + 16, np.int64)
     cmt = np.empty((64, 2), np.int64)
     probe_state = np.full((probes.shape[0], N_PROBE), np.nan)
     stats = np.zeros(N_STATS, np.int64)
@@ -387,8 +398,11 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
                         k = 1
                     k = max(1, min(k, 100000))
                     if extruding:
-                        while ns + k >= seg.shape[0]:
-                            seg = _grow_f(seg, k)
+                        while ns + k >= seg_z.shape[0]:
+                            seg_a = _grow_f(seg_a, k)
+                            seg_b = _grow_f(seg_b, k)
+                            seg_z = _grow_1(seg_z, k)
+                            seg_e = _grow_1(seg_e, k)
                             seg_line = _grow_1(seg_line, k)
                             seg_tool = _grow_1(seg_tool, k)
                         px = x0
@@ -402,12 +416,12 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
                             else:
                                 qx = cx + rr * math.cos(a0 + sweep * t)
                                 qy = cy + rr * math.sin(a0 + sweep * t)
-                            seg[ns, 0] = px
-                            seg[ns, 1] = py
-                            seg[ns, 2] = qx
-                            seg[ns, 3] = qy
-                            seg[ns, 4] = z0 + (z1 - z0) * t
-                            seg[ns, 5] = de / k
+                            seg_a[ns, 0] = px
+                            seg_a[ns, 1] = py
+                            seg_b[ns, 0] = qx
+                            seg_b[ns, 1] = qy
+                            seg_z[ns] = z0 + (z1 - z0) * t
+                            seg_e[ns] = de / k
                             seg_line[ns] = line
                             seg_tool[ns] = tool
                             ns += 1
@@ -420,16 +434,19 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
                         nt += 1
             if mo < 2:
                 if extruding and dxy > 1e-12:
-                    if ns >= seg.shape[0]:
-                        seg = _grow_f(seg, 16)
+                    if ns >= seg_z.shape[0]:
+                        seg_a = _grow_f(seg_a, 16)
+                        seg_b = _grow_f(seg_b, 16)
+                        seg_z = _grow_1(seg_z, 16)
+                        seg_e = _grow_1(seg_e, 16)
                         seg_line = _grow_1(seg_line, 16)
                         seg_tool = _grow_1(seg_tool, 16)
-                    seg[ns, 0] = x0
-                    seg[ns, 1] = y0
-                    seg[ns, 2] = x1
-                    seg[ns, 3] = y1
-                    seg[ns, 4] = z1
-                    seg[ns, 5] = de
+                    seg_a[ns, 0] = x0
+                    seg_a[ns, 1] = y0
+                    seg_b[ns, 0] = x1
+                    seg_b[ns, 1] = y1
+                    seg_z[ns] = z1
+                    seg_e[ns] = de
                     seg_line[ns] = line
                     seg_tool[ns] = tool
                     ns += 1
@@ -450,4 +467,14 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
     stats[ST_SEG] = ns
     stats[ST_TRAVEL] = nt
     stats[ST_CMT] = nc
-    return seg[:ns], seg_line[:ns], seg_tool[:ns], travel_line[:nt], cmt[:nc], probe_state, stats
+    if ns < 0.9 * seg_z.shape[0]:  # give back the slack (a copy only when it is large)
+        seg_a = seg_a[:ns].copy()
+        seg_b = seg_b[:ns].copy()
+        seg_z = seg_z[:ns].copy()
+        seg_e = seg_e[:ns].copy()
+        seg_line = seg_line[:ns].copy()
+        seg_tool = seg_tool[:ns].copy()
+    return (
+        seg_a[:ns], seg_b[:ns], seg_z[:ns], seg_e[:ns], seg_line[:ns], seg_tool[:ns],
+        travel_line[:nt], cmt[:nc], probe_state, stats,
+    )

@@ -78,7 +78,7 @@ def assign_layers(
         for k in range(bounds.size - 1):
             a, b = bounds[k], bounds[k + 1]
             tz = tag_z[ids[a]]
-            z[k] = tz if np.isfinite(tz) else float(np.median(seg_z[a:b]))
+            z[k] = tz if np.isfinite(tz) else float(seg_z[(a + b) // 2])  # mid-layer segment
         return bounds, z, f"tags:{style}", warnings
     dz = np.abs(np.diff(seg_z))
     changes = int(np.count_nonzero(dz > 1e-4))

@@ -88,7 +88,7 @@ def snapshot_block(
     """
     lx, ly, lz, ox, oy, oz, _e, feed, abs_xyz, e_rel, tool, inch, tool_on = state.tolist()
     lo, hi = np.asarray(printer.volume_min_mm), np.asarray(printer.volume_max_mm)
-    px, py, pz = lx + ox, ly + oy, lz + oz
+    pz = lz + oz
     park = snapshot.park_xy_mm if snapshot.park_xy_mm is not None else (hi[0], hi[1])
     park_x = float(np.clip(park[0], lo[0], hi[0])) - ox
     park_y = float(np.clip(park[1], lo[1], hi[1])) - oy

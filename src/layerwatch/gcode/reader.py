@@ -41,7 +41,7 @@ def load_bytes(source: str | Path | bytes | bytearray | memoryview) -> tuple[byt
         from layerwatch.gcode.bgcode import decode_bgcode
 
         data = decode_bgcode(data, name)
-    if not data.strip():
+    if not data or data.isspace():
         raise GcodeError(f"{name}: the file is empty; slice the model again and export G-code.")
     head = data[:65536]
     if b"\x00" in head or sum(c < 9 or 13 < c < 32 for c in head[:4096]) > 16:
@@ -64,8 +64,8 @@ def guess_relative_e(data: bytes) -> bool:
     return vals.size > 20 and float(np.mean(np.diff(vals) > 0)) < 0.5
 
 
-def run(data: bytes, probes: np.ndarray | None = None):
-    """Run the numba kernel over ``data`` (see :func:`layerwatch.gcode.kernel.run_kernel`)."""
+def kernel_outputs(data: bytes, probes: np.ndarray | None = None) -> tuple:
+    """Raw kernel outputs for ``data`` (see :func:`layerwatch.gcode.kernel.run_kernel`)."""
     buf = np.frombuffer(data, dtype=np.uint8)
     if probes is None:
         probes = np.zeros(0, np.int64)
@@ -74,13 +74,36 @@ def run(data: bytes, probes: np.ndarray | None = None):
     )
 
 
-def _bead_width(seg: np.ndarray, height: np.ndarray, d: float) -> np.ndarray:
-    """Rounded-rectangle bead width from filament used, mm."""
-    length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
-    area = seg[:, 5] * (np.pi * d * d / 4.0) / np.maximum(length, 1e-9)
-    h = np.maximum(height, 1e-3)
-    w = area / h + h * (1.0 - np.pi / 4.0)
-    return np.clip(w, 0.0, 10.0 * d).astype(np.float32)
+def run(data: bytes, probes: np.ndarray | None = None) -> tuple:
+    """Kernel outputs in a compact form for tests and the post-processor.
+
+    Returns
+    -------
+    seg : (S, 6) float64  x0, y0, x1, y1, z, e
+    seg_line, seg_tool, travel_line, cmt, probe_state, stats : see the kernel
+    """
+    a, b, z, e, line, tool, travel, cmt, probe, stats = kernel_outputs(data, probes)
+    seg = np.column_stack([a, b, z, e]) if z.size else np.zeros((0, 6))
+    return seg, line, tool, travel, cmt, probe, stats
+
+
+def _bead_width(
+    a: np.ndarray, b: np.ndarray, e: np.ndarray, height: np.ndarray, d: float
+) -> np.ndarray:
+    """Rounded-rectangle bead width from filament used, mm, float32 (S,).
+
+    ``w = A / h + h (1 - pi/4)`` with bead area ``A = e * pi d^2 / 4 / length``.
+    """
+    d_ = (b - a).astype(np.float32)
+    length = np.hypot(d_[:, 0], d_[:, 1])
+    del d_
+    w = e.astype(np.float32)
+    w *= np.float32(np.pi * d * d / 4.0)
+    w /= np.maximum(length, np.float32(1e-9))
+    h = np.maximum(height, 1e-3).astype(np.float32)
+    w /= h
+    w += h * np.float32(1.0 - np.pi / 4.0)
+    return np.clip(w, 0.0, 10.0 * d, out=w)
 
 
 def read_toolpath(
@@ -114,7 +137,7 @@ def read_toolpath(
     total = len(data)
     if progress:
         progress(0, total)
-    seg, seg_line, seg_tool, travel_line, cmt, _probe, st = run(data)
+    seg_a, seg_b, seg_z, seg_e, seg_line, seg_tool, travel_line, cmt, _probe, st = kernel_outputs(data)
     if progress:
         progress(int(total * 0.9), total)
     warnings: list[str] = []
@@ -134,8 +157,7 @@ def read_toolpath(
     last = data[data.rfind(b"\n") + 1 :].lstrip().upper()
     if st[K.ST_NONL] and re.match(rb"G0?[0-3](?![0-9])", last):
         warnings.append(f"{short}:{st[K.ST_LINES]}: the file ends mid-line; it may be truncated")
-    buf = memoryview(data)
-    tags = decode_tags(buf, cmt)
+    tags = decode_tags(data, cmt)
     head = data[:8192]
     slicer = detect_slicer(head)
     if filament_diameter is None:
@@ -146,10 +168,10 @@ def read_toolpath(
     m = _LH.search(head) or _LH.search(data[-65536:])
     lh_hint = float(m.group(1)) if m else None
     bounds, lz, detection, w2 = assign_layers(
-        seg[:, 4], seg_line, tags.layer_lines, tags.layer_z, tags.style, lh_hint, seg[:, 2:4]
+        seg_z, seg_line, tags.layer_lines, tags.layer_z, tags.style, lh_hint, seg_b
     )
     warnings += w2
-    n = seg.shape[0]
+    n = seg_z.shape[0]
     if n == 0:
         warnings.append(f"{short}: no extruding moves found (not a 3D-printer file, or E is never used)")
     heights = np.diff(np.concatenate([[0.0], lz]))
@@ -159,56 +181,56 @@ def read_toolpath(
     if len(heights) and lz[0] > 0:
         heights[0] = min(lz[0], 2.0) if lz[0] > 0.01 else fallback_h
     counts = np.diff(bounds)
-    seg_h = np.repeat(heights, counts)
+    seg_h = np.repeat(heights.astype(np.float32), counts)
     if tags.feature_lines.size:
         fi = np.searchsorted(tags.feature_lines, seg_line, side="right") - 1
-        feature = np.where(fi >= 0, tags.feature_codes[np.maximum(fi, 0)], 0).astype(np.uint8)
+        feature = tags.feature_codes[np.maximum(fi, 0)]
+        feature[fi < 0] = 0
+        del fi
     else:
         feature = np.zeros(n, np.uint8)
     n_lines = int(st[K.ST_LINES])
-    layers = []
-    prev_stop = 1
-    for k in range(len(lz)):
-        a, b = int(bounds[k]), int(bounds[k + 1])
-        if detection.startswith("tags") and k > 0:
-            tl = tags.layer_lines
-            j = int(np.searchsorted(tl, seg_line[a], side="right")) - 1
-            start = int(tl[j]) if j >= 0 else int(seg_line[a])
-        else:
-            start = prev_stop if k == 0 else int(seg_line[bounds[k - 1] + counts[k - 1] - 1]) + 1
-        start = max(start, prev_stop if k else 1)
-        layers.append(start)
-        prev_stop = start
-    layer_objs = []
-    for k in range(len(lz)):
-        a, b = int(bounds[k]), int(bounds[k + 1])
-        stop = layers[k + 1] if k + 1 < len(lz) else n_lines + 1
-        s = seg[a:b]
-        xs = np.concatenate([s[:, 0], s[:, 2]])
-        ys = np.concatenate([s[:, 1], s[:, 3]])
-        n_trav = int(
-            np.searchsorted(travel_line, stop, "left") - np.searchsorted(travel_line, layers[k], "left")
+    first = bounds[:-1]
+    if detection.startswith("tags") and len(lz):
+        tl = tags.layer_lines
+        j = np.searchsorted(tl, seg_line[first], side="right") - 1
+        starts = np.where(j >= 0, tl[np.maximum(j, 0)], seg_line[first])
+    else:
+        starts = np.concatenate([[1], seg_line[first[1:] - 1] + 1]) if len(lz) else np.zeros(0, np.int64)
+    if len(lz):
+        starts[0] = 1
+        starts = np.maximum.accumulate(starts)
+    layers = starts
+    nl = len(lz)
+    starts = np.asarray(layers, np.int64)
+    stops = np.append(starts[1:], n_lines + 1) if nl else starts
+    n_trav = np.searchsorted(travel_line, stops) - np.searchsorted(travel_line, starts)
+    if nl:
+        idx = bounds[:-1]
+        lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
+        hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
+        ext = np.add.reduceat(seg_e, idx)
+    layer_objs = [
+        Layer(
+            index=k,
+            z=float(lz[k]),
+            height=float(heights[k]),
+            seg_start=int(bounds[k]),
+            seg_stop=int(bounds[k + 1]),
+            line_start=int(starts[k]),
+            line_stop=int(stops[k]),
+            bounds=(float(lo[k, 0]), float(lo[k, 1]), float(hi[k, 0]), float(hi[k, 1])),
+            extrusion_mm=float(ext[k]),
+            n_travel=int(n_trav[k]),
         )
-        layer_objs.append(
-            Layer(
-                index=k,
-                z=float(lz[k]),
-                height=float(heights[k]),
-                seg_start=a,
-                seg_stop=b,
-                line_start=int(layers[k]),
-                line_stop=int(stop),
-                bounds=(float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())),
-                extrusion_mm=float(s[:, 5].sum()),
-                n_travel=n_trav,
-            )
-        )
+        for k in range(nl)
+    ]
     tp = Toolpath(
-        start=np.ascontiguousarray(seg[:, 0:2]),
-        end=np.ascontiguousarray(seg[:, 2:4]),
-        z=np.ascontiguousarray(seg[:, 4]),
-        e=np.ascontiguousarray(seg[:, 5]),
-        width=_bead_width(seg, seg_h, filament_diameter),
+        start=seg_a,
+        end=seg_b,
+        z=seg_z,
+        e=seg_e,
+        width=_bead_width(seg_a, seg_b, seg_e, seg_h, filament_diameter),
         feature=feature,
         tool=seg_tool,
         line=seg_line,

@@ -77,45 +77,61 @@ class TagScan:
     feature_codes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
 
 
-def _comment(buf: memoryview, offset: int) -> bytes:
-    chunk = bytes(buf[offset : offset + 160])
-    return chunk.split(b"\n", 1)[0].rstrip(b"\r")
+def _classify(text: bytes) -> tuple[str | None, float, int, bytes | None]:
+    """(layer style or None, tag z or NaN, feature code or -1, ``;Z:`` value bytes or None)."""
+    style, z, code, zval = None, float("nan"), -1, None
+    for name, rx, zg in LAYER_STYLES:
+        m = rx.match(text)
+        if m:
+            style = name
+            z = float(m.group(zg)) if zg else float("nan")
+            if name == "cura":
+                zval = m.group(1)  # the label, to drop ideaMaker's per-object repeats
+            break
+    if style is None or style == "z-comment":
+        mz = _ZVAL.match(text)
+        if mz and style is None:
+            zval = mz.group(1)
+    if style is None:
+        for rx in _FEATURE:
+            m = rx.match(text)
+            if m:
+                code = feature_from_name(m.group(1).decode("latin-1"))
+                break
+    return style, z, code, zval
 
 
-def decode_tags(buf: memoryview, cmt: np.ndarray) -> TagScan:
-    """Decode candidate comments ``cmt`` (``(C, 2)`` int64: byte offset, line)."""
+def decode_tags(data: bytes, cmt: np.ndarray) -> TagScan:
+    """Decode candidate comments ``cmt`` (``(C, 2)`` int64: byte offset, line) of ``data``."""
     per_style: dict[str, list[tuple[int, float]]] = {s[0]: [] for s in LAYER_STYLES}
     zvals: list[tuple[int, float]] = []
     flines: list[int] = []
     fcodes: list[int] = []
-    last_label: dict[str, bytes] = {}
+    last_cura: bytes | None = None
+    cache: dict[bytes, tuple] = {}
+    find = data.find
     for off, line in cmt.tolist():
-        text = _comment(buf, off)
-        matched = False
-        for name, rx, zg in LAYER_STYLES:
-            m = rx.match(text)
-            if m:
-                if name == "cura":  # ideaMaker repeats ;LAYER:n per object
-                    if last_label.get(name) == m.group(1):
-                        matched = True
-                        break
-                    last_label[name] = m.group(1)
-                z = float(m.group(zg)) if zg else float("nan")
-                per_style[name].append((line, z))
-                matched = True
-                break
-        if name == "z-comment" or not matched:
-            mz = _ZVAL.match(text)
-            if mz:
-                zvals.append((line, float(mz.group(1))))
-        if matched:
-            continue
-        for rx in _FEATURE:
-            m = rx.match(text)
-            if m:
-                flines.append(line)
-                fcodes.append(feature_from_name(m.group(1).decode("latin-1")))
-                break
+        end = find(b"\n", off, off + 200)
+        text = data[off : end if end >= 0 else off + 200].rstrip(b"\r")
+        hit = cache.get(text)
+        if hit is None:
+            hit = _classify(text)
+            if len(cache) < 100000:
+                cache[text] = hit
+        style, z, code, zval = hit
+        if style is not None:
+            if style == "cura":
+                if zval == last_cura:
+                    continue
+                last_cura = zval
+            elif style == "z-comment":
+                zvals.append((line, z))
+            per_style[style].append((line, z))
+        elif zval is not None:
+            zvals.append((line, float(zval)))
+        elif code >= 0:
+            flines.append(line)
+            fcodes.append(code)
     scan = TagScan(
         feature_lines=np.asarray(flines, np.int64), feature_codes=np.asarray(fcodes, np.uint8)
     )
