@@ -1,11 +1,167 @@
-"""CLI verbs for the pipeline stage (filled in by its issue)."""
+"""CLI verbs of the offline pipeline: ``analyze``, ``simulate`` and ``evaluate``."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
 __all__ = ["register"]
 
 
+def _progress():
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from layerwatch.cli import console
+
+    cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    return Progress(*cols, console=console, transient=True)
+
+
+def _toolpath(gcode: Path | None):
+    from layerwatch.cli import console
+    from layerwatch.errors import GcodeError
+    from layerwatch.evaluate.demo import load_job_toolpath
+
+    if gcode is not None and not gcode.is_file():
+        raise GcodeError(f"G-code file {gcode} not found; check the path.")
+    notes: list[str] = []
+    tp, _ = load_job_toolpath(gcode, notes)
+    for n in notes:
+        console.print(f"[yellow]{n}[/]")
+    return tp
+
+
+def _config(config: Path | None, gcode: Path | None, tp, recommended: bool):
+    """Job config; without a file, the observed square is centred on the part."""
+    from layerwatch.config import load_config
+    from layerwatch.evaluate.recommended import recommended_config
+    from layerwatch.examples import PART_CONFIG
+
+    path = config if config is not None else (PART_CONFIG if gcode is None else None)
+    cfg = recommended_config(path) if recommended else load_config(path)
+    if path is None:
+        x0, y0, x1, y1 = tp.bounds
+        span = max(x1 - x0, y1 - y0) + 30.0
+        side = max(90.0, span)
+        cfg = cfg.model_copy(update={"topview": cfg.topview.model_copy(update={
+            "center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side})})
+    return cfg
+
+
+def analyze(
+    photos: Annotated[list[Path], typer.Argument(help="Layer photos, named by layer (layer_0012.png) or in order.")],
+    gcode: Annotated[Path, typer.Option("--gcode", "-g", help="The job's G-code.")],
+    camera: Annotated[Path, typer.Option("--camera", help="camera.toml with intrinsics and bed pose (layerwatch calibrate).")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Results folder (re-running resumes).")] = Path("results"),
+    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
+    cache: Annotated[Path | None, typer.Option("--cache", help="Reference cache folder.")] = None,
+    paper: Annotated[bool, typer.Option("--paper-settings", help="Use the config's analysis settings as they are "
+                                        "(default: the evaluation's recommended measure/threshold over them).")] = False,
+) -> None:
+    """Analyse photos of a print layer by layer: warp, reference, HOG comparison, pause decision."""
+    from layerwatch.cli import console
+    from layerwatch.errors import CalibrationError
+    from layerwatch.evaluate.offline import run_offline
+    from layerwatch.geometry.camera import CameraModel
+
+    if not camera.is_file():
+        raise CalibrationError(f"camera file {camera} not found; run `layerwatch calibrate` first.")
+    tp = _toolpath(gcode)
+    cfg = _config(config, gcode, tp, not paper)
+    cam = CameraModel.load(camera)
+    with _progress() as bar:
+        task = bar.add_task("analysing", total=len(photos))
+        run = run_offline(tp, cam, cfg, photos, out, cache_dir=cache,
+                          progress=lambda d, n, text: bar.update(task, completed=d, total=n, description=text))
+    for p in run.problems:
+        console.print(f"[yellow]warning:[/] {p}")
+    if run.missing:
+        console.print(f"[yellow]warning:[/] no photo for layer(s) {', '.join(map(str, run.missing))}")
+    ok = sum(r.status == "ok" for r in run.results.values())
+    console.print(f"{ok} of {len(run.results)} layers analysed ({run.reused} reused) -> {out}/summary.md")
+    if run.paused_at is not None:
+        console.print(f"[bold red]would have paused at layer {run.paused_at}[/]: {run.reason}")
+    else:
+        console.print("no layer would have paused the print")
+
+
+def simulate(
+    gcode: Annotated[Path | None, typer.Option("--gcode", "-g", help="G-code (default: the bundled example part).")] = None,
+    failure: Annotated[list[str] | None, typer.Option("--failure", "-f", help="TYPE@LAYER[:SIZE_MM], repeatable, "
+                                                       "e.g. spaghetti@15 or layer_shift@10:3.")] = None,
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (photos, truth masks, camera.toml).")] = Path("sim"),
+    layers: Annotated[int | None, typer.Option("--layers", "-n", min=1, help="Only the first N layers.")] = None,
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    width: Annotated[int, typer.Option("--width", help="Photo width px (16:9).")] = 1280,
+    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML ([topview]).")] = None,
+) -> None:
+    """Simulate camera photos of a print (with failures and ground-truth masks)."""
+    from layerwatch.cli import console
+    from layerwatch.errors import ConfigError
+    from layerwatch.simulate import Failure, default_camera, save_frame, simulate_print
+
+    fails = []
+    for spec in failure or []:
+        try:
+            kind, rest = spec.split("@", 1)
+            onset, _, size = rest.partition(":")
+            fails.append(Failure(kind.strip(), onset=int(onset), **({"size_mm": float(size)} if size else {})))
+        except ValueError:
+            raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM]; e.g. spaghetti@15.") from None
+    tp = _toolpath(gcode)
+    cfg = _config(config, gcode, tp, False)
+    tv = cfg.topview.topview()
+    cam = default_camera(tv, image_size=(width, int(round(width * 9 / 16))))
+    out.mkdir(parents=True, exist_ok=True)
+    cam.save(out / "camera.toml")
+    n = tp.n_layers if layers is None else min(layers, tp.n_layers)
+    with _progress() as bar:
+        task = bar.add_task("simulating", total=n)
+        for fr in simulate_print(tp, cam, tv, fails, seed=seed, layers=range(n)):
+            save_frame(fr, out)
+            bar.update(task, advance=1, description=f"layer {fr.layer}")
+    console.print(f"wrote {n} photos (+ truth masks where failed) and camera.toml to {out}")
+
+
+def evaluate(
+    gcode: Annotated[Path | None, typer.Option("--gcode", "-g", help="G-code (default: the bundled example part).")] = None,
+    layers: Annotated[int, typer.Option("--layers", "-n", min=14, help="Approximate number of simulated layer photos.")] = 200,
+    out: Annotated[Path, typer.Option("-o", "--out", help="Report folder.")] = Path("docs/evaluation"),
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    width: Annotated[int, typer.Option("--width", help="Photo width px (16:9).")] = 1280,
+    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
+    margin: Annotated[float | None, typer.Option("--margin-mm", help="Footprint margin of the considered blocks.")] = None,
+    match_camera: Annotated[bool, typer.Option("--match-camera", help="Camera-matched references.")] = False,
+) -> None:
+    """Score the twelve measures on simulated failures; write a Markdown report with charts."""
+    from layerwatch.cli import console
+    from layerwatch.evaluate.harness import run_evaluation
+    from layerwatch.evaluate.report import rich_table, write_report
+    from layerwatch.evaluate.summary import summarize
+    from layerwatch.simulate import default_camera
+
+    tp = _toolpath(gcode)
+    cfg = _config(config, gcode, tp, True)
+    if margin is not None:
+        cfg = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={"footprint_margin_mm": margin})})
+    cam = default_camera(cfg.topview.topview(), image_size=(width, int(round(width * 9 / 16))))
+    with _progress() as bar:
+        task = bar.add_task("simulating + scoring", total=layers)
+        data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera,
+                              progress=lambda d, n: bar.update(task, completed=d, total=n))
+    s = summarize(data)
+    notes = [f"{e}" for e in data.errors]
+    path = write_report(s, out, data.setup, data.seconds, notes=notes)
+    console.print(rich_table(s))
+    r = s.rec_metric
+    console.print(f"recommended: {s.metrics[r]} T_S={s.thresholds[s.rec_t]:.2f}, pause a% > "
+                  f"{100 * s.pause_ratio[r]:.1f} %; report {path} ({data.seconds:.0f} s)")
+
+
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the root app."""
+    app.command("analyze")(analyze)
+    app.command("simulate")(simulate)
+    app.command("evaluate")(evaluate)

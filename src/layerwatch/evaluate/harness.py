@@ -35,7 +35,7 @@ from layerwatch.geometry.camera import CameraModel
 __all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "tile_fraction"]
 
 #: block thresholds T_S scanned for every measure
-THRESHOLDS = np.round(np.arange(0.20, 0.901, 0.05), 2)
+THRESHOLDS = np.round(np.arange(0.05, 0.901, 0.05), 2)
 
 
 @dataclass

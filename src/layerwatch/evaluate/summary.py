@@ -1,13 +1,15 @@
 """Turn evaluation records into per-measure, per-failure-type figures and a recommendation.
 
 Choice of the recommended setting. For each measure and block threshold
-``T_S`` the layer score is a%. We pick the (measure, ``T_S``) pair with the
-highest *worst-type* ROC AUC (ties: higher mean AUC), i.e. the setting whose
-hardest failure type is still best separated from clean layers. The pause
-ratio is then set just above the highest a% seen on a clean layer (x 1.1,
-at least 2 %), so the sample has no false alarm; the report gives the
-detection rate per type at that ratio and the Clopper-Pearson bound on the
-false-alarm rate the sample size allows.
+``T_S`` the layer score is a%, and the pause ratio is set just above the
+highest a% seen on any clean layer (x 1.1, at least 2 %), so the sample has
+no false alarm. Each measure gets the ``T_S`` with the highest mean detection
+rate over the failure types at that pause ratio (ties: higher worst-type ROC
+AUC); the recommended measure is the best of those. Ranking by AUROC alone
+favours thresholds where every layer, clean or not, has a high a% and no
+usable pause ratio exists; ranking by detection at zero false alarms is what
+a monitor needs. The report gives AUROC, the detection rate per type and the
+Clopper-Pearson bound on the false-alarm rate the sample size allows.
 """
 
 from __future__ import annotations
@@ -32,12 +34,14 @@ class Summary:
     n_clean: int
     n_failed: dict[str, int]
     auc: np.ndarray            # (M, K, T) AUROC per measure, type, block threshold
-    best_t: np.ndarray         # (M,) index of each measure's best threshold (worst-type AUC)
+    best_t: np.ndarray         # (M,) index of each measure's best threshold (mean detection)
     a_failed: np.ndarray       # (M, K) mean a% on failed layers at the measure's best T
     a_clean: np.ndarray        # (M,) mean a% on clean layers at the measure's best T
     dp: np.ndarray             # (M, K) discriminative power (percentage points)
     dprime: np.ndarray         # (M, K) standardised
     iou: np.ndarray            # (M, K) mean IoU on failed layers with size >= 5 mm
+    iou_all: np.ndarray        # (M, K) mean IoU on all failed layers
+    iou_best: np.ndarray       # (M, K) best mean IoU (size >= 5 mm) over all T_S
     fa_rate: np.ndarray        # (M,) false alarms / 1000 clean layers at the measure's pause ratio
     pause_ratio: np.ndarray    # (M,)
     tpr: np.ndarray            # (M, K) share of failed layers above the pause ratio
@@ -66,13 +70,19 @@ def summarize(data: EvalData) -> Summary:
             for j in range(NT):
                 auc[m, k, j] = roc_auc(A[pos, m, j], A[clean, m, j])
     worst = np.nanmin(auc, axis=1) if K else np.zeros((M, NT))
-    mean = np.nanmean(auc, axis=1) if K else np.zeros((M, NT))
-    best_t = np.array([int(np.lexsort((-mean[m], -worst[m]))[0]) for m in range(M)])
+    c_all = A[clean]
+    pause_mt = np.minimum(np.maximum(0.02, 1.1 * c_all.max(axis=0)), 1.0) if c_all.size else np.full((M, NT), 0.1)
+    det = np.zeros((M, NT))
+    for t in types:
+        det += (A[kinds == t] > pause_mt[None]).mean(axis=0) / max(K, 1)
+    best_t = np.array([int(np.lexsort((-worst[m], -det[m]))[0]) for m in range(M)])
     a_failed = np.full((M, K), np.nan)
     a_clean = np.zeros(M)
     dp = np.full((M, K), np.nan)
     dprime = np.full((M, K), np.nan)
     iou = np.full((M, K), np.nan)
+    iou_all = np.full((M, K), np.nan)
+    iou_best = np.full((M, K), np.nan)
     tpr = np.full((M, K), np.nan)
     pause = np.zeros(M)
     fa = np.zeros(M)
@@ -81,8 +91,7 @@ def summarize(data: EvalData) -> Summary:
         j = best_t[m]
         c = A[clean, m, j]
         a_clean[m] = c.mean() if c.size else np.nan
-        pause[m] = max(0.02, 1.1 * c.max()) if c.size else 0.1
-        pause[m] = min(pause[m], 0.99)
+        pause[m] = pause_mt[m, j]
         fa[m] = false_alarm_rate(int((c > pause[m]).sum()), int(c.size))[0]
         for k, t in enumerate(types):
             f = A[kinds == t, m, j]
@@ -91,9 +100,14 @@ def summarize(data: EvalData) -> Summary:
             tpr[m, k] = (f > pause[m]).mean()
             sel = (kinds == t) & big
             if sel.any():
-                iou[m, k] = float(np.mean([recs[i].iou[m, j] for i in np.flatnonzero(sel)]))
-    order = np.lexsort((-np.array([mean[m, best_t[m]] for m in range(M)]),
-                        -np.array([worst[m, best_t[m]] for m in range(M)])))
+                per_t = np.mean([recs[i].iou[m] for i in np.flatnonzero(sel)], axis=0)
+                iou[m, k] = float(per_t[j])
+                iou_best[m, k] = float(per_t.max())
+            sel = (kinds == t) & np.array([r.iou is not None for r in recs])
+            if sel.any():
+                iou_all[m, k] = float(np.mean([recs[i].iou[m, j] for i in np.flatnonzero(sel)]))
+    order = np.lexsort((-np.array([worst[m, best_t[m]] for m in range(M)]),
+                        -np.array([det[m, best_t[m]] for m in range(M)])))
     rec = int(order[0]) if M else 0
     n_clean = int(clean.sum())
     fa_upper = false_alarm_rate(0, n_clean)[1] if n_clean else float("nan")
@@ -106,7 +120,7 @@ def summarize(data: EvalData) -> Summary:
     return Summary(
         metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
         n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,
-        a_failed=a_failed, a_clean=a_clean, dp=dp, dprime=dprime, iou=iou, fa_rate=fa,
+        a_failed=a_failed, a_clean=a_clean, dp=dp, dprime=dprime, iou=iou, iou_all=iou_all, iou_best=iou_best, fa_rate=fa,
         pause_ratio=pause, tpr=tpr, rec_metric=rec, rec_t=int(jr), fa_upper=fa_upper,
         clean_block_share=hi / tot if tot else float("nan"), scores=scores,
     )

@@ -1,0 +1,131 @@
+"""Offline analysis of a series of layer photos (``layerwatch analyze``).
+
+Photos are matched to layers by the last number in their file name
+(``layer_0012.png``, ``img-12.jpg``; 0-based layer index) or, when no name
+has a number, by their order. Missing layers, duplicates and unreadable or
+unwarpable photos are reported per layer; the run goes on and results
+already in the output folder are kept and not recomputed (resumable).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.config import JobConfig
+from layerwatch.errors import ConfigError
+from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
+
+__all__ = ["OfflineRun", "assign_layers", "run_offline"]
+
+_NUM = re.compile(r"(\d+)")
+
+
+def assign_layers(photos: Sequence[str | Path], n_layers: int) -> tuple[dict[int, Path], list[str]]:
+    """Map layer index -> photo path; returns the map and problems (duplicates, out of range)."""
+    paths = [Path(p) for p in photos]
+    nums = [_NUM.findall(p.stem) for p in paths]
+    problems: list[str] = []
+    out: dict[int, Path] = {}
+    if paths and all(nums):
+        for p, ns in zip(paths, nums, strict=True):
+            i = int(ns[-1])
+            if not 0 <= i < n_layers:
+                problems.append(f"{p.name}: layer {i} is not in the G-code (0..{n_layers - 1}); skipped")
+            elif i in out:
+                problems.append(f"{p.name}: layer {i} already has {out[i].name}; skipped")
+            else:
+                out[i] = p
+    else:
+        for i, p in enumerate(paths):
+            if i >= n_layers:
+                problems.append(f"{p.name}: more photos than layers; skipped")
+            else:
+                out[i] = p
+    return out, problems
+
+
+@dataclass
+class OfflineRun:
+    """Outcome of :func:`run_offline`."""
+
+    results: dict[int, LayerResult] = field(default_factory=dict)
+    reused: int = 0
+    missing: list[int] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+    paused_at: int | None = None
+    reason: str = ""
+
+
+def run_offline(
+    toolpath: Toolpath,
+    camera: CameraModel,
+    config: JobConfig,
+    photos: Sequence[str | Path],
+    out: str | Path,
+    *,
+    cache_dir: str | Path | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> OfflineRun:
+    """Analyse every photo and write the results folder (resumable).
+
+    Returns
+    -------
+    OfflineRun
+        Results by layer (reused ones included), missing layers, per-photo
+        problems, and the first layer where the pause rule fires.
+    """
+    import cv2
+
+    from layerwatch.evaluate.decision import decision_action, pause_policy
+    from layerwatch.evaluate.results import ResultsFolder
+    from layerwatch.monitor.pipeline import LayerPipeline
+
+    if not photos:
+        raise ConfigError("no photos given; pass the layer photos (e.g. photos/*.png).")
+    mapping, problems = assign_layers(photos, toolpath.n_layers)
+    run = OfflineRun(problems=problems)
+    pipe = LayerPipeline(toolpath, camera, config, cache_dir=cache_dir)
+    folder = ResultsFolder(out, pipe.topview)
+    done = folder.done()
+    todo = sorted(mapping)
+    last = max(todo) if todo else -1
+    run.missing = [i for i in range(last + 1) if i not in mapping]
+    for k, i in enumerate(todo):
+        prev = done.get(i)
+        if prev is not None and prev.status != "error":
+            run.results[i] = prev
+            run.reused += 1
+        else:
+            path = mapping[i]
+            photo = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if photo is None:
+                res = LayerResult(layer=i, z=float(toolpath.layers[i].z), status="error",
+                                  message=f"{path.name} is not a readable image; re-take or convert it.")
+                folder.write(res)
+            else:
+                res = pipe.process(photo, i)
+                ref = pipe.reference(i) if res.status != "error" else None
+                res.images["photo"] = str(path)
+                folder.write(res, pipe.last_top, None if ref is None else ref.footprint)
+            run.results[i] = res
+            if res.status == "error":
+                run.problems.append(f"layer {i} ({mapping[i].name}): {res.message}")
+        if progress is not None:
+            progress(k + 1, len(todo), f"layer {i}")
+    policy = pause_policy(config.policy)
+    for i in sorted(run.results):
+        d = policy.update(run.results[i])
+        if decision_action(d) in ("pause", "cancel"):
+            run.paused_at, run.reason = i, str(getattr(d, "reason", ""))
+            break
+    folder.stack()
+    folder.summary(run.results, run.paused_at, run.reason, extra={
+        "photos": len(mapping), "missing layers": run.missing or "none", "reused": run.reused,
+        "policy": getattr(policy, "source", type(policy).__name__),
+    })
+    return run

@@ -1,0 +1,69 @@
+"""Evaluation harness: tile fractions, per-threshold a% and IoU vs independent pixel computations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from layerwatch.analysis.overlay import block_tiles
+from layerwatch.config import JobConfig
+from layerwatch.evaluate.harness import THRESHOLDS, _score, run_evaluation, tile_fraction
+from layerwatch.evaluate.stats import iou
+from layerwatch.evaluate.summary import summarize
+from layerwatch.monitor.pipeline import LayerPipeline
+from layerwatch.simulate import Failure, default_camera, simulate_layer
+from layerwatch.simulate.parts import box_part
+
+
+def test_tile_fraction_matches_loop():
+    rng = np.random.default_rng(0)
+    mask = rng.random((61, 75)) < 0.3
+    c, b = 4, 3
+    n, m = (61 // c) - b + 1, (75 // c) - b + 1
+    got = tile_fraction(mask, n, m, c, b)
+    off = (b - 1) * c // 2
+    for i in range(n):
+        for j in range(m):
+            assert got[i, j] == pytest.approx(mask[off + i * c : off + i * c + c, off + j * c : off + j * c + c].mean())
+
+
+@pytest.fixture(scope="module")
+def job():
+    cfg = JobConfig(analysis={"footprint_margin_mm": 0.0})
+    tv = cfg.topview.topview()
+    cam = default_camera(tv, image_size=(960, 540))
+    tp = box_part(size_mm=24.0, height_mm=2.4, layer_h=0.3)
+    return tp, cam, cfg, tv
+
+
+def test_score_iou_and_a_match_pixel_computation(job):
+    tp, cam, cfg, tv = job
+    pipe = LayerPipeline(tp, cam, cfg)
+    frame = simulate_layer(tp, 6, cam, tv, (Failure("spaghetti", onset=4, size_mm=14.0, seed=3),), seed=2)
+    ref = pipe.reference(6)
+    res = pipe.process(frame.photo, 6)
+    top, valid = pipe.last_top, pipe.last_valid
+    a, ious, _ = _score(top, ref, valid, pipe, cfg.analysis, frame)
+    assert ious is not None and a.shape == ious.shape == (12, len(THRESHOLDS))
+    st = cfg.analysis
+    k = 0  # cosine, which the pipeline's own result uses
+    for j, t in enumerate(THRESHOLDS):
+        anom = res.mask & (res.heatmap < t)
+        pix = block_tiles(anom, tv.shape, st.cell_px, st.block_cells, fill=False)
+        assert ious[k, j] == pytest.approx(iou(pix, frame.truth_area), abs=1e-6)
+        expect = min(1.0, anom.sum() * (st.cell_px / tv.px_per_mm) ** 2 / res.printed_area_mm2)
+        assert a[k, j] == pytest.approx(expect, abs=1e-6)
+    if abs(THRESHOLDS - st.threshold).min() < 1e-9:
+        j = int(np.argmin(abs(THRESHOLDS - st.threshold)))
+        assert a[k, j] == pytest.approx(res.anomaly_ratio, abs=1e-6)
+
+
+def test_run_evaluation_small(job):
+    tp, cam, cfg, _ = job
+    data = run_evaluation(tp, cfg, cam, n_layers=30, seed=1)
+    assert not data.errors
+    kinds = {r.kind for r in data.records}
+    assert "clean" in kinds and len(kinds) >= 4
+    s = summarize(data)
+    assert s.auc.shape == (12, len(s.types), len(THRESHOLDS))
+    assert 0 <= s.rec_metric < 12 and np.isfinite(s.pause_ratio).all()
