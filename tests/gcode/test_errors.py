@@ -99,3 +99,29 @@ def test_mutated_real_gcode_never_crashes(data):
         read_toolpath(bytes(base))
     except LayerwatchError:
         pass
+
+
+def test_bgcode_unknown_compression_refused():
+    import struct
+
+    block = struct.pack("<HHII", 1, 9, 10, 4) + b"\x00\x00" + b"abcd" + b"\x00" * 4
+    data = b"GCDE" + struct.pack("<IH", 1, 1) + block
+    with pytest.raises(GcodeError, match="export ASCII G-code"):
+        read_toolpath(data)
+
+
+def test_heatshrink_round_trip_against_reference_encoder():
+    """A tiny independent LZSS encoder (literals + one back-reference) decoded by our decoder."""
+    from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
+
+    bits = []
+    for ch in b"G1 X":
+        bits += [1] + [int(b) for b in f"{ch:08b}"]
+    bits += [0] + [int(b) for b in f"{3:011b}"] + [int(b) for b in f"{7:04b}"]  # copy 8 from 4 back
+    bits += [0] * (-len(bits) % 8)
+    src = bytes(int("".join(map(str, bits[i : i + 8])), 2) for i in range(0, len(bits), 8))
+    assert heatshrink_decode(src, 12, 11, 4) == b"G1 XG1 XG1 X"
+    # MeatPack: enable packing; 'G1' in one byte (low nibble first); full-width 'Z' before its
+    # packed partner '5'; '\n' ends the line (its high nibble is padding)
+    packed = bytes([0xFF, 0xFF, 251, 0x1D, 0x5F, ord("Z"), 0x0C])
+    assert meatpack_decode(packed) == b"G1Z5\n"

@@ -105,3 +105,8 @@ def test_probe_state_records_modes():
     state = run(text.encode(), np.array([6], np.int64))[5][0]
     lx, ly, lz, ox, oy, oz, e, feed, abs_xyz, e_rel, tool, inch, tool_on = state
     assert (lx, ly, feed, abs_xyz, e_rel, tool, inch) == (1, 1, 1200, 0, 1, 2, 1)
+
+
+def test_axis_words_of_non_motion_g_codes_do_not_move():
+    s = segs("G1 X1 Y1\nG29 P9 X10 Y-4 W32 H4\nG4 P500\nG10 P1 X5\nG1 X2 Y1 E1\n")
+    np.testing.assert_allclose(s[:, :4], [[1, 1, 2, 1]])

@@ -175,6 +175,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
         vx = vy = vz = ve = vi = vj = vr = 0.0
         first = True
         bad = False
+        nonmotion = False
         while i < n and buf[i] != 10:
             c = buf[i]
             if c == 59:  # ';'
@@ -242,10 +243,13 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
                         setpos = True
                     elif g == 10 or g == 11:
                         stats[ST_FWRETRACT] += 1
-                    elif g == 4 or g == 17 or g == 29 or g == 53 or g == 40 or g == 80 or g == 94:
+                        nonmotion = True
+                    elif g == 17 or g == 94:
                         pass
-                    else:
-                        stats[ST_UNKNOWN] += 1
+                    else:  # G4, G29, G31, G53 ...: their axis words are not a move
+                        nonmotion = True
+                        if not (g == 4 or g == 29 or g == 53 or g == 40 or g == 80):
+                            stats[ST_UNKNOWN] += 1
                 elif c == 77:  # M
                     m = int(v + 1e-6)
                     if m == 82:
@@ -324,7 +328,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
                 lz = vz * scale
             if he:
                 e = ve * scale
-        elif hx or hy or hz or he or ((lmotion == 2 or lmotion == 3) and (hi or hj or hr)):
+        elif (lmotion >= 0 or not nonmotion) and (hx or hy or hz or he) or ((lmotion == 2 or lmotion == 3) and (hi or hj or hr)):
             mo = lmotion if lmotion >= 0 else motion
             x0 = lx + ox
             y0 = ly + oy
