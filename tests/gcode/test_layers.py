@@ -89,3 +89,10 @@ def test_bead_width_from_e():
     body = f";LAYER:0\nG1 Z0.2\nG1 X0 Y0\nG1 X10 Y0 E{e:.6f}\n;LAYER:1\nG1 Z0.4\nG1 X0 Y0 E{2 * e:.6f}\n"
     tp = read_toolpath(body.encode())
     np.testing.assert_allclose(tp.width, w, rtol=1e-4)
+
+
+def test_z_fallback_purge_line_above_first_layer_joins_it():
+    purge = b"G1 Z0.3\nG1 X0 Y-5\nG1 X50 Y-5 E5\nG92 E0\n"
+    tp = read_toolpath(purge + part(5, None))
+    assert tp.detection == "z" and tp.n_layers == 5
+    assert tp.layers[0].z == pytest.approx(0.2) and tp.layers[0].n_segments == 5

@@ -106,4 +106,9 @@ def assign_layers(
         z = zb + k[bounds[:-1]] * h
         return bounds, z, "spiral", warnings
     bounds = _runs(np.round(seg_z, 4))
-    return bounds, seg_z[bounds[:-1]].astype(np.float64), "z", warnings
+    z = seg_z[bounds[:-1]].astype(np.float64)
+    # a prime/purge line drawn above the first layer (IceSL, start G-code) joins layer 0
+    while z.size >= 2 and z[0] > z[1] + 1e-4 and bounds[1] < 0.05 * n:
+        bounds = np.delete(bounds, 1)
+        z = z[1:]
+    return bounds, z, "z", warnings
