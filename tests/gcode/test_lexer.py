@@ -75,4 +75,4 @@ def test_tag_comments_found_in_same_pass():
 def test_no_trailing_newline_and_truncation_warning():
     tp = read_toolpath(b"G1 X1 Y0 E1\nG1 X2 Y0 E2\nG1 X3 Y")
     assert tp.n_segments == 2  # the cut line lost its E
-    assert any("truncated" in w and ":3:" in w for w in tp.warnings)
+    assert any("truncated" in w and ":3: 'G1 X3 Y'" in w for w in tp.warnings)

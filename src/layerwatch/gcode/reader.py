@@ -87,6 +87,15 @@ def run(data: bytes, probes: np.ndarray | None = None) -> tuple:
     return seg, line, tool, travel, cmt, probe, stats
 
 
+def _line_text(data: bytes, line: int, limit: int = 60) -> str:
+    """Text of 1-based ``line`` of ``data`` (for messages), shortened to ``limit`` characters."""
+    nl = np.flatnonzero(np.frombuffer(data, np.uint8) == 10)
+    a = int(nl[line - 2]) + 1 if 2 <= line <= nl.size + 1 else 0
+    b = int(nl[line - 1]) if line - 1 < nl.size else len(data)
+    text = data[a:b].decode("latin-1").strip()
+    return repr(text if len(text) <= limit else text[: limit - 3] + "...")
+
+
 def _bead_width(
     a: np.ndarray, b: np.ndarray, e: np.ndarray, height: np.ndarray, d: float
 ) -> np.ndarray:
@@ -144,19 +153,25 @@ def read_toolpath(
     short = Path(name).name
     if st[K.ST_BAD]:
         warnings.append(
-            f"{short}:{st[K.ST_FIRST_BAD]}: {st[K.ST_BAD]} line(s) with non-text bytes were ignored"
+            f"{short}:{st[K.ST_FIRST_BAD]}: {_line_text(data, st[K.ST_FIRST_BAD])}: "
+            f"{st[K.ST_BAD]} line(s) with non-text bytes; those bytes were ignored"
         )
     if st[K.ST_ABSURD]:
         warnings.append(
-            f"{short}:{st[K.ST_FIRST_ABSURD]}: {st[K.ST_ABSURD]} move(s) beyond {K.ABSURD_MM:g} mm (absurd coordinates)"
+            f"{short}:{st[K.ST_FIRST_ABSURD]}: {_line_text(data, st[K.ST_FIRST_ABSURD])}: "
+            f"{st[K.ST_ABSURD]} move(s) beyond {K.ABSURD_MM:g} mm (absurd coordinates; check units)"
         )
     if st[K.ST_ARC_BAD]:
         warnings.append(
-            f"{short}:{st[K.ST_FIRST_ARC_BAD]}: {st[K.ST_ARC_BAD]} arc(s) without I/J or R drawn as lines"
+            f"{short}:{st[K.ST_FIRST_ARC_BAD]}: {_line_text(data, st[K.ST_FIRST_ARC_BAD])}: "
+            f"{st[K.ST_ARC_BAD]} arc(s) without I/J or R drawn as straight lines"
         )
     last = data[data.rfind(b"\n") + 1 :].lstrip().upper()
     if st[K.ST_NONL] and re.match(rb"G0?[0-3](?![0-9])", last):
-        warnings.append(f"{short}:{st[K.ST_LINES]}: the file ends mid-line; it may be truncated")
+        warnings.append(
+            f"{short}:{st[K.ST_LINES]}: {_line_text(data, st[K.ST_LINES])}: the file ends mid-move; "
+            "it may be truncated (export or copy it again)"
+        )
     tags = decode_tags(data, cmt)
     head = data[:8192]
     slicer = detect_slicer(head)
