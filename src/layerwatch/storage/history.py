@@ -1,0 +1,325 @@
+"""Print history in SQLite: printers, jobs, per-layer results and events.
+
+One database file holds every job. It is opened in WAL mode with
+``synchronous=NORMAL`` so that a crash (even SIGKILL of the writer) loses at
+most the layer being written; each :meth:`History.add_layer` is one
+transaction. The schema version lives in ``PRAGMA user_version`` and the
+:data:`MIGRATIONS` list is applied in order on open.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.errors import StorageError
+
+__all__ = ["History", "MIGRATIONS", "SCHEMA_VERSION"]
+
+MIGRATIONS: list[str] = [
+    # version 1
+    """
+    CREATE TABLE printers (
+        id INTEGER PRIMARY KEY,
+        name TEXT NOT NULL UNIQUE,
+        created REAL NOT NULL
+    );
+    CREATE TABLE jobs (
+        id INTEGER PRIMARY KEY,
+        printer_id INTEGER NOT NULL REFERENCES printers(id),
+        gcode_path TEXT,
+        gcode_hash TEXT,
+        part TEXT,
+        config TEXT,
+        started REAL NOT NULL,
+        ended REAL,
+        outcome TEXT
+    );
+    CREATE TABLE layers (
+        job_id INTEGER NOT NULL REFERENCES jobs(id),
+        layer INTEGER NOT NULL,
+        z REAL NOT NULL,
+        anomaly_ratio REAL,
+        status TEXT NOT NULL,
+        metric TEXT NOT NULL,
+        threshold REAL NOT NULL,
+        result TEXT NOT NULL,
+        created REAL NOT NULL,
+        PRIMARY KEY (job_id, layer)
+    );
+    CREATE TABLE events (
+        id INTEGER PRIMARY KEY,
+        job_id INTEGER NOT NULL REFERENCES jobs(id),
+        time REAL NOT NULL,
+        kind TEXT NOT NULL,
+        message TEXT NOT NULL,
+        data TEXT
+    );
+    CREATE INDEX events_job ON events(job_id, id);
+    """,
+]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+_JOB_COLS = "j.id, p.name, j.gcode_path, j.gcode_hash, j.part, j.config, j.started, j.ended, j.outcome"
+
+
+def _config_json(config: Any) -> str | None:
+    if config is None:
+        return None
+    if hasattr(config, "model_dump"):
+        return json.dumps(config.model_dump(mode="json"))
+    return json.dumps(config)
+
+
+class History:
+    """The history database.
+
+    Parameters
+    ----------
+    path : str or Path
+        SQLite file; created (with parent folders) if missing. ``":memory:"``
+        gives a private in-memory database.
+    timeout : float
+        Seconds to wait for a lock held by another writer.
+
+    Raises
+    ------
+    StorageError
+        The file is not a database, is locked, or has a newer schema.
+    """
+
+    def __init__(self, path: str | Path, timeout: float = 5.0) -> None:
+        self.path = Path(path) if str(path) != ":memory:" else None
+        self._lock = threading.RLock()
+        where = str(path)
+        try:
+            if self.path is not None:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(where, timeout=timeout, check_same_thread=False, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._migrate()
+        except sqlite3.Error as exc:
+            raise StorageError(
+                f"cannot open history database {where}: {exc}; "
+                "close other layerwatch processes or move the file aside and start a new one."
+            ) from None
+
+    # -- plumbing -----------------------------------------------------------------
+    def _migrate(self) -> None:
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise StorageError(
+                f"history database {self.path} has schema version {version}, newer than this "
+                f"layerwatch ({SCHEMA_VERSION}); upgrade layerwatch."
+            )
+        for i in range(version, SCHEMA_VERSION):
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for stmt in MIGRATIONS[i].split(";"):
+                    if stmt.strip():
+                        self._db.execute(stmt)
+                self._db.execute(f"PRAGMA user_version = {i + 1}")
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+
+    def _run(self, fn: Callable[[sqlite3.Connection], Any], write: bool = False) -> Any:
+        with self._lock:
+            try:
+                if not write:
+                    return fn(self._db)
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    out = fn(self._db)
+                    self._db.execute("COMMIT")
+                    return out
+                except BaseException:
+                    self._db.execute("ROLLBACK")
+                    raise
+            except sqlite3.Error as exc:
+                raise StorageError(
+                    f"history database {self.path or ':memory:'} failed: {exc}; "
+                    "check the disk and that no other process holds the file."
+                ) from None
+
+    def close(self) -> None:
+        """Close the connection."""
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> History:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def schema_version(self) -> int:
+        return self._run(lambda db: db.execute("PRAGMA user_version").fetchone()[0])
+
+    # -- writing ------------------------------------------------------------------
+    def start_job(
+        self,
+        printer: str,
+        gcode_path: str | Path | None = None,
+        gcode_hash: str | None = None,
+        part: str | None = None,
+        config: Any = None,
+    ) -> int:
+        """Record a new job and return its id.
+
+        ``config`` may be a pydantic model (e.g. ``JobConfig``) or a JSON-able dict.
+        """
+        cfg = _config_json(config)
+
+        def fn(db: sqlite3.Connection) -> int:
+            now = time.time()
+            db.execute("INSERT OR IGNORE INTO printers(name, created) VALUES (?, ?)", (printer, now))
+            pid = db.execute("SELECT id FROM printers WHERE name = ?", (printer,)).fetchone()[0]
+            cur = db.execute(
+                "INSERT INTO jobs(printer_id, gcode_path, gcode_hash, part, config, started) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                (pid, None if gcode_path is None else str(gcode_path), gcode_hash, part, cfg, now),
+            )
+            return int(cur.lastrowid)
+
+        return self._run(fn, write=True)
+
+    def _check_job(self, db: sqlite3.Connection, job_id: int) -> None:
+        if db.execute("SELECT 1 FROM jobs WHERE id = ?", (int(job_id),)).fetchone() is None:
+            raise StorageError(f"no job {job_id} in the history; list jobs with `layerwatch history`.")
+
+    def add_layer(self, job_id: int, result: LayerResult) -> None:
+        """Store (or replace) one layer's result; one transaction per call."""
+        text = result.to_json()
+        ratio = result.anomaly_ratio
+        ratio = None if ratio is None or ratio != ratio else float(ratio)
+
+        def fn(db: sqlite3.Connection) -> None:
+            self._check_job(db, job_id)
+            db.execute(
+                "INSERT INTO layers(job_id, layer, z, anomaly_ratio, status, metric, threshold, result, created) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT(job_id, layer) DO UPDATE SET "
+                "z=excluded.z, anomaly_ratio=excluded.anomaly_ratio, status=excluded.status, "
+                "metric=excluded.metric, threshold=excluded.threshold, result=excluded.result, "
+                "created=excluded.created",
+                (int(job_id), int(result.layer), float(result.z), ratio, result.status,
+                 result.metric, float(result.threshold), text, time.time()),
+            )
+
+        self._run(fn, write=True)
+
+    def add_event(self, job_id: int, kind: str, message: str, data: Any = None) -> int:
+        """Append an event (``kind`` e.g. ``"pause"``, ``"notify"``, ``"error"``); returns its id."""
+        payload = None if data is None else json.dumps(data, default=str)
+
+        def fn(db: sqlite3.Connection) -> int:
+            self._check_job(db, job_id)
+            cur = db.execute(
+                "INSERT INTO events(job_id, time, kind, message, data) VALUES (?, ?, ?, ?, ?)",
+                (int(job_id), time.time(), str(kind), str(message), payload),
+            )
+            return int(cur.lastrowid)
+
+        return self._run(fn, write=True)
+
+    def end_job(self, job_id: int, outcome: str) -> None:
+        """Mark a job finished with ``outcome`` (``"done"``, ``"paused"``, ``"cancelled"``, ``"failed"``)."""
+
+        def fn(db: sqlite3.Connection) -> None:
+            self._check_job(db, job_id)
+            db.execute("UPDATE jobs SET ended = ?, outcome = ? WHERE id = ?", (time.time(), outcome, int(job_id)))
+
+        self._run(fn, write=True)
+
+    # -- reading ------------------------------------------------------------------
+    @staticmethod
+    def _job_row(row: tuple) -> dict[str, Any]:
+        keys = ("id", "printer", "gcode_path", "gcode_hash", "part", "config", "started", "ended", "outcome")
+        d = dict(zip(keys, row, strict=True))
+        d["config"] = None if d["config"] is None else json.loads(d["config"])
+        return d
+
+    def jobs(self) -> list[dict[str, Any]]:
+        """All jobs, newest first, each with ``n_layers`` and ``max_anomaly_ratio``."""
+
+        def fn(db: sqlite3.Connection) -> list[dict[str, Any]]:
+            rows = db.execute(
+                f"SELECT {_JOB_COLS}, COUNT(l.layer), MAX(l.anomaly_ratio) FROM jobs j "
+                "JOIN printers p ON p.id = j.printer_id LEFT JOIN layers l ON l.job_id = j.id "
+                "GROUP BY j.id ORDER BY j.id DESC"
+            ).fetchall()
+            out = []
+            for r in rows:
+                d = self._job_row(r[:9])
+                d.pop("config")
+                d["n_layers"], d["max_anomaly_ratio"] = int(r[9]), r[10]
+                out.append(d)
+            return out
+
+        return self._run(fn)
+
+    def job(self, job_id: int) -> dict[str, Any] | None:
+        """One job as a dict (config included), or ``None`` if unknown."""
+
+        def fn(db: sqlite3.Connection) -> dict[str, Any] | None:
+            r = db.execute(
+                f"SELECT {_JOB_COLS} FROM jobs j JOIN printers p ON p.id = j.printer_id WHERE j.id = ?",
+                (int(job_id),),
+            ).fetchone()
+            return None if r is None else self._job_row(r)
+
+        return self._run(fn)
+
+    def layers(self, job_id: int) -> list[LayerResult]:
+        """The job's layer results ordered by layer index."""
+        rows = self._run(
+            lambda db: db.execute(
+                "SELECT result FROM layers WHERE job_id = ? ORDER BY layer", (int(job_id),)
+            ).fetchall()
+        )
+        return [LayerResult.from_json(r[0]) for r in rows]
+
+    def layer_summary(self, job_id: int, after: int = -1) -> list[dict[str, Any]]:
+        """Light rows ``{layer, z, anomaly_ratio, status, metric, threshold}`` for curves."""
+        rows = self._run(
+            lambda db: db.execute(
+                "SELECT layer, z, anomaly_ratio, status, metric, threshold FROM layers "
+                "WHERE job_id = ? AND layer > ? ORDER BY layer",
+                (int(job_id), int(after)),
+            ).fetchall()
+        )
+        keys = ("layer", "z", "anomaly_ratio", "status", "metric", "threshold")
+        return [dict(zip(keys, r, strict=True)) for r in rows]
+
+    def events(self, job_id: int, after: int = 0) -> list[dict[str, Any]]:
+        """Events of a job in order (``after``: only ids greater than this)."""
+        rows = self._run(
+            lambda db: db.execute(
+                "SELECT id, time, kind, message, data FROM events WHERE job_id = ? AND id > ? ORDER BY id",
+                (int(job_id), int(after)),
+            ).fetchall()
+        )
+        return [
+            {"id": r[0], "time": r[1], "kind": r[2], "message": r[3], "data": None if r[4] is None else json.loads(r[4])}
+            for r in rows
+        ]
+
+    def revision(self) -> tuple[int, int, float]:
+        """A cheap value that changes whenever anything is written (for live updates)."""
+        return self._run(
+            lambda db: db.execute(
+                "SELECT (SELECT COUNT(*) FROM layers), (SELECT COALESCE(MAX(id), 0) FROM events), "
+                "(SELECT COALESCE(MAX(created), 0) FROM layers) + "
+                "(SELECT COALESCE(SUM(COALESCE(ended, 0)), 0) + COUNT(*) FROM jobs)"
+            ).fetchone()
+        )
