@@ -19,6 +19,8 @@ import math
 import numba as nb
 import numpy as np
 
+from layerwatch.gcode.arcs import arc_geometry
+
 # stats slots
 ST_LINES, ST_SEG, ST_TRAVEL, ST_CMT, ST_BAD, ST_FIRST_BAD, ST_UNKNOWN, ST_ABSURD = 0, 1, 2, 3, 4, 5, 6, 7
 ST_FIRST_ABSURD, ST_TOOLON, ST_ARCS, ST_ARC_BAD, ST_FIRST_ARC_BAD, ST_NONL, ST_FWRETRACT = 8, 9, 10, 11, 12, 13, 14
@@ -359,48 +361,15 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
             dxy = math.hypot(x1 - x0, y1 - y0)
             if mo == 2 or mo == 3:
                 stats[ST_ARCS] += 1
-                # centre
-                ok = True
-                cx = 0.0
-                cy = 0.0
-                if hi or hj:
-                    cx = x0 + vi * scale
-                    cy = y0 + vj * scale
-                elif hr and dxy > 1e-12:
-                    r = vr * scale
-                    h2 = r * r - dxy * dxy / 4.0
-                    h = math.sqrt(h2) if h2 > 0 else 0.0
-                    # centre on the side given by direction and sign of R
-                    sgn = 1.0 if (mo == 3) == (r > 0) else -1.0
-                    mx = (x0 + x1) / 2.0
-                    my = (y0 + y1) / 2.0
-                    cx = mx - sgn * h * (y1 - y0) / dxy
-                    cy = my + sgn * h * (x1 - x0) / dxy
-                else:
-                    ok = False
+                ok, cx, cy, r0, r1, a0, sweep, k = arc_geometry(
+                    x0, y0, x1, y1, mo == 3, hi or hj, hr, vi * scale, vj * scale, vr * scale, chord_tol
+                )
                 if not ok:
                     if stats[ST_ARC_BAD] == 0:
                         stats[ST_FIRST_ARC_BAD] = line
                     stats[ST_ARC_BAD] += 1
                     mo = 1
                 else:
-                    r0 = math.hypot(x0 - cx, y0 - cy)
-                    a0 = math.atan2(y0 - cy, x0 - cx)
-                    a1 = math.atan2(y1 - cy, x1 - cx)
-                    sweep = a1 - a0
-                    if mo == 3:
-                        if sweep <= 1e-12:
-                            sweep += 2.0 * math.pi
-                    else:
-                        if sweep >= -1e-12:
-                            sweep -= 2.0 * math.pi
-                    r1 = math.hypot(x1 - cx, y1 - cy)
-                    if r0 > 1e-9 and chord_tol < r0:
-                        step = 2.0 * math.acos(1.0 - chord_tol / r0)
-                        k = int(math.ceil(abs(sweep) / step))
-                    else:
-                        k = 1
-                    k = max(1, min(k, 100000))
                     if extruding:
                         while ns + k >= seg_z.shape[0]:
                             seg_a = _grow_f(seg_a, k)
