@@ -56,6 +56,9 @@ class LayerRecord:
         Pixel IoU of anomalous tiles vs ``truth_area`` (failed layers only).
     clean_high : tuple of int
         ``(blocks on printed area with cosine > 0.7, blocks on printed area)`` (clean layers only).
+    region : ndarray, shape (12, T), float32, or None
+        Area of the largest 8-connected group of anomalous blocks, mm^2 (a layer
+        score that small local defects on large layers do not dilute).
     """
 
     scenario: str
@@ -65,6 +68,7 @@ class LayerRecord:
     a: np.ndarray
     iou: np.ndarray | None = None
     clean_high: tuple[int, int] = (0, 0)
+    region: np.ndarray | None = None
 
 
 @dataclass
@@ -121,7 +125,15 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
     return plan
 
 
-def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
+def _largest(anom: np.ndarray) -> int:
+    from scipy import ndimage
+
+    lab, n = ndimage.label(anom, structure=np.ones((3, 3), bool))
+    return int(np.bincount(lab.ravel())[1:].max()) if n else 0
+
+
+def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: list | None = None):
+    """``(a (12, T), iou (12, T) or None, clean_high)``; fills ``regions`` with the (12, T) largest-region areas."""
     from layerwatch.analysis.hog import hog_blocks
     from layerwatch.analysis.metrics import similarity_all
     from layerwatch.analysis.scoring import analyze_layer, to_grey255
@@ -149,7 +161,12 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame) -> tuple[np
         iou = np.zeros_like(a)
         truth_tiles = tile_fraction(frame.truth_area, n, m, c, b)[considered] * tile_px
         truth_px = float(np.count_nonzero(frame.truth_area))
+    reg = np.zeros_like(a)
     for k, name in enumerate(METRIC_NAMES):
+        if regions is not None:
+            full = sims[name]
+            for j, t in enumerate(T):
+                reg[k, j] = _largest(considered & (full < t)) * tile_mm2
         s = sims[name][considered]
         below = s[:, None] < T[None, :]  # (blocks, T)
         cnt = below.sum(axis=0)
@@ -164,6 +181,8 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame) -> tuple[np
         on_print &= considered
         cos = sims["cosine"]
         clean_high = (int(np.count_nonzero(cos[on_print] > 0.7)), int(np.count_nonzero(on_print)))
+    if regions is not None:
+        regions.append(reg)
     return a, iou, clean_high
 
 
@@ -220,13 +239,14 @@ def run_evaluation(
             try:
                 top, valid = pipe.warper.warp(frame.photo, ref.z)
                 top = top.mean(axis=2).astype(np.uint8) if top.ndim == 3 else top
-                a, iou, clean_high = _score(top, ref, valid, pipe, config.analysis, frame)
+                regs: list = []
+                a, iou, clean_high = _score(top, ref, valid, pipe, config.analysis, frame, regs)
             except Exception as exc:  # noqa: BLE001 - reported, run continues
                 data.errors.append(f"{scen.name} layer {i}: {type(exc).__name__}: {exc}")
                 continue
             kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high))
+                                            a, iou, clean_high, regs[0]))
             done += 1
             if progress is not None:
                 progress(done, total)

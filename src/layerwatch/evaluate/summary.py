@@ -49,6 +49,7 @@ class Summary:
     rec_t: int
     fa_upper: float
     clean_block_share: float   # share of clean printed-area blocks with cosine > 0.7
+    auc_region: np.ndarray     # (M, K) AUROC of the largest-region area at the measure's best T
     scores: dict               # raw a% arrays of the recommended setting: {"clean": ..., type: ...}
 
 
@@ -109,6 +110,12 @@ def summarize(data: EvalData) -> Summary:
     order = np.lexsort((-np.array([worst[m, best_t[m]] for m in range(M)]),
                         -np.array([det[m, best_t[m]] for m in range(M)])))
     rec = int(order[0]) if M else 0
+    auc_region = np.full((M, K), np.nan)
+    if recs and all(r.region is not None for r in recs):
+        G = np.stack([r.region for r in recs])
+        for m in range(M):
+            for k, t in enumerate(types):
+                auc_region[m, k] = roc_auc(G[kinds == t, m, best_t[m]], G[clean, m, best_t[m]])
     n_clean = int(clean.sum())
     fa_upper = false_alarm_rate(0, n_clean)[1] if n_clean else float("nan")
     hi = sum(r.clean_high[0] for r in recs if r.kind == "clean")
@@ -123,4 +130,5 @@ def summarize(data: EvalData) -> Summary:
         a_failed=a_failed, a_clean=a_clean, dp=dp, dprime=dprime, iou=iou, iou_all=iou_all, iou_best=iou_best, fa_rate=fa,
         pause_ratio=pause, tpr=tpr, rec_metric=rec, rec_t=int(jr), fa_upper=fa_upper,
         clean_block_share=hi / tot if tot else float("nan"), scores=scores,
+        auc_region=auc_region,
     )
