@@ -79,3 +79,28 @@ def test_parse_speed_vs_gcodeparser(tmp_path):
     print(f"memory      : tracemalloc peak {peak / 1e6:.1f} MB vs arrays kept "
           f"{kept / 1e6:.1f} MB -> {peak / kept:.2f} x  (target <= 3 x)")
     assert tp.n_segments > 0
+
+
+@pytest.mark.skipif(
+    not (SHARED / "prusaslicer-2.7.4_arc-fitting_zhop.gcode").is_file(), reason="shared data absent"
+)
+def test_parse_speed_arc_fitted_prusaslicer(tmp_path):
+    """PrusaSlicer with arc fitting (G2/G3 linearised at 0.01 mm) and Z-hops, ~20 MB."""
+    from gcodeparser import parse_gcode_lines
+
+    from layerwatch.gcode import read_toolpath
+
+    data = _big_file(tmp_path, "prusaslicer-2.7.4_arc-fitting_zhop.gcode", 20).read_bytes()
+    read_toolpath(data[:100_000])
+    t = _best(lambda: read_toolpath(data))
+    tp = read_toolpath(data)
+    cut = data.rfind(b"\n", 0, 1_000_000) + 1
+    try:
+        t0 = time.perf_counter()
+        sum(1 for _ in parse_gcode_lines(data[:cut].decode("latin-1")))
+        gp = f"{cut / 1e6 / (time.perf_counter() - t0):.2f} MB/s"
+    except Exception as exc:  # gcodeparser cannot lex some PrusaSlicer lines
+        gp = f"fails ({type(exc).__name__}: {exc})"
+    print()
+    print(f"arc-fitted PrusaSlicer: layerwatch {len(data) / 1e6 / t:.1f} MB/s "
+          f"({tp.n_segments} segments after arc linearisation); gcodeparser: {gp}")

@@ -98,3 +98,20 @@ def test_bgcode_matches_its_ascii_twin():
     np.testing.assert_allclose(a.e, b.e)
     assert (a.feature == b.feature).all()
     assert a.slicer == b.slicer == "PrusaSlicer"
+
+
+def test_feature_types_named_by_slicers():
+    from layerwatch.gcode.toolpath import FEATURES
+
+    want = {
+        "prusaslicer-2.8.1_mini-cube_ascii.gcode": {"external_perimeter", "perimeter", "solid_infill", "infill"},
+        "cura-4.10.0_m83_multi-object.gcode": {"external_perimeter", "perimeter", "solid_infill"},
+        "simplify3d-4.1.2_zlift.gcode": {"external_perimeter", "perimeter", "infill", "solid_infill"},
+        "kisslicer-2.0.6.gcode": {"external_perimeter", "perimeter"},
+    }
+    files = {p.name: p for p in GCODE}
+    if not files:
+        pytest.skip("shared data absent")
+    for name, names in want.items():
+        got = {FEATURES[c] for c in np.unique(read_toolpath(files[name]).feature)}
+        assert names <= got, (name, got)

@@ -36,7 +36,7 @@ _FEATURE = (
     re.compile(rb"^;TYPE:\s*(.+?)\s*$"),
     re.compile(rb"^;\s*FEATURE:\s*(.+?)\s*$"),
     re.compile(rb"^;\s*feature\s+(.+?)\s*$"),
-    re.compile(rb"^;\s*'([A-Za-z ]+ Path)'"),
+    re.compile(rb"^;\s*'([A-Za-z /]+ Path)'"),
 )
 
 
