@@ -1,0 +1,226 @@
+"""The dashboard: a FastAPI app over a :class:`~layerwatch.storage.history.History`.
+
+JSON API under ``/api`` (documented at ``/docs`` and ``/openapi.json``), an
+HTML page at ``/`` (vanilla JS/CSS from ``web/static``), live updates by
+server-sent events at ``/api/stream``. When a token is given every route but
+``/login`` checks it (``Authorization: Bearer <token>`` or the cookie set by
+``GET /login?token=...``) with a constant-time comparison.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import hmac
+import json
+from pathlib import Path
+from typing import Any
+
+from layerwatch.config import JobConfig
+from layerwatch.errors import LayerwatchError, StorageError, require
+from layerwatch.storage.history import History
+
+__all__ = ["create_app", "MAX_BODY", "COOKIE", "ACTIONS"]
+
+MAX_BODY = 1 << 20
+COOKIE = "layerwatch_token"
+ACTIONS = ("pause", "resume", "cancel", "acknowledge")
+STATIC = Path(__file__).parent / "static"
+
+
+def _jsonable(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    if hasattr(value, "model_dump"):
+        value = value.model_dump(mode="json")
+    try:
+        return json.loads(json.dumps(value, default=str))
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def create_app(
+    history: History,
+    printers: dict[str, Any] | None = None,
+    token: str | None = None,
+    image_root: Path | None = None,
+    settings: JobConfig | None = None,
+    poll_s: float = 1.0,
+):
+    """Build the dashboard app.
+
+    Parameters
+    ----------
+    history : History
+        Database the pages and API read.
+    printers : dict of str to Printer, optional
+        Objects with ``pause()``, ``resume()``, ``cancel()`` and ``status()``
+        (``acknowledge()`` optional), keyed by printer name.
+    token : str, optional
+        Access token; ``None`` disables authentication (loopback use only).
+    image_root : Path, optional
+        Folder whose files ``/api/image/{path}`` may serve; nothing else is served.
+    settings : JobConfig, optional
+        Initial job settings shown/edited by ``/api/settings``.
+    poll_s : float
+        Database poll interval of the live-update stream, s.
+    """
+    require("fastapi", "web", "The dashboard")
+    from fastapi import Body, FastAPI, HTTPException, Query, Request
+    from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, StreamingResponse
+    from fastapi.staticfiles import StaticFiles
+
+    printers = dict(printers or {})
+    root = Path(image_root).resolve() if image_root is not None else None
+    state = {"settings": settings or JobConfig()}
+    app = FastAPI(title="layerwatch", version="1", description="Layer-by-layer print monitoring dashboard.")
+
+    def authorised(request: Request) -> bool:
+        if token is None:
+            return True
+        given = request.headers.get("authorization", "")
+        candidate = given[7:] if given.lower().startswith("bearer ") else request.cookies.get(COOKIE, "")
+        return hmac.compare_digest(candidate.encode(), token.encode())
+
+    @app.middleware("http")
+    async def guard(request: Request, call_next):
+        length = request.headers.get("content-length")
+        if length is not None and (not length.isdigit() or int(length) > MAX_BODY):
+            return JSONResponse({"detail": "request body larger than 1 MB"}, status_code=413)
+        open_paths = ("/login",)
+        if request.url.path not in open_paths and not authorised(request):
+            return JSONResponse({"detail": "missing or wrong token; open /login?token=..."}, status_code=401)
+        return await call_next(request)
+
+    @app.exception_handler(StorageError)
+    async def storage_failed(request: Request, exc: StorageError):
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+
+    @app.exception_handler(LayerwatchError)
+    async def lw_failed(request: Request, exc: LayerwatchError):
+        return JSONResponse({"detail": str(exc)}, status_code=400)
+
+    def need_job(job_id: int) -> dict[str, Any]:
+        job = history.job(job_id)
+        if job is None:
+            raise HTTPException(404, f"no job {job_id}")
+        return job
+
+    @app.get("/login", include_in_schema=False)
+    def login(token_: str = Query("", alias="token")):
+        if token is not None and not hmac.compare_digest(token_.encode(), token.encode()):
+            return JSONResponse({"detail": "wrong token"}, status_code=401)
+        resp = RedirectResponse("/", status_code=303)
+        if token is not None:
+            resp.set_cookie(COOKIE, token, httponly=True, samesite="strict")
+        return resp
+
+    @app.get("/", include_in_schema=False)
+    def index():
+        return FileResponse(STATIC / "index.html", media_type="text/html")
+
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/api/jobs", summary="All jobs, newest first")
+    def jobs() -> list[dict[str, Any]]:
+        return history.jobs()
+
+    @app.get("/api/jobs/{job_id}", summary="One job with its settings")
+    def job(job_id: int) -> dict[str, Any]:
+        return need_job(job_id)
+
+    @app.get("/api/jobs/{job_id}/layers", summary="Layer results of a job")
+    def layers(job_id: int, full: bool = False) -> list[dict[str, Any]]:
+        need_job(job_id)
+        if full:
+            return [r.to_dict() for r in history.layers(job_id)]
+        return history.layer_summary(job_id)
+
+    @app.get("/api/jobs/{job_id}/latest", summary="The newest layer result of a job (or null)")
+    def latest(job_id: int) -> dict[str, Any] | None:
+        need_job(job_id)
+        rows = history.layer_summary(job_id)
+        if not rows:
+            return None
+        return next(r.to_dict() for r in history.layers(job_id) if r.layer == rows[-1]["layer"])
+
+    @app.get("/api/jobs/{job_id}/events", summary="Event log of a job")
+    def events(job_id: int, after: int = 0) -> list[dict[str, Any]]:
+        need_job(job_id)
+        return history.events(job_id, after=after)
+
+    @app.get("/api/printers", summary="Known printers and their state")
+    def printer_list() -> list[dict[str, Any]]:
+        out = []
+        for name, p in printers.items():
+            try:
+                status = _jsonable(p.status())
+            except Exception as exc:  # a host that does not answer must not break the page
+                status = {"error": str(exc)}
+            out.append({"name": name, "status": status})
+        return out
+
+    @app.post("/api/printers/{name}/{action}", summary="pause / resume / cancel / acknowledge")
+    def printer_action(name: str, action: str, job_id: int | None = None) -> dict[str, Any]:
+        if name not in printers:
+            raise HTTPException(404, f"no printer {name!r}")
+        if action not in ACTIONS:
+            raise HTTPException(404, f"unknown action {action!r}; use one of {', '.join(ACTIONS)}")
+        p = printers[name]
+        fn = getattr(p, action, None)
+        if fn is not None:
+            fn()
+        elif action != "acknowledge":
+            raise HTTPException(501, f"printer {name!r} cannot {action}")
+        if job_id is not None and history.job(job_id) is not None:
+            history.add_event(job_id, action, f"{action} requested from the dashboard", {"printer": name})
+        try:
+            status = _jsonable(p.status())
+        except Exception as exc:
+            status = {"error": str(exc)}
+        return {"printer": name, "action": action, "status": status}
+
+    @app.get("/api/settings", summary="Current job settings")
+    def get_settings() -> dict[str, Any]:
+        return state["settings"].model_dump(mode="json")
+
+    @app.put("/api/settings", summary="Replace job settings (validated)")
+    def put_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
+        from pydantic import ValidationError
+
+        try:
+            state["settings"] = JobConfig.model_validate(body)
+        except ValidationError as exc:
+            raise HTTPException(422, json.loads(exc.json(include_url=False))) from None
+        return state["settings"].model_dump(mode="json")
+
+    @app.get("/api/image/{path:path}", summary="A stored picture under the image folder")
+    def image(path: str):
+        if root is None:
+            raise HTTPException(404, "no image folder configured")
+        try:
+            target = (root / path).resolve()
+        except (OSError, ValueError):
+            raise HTTPException(404, "not found") from None
+        if not target.is_relative_to(root) or not target.is_file():
+            raise HTTPException(404, "not found")
+        return FileResponse(target)
+
+    @app.get("/api/stream", summary="Server-sent events: 'change' whenever the history changes")
+    async def stream(limit: int = Query(3600, ge=1, le=86400)):
+        async def gen():
+            last = None
+            for _ in range(limit):  # bounded: the browser's EventSource reconnects
+                try:
+                    rev = await asyncio.to_thread(history.revision)
+                except StorageError as exc:
+                    yield f"event: error\ndata: {json.dumps(str(exc))}\n\n"
+                    return
+                if rev != last:
+                    last = rev
+                    yield f"event: change\ndata: {json.dumps(list(rev))}\n\n"
+                await asyncio.sleep(poll_s)
+
+        return StreamingResponse(gen(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
+
+    return app
