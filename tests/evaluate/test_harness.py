@@ -67,3 +67,14 @@ def test_run_evaluation_small(job):
     s = summarize(data)
     assert s.auc.shape == (12, len(s.types), len(THRESHOLDS))
     assert 0 <= s.rec_metric < 12 and np.isfinite(s.pause_ratio).all()
+
+
+def test_clean_false_alarms_counts(job):
+    from layerwatch.evaluate.harness import clean_false_alarms
+
+    tp, cam, cfg, _ = job
+    never = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=1.0)
+    assert never["prints"] == 1 and never["layers"] == tp.n_layers
+    assert never["layer_alarms"] == 0 and never["pauses"] == 0
+    always = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=-1.0)
+    assert always["layer_alarms"] == tp.n_layers - 1 and always["pauses"] == 1

@@ -134,6 +134,8 @@ def evaluate(
     config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
     margin: Annotated[float | None, typer.Option("--margin-mm", help="Footprint margin of the considered blocks.")] = None,
     match_camera: Annotated[bool, typer.Option("--match-camera", help="Camera-matched references.")] = False,
+    clean_layers: Annotated[int, typer.Option("--clean-layers", min=0, help="Also simulate about N layers of whole "
+                                              "clean prints and count false alarms of the recommended setting.")] = 0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
     from layerwatch.cli import console
@@ -153,7 +155,19 @@ def evaluate(
                               progress=lambda d, n: bar.update(task, completed=d, total=n))
     s = summarize(data)
     notes = [f"{e}" for e in data.errors]
-    path = write_report(s, out, data.setup, data.seconds, notes=notes)
+    clean_run = None
+    if clean_layers:
+        from layerwatch.evaluate.harness import clean_false_alarms
+
+        r = s.rec_metric
+        rec_cfg = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={
+            "metric": s.metrics[r], "threshold": float(s.thresholds[s.rec_t])})})
+        with _progress() as bar:
+            task = bar.add_task("clean prints (false alarms)", total=clean_layers)
+            clean_run = clean_false_alarms(tp, rec_cfg, cam, clean_layers, float(s.pause_ratio[r]),
+                                           progress=lambda d, n: bar.update(task, completed=d, total=n))
+        clean_run.pop("a", None)
+    path = write_report(s, out, data.setup, data.seconds, notes=notes, clean_run=clean_run)
     console.print(rich_table(s))
     r = s.rec_metric
     console.print(f"recommended: {s.metrics[r]} T_S={s.thresholds[s.rec_t]:.2f}, pause a% > "

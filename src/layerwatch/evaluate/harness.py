@@ -252,3 +252,57 @@ def run_evaluation(
                 progress(done, total)
     data.seconds = time.perf_counter() - t0
     return data
+
+
+def clean_false_alarms(
+    toolpath: Toolpath,
+    config: JobConfig,
+    camera: CameraModel,
+    n_layers: int,
+    pause_ratio: float,
+    consecutive: int = 2,
+    seed: int = 100,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Simulate whole clean prints (about ``n_layers`` photos) and count false alarms.
+
+    Uses ``config.analysis`` as is (measure, T_S, margin). A *layer* alarm is
+    a% > ``pause_ratio``; a *pause* is ``consecutive`` such layers in a row
+    (the monitor's rule), counted once per print.
+
+    Returns
+    -------
+    dict
+        ``layers``, ``prints``, ``layer_alarms``, ``pauses``, ``max_a``, ``a`` (list).
+    """
+    from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.simulate import PrintSimulator
+
+    tv = config.topview.topview()
+    pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
+    prints = max(1, int(round(n_layers / toolpath.n_layers)))
+    out = {"layers": 0, "prints": prints, "layer_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
+    done = 0
+    for k in range(prints):
+        sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
+        run = 0
+        paused = False
+        for i in range(toolpath.n_layers):
+            res = pipe.process(sim.frame(i).photo, i)
+            done += 1
+            if progress is not None:
+                progress(done, prints * toolpath.n_layers)
+            if res.status != "ok":
+                continue
+            out["layers"] += 1
+            out["a"].append(float(res.anomaly_ratio))
+            out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
+            if i < 1:
+                continue
+            alarm = res.anomaly_ratio > pause_ratio
+            out["layer_alarms"] += int(alarm)
+            run = run + 1 if alarm else 0
+            if run >= consecutive and not paused:
+                out["pauses"] += 1
+                paused = True
+    return out

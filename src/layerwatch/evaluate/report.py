@@ -109,8 +109,14 @@ def _fmt(v, pct=False, nd=2):
     return f"{100 * v:.1f}" if pct else f"{v:.{nd}f}"
 
 
-def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes: list[str] | None = None) -> Path:
-    """Write ``report.md`` and the charts into ``out``; returns the report path."""
+def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes: list[str] | None = None,
+                 clean_run: dict | None = None) -> Path:
+    """Write ``report.md`` and the charts into ``out``; returns the report path.
+
+    ``clean_run`` is the output of :func:`~layerwatch.evaluate.harness.clean_false_alarms`
+    (whole clean prints under the recommended setting), reported with the targets.
+    """
+    from layerwatch.evaluate.stats import false_alarm_rate
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = _charts(s, out)
@@ -137,6 +143,12 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
              f"| {'yes' if okiou.size and okiou.min() >= 0.5 else 'no'} |")
     L.append(f"| false alarms / 1000 clean layers | <= 1 | {s.fa_rate[r]:.1f} in {s.n_clean} clean layers "
              f"(95 % upper bound {s.fa_upper:.0f}; the sample is too small to show <= 1) | not shown |")
+    if clean_run:
+        n, fa = clean_run["layers"], clean_run["layer_alarms"]
+        rate, up = false_alarm_rate(fa, n)
+        L.append(f"| false alarms / 1000 clean layers, {clean_run['prints']} whole clean prints | <= 1 | "
+                 f"{rate:.1f} ({fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
+                 f"2-layer rule; 95 % upper bound {up:.1f}) | {'yes' if up <= 1 else ('consistent' if fa == 0 else 'no')} |")
     L.append(f"| clean printed-area blocks with cosine > 0.7 | >= 95 % | {_fmt(s.clean_block_share, True)} % "
              f"| {'yes' if s.clean_block_share >= 0.95 else 'no'} |")
     L += ["", "Detection at the recommended pause ratio (share of failed layers above it): "
