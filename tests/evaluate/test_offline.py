@@ -36,6 +36,13 @@ def test_assign_layers_by_number_and_order():
     assert [p.name for p in m.values()] == ["first.png", "second.png"] and not problems
 
 
+def test_assign_layers_skips_simulator_truth_masks():
+    names = ["layer_0001.png", "layer_0001_truth.png", "layer_0001_area.png", "layer_0002.png"]
+    m, problems = assign_layers(names, 5)
+    assert {i: p.name for i, p in m.items()} == {1: "layer_0001.png", 2: "layer_0002.png"}
+    assert len(problems) == 1 and "ground-truth" in problems[0]
+
+
 def test_run_offline_reports_bad_and_missing_and_resumes(series, tmp_path):
     root, tp, cam, cfg = series
     photos = sorted(root.glob("layer_????.png"))

@@ -23,13 +23,19 @@ from layerwatch.geometry.camera import CameraModel
 __all__ = ["OfflineRun", "assign_layers", "run_offline"]
 
 _NUM = re.compile(r"(\d+)")
+_TRUTH_SUFFIXES = ("_truth", "_area")  # simulator ground-truth masks written beside the photos
 
 
 def assign_layers(photos: Sequence[str | Path], n_layers: int) -> tuple[dict[int, Path], list[str]]:
     """Map layer index -> photo path; returns the map and problems (duplicates, out of range)."""
     paths = [Path(p) for p in photos]
+    truth = [p for p in paths if p.stem.endswith(_TRUTH_SUFFIXES)]
+    paths = [p for p in paths if not p.stem.endswith(_TRUTH_SUFFIXES)]
     nums = [_NUM.findall(p.stem) for p in paths]
     problems: list[str] = []
+    if truth:
+        problems.append(f"{len(truth)} ground-truth mask file(s) (*_truth/*_area, from `layerwatch simulate`) "
+                        "are not photos; skipped")
     out: dict[int, Path] = {}
     if paths and all(nums):
         for p, ns in zip(paths, nums, strict=True):
