@@ -1,113 +1,135 @@
-"""Dashboard API through FastAPI's TestClient."""
+"""Dashboard API through FastAPI's TestClient: happy paths and bad input."""
 
 from __future__ import annotations
 
-import warnings
-
 import pytest
 
+from layerwatch.web.app import MAX_BODY, create_app
+
 pytest.importorskip("fastapi")
-with warnings.catch_warnings():  # starlette warns that plain httpx is deprecated for its TestClient
-    warnings.simplefilter("ignore")
-    from fastapi.testclient import TestClient  # noqa: E402
-
-from layerwatch.storage.history import History  # noqa: E402
-from layerwatch.web.app import create_app  # noqa: E402
-
-TOKEN = "s3cret-token"
+from fastapi.testclient import TestClient  # noqa: E402
 
 
-@pytest.fixture
-def client(history, printer, image_root):
-    app = create_app(history, printers={"virtual": printer}, token=TOKEN, image_root=image_root, poll_s=0.0)
-    with TestClient(app, headers={"Authorization": f"Bearer {TOKEN}"}) as c:
-        yield c
+def client(seeded, printer, token=None):
+    h, root, _ = seeded
+    return TestClient(create_app(h, printers={"virtual": printer}, token=token, image_root=root))
 
 
-def test_wrong_or_missing_token_is_401(history):
-    app = create_app(history, token=TOKEN)
-    with TestClient(app) as c:
-        assert c.get("/api/jobs").status_code == 401
-        assert c.get("/api/jobs", headers={"Authorization": "Bearer nope"}).status_code == 401
-        assert c.get("/").status_code == 401
-        assert c.get("/login", params={"token": "nope"}).status_code == 401
-        r = c.get("/login", params={"token": TOKEN}, follow_redirects=False)
-        assert r.status_code == 303 and "layerwatch_token" in r.headers["set-cookie"]
-        assert c.get("/api/jobs").status_code == 200  # cookie now set
+def test_jobs_layers_events(seeded, printer):
+    c = client(seeded, printer)
+    ids = seeded[2]
+    jobs = c.get("/api/jobs").json()
+    assert [j["id"] for j in jobs] == [ids["live"], ids["done"]]
+    rows = c.get(f"/api/jobs/{ids['live']}/layers").json()
+    assert [r["layer"] for r in rows] == list(range(40))
+    assert rows[30]["anomaly_ratio"] > rows[5]["anomaly_ratio"]
+    full = c.get(f"/api/jobs/{ids['live']}/layers?full=true").json()
+    assert full[35]["regions"] and full[35]["metric"] == "pearson"
+    latest = c.get(f"/api/jobs/{ids['live']}/latest").json()
+    assert latest["layer"] == 39 and "stack" in latest["images"]
+    kinds = [e["kind"] for e in c.get(f"/api/jobs/{ids['live']}/events").json()]
+    assert kinds[:2] == ["start", "pause"]
+    assert c.get("/").status_code == 200 and "layerwatch" in c.get("/").text
+    assert c.get("/static/app.js").status_code == 200
 
 
-def test_jobs_layers_events(client):
-    (job,) = client.get("/api/jobs").json()
-    assert job["n_layers"] == 10 and job["max_anomaly_ratio"] == pytest.approx(0.15)
-    rows = client.get(f"/api/jobs/{job['id']}/layers").json()
-    assert [r["layer"] for r in rows] == list(range(10))
-    full = client.get(f"/api/jobs/{job['id']}/layers", params={"full": True}).json()
-    assert full[9]["images"]["overlay"] == "layer_0009_overlay.png"
-    assert client.get(f"/api/jobs/{job['id']}/latest").json()["layer"] == 9
-    ev = client.get(f"/api/jobs/{job['id']}/events").json()
-    assert [e["kind"] for e in ev] == ["notify", "pause"]
-
-
-def test_unknown_job_404(client):
-    for path in ("/api/jobs/999", "/api/jobs/999/layers", "/api/jobs/999/events", "/api/jobs/999/latest"):
-        assert client.get(path).status_code == 404, path
-
-
-def test_printer_actions_call_printer(client, printer):
-    job = client.get("/api/jobs").json()[0]["id"]
-    r = client.post("/api/printers/virtual/pause", params={"job_id": job})
-    assert r.status_code == 200 and r.json()["status"] == {"state": "paused"}
-    assert client.post("/api/printers/virtual/resume").json()["status"]["state"] == "printing"
-    assert client.post("/api/printers/virtual/acknowledge").status_code == 200
-    assert printer.calls == ["pause", "resume"]
-    assert client.post("/api/printers/virtual/explode").status_code == 404
-    assert client.post("/api/printers/nobody/pause").status_code == 404
-    assert client.get(f"/api/jobs/{job}/events").json()[-1]["kind"] == "pause"
-    assert client.get("/api/printers").json() == [{"name": "virtual", "status": {"state": "printing"}}]
-
-
-def test_images_served_only_under_root(client):
-    r = client.get("/api/image/layer_0009_overlay.png")
+def test_images_served_and_traversal_refused(seeded, printer):
+    c = client(seeded, printer)
+    rel = c.get(f"/api/jobs/{seeded[2]['live']}/latest").json()["images"]["overlay"]
+    r = c.get(f"/api/image/{rel}")
     assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
-    for bad in ("../secret.txt", "..%2Fsecret.txt", "%2E%2E/secret.txt", "/etc/passwd", "nothere.png"):
-        assert client.get("/api/image/" + bad).status_code == 404, bad
+    for bad in ("../history.db", "..%2F..%2Fetc%2Fpasswd", "%2Fetc%2Fpasswd", "job1/../../x", "missing.png"):
+        assert c.get(f"/api/image/{bad}").status_code in (400, 404), bad
+    (seeded[1].parent / "secret.txt").write_text("x")
+    assert c.get("/api/image/../secret.txt").status_code == 404
 
 
-def test_settings_round_trip_and_422(client):
-    s = client.get("/api/settings").json()
-    s["analysis"]["threshold"] = 0.5
-    assert client.put("/api/settings", json=s).json()["analysis"]["threshold"] == 0.5
-    s["analysis"]["threshold"] = 7
-    assert client.put("/api/settings", json=s).status_code == 422
-    r = client.put("/api/settings", content=b"{not json", headers={"Content-Type": "application/json"})
-    assert r.status_code == 422
-    assert client.get("/api/settings").json()["analysis"]["threshold"] == 0.5
+def test_unknown_job_and_malformed(seeded, printer):
+    c = client(seeded, printer)
+    assert c.get("/api/jobs/999").status_code == 404
+    assert c.get("/api/jobs/999/layers").status_code == 404
+    assert c.get("/api/jobs/abc").status_code == 422
+    assert c.put("/api/settings", content=b"{not json", headers={"content-type": "application/json"}).status_code == 422
+    bad = c.get("/api/settings").json()
+    bad["analysis"]["threshold"] = 3.0
+    assert c.put("/api/settings", json=bad).status_code == 422
+    assert c.post("/api/printers/virtual/explode").status_code == 404
+    assert c.post("/api/printers/nobody/pause").status_code == 404
 
 
-def test_large_body_413(client):
-    r = client.put("/api/settings", content=b"x" * (1 << 20 + 1), headers={"Content-Type": "application/json"})
+def test_settings_roundtrip(seeded, printer):
+    c = client(seeded, printer)
+    s = c.get("/api/settings").json()
+    s["analysis"]["metric"] = "pearson"
+    s["policy"]["pause_ratio"] = 0.2
+    assert c.put("/api/settings", json=s).status_code == 200
+    got = c.get("/api/settings").json()
+    assert got["analysis"]["metric"] == "pearson" and got["policy"]["pause_ratio"] == 0.2
+    assert "pearson" in c.get("/api/metrics").json()
+
+
+def test_huge_body_413(seeded, printer):
+    c = client(seeded, printer)
+    r = c.put("/api/settings", content=b"x" * (MAX_BODY + 1), headers={"content-type": "application/json"})
     assert r.status_code == 413
 
 
-def test_corrupt_db_is_503(tmp_path):
-    p = tmp_path / "h.db"
-    h = History(p)
+def test_actions_change_printer_state_and_log(seeded, printer):
+    c = client(seeded, printer)
+    job = seeded[2]["live"]
+    assert c.post(f"/api/printers/virtual/pause?job_id={job}").json()["status"]["state"] == "paused"
+    assert c.post(f"/api/printers/virtual/resume?job_id={job}").json()["status"]["state"] == "printing"
+    assert c.post(f"/api/printers/virtual/acknowledge?job_id={job}").status_code == 200
+    kinds = [e["kind"] for e in c.get(f"/api/jobs/{job}/events").json()]
+    assert kinds[-3:] == ["pause", "resume", "acknowledge"]
+
+
+def test_token_required_everywhere(seeded, printer):
+    tok = "t" * 43
+    c = client(seeded, printer, token=tok)
+    for path in ("/", "/api/jobs", "/static/app.js", "/openapi.json", "/docs", "/api/image/x.png"):
+        assert c.get(path).status_code == 401, path
+    assert c.get("/api/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 401
+    assert c.get("/api/jobs", headers={"Authorization": f"Bearer {tok}"}).status_code == 200
+    assert c.get("/login?token=wrong", follow_redirects=False).status_code == 401
+    r = c.get(f"/login?token={tok}", follow_redirects=False)
+    assert r.status_code == 303
+    assert c.get("/api/jobs").status_code == 200  # cookie now set
+
+
+def test_secrets_not_exposed(seeded):
+    class Keyed:
+        def status(self):
+            return {"state": "printing", "api_key": "SECRET123", "host": {"token": "SECRET456"}}
+
+    h, root, _ = seeded
+    c = TestClient(create_app(h, printers={"octo": Keyed()}, image_root=root))
+    text = c.get("/api/printers").text
+    assert "SECRET" not in text and "printing" in text
+
+
+def test_corrupt_db_gives_503(tmp_path, printer):
+    from layerwatch.storage.history import History
+
+    h = History(tmp_path / "h.db")
     h.start_job("p")
-    app = create_app(h)
-    h._db.close()  # simulate the database becoming unusable under the app
-    with TestClient(app) as c:
-        r = c.get("/api/jobs")
-        assert r.status_code == 503 and "history database" in r.json()["detail"]
+    h.close()
+    (tmp_path / "h.db-wal").unlink(missing_ok=True)
+    h = History(tmp_path / "h.db")
+    c = TestClient(create_app(h, printers={"virtual": printer}), raise_server_exceptions=False)
+    assert c.get("/api/jobs").status_code == 200
+    h._db.close()  # the connection dies under the app (as after a disk failure)
+    r = c.get("/api/jobs")
+    assert r.status_code == 503 and "history database" in r.json()["detail"]
 
 
-def test_stream_reports_change(client):
-    with client.stream("GET", "/api/stream", params={"limit": 2}) as r:
-        text = "".join(r.iter_text())
-    assert text.startswith("event: change\ndata: [")
+def test_token_file(tmp_path):
+    import stat
 
+    from layerwatch.web.token import is_loopback, load_or_create_token
 
-def test_index_and_static(client):
-    assert "layerwatch" in client.get("/").text
-    assert "drawCurve" in client.get("/static/app.js").text
-    assert client.get("/docs").status_code == 200
-    assert client.get("/openapi.json").json()["info"]["title"] == "layerwatch"
+    tok, created = load_or_create_token(tmp_path / "t.token")
+    assert created and len(tok) >= 32
+    assert stat.S_IMODE((tmp_path / "t.token").stat().st_mode) == 0o600
+    assert load_or_create_token(tmp_path / "t.token") == (tok, False)
+    assert is_loopback("127.0.0.1") and not is_loopback("0.0.0.0")

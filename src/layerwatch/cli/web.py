@@ -1,11 +1,100 @@
-"""CLI verbs for the web stage (filled in by its issue)."""
+"""CLI verbs for the history and the dashboard: ``history``, ``report``, ``serve``."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+from typing import Annotated
+
 import typer
 
-__all__ = ["register"]
+__all__ = ["register", "default_db"]
+
+
+def default_db() -> Path:
+    """``$LAYERWATCH_DB`` or ``~/.local/share/layerwatch/history.db``."""
+    env = os.environ.get("LAYERWATCH_DB")
+    return Path(env) if env else Path.home() / ".local" / "share" / "layerwatch" / "history.db"
+
+
+DbOpt = Annotated[Path | None, typer.Option("--db", help="History database (default $LAYERWATCH_DB or ~/.local/share/layerwatch/history.db).")]
+
+
+def _open(db: Path | None):
+    from layerwatch.storage.history import History
+
+    return History(db or default_db())
+
+
+def history(db: DbOpt = None) -> None:
+    """List the jobs in the history database."""
+    import time
+
+    from rich.table import Table
+
+    from layerwatch.cli import console
+
+    with _open(db) as h:
+        jobs = h.jobs()
+    table = Table(title=f"{len(jobs)} job(s)")
+    for col in ("job", "printer", "part", "started", "layers", "max a%", "outcome"):
+        table.add_column(col, justify="right" if col in ("job", "layers", "max a%") else "left")
+    for j in jobs:
+        mx = j["max_anomaly_ratio"]
+        table.add_row(str(j["id"]), j["printer"], j["part"] or "", time.strftime("%Y-%m-%d %H:%M", time.localtime(j["started"])),
+                      str(j["n_layers"]), "–" if mx is None else f"{100 * mx:.1f} %", j["outcome"] or "[green]running[/]")
+    console.print(table)
+
+
+def report(
+    job: Annotated[int, typer.Argument(help="Job id (see `layerwatch history`).")],
+    db: DbOpt = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for report.html.")] = Path("report"),
+    images: Annotated[Path | None, typer.Option("--images", help="Folder the stored image paths are relative to (default: beside the database).")] = None,
+) -> None:
+    """Write a self-contained HTML report of one job."""
+    from layerwatch.cli import console
+    from layerwatch.web.report import build_report
+
+    with _open(db) as h:
+        path = build_report(h, job, out, image_root=images)
+    console.print(f"report written to [bold]{path}[/]")
+
+
+def serve(
+    db: DbOpt = None,
+    host: Annotated[str, typer.Option("--host", help="Interface to bind; anything but loopback requires the token.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option("--port", min=1, max=65535)] = 8765,
+    images: Annotated[Path | None, typer.Option("--images", help="Folder of stored pictures (default: beside the database).")] = None,
+    virtual: Annotated[bool, typer.Option("--virtual", help="Attach a virtual printer (for trying the buttons).")] = False,
+) -> None:
+    """Serve the dashboard (FastAPI + uvicorn)."""
+    from layerwatch.cli import console
+    from layerwatch.errors import require
+    from layerwatch.web.app import create_app
+    from layerwatch.web.token import is_loopback, load_or_create_token
+
+    uvicorn = require("uvicorn", "web", "The dashboard server")
+    dbp = db or default_db()
+    h = _open(dbp)
+    token = None
+    if not is_loopback(host):
+        token, created = load_or_create_token(dbp.with_suffix(".token"))
+        if created:
+            console.print(f"[bold yellow]access token (shown once, stored in {dbp.with_suffix('.token')}):[/] {token}")
+        console.print(f"open http://{host}:{port}/login?token=<token>")
+    printers = {}
+    if virtual:
+        from layerwatch.web.standin import virtual_printer
+
+        printers["virtual"] = virtual_printer()
+    app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent)
+    console.print(f"dashboard on http://{host}:{port}/")
+    uvicorn.run(app, host=host, port=port, log_level="warning")
 
 
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the root app."""
+    app.command("history")(history)
+    app.command("report")(report)
+    app.command("serve")(serve)

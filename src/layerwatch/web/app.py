@@ -28,13 +28,25 @@ ACTIONS = ("pause", "resume", "cancel", "acknowledge")
 STATIC = Path(__file__).parent / "static"
 
 
+_SECRET = ("key", "token", "password", "secret")
+
+
+def _redact(value: Any) -> Any:
+    """Replace values of secret-looking keys (API keys, tokens) with ``"***"``."""
+    if isinstance(value, dict):
+        return {k: ("***" if any(s in str(k).lower() for s in _SECRET) and v else _redact(v)) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_redact(v) for v in value]
+    return value
+
+
 def _jsonable(value: Any) -> Any:
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         value = dataclasses.asdict(value)
     if hasattr(value, "model_dump"):
         value = value.model_dump(mode="json")
     try:
-        return json.loads(json.dumps(value, default=str))
+        return _redact(json.loads(json.dumps(value, default=str)))
     except (TypeError, ValueError):
         return str(value)
 
@@ -180,9 +192,15 @@ def create_app(
             status = {"error": str(exc)}
         return {"printer": name, "action": action, "status": status}
 
+    @app.get("/api/metrics", summary="Names of the similarity measures")
+    def metrics() -> list[str]:
+        from layerwatch.analysis.settings import METRIC_NAMES
+
+        return list(METRIC_NAMES)
+
     @app.get("/api/settings", summary="Current job settings")
     def get_settings() -> dict[str, Any]:
-        return state["settings"].model_dump(mode="json")
+        return _redact(state["settings"].model_dump(mode="json"))
 
     @app.put("/api/settings", summary="Replace job settings (validated)")
     def put_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
@@ -192,7 +210,7 @@ def create_app(
             state["settings"] = JobConfig.model_validate(body)
         except ValidationError as exc:
             raise HTTPException(422, json.loads(exc.json(include_url=False))) from None
-        return state["settings"].model_dump(mode="json")
+        return _redact(state["settings"].model_dump(mode="json"))
 
     @app.get("/api/image/{path:path}", summary="A stored picture under the image folder")
     def image(path: str):

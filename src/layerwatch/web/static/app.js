@@ -1,141 +1,144 @@
+// layerwatch dashboard: vanilla JS, no network beyond this server.
 "use strict";
-// layerwatch dashboard: fetches the JSON API, draws the a% curve as inline SVG, follows /api/stream.
 const $ = (id) => document.getElementById(id);
-const state = { job: null, printer: null, pauseRatio: null };
+let jobId = null;
+let jobCount = -1;
 
 async function api(path, opts) {
   const r = await fetch(path, Object.assign({ credentials: "same-origin" }, opts || {}));
-  if (!r.ok) throw new Error(path + ": " + r.status);
+  if (!r.ok) { throw new Error((await r.text()) || r.status); }
   return r.json();
 }
-
-function svgEl(tag, attrs, text) {
-  const e = document.createElementNS("http://www.w3.org/2000/svg", tag);
-  for (const k in attrs) e.setAttribute(k, attrs[k]);
-  if (text !== undefined) e.textContent = text;
-  return e;
+function img(el, path) {
+  if (path) { el.src = "/api/image/" + path.split("/").map(encodeURIComponent).join("/"); el.style.visibility = "visible"; }
+  else { el.removeAttribute("src"); el.style.visibility = "hidden"; }
 }
-
-function drawCurve(rows, threshold) {
-  const W = 600, H = 220, L = 40, B = 24, T = 10, R = 10;
-  const svg = svgEl("svg", { viewBox: `0 0 ${W} ${H}`, role: "img", "aria-label": "a% per layer" });
-  const pts = rows.filter((r) => r.anomaly_ratio !== null);
-  const maxLayer = Math.max(1, ...rows.map((r) => r.layer));
-  const maxY = Math.max(0.05, threshold || 0, ...pts.map((r) => r.anomaly_ratio)) * 1.1;
-  const x = (l) => L + (W - L - R) * l / maxLayer;
-  const y = (v) => H - B - (H - B - T) * v / maxY;
-  svg.appendChild(svgEl("line", { x1: L, y1: H - B, x2: W - R, y2: H - B, stroke: "#555" }));
-  svg.appendChild(svgEl("line", { x1: L, y1: T, x2: L, y2: H - B, stroke: "#555" }));
-  for (const f of [0, 0.5, 1]) {
-    svg.appendChild(svgEl("text", { x: 2, y: y(maxY * f / 1.1) + 4 }, (100 * maxY * f / 1.1).toFixed(1) + "%"));
-  }
-  svg.appendChild(svgEl("text", { x: W - R - 60, y: H - 6 }, "layer " + maxLayer));
-  if (threshold != null) {
-    svg.appendChild(svgEl("line", { class: "thr", x1: L, x2: W - R, y1: y(threshold), y2: y(threshold) }));
-    svg.appendChild(svgEl("text", { x: L + 4, y: y(threshold) - 4 }, "pause at " + (100 * threshold).toFixed(1) + "%"));
-  }
-  if (pts.length) {
-    svg.appendChild(svgEl("polyline", { class: "line", points: pts.map((r) => `${x(r.layer)},${y(r.anomaly_ratio)}`).join(" ") }));
-  }
-  $("curve").replaceChildren(svg);
-}
-
-function setImage(id, rel) {
-  const img = $(id);
-  if (rel) img.src = "/api/image/" + rel.split("/").map(encodeURIComponent).join("/"); else img.removeAttribute("src");
-}
+function pct(x) { return x == null ? "–" : (100 * x).toFixed(1) + " %"; }
+function esc(s) { const d = document.createElement("span"); d.textContent = String(s); return d.innerHTML; }
 
 async function loadJobs() {
   const jobs = await api("/api/jobs");
-  const body = $("jobs").querySelector("tbody");
-  body.replaceChildren(...jobs.map((j) => {
-    const tr = document.createElement("tr");
-    const cells = [j.id, j.printer, j.part || "", j.n_layers, j.max_anomaly_ratio == null ? "" : (100 * j.max_anomaly_ratio).toFixed(1) + "%", j.outcome || "running"];
-    for (const c of cells) { const td = document.createElement("td"); td.textContent = c; tr.appendChild(td); }
-    tr.onclick = () => { state.job = j.id; refreshJob(); };
-    return tr;
-  }));
-  if (state.job === null && jobs.length) state.job = jobs[0].id;
+  const sel = $("job-select");
+  if (jobs.length !== jobCount) {
+    jobCount = jobs.length;
+    const keep = jobId;
+    sel.innerHTML = jobs.map((j) => `<option value="${j.id}">#${j.id} ${esc(j.part || "job")} · ${esc(j.printer)}${j.outcome ? " · " + esc(j.outcome) : " · live"}</option>`).join("");
+    jobId = keep != null && jobs.some((j) => j.id === keep) ? keep : (jobs.length ? jobs[0].id : null);
+    if (jobId != null) { sel.value = String(jobId); }
+  }
+  return jobs.find((j) => j.id === jobId);
 }
 
-async function refreshJob() {
-  if (state.job === null) return;
-  const [job, rows, events, latest] = await Promise.all([
-    api(`/api/jobs/${state.job}`), api(`/api/jobs/${state.job}/layers`),
-    api(`/api/jobs/${state.job}/events`), api(`/api/jobs/${state.job}/latest`)]);
-  $("job-title").textContent = `#${job.id} ${job.part || ""} on ${job.printer}` + (latest ? ` — layer ${latest.layer}` : "");
-  drawCurve(rows, state.pauseRatio);
-  const imgs = (latest && latest.images) || {};
-  setImage("img-top", imgs.top); setImage("img-reference", imgs.reference); setImage("img-overlay", imgs.overlay);
-  $("events").replaceChildren(...events.slice().reverse().map((e) => {
-    const li = document.createElement("li");
-    li.textContent = new Date(e.time * 1000).toLocaleTimeString() + "  " + e.kind + ": " + e.message;
-    return li;
-  }));
+function drawCurve(rows, threshold) {
+  const svg = $("curve"), W = 600, H = 220, L = 40, R = 8, T = 10, B = 26;
+  const n = rows.length;
+  const maxA = Math.max(threshold || 0, ...rows.map((r) => r.anomaly_ratio || 0), 0.05) * 1.1;
+  const maxL = Math.max(1, ...rows.map((r) => r.layer));
+  const x = (l) => L + (W - L - R) * l / maxL;
+  const y = (a) => T + (H - T - B) * (1 - a / maxA);
+  let s = "";
+  for (let i = 0; i <= 4; i++) {
+    const a = maxA * i / 4;
+    s += `<line x1="${L}" x2="${W - R}" y1="${y(a)}" y2="${y(a)}" stroke="#e5e7eb"/><text x="${L - 4}" y="${y(a) + 4}" font-size="11" text-anchor="end" fill="#6b7280">${(100 * a).toFixed(0)}%</text>`;
+  }
+  s += `<text x="${(L + W) / 2}" y="${H - 4}" font-size="11" text-anchor="middle" fill="#6b7280">layer (0–${maxL})</text>`;
+  if (threshold != null) {
+    s += `<line id="threshold-line" x1="${L}" x2="${W - R}" y1="${y(threshold)}" y2="${y(threshold)}" stroke="#dc2626" stroke-dasharray="6 4" stroke-width="1.5"/>`;
+  }
+  if (n) {
+    const pts = rows.filter((r) => r.anomaly_ratio != null).map((r) => `${x(r.layer).toFixed(1)},${y(r.anomaly_ratio).toFixed(1)}`).join(" ");
+    s += `<polyline points="${pts}" fill="none" stroke="#2563eb" stroke-width="2" vector-effect="non-scaling-stroke"/>`;
+    for (const r of rows) {
+      if (r.anomaly_ratio != null && threshold != null && r.anomaly_ratio > threshold) {
+        s += `<circle cx="${x(r.layer)}" cy="${y(r.anomaly_ratio)}" r="3" fill="#dc2626"/>`;
+      }
+    }
+  }
+  svg.innerHTML = s;
 }
 
-function describe(status) {
-  if (status == null) return "unknown";
-  if (typeof status === "string") return status;
-  return status.state || status.status || JSON.stringify(status);
+async function loadJob(job) {
+  if (jobId == null) { $("job-title").textContent = "No jobs yet"; return; }
+  const [rows, latest, events] = await Promise.all([
+    api(`/api/jobs/${jobId}/layers`), api(`/api/jobs/${jobId}/latest`), api(`/api/jobs/${jobId}/events`)]);
+  const pause = settings ? settings.policy.pause_ratio : null;
+  const first = rows.find((r) => pause != null && r.anomaly_ratio != null && r.anomaly_ratio > pause);
+  $("job-title").textContent = `Job #${jobId}: ${job && job.part ? job.part : ""}`;
+  $("job-meta").innerHTML = latest
+    ? `layer <b>${latest.layer}</b> · z ${latest.z.toFixed(2)} mm · a% <b class="${first ? "fail" : ""}">${pct(latest.anomaly_ratio)}</b> · ${esc(latest.metric)} T<sub>S</sub>=${latest.threshold} · ${rows.length} layers` +
+      (first ? ` · <span class="fail">first failing layer ${first.layer}</span>` : "") + (job && job.outcome ? ` · ${esc(job.outcome)}` : " · live")
+    : "no layers yet";
+  const im = (latest && latest.images) || {};
+  img($("img-top"), im.top || im.photo); img($("img-reference"), im.reference); img($("img-overlay"), im.overlay);
+  img($("img-stack"), im.stack); $("stack-none").style.display = im.stack ? "none" : "block";
+  drawCurve(rows, pause);
+  $("curve-legend").innerHTML = `<span style="color:#2563eb">━</span> a% per layer &nbsp; <span style="color:#dc2626">╌</span> pause threshold ${pct(pause)}`;
+  $("events").innerHTML = events.slice(-50).reverse().map((e) =>
+    `<li><span class="meta">${new Date(e.time * 1000).toLocaleTimeString()}</span> <span class="kind">${esc(e.kind)}</span> ${esc(e.message)}</li>`).join("");
 }
 
 async function loadPrinters() {
-  const list = await api("/api/printers");
-  const sel = $("printer");
-  if (sel.options.length !== list.length) {
-    sel.replaceChildren(...list.map((p) => new Option(p.name, p.name)));
-  }
-  state.printer = sel.value || null;
-  const p = list.find((q) => q.name === state.printer);
-  const pill = $("printer-state");
-  pill.textContent = p ? describe(p.status) : "no printer";
-  pill.className = "pill" + (p && /paus/i.test(describe(p.status)) ? " paused" : " on");
+  const ps = await api("/api/printers");
+  if (!ps.length) { $("printer-list").textContent = "no printers connected"; return; }
+  $("printer-list").innerHTML = ps.map((p) => {
+    const st = p.status && (p.status.state || p.status.error) || "unknown";
+    return `<div class="printer" data-printer="${esc(p.name)}"><span class="name">${esc(p.name)} · <span class="state ${esc(st)}" data-testid="state">${esc(st)}</span></span>` +
+      ["acknowledge", "pause", "resume", "cancel"].map((a) => `<button class="${a}" data-action="${a}">${a}</button>`).join("") + "</div>";
+  }).join("");
 }
 
-async function action(name) {
-  if (!state.printer) return;
-  if (name === "cancel" && !confirm("Cancel the print?")) return;
-  const q = state.job !== null ? `?job_id=${state.job}` : "";
-  await api(`/api/printers/${encodeURIComponent(state.printer)}/${name}${q}`, { method: "POST" });
-  await Promise.all([loadPrinters(), refreshJob()]);
-}
+document.addEventListener("click", async (ev) => {
+  const b = ev.target.closest("button[data-action]");
+  if (!b) { return; }
+  const name = b.closest(".printer").dataset.printer, action = b.dataset.action;
+  if (action === "cancel" && !confirm("Cancel the print?")) { return; }
+  b.disabled = true;
+  try {
+    await api(`/api/printers/${encodeURIComponent(name)}/${action}` + (jobId != null ? `?job_id=${jobId}` : ""), { method: "POST" });
+  } catch (e) { alert(e.message); }
+  b.disabled = false;
+  await refresh();
+});
 
+let settings = null;
 async function loadSettings() {
-  const s = await api("/api/settings");
-  state.settings = s;
-  state.pauseRatio = s.policy && typeof s.policy.pause_ratio === "number" ? s.policy.pause_ratio : null;
-  const form = $("settings");
-  for (const input of form.querySelectorAll("input[name]")) {
-    const [sec, key] = input.name.split(".");
-    input.value = s[sec] ? s[sec][key] : "";
-  }
+  settings = await api("/api/settings");
+  const metrics = await api("/api/metrics");
+  $("set-metric").innerHTML = metrics.map((m) => `<option>${m}</option>`).join("");
+  $("set-metric").value = settings.analysis.metric;
+  $("set-threshold").value = settings.analysis.threshold;
+  $("set-pause").value = settings.policy.pause_ratio;
+  $("set-action").value = settings.policy.action;
 }
-
-async function saveSettings(ev) {
+$("settings").addEventListener("submit", async (ev) => {
   ev.preventDefault();
-  const s = JSON.parse(JSON.stringify(state.settings));
-  for (const input of $("settings").querySelectorAll("input[name]")) {
-    const [sec, key] = input.name.split(".");
-    s[sec][key] = input.type === "number" ? Number(input.value) : input.value;
-  }
-  const r = await fetch("/api/settings", { method: "PUT", headers: { "Content-Type": "application/json" }, body: JSON.stringify(s) });
-  $("settings-msg").textContent = r.ok ? "saved" : "invalid: " + r.status;
-  if (r.ok) await loadSettings();
+  const s = JSON.parse(JSON.stringify(settings));
+  s.analysis.metric = $("set-metric").value;
+  s.analysis.threshold = parseFloat($("set-threshold").value);
+  s.policy.pause_ratio = parseFloat($("set-pause").value);
+  s.policy.action = $("set-action").value;
+  try {
+    settings = await api("/api/settings", { method: "PUT", headers: { "content-type": "application/json" }, body: JSON.stringify(s) });
+    $("settings-msg").textContent = "saved";
+  } catch (e) { $("settings-msg").textContent = "invalid: " + e.message.slice(0, 120); }
+  await refresh();
+});
+$("job-select").addEventListener("change", (ev) => { jobId = parseInt(ev.target.value, 10); refresh(); });
+
+let busy = false;
+async function refresh() {
+  if (busy) { return; }
+  busy = true;
+  try { const job = await loadJobs(); await Promise.all([loadJob(job), loadPrinters()]); }
+  catch (e) { $("live").textContent = "error"; }
+  finally { busy = false; }
+  document.body.dataset.ready = "1";
 }
 
-function live() {
+(async function main() {
+  await loadSettings();
+  await refresh();
   const es = new EventSource("/api/stream");
-  es.addEventListener("change", async () => {
-    $("live").textContent = "live"; $("live").className = "pill on";
-    await loadJobs(); await refreshJob(); await loadPrinters();
-  });
-  es.onerror = () => { $("live").textContent = "reconnecting"; $("live").className = "pill"; };
-}
-
-document.querySelectorAll("button[data-action]").forEach((b) => b.addEventListener("click", () => action(b.dataset.action)));
-$("printer").addEventListener("change", loadPrinters);
-$("settings").addEventListener("submit", saveSettings);
-(async () => {
-  await loadSettings(); await loadPrinters(); await loadJobs(); await refreshJob(); live();
+  es.addEventListener("change", () => { $("live").textContent = "live"; $("live").classList.add("on"); refresh(); });
+  es.onerror = () => { $("live").textContent = "reconnecting"; $("live").classList.remove("on"); };
 })();

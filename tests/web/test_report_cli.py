@@ -1,0 +1,41 @@
+"""HTML report and the history/report CLI verbs."""
+
+from __future__ import annotations
+
+import base64
+import re
+import stat
+
+from layerwatch.cli import main
+from layerwatch.web.report import build_report
+from layerwatch.web.token import load_or_create_token
+
+
+def test_report_self_contained(history, image_root, tmp_path):
+    path = build_report(history, 1, tmp_path / "out", image_root=image_root)
+    text = path.read_text()
+    assert "layer 9 (a% 15.0 %" in text  # default pause 10 %; layer 8 has 10 % (not above), layer 9 15 %
+    imgs = re.findall(r'src="data:image/png;base64,([^"]+)"', text)
+    assert len(imgs) >= 4 and all(base64.b64decode(b)[:4] == b"\x89PNG" for b in imgs)
+    assert "http" not in text.replace("http-equiv", "")  # nothing fetched from elsewhere
+
+
+def test_cli_history_and_report(history, image_root, tmp_path, capsys):
+    db = str(history.path)
+    assert main(["history", "--db", db]) == 0
+    assert "virtual" in capsys.readouterr().out
+    assert main(["report", "1", "--db", db, "-o", str(tmp_path / "r"), "--images", str(image_root)]) == 0
+    assert (tmp_path / "r" / "report.html").is_file()
+    assert main(["report", "42", "--db", db, "-o", str(tmp_path / "r")]) == 2
+
+
+def test_token_created_0600_once(tmp_path):
+    p = tmp_path / "cfg" / "token"
+    tok, created = load_or_create_token(p)
+    assert created and len(tok) >= 24 and stat.S_IMODE(p.stat().st_mode) == 0o600
+    assert load_or_create_token(p) == (tok, False)
+
+
+def test_serve_help(capsys):
+    assert main(["serve", "--help"]) == 0
+    assert "--host" in capsys.readouterr().out
