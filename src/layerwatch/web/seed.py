@@ -66,7 +66,7 @@ def seed_job(
 
     rng = np.random.default_rng(seed)
     root = Path(image_root)
-    job = history.start_job(printer, gcode_path="part.gcode", gcode_hash="%064x" % seed, part=part, config=JobConfig())
+    job = history.start_job(printer, gcode_path="part.gcode", gcode_hash=f"{seed:064x}", part=part, config=JobConfig())
     history.add_event(job, "start", f"job started on {printer}")
     for i in range(n_layers):
         blob = 0.0 if fail_at is None or i < fail_at else min(1.0, 0.15 + 0.06 * (i - fail_at))
@@ -98,7 +98,7 @@ def seed_job(
         history.add_layer(job, res)
         if fail_at is not None and i == fail_at + 2:
             history.add_event(job, "pause", f"a% {100 * ratio:.1f} % above 10 % for 2 layers: pause requested")
-            history.add_event(job, "notification", "notification sent: possible spaghetti at layer %d" % i)
+            history.add_event(job, "notification", f"notification sent: possible spaghetti at layer {i}")
     if outcome is not None:
         history.end_job(job, outcome)
     return job

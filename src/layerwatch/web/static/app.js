@@ -26,11 +26,14 @@ async function loadJobs() {
     jobId = keep != null && jobs.some((j) => j.id === keep) ? keep : (jobs.length ? jobs[0].id : null);
     if (jobId != null) { sel.value = String(jobId); }
   }
+  $("jobs").innerHTML = "<tr><th>job</th><th>part</th><th>layers</th><th>max a%</th><th>outcome</th></tr>" + jobs.map((j) =>
+    `<tr class="${j.id === jobId ? "sel" : ""}" data-job="${j.id}"><td>#${j.id}</td><td>${esc(j.part || "")}</td><td>${j.n_layers}</td><td>${pct(j.max_anomaly_ratio)}</td><td>${esc(j.outcome || "live")}</td></tr>`).join("");
   return jobs.find((j) => j.id === jobId);
 }
 
 function drawCurve(rows, threshold) {
-  const svg = $("curve"), W = 600, H = 220, L = 40, R = 8, T = 10, B = 26;
+  const svg = $("curve"), W = Math.max(200, svg.clientWidth), H = Math.max(120, svg.clientHeight), L = 40, R = 10, T = 10, B = 26;
+  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
   const n = rows.length;
   const maxA = Math.max(threshold || 0, ...rows.map((r) => r.anomaly_ratio || 0), 0.05) * 1.1;
   const maxL = Math.max(1, ...rows.map((r) => r.layer));
@@ -47,7 +50,7 @@ function drawCurve(rows, threshold) {
   }
   if (n) {
     const pts = rows.filter((r) => r.anomaly_ratio != null).map((r) => `${x(r.layer).toFixed(1)},${y(r.anomaly_ratio).toFixed(1)}`).join(" ");
-    s += `<polyline points="${pts}" fill="none" stroke="#2563eb" stroke-width="2" vector-effect="non-scaling-stroke"/>`;
+    s += `<polyline points="${pts}" fill="none" stroke="#2563eb" stroke-width="2"/>`;
     for (const r of rows) {
       if (r.anomaly_ratio != null && threshold != null && r.anomaly_ratio > threshold) {
         s += `<circle cx="${x(r.layer)}" cy="${y(r.anomaly_ratio)}" r="3" fill="#dc2626"/>`;
@@ -123,6 +126,11 @@ $("settings").addEventListener("submit", async (ev) => {
   } catch (e) { $("settings-msg").textContent = "invalid: " + e.message.slice(0, 120); }
   await refresh();
 });
+$("jobs").addEventListener("click", (ev) => {
+  const tr = ev.target.closest("tr[data-job]");
+  if (tr) { jobId = parseInt(tr.dataset.job, 10); $("job-select").value = String(jobId); refresh(); }
+});
+window.addEventListener("resize", () => refresh());
 $("job-select").addEventListener("change", (ev) => { jobId = parseInt(ev.target.value, 10); refresh(); });
 
 let busy = false;

@@ -1,0 +1,122 @@
+"""Real browser tests: uvicorn in a thread, Debian chromium through Playwright.
+
+Screenshots go to ``docs/screenshots/`` when ``LAYERWATCH_SCREENSHOTS=1``,
+otherwise to the test's temporary folder.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+from pathlib import Path
+
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian chromium (/usr/bin/chromium) is not installed"),
+    pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+]
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+        "--no-first-run", "--disable-sync"]
+
+
+@pytest.fixture
+def server(seeded, printer):
+    uvicorn = pytest.importorskip("uvicorn")
+    from layerwatch.web.app import create_app
+
+    h, root, ids = seeded
+    app = create_app(h, printers={"virtual": printer}, image_root=root, poll_s=0.2)
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
+    th = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
+    th.start()
+    url = f"http://127.0.0.1:{port}"
+    import httpx
+
+    for _ in range(200):
+        try:
+            if httpx.get(url + "/api/jobs", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            th.join(0.05)
+    yield url, ids, h
+    srv.should_exit = True
+    th.join(10)
+    sock.close()
+
+
+@pytest.fixture
+def shots(tmp_path):
+    if os.environ.get("LAYERWATCH_SCREENSHOTS") == "1":
+        out = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
+        out.mkdir(parents=True, exist_ok=True)
+        return out
+    return tmp_path
+
+
+def test_dashboard_buttons_and_screenshots(server, printer, shots):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    url, ids, h = server
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 1100})
+            page.goto(url + "/")
+            page.wait_for_selector("body[data-ready='1']")
+            page.wait_for_selector("#curve polyline")
+            page.wait_for_selector("#threshold-line", state="attached")
+            assert "first failing layer" in page.inner_text("#job-meta")
+            for sel in ("#img-top", "#img-reference", "#img-overlay", "#img-stack"):
+                page.wait_for_function(f"document.querySelector('{sel}').naturalWidth > 0")
+            state = page.locator(".printer .state")
+            assert state.inner_text() == "printing"
+
+            page.click("button[data-action='pause']")
+            sync_api.expect(state).to_have_text("paused")
+            assert printer.status()["state"] == "paused"
+            page.click("button[data-action='acknowledge']")
+            sync_api.expect(page.locator("#events")).to_contain_text("acknowledge requested")
+            page.click("button[data-action='resume']")
+            sync_api.expect(state).to_have_text("printing")
+            assert printer.status()["state"] == "printing"
+            kinds = [e["kind"] for e in h.events(ids["live"])]
+            assert kinds[-3:] == ["pause", "acknowledge", "resume"]
+            page.wait_for_timeout(300)
+            page.screenshot(path=str(shots / "dashboard-desktop.png"), full_page=True)
+
+            phone = browser.new_page(viewport={"width": 390, "height": 844}, device_scale_factor=2, is_mobile=True)
+            phone.goto(url + "/")
+            phone.wait_for_selector("body[data-ready='1']")
+            phone.wait_for_function("document.querySelector('#img-overlay').naturalWidth > 0")
+            width = phone.evaluate("document.documentElement.scrollWidth")
+            assert width <= 390, "the page must not scroll sideways on a phone"
+            phone.screenshot(path=str(shots / "dashboard-phone.png"), full_page=True)
+        finally:
+            browser.close()
+
+
+def test_settings_validated_in_browser(server):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    url, _, _ = server
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        try:
+            page = browser.new_page()
+            page.goto(url + "/")
+            page.wait_for_selector("body[data-ready='1']")
+            page.fill("#set-pause", "0.2")
+            page.select_option("#set-metric", "pearson")
+            page.click("#settings button[type='submit']")
+            sync_api.expect(page.locator("#settings-msg")).to_have_text("saved")
+            page.evaluate("document.querySelector('#set-threshold').removeAttribute('max')")
+            page.fill("#set-threshold", "5")
+            page.click("#settings button[type='submit']")
+            sync_api.expect(page.locator("#settings-msg")).to_contain_text("invalid")
+        finally:
+            browser.close()
