@@ -153,3 +153,11 @@ def test_sigkill_writer_loses_at_most_inflight_layer(tmp_path):
     assert len(idx) >= acknowledged + 1
     assert all(r.anomaly_ratio == pytest.approx(0.001 * r.layer) for r in got)
     h.add_layer(job["id"], LayerResult(layer=len(idx), z=1.0))
+
+
+def test_huge_ids_match_nothing(tmp_path):
+    h = History(tmp_path / "h.db")
+    h.start_job("p")
+    assert h.job(2**70) is None and h.layers(-(2**70)) == [] and h.events(1, after=2**80) == []
+    with pytest.raises(StorageError, match="no job"):
+        h.add_event(2**64, "x", "y")

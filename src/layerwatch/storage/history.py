@@ -69,6 +69,11 @@ SCHEMA_VERSION = len(MIGRATIONS)
 _JOB_COLS = "j.id, p.name, j.gcode_path, j.gcode_hash, j.part, j.config, j.started, j.ended, j.outcome"
 
 
+def _int(value: Any) -> int:
+    """``int(value)`` clamped to SQLite's 64-bit range (an id beyond it simply matches nothing)."""
+    return max(-(2**63), min(2**63 - 1, int(value)))
+
+
 def _config_json(config: Any) -> str | None:
     if config is None:
         return None
@@ -195,7 +200,7 @@ class History:
         return self._run(fn, write=True)
 
     def _check_job(self, db: sqlite3.Connection, job_id: int) -> None:
-        if db.execute("SELECT 1 FROM jobs WHERE id = ?", (int(job_id),)).fetchone() is None:
+        if db.execute("SELECT 1 FROM jobs WHERE id = ?", (_int(job_id),)).fetchone() is None:
             raise StorageError(f"no job {job_id} in the history; list jobs with `layerwatch history`.")
 
     def add_layer(self, job_id: int, result: LayerResult) -> None:
@@ -212,7 +217,7 @@ class History:
                 "z=excluded.z, anomaly_ratio=excluded.anomaly_ratio, status=excluded.status, "
                 "metric=excluded.metric, threshold=excluded.threshold, result=excluded.result, "
                 "created=excluded.created",
-                (int(job_id), int(result.layer), float(result.z), ratio, result.status,
+                (_int(job_id), _int(result.layer), float(result.z), ratio, result.status,
                  result.metric, float(result.threshold), text, time.time()),
             )
 
@@ -226,7 +231,7 @@ class History:
             self._check_job(db, job_id)
             cur = db.execute(
                 "INSERT INTO events(job_id, time, kind, message, data) VALUES (?, ?, ?, ?, ?)",
-                (int(job_id), time.time(), str(kind), str(message), payload),
+                (_int(job_id), time.time(), str(kind), str(message), payload),
             )
             return int(cur.lastrowid)
 
@@ -237,7 +242,7 @@ class History:
 
         def fn(db: sqlite3.Connection) -> None:
             self._check_job(db, job_id)
-            db.execute("UPDATE jobs SET ended = ?, outcome = ? WHERE id = ?", (time.time(), outcome, int(job_id)))
+            db.execute("UPDATE jobs SET ended = ?, outcome = ? WHERE id = ?", (time.time(), outcome, _int(job_id)))
 
         self._run(fn, write=True)
 
@@ -274,7 +279,7 @@ class History:
         def fn(db: sqlite3.Connection) -> dict[str, Any] | None:
             r = db.execute(
                 f"SELECT {_JOB_COLS} FROM jobs j JOIN printers p ON p.id = j.printer_id WHERE j.id = ?",
-                (int(job_id),),
+                (_int(job_id),),
             ).fetchone()
             return None if r is None else self._job_row(r)
 
@@ -284,7 +289,7 @@ class History:
         """The job's layer results ordered by layer index."""
         rows = self._run(
             lambda db: db.execute(
-                "SELECT result FROM layers WHERE job_id = ? ORDER BY layer", (int(job_id),)
+                "SELECT result FROM layers WHERE job_id = ? ORDER BY layer", (_int(job_id),)
             ).fetchall()
         )
         return [LayerResult.from_json(r[0]) for r in rows]
@@ -295,7 +300,7 @@ class History:
             lambda db: db.execute(
                 "SELECT layer, z, anomaly_ratio, status, metric, threshold FROM layers "
                 "WHERE job_id = ? AND layer > ? ORDER BY layer",
-                (int(job_id), int(after)),
+                (_int(job_id), _int(after)),
             ).fetchall()
         )
         keys = ("layer", "z", "anomaly_ratio", "status", "metric", "threshold")
@@ -306,7 +311,7 @@ class History:
         rows = self._run(
             lambda db: db.execute(
                 "SELECT id, time, kind, message, data FROM events WHERE job_id = ? AND id > ? ORDER BY id",
-                (int(job_id), int(after)),
+                (_int(job_id), _int(after)),
             ).fetchall()
         )
         return [
