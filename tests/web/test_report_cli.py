@@ -6,9 +6,40 @@ import base64
 import re
 import stat
 
+import numpy as np
+import pytest
+
+from layerwatch.analysis.result import LayerResult
 from layerwatch.cli import main
+from layerwatch.storage.history import History
 from layerwatch.web.report import build_report
 from layerwatch.web.token import load_or_create_token
+
+
+@pytest.fixture
+def image_root(tmp_path):
+    import cv2
+
+    root = tmp_path / "results"
+    root.mkdir()
+    rng = np.random.default_rng(0)
+    for kind in ("top", "reference", "overlay"):
+        cv2.imwrite(str(root / f"layer_0009_{kind}.png"), rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    return root
+
+
+@pytest.fixture
+def history(tmp_path):
+    """Ten layers; a% passes the default 10 % pause threshold first at layer 9 (15 %)."""
+    h = History(tmp_path / "history.db")
+    job = h.start_job("virtual", gcode_path="part.gcode", gcode_hash="ab12", part="part")
+    for i in range(10):
+        ratio = 0.002 * i if i < 7 else 0.05 * (i - 6)
+        h.add_layer(job, LayerResult(layer=i, z=0.3 * (i + 1), anomaly_ratio=ratio,
+                                     images={k: f"layer_{i:04d}_{k}.png" for k in ("top", "reference", "overlay")}))
+    h.add_event(job, "pause", "a% above 10 % at layer 9", {"layer": 9})
+    yield h
+    h.close()
 
 
 def test_report_self_contained(history, image_root, tmp_path):
