@@ -32,7 +32,7 @@ def test_jobs_layers_events(seeded, printer):
     latest = c.get(f"/api/jobs/{ids['live']}/latest").json()
     assert latest["layer"] == 39 and "stack" in latest["images"]
     kinds = [e["kind"] for e in c.get(f"/api/jobs/{ids['live']}/events").json()]
-    assert kinds[:2] == ["start", "pause"]
+    assert kinds[:3] == ["start", "pause", "notification"]
     assert c.get("/").status_code == 200 and "layerwatch" in c.get("/").text
     assert c.get("/static/app.js").status_code == 200
 
@@ -137,3 +137,32 @@ def test_token_file(tmp_path):
     assert stat.S_IMODE((tmp_path / "t.token").stat().st_mode) == 0o600
     assert load_or_create_token(tmp_path / "t.token") == (tok, False)
     assert is_loopback("127.0.0.1") and not is_loopback("0.0.0.0")
+
+
+def test_stream_reports_change(seeded, printer):
+    c = client(seeded, printer)
+    r = c.get("/api/stream?limit=1")
+    assert r.status_code == 200 and r.text.startswith("event: change")
+
+
+def test_cli_history_report_and_missing_job(seeded, tmp_path):
+    from layerwatch.cli import main
+
+    h, root, ids = seeded
+    db = str(h.path)
+    assert main(["history", "--db", db]) == 0
+    assert main(["report", str(ids["live"]), "--db", db, "-o", str(tmp_path / "rep")]) == 0
+    text = (tmp_path / "rep" / "report.html").read_text()
+    assert "first failing layer" in text.lower() and text.count("data:image/png;base64,") >= 5
+    assert "layer 31" in text  # seeded: a% crosses 10 % at layer 31
+    assert main(["report", "999", "--db", db, "-o", str(tmp_path / "x")]) == 2
+
+
+def test_report_missing_image_file(seeded, tmp_path):
+    from layerwatch.web.report import build_report
+
+    h, root, ids = seeded
+    for p in root.rglob("overlay.png"):
+        p.unlink()
+    text = build_report(h, ids["live"], tmp_path / "r").read_text()
+    assert "missing" in text

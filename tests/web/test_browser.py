@@ -120,3 +120,21 @@ def test_settings_validated_in_browser(server):
             sync_api.expect(page.locator("#settings-msg")).to_contain_text("invalid")
         finally:
             browser.close()
+
+
+def test_report_renders_in_browser(seeded, shots, tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from layerwatch.web.report import build_report
+
+    h, _, ids = seeded
+    path = build_report(h, ids["live"], tmp_path / "report")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1000, "height": 900})
+            page.goto(path.as_uri())
+            n = page.evaluate("[...document.images].filter(i => i.complete && i.naturalWidth > 0).length")
+            assert n == page.evaluate("document.images.length") >= 5
+            page.screenshot(path=str(shots / "report.png"), full_page=True)
+        finally:
+            browser.close()

@@ -69,7 +69,7 @@ def _file_tag(root: Path | None, rel: str | None, alt: str) -> str:
 
 _CSS = """body{font:15px/1.4 system-ui,sans-serif;max-width:1000px;margin:auto;padding:1rem;color:#1f2937}
 img{max-width:100%}.row{display:grid;grid-template-columns:repeat(auto-fit,minmax(220px,1fr));gap:.6rem}
-figure{margin:0}figcaption{text-align:center;color:#6b7280}.fail{color:#dc2626;font-weight:600}
+figure{margin:0}figure img{width:100%}figcaption{text-align:center;color:#6b7280}.fail{color:#dc2626;font-weight:600}
 .missing{color:#6b7280;font-style:italic}table{border-collapse:collapse}td,th{padding:.2rem .6rem;border-bottom:1px solid #eee}"""
 
 

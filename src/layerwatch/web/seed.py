@@ -68,11 +68,12 @@ def seed_job(
     root = Path(image_root)
     job = history.start_job(printer, gcode_path="part.gcode", gcode_hash=f"{seed:064x}", part=part, config=JobConfig())
     history.add_event(job, "start", f"job started on {printer}")
+    paused = False
     for i in range(n_layers):
         blob = 0.0 if fail_at is None or i < fail_at else min(1.0, 0.15 + 0.06 * (i - fail_at))
         ratio = float(np.clip(0.01 + 0.01 * rng.random() + 0.5 * blob**1.5, 0, 1))
         rel: dict[str, str] = {}
-        if images and (i >= n_layers - 3 or i == fail_at or i % 10 == 0):
+        if images and (i >= n_layers - 3 or (fail_at is not None and i >= fail_at) or i % 10 == 0):
             top, ref, ov = _images(i, blob, size, rng)
             d = root / f"job{job}" / f"layer{i:04d}"
             d.mkdir(parents=True, exist_ok=True)
@@ -96,8 +97,9 @@ def seed_job(
                           n_anomalous=int(120 * ratio), regions=regions,
                           timings_ms={"warp": 4.0, "render": 6.0, "hog": 3.0}, images=rel)
         history.add_layer(job, res)
-        if fail_at is not None and i == fail_at + 2:
-            history.add_event(job, "pause", f"a% {100 * ratio:.1f} % above 10 % for 2 layers: pause requested")
+        if ratio > 0.10 and not paused:
+            paused = True
+            history.add_event(job, "pause", f"a% {100 * ratio:.1f} % above 10 % at layer {i}: pause requested")
             history.add_event(job, "notification", f"notification sent: possible spaghetti at layer {i}")
     if outcome is not None:
         history.end_job(job, outcome)
