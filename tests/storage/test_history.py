@@ -161,3 +161,15 @@ def test_huge_ids_match_nothing(tmp_path):
     assert h.job(2**70) is None and h.layers(-(2**70)) == [] and h.events(1, after=2**80) == []
     with pytest.raises(StorageError, match="no job"):
         h.add_event(2**64, "x", "y")
+
+
+def test_latest_layer(tmp_path):
+    from layerwatch.analysis.result import LayerResult
+    from layerwatch.storage.history import History
+
+    with History(tmp_path / "h.db") as h:
+        job = h.start_job("p")
+        assert h.latest_layer(job) is None
+        for i in (2, 0, 5, 1):
+            h.add_layer(job, LayerResult(layer=i, z=0.2 * i, anomaly_ratio=i / 10))
+        assert h.latest_layer(job).layer == 5 == h.layers(job)[-1].layer

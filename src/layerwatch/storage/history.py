@@ -294,6 +294,15 @@ class History:
         )
         return [LayerResult.from_json(r[0]) for r in rows]
 
+    def latest_layer(self, job_id: int) -> LayerResult | None:
+        """The job's highest-index layer result, or ``None`` (one indexed row read)."""
+        row = self._run(
+            lambda db: db.execute(
+                "SELECT result FROM layers WHERE job_id = ? ORDER BY layer DESC LIMIT 1", (_int(job_id),)
+            ).fetchone()
+        )
+        return None if row is None else LayerResult.from_json(row[0])
+
     def layer_summary(self, job_id: int, after: int = -1) -> list[dict[str, Any]]:
         """Light rows ``{layer, z, anomaly_ratio, status, metric, threshold}`` for curves."""
         rows = self._run(

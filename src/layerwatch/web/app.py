@@ -151,10 +151,8 @@ def create_app(
     @app.get("/api/jobs/{job_id}/latest", summary="The newest layer result of a job (or null)")
     def latest(job_id: int) -> dict[str, Any] | None:
         need_job(job_id)
-        rows = history.layer_summary(job_id)
-        if not rows:
-            return None
-        return next(r.to_dict() for r in history.layers(job_id) if r.layer == rows[-1]["layer"])
+        res = history.latest_layer(job_id)
+        return None if res is None else res.to_dict()
 
     @app.get("/api/jobs/{job_id}/events", summary="Event log of a job")
     def events(job_id: int, after: int = 0) -> list[dict[str, Any]]:

@@ -104,9 +104,10 @@ document.addEventListener("click", async (ev) => {
 });
 
 let settings = null;
+let settingsReady = null;
 async function loadSettings() {
-  settings = await api("/api/settings");
-  const metrics = await api("/api/metrics");
+  const [st, metrics] = await Promise.all([api("/api/settings"), api("/api/metrics")]);
+  settings = st;
   $("set-metric").innerHTML = metrics.map((m) => `<option>${m}</option>`).join("");
   $("set-metric").value = settings.analysis.metric;
   $("set-threshold").value = settings.analysis.threshold;
@@ -137,14 +138,16 @@ let busy = false;
 async function refresh() {
   if (busy) { return; }
   busy = true;
-  try { const job = await loadJobs(); await Promise.all([loadJob(job), loadPrinters()]); }
+  try {
+    await Promise.all([Promise.all([loadJobs(), settingsReady]).then(([job]) => loadJob(job)), loadPrinters()]);
+  }
   catch (e) { $("live").textContent = "error"; }
   finally { busy = false; }
   document.body.dataset.ready = "1";
 }
 
 (async function main() {
-  await loadSettings();
+  settingsReady = loadSettings();
   await refresh();
   const es = new EventSource("/api/stream");
   es.addEventListener("change", () => { $("live").textContent = "live"; $("live").classList.add("on"); refresh(); });
