@@ -204,8 +204,10 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
           "texture is at the resolution limit of a 1280x720 camera. The operating points therefore use low T_S "
           "(only strongly dissimilar blocks count), which costs localisation (IoU) because a failed region's "
           "weaker blocks are not counted.",
-          "- **False alarms**: zero in the clean layers of this run, but ~100 clean layers can only bound the rate "
-          "at ~27 per 1000 (95 %); showing <= 1 per 1000 needs ~3000 clean layers (about 10 minutes here).",
+          "- **False alarms**: the pause ratio is set above every clean layer of the scored sample, whose ~100 clean "
+          "layers can only bound the rate at ~27 per 1000 (95 %); `--clean-layers N` adds whole clean prints and "
+          "counts single layers above the ratio and pauses under the 2-layer rule separately. Showing <= 1 per "
+          "1000 needs ~3000 clean layers with none above the ratio.",
           "- **Layer shifts** are drawn 1.5-5 mm, so few reach the 5 mm IoU class (n/a = none in the sample).",
           "- The simulator is ours, so these are figures on simulated photos only; no labelled real photos exist.",
           ""]
