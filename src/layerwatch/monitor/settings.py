@@ -21,6 +21,9 @@ class PolicySettings(Section):
     action: Literal["notify", "pause", "cancel"] = "pause"
     wait_for_verdict: bool = False
     skip_first_layers: int = Field(1, ge=0)
+    growth_min_area_mm2: float = Field(25.0, ge=0)
+    strong_action: Literal["notify", "pause", "cancel"] = "pause"
+    notify_single_layer: bool = True
 
 
 class NotifySettings(Section):

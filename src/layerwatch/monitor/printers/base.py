@@ -154,6 +154,7 @@ class Printer(ABC):
 
     def close(self) -> None:
         """Release connections and threads (idempotent)."""
+        return None
 
     def __enter__(self) -> Printer:
         return self

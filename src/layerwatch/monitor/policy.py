@@ -1,0 +1,189 @@
+"""When a stream of :class:`LayerResult` should pause the print.
+
+Rules (all thresholds in :class:`PolicySettings`):
+
+1. ``a%`` above ``pause_ratio`` for ``consecutive_layers`` analysed layers
+   in a row, with a failing region in the same place on consecutive layers
+   (noise spikes land at random places) -> ``settings.action``; a single layer above it -> ``notify``
+   (when ``notify_single_layer``).
+2. A failing region that overlaps one of the previous analysed layer and has
+   grown by ``growth_ratio`` (and is at least ``growth_min_area_mm2``) ->
+   ``settings.action``.
+3. One strong event: anomalous area outside the footprint above
+   ``strong_outside_area_mm2`` -> ``settings.strong_action``.
+
+Errors (camera, warp, printer) never pause: they give ``notify``. After a
+pause the policy stays quiet until :meth:`PausePolicy.acknowledge` (the
+operator resumed); the regions seen at that moment are then ignored unless
+they grow beyond ``growth_ratio`` times their acknowledged area.
+
+References
+----------
+Petsiuk & Pearce (2022), eq. (5) for ``a%``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.monitor.settings import PolicySettings
+
+__all__ = ["Decision", "PausePolicy"]
+
+Action = Literal["none", "notify", "pause", "cancel"]
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What to do after one layer.
+
+    Attributes
+    ----------
+    action : str
+        ``"none"``, ``"notify"``, ``"pause"`` or ``"cancel"``.
+    reason : str
+        One sentence for logs and notifications.
+    layer : int
+        Layer index the decision is about.
+    """
+
+    action: Action
+    reason: str
+    layer: int
+
+    @property
+    def stops(self) -> bool:
+        """True for pause or cancel."""
+        return self.action in ("pause", "cancel")
+
+
+def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+class PausePolicy:
+    """Stateful pause policy; feed it every layer's result in order.
+
+    Parameters
+    ----------
+    settings : PolicySettings
+        Thresholds and actions.
+    """
+
+    def __init__(self, settings: PolicySettings | None = None) -> None:
+        self.settings = settings or PolicySettings()
+        self._streak = 0
+        self._prev_regions: list[Region] = []
+        self._last_regions: list[Region] = []
+        self._acked: list[tuple[tuple[float, float, float, float], float]] = []
+        self._halted = False
+
+    @property
+    def halted(self) -> bool:
+        """True after a pause/cancel decision until :meth:`acknowledge`."""
+        return self._halted
+
+    def acknowledge(self) -> None:
+        """The operator resumed: forget the streak and accept the current regions."""
+        for r in self._last_regions:
+            self._acked.append((tuple(r.bbox_mm), float(r.area_mm2)))
+        self._streak = 0
+        self._halted = False
+
+    def _acked_area(self, r: Region) -> float | None:
+        """Acknowledged area of the region ``r`` overlaps, or None."""
+        areas = [a for box, a in self._acked if _overlap(box, tuple(r.bbox_mm))]
+        return max(areas) if areas else None
+
+    def _fresh(self, regions: list[Region]) -> list[Region]:
+        g = self.settings.growth_ratio
+        out = []
+        for r in regions:
+            acked = self._acked_area(r)
+            if acked is None or r.area_mm2 > g * acked:
+                out.append(r)
+        return out
+
+    def update(self, result: LayerResult) -> Decision:
+        """Decide after one layer's result.
+
+        Parameters
+        ----------
+        result : LayerResult
+            The layer's analysis (``status`` ``"error"`` alerts only).
+
+        Returns
+        -------
+        Decision
+        """
+        s = self.settings
+        layer = int(result.layer)
+        if result.status == "error":
+            return Decision("notify", f"layer {layer} not analysed: {result.message or 'error'}", layer)
+        if result.status != "ok" or layer < s.skip_first_layers:
+            return Decision("none", f"layer {layer} not judged ({result.status})", layer)
+        regions = self._fresh(list(result.regions))
+        self._last_regions = list(result.regions)
+        acked_area = sum(r.area_mm2 for r in result.regions if r not in regions)
+        printed = result.printed_area_mm2
+        if printed and printed > 0:
+            ratio = max(result.anomalous_area_mm2 - acked_area, 0.0) / printed
+        else:
+            ratio = float(result.anomaly_ratio) if not self._acked else 0.0
+        outside = result.outside_area_mm2
+        if self._acked and acked_area > 0:
+            fresh_outside = sum(r.area_mm2 * r.outside_fraction for r in regions)
+            outside = min(outside, fresh_outside)
+        prev, self._prev_regions = self._prev_regions, regions
+        self._streak = self._streak + 1 if ratio > s.pause_ratio else 0
+        if self._halted:
+            return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
+
+        if s.strong_outside_area_mm2 > 0 and outside > s.strong_outside_area_mm2:
+            return self._stop(
+                s.strong_action,
+                f"layer {layer}: {outside:.0f} mm^2 of material outside the part "
+                f"(> {s.strong_outside_area_mm2:.0f}; spaghetti or detachment?)",
+                layer,
+            )
+        # a real failure stays in place: consecutive alarms must share a region
+        # (isolated noise spikes land at random places); without regions, trust a%.
+        persistent = not regions or not prev or any(
+            _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in regions for p in prev
+        )
+        if self._streak >= s.consecutive_layers and persistent:
+            return self._stop(
+                s.action,
+                f"layer {layer}: anomaly ratio {ratio:.1%} above {s.pause_ratio:.0%} "
+                f"for {self._streak} layers",
+                layer,
+            )
+        for r in regions:
+            if r.area_mm2 < s.growth_min_area_mm2:
+                continue
+            acked = self._acked_area(r)
+            if acked is not None:  # _fresh kept it, so it outgrew its acknowledged size
+                return self._stop(
+                    s.action,
+                    f"layer {layer}: acknowledged region at ({r.centroid_mm[0]:.0f}, {r.centroid_mm[1]:.0f}) mm "
+                    f"grew from {acked:.0f} to {r.area_mm2:.0f} mm^2",
+                    layer,
+                )
+            for p in prev:
+                if _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) and r.area_mm2 >= s.growth_ratio * max(p.area_mm2, 1e-9):
+                    return self._stop(
+                        s.action,
+                        f"layer {layer}: failing region at ({r.centroid_mm[0]:.0f}, {r.centroid_mm[1]:.0f}) mm "
+                        f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2",
+                        layer,
+                    )
+        if ratio > s.pause_ratio and s.notify_single_layer:
+            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {s.pause_ratio:.0%}", layer)
+        return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
+
+    def _stop(self, action: Action, reason: str, layer: int) -> Decision:
+        if action in ("pause", "cancel"):
+            self._halted = True
+        return Decision(action, reason, layer)
