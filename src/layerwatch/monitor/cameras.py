@@ -1,0 +1,237 @@
+"""Camera sources: snapshot URL, MJPEG stream, V4L2/USB, watched folder, simulator.
+
+Every source has ``grab() -> ndarray`` (BGR uint8, shape (H, W, 3)) and
+raises :class:`~layerwatch.errors.CameraError` with a one-line fix on
+failure: timeouts (after retries), HTML instead of an image, tiny (1x1)
+images, or the same frame twice in a row (a frozen stream).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from layerwatch.errors import CameraError
+
+__all__ = ["Camera", "SnapshotCamera", "MjpegCamera", "DeviceCamera", "FolderCamera", "SimCamera", "open_camera", "decode_image"]
+
+MIN_SIDE = 16
+
+
+def decode_image(data: bytes, where: str) -> np.ndarray:
+    """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) image or raise CameraError."""
+    import cv2
+
+    head = data[:64].lstrip().lower()
+    if head.startswith((b"<!doctype", b"<html", b"<?xml", b"{")):
+        raise CameraError(f"{where} returned a web page, not an image; use the snapshot URL (e.g. ...?action=snapshot).")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+    if img is None:
+        raise CameraError(f"{where} returned {len(data)} bytes that are not an image; check the camera URL.")
+    return check_frame(img, where)
+
+
+def check_frame(img: np.ndarray, where: str) -> np.ndarray:
+    """Reject placeholder frames (smaller than 16 px a side)."""
+    if img.ndim < 2 or min(img.shape[:2]) < MIN_SIDE:
+        raise CameraError(f"{where} gave a {img.shape[1]}x{img.shape[0]} image (a placeholder?); check that the camera is streaming.")
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    return np.ascontiguousarray(img[:, :, :3])
+
+
+class Camera:
+    """Base: retries, settle delay and the stale-frame check around ``_read()``.
+
+    Parameters
+    ----------
+    retries : int
+        Extra attempts after a failure.
+    settle_s : float
+        Wait before grabbing (vibration after the nozzle parks), s.
+    stale_check : bool
+        Raise when a frame is byte-identical to the previous one.
+    """
+
+    where = "camera"
+
+    def __init__(self, *, retries: int = 2, settle_s: float = 0.0, stale_check: bool = True,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.retries = int(retries)
+        self.settle_s = float(settle_s)
+        self.stale_check = stale_check
+        self._sleep = sleep
+        self._last_digest: bytes | None = None
+
+    def _read(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def grab(self) -> np.ndarray:
+        """One fresh frame, BGR uint8 (H, W, 3)."""
+        if self.settle_s > 0:
+            self._sleep(self.settle_s)
+        err: CameraError | None = None
+        for attempt in range(self.retries + 1):
+            try:
+                img = self._read()
+                break
+            except CameraError as exc:
+                err = exc
+                if attempt < self.retries:
+                    self._sleep(min(0.2 * 2**attempt, 2.0))
+        else:
+            assert err is not None
+            raise err
+        digest = hashlib.blake2b(img.tobytes(), digest_size=16).digest()
+        if self.stale_check and digest == self._last_digest:
+            raise CameraError(f"{self.where} returned the same frame twice; the stream looks frozen, restart the camera service.")
+        self._last_digest = digest
+        return img
+
+    def close(self) -> None:
+        return None
+
+
+class SnapshotCamera(Camera):
+    """HTTP snapshot URL (mjpg-streamer/ustreamer/crowsnest ``?action=snapshot``)."""
+
+    def __init__(self, url: str, *, timeout_s: float = 5.0, **kw) -> None:
+        super().__init__(**kw)
+        self.url, self.timeout_s, self.where = url, timeout_s, f"camera {url}"
+
+    def _read(self) -> np.ndarray:
+        import httpx
+
+        try:
+            r = httpx.get(self.url, timeout=self.timeout_s, follow_redirects=True)
+        except httpx.HTTPError as exc:
+            raise CameraError(f"{self.where} unreachable ({type(exc).__name__}); check the URL and that the camera service runs.") from exc
+        if r.status_code != 200:
+            raise CameraError(f"{self.where} answered HTTP {r.status_code}; check the snapshot URL.")
+        return decode_image(r.content, self.where)
+
+
+class MjpegCamera(Camera):
+    """MJPEG stream (``multipart/x-mixed-replace``): reads the first complete JPEG part."""
+
+    def __init__(self, url: str, *, timeout_s: float = 5.0, max_bytes: int = 20_000_000, **kw) -> None:
+        super().__init__(**kw)
+        self.url, self.timeout_s, self.max_bytes, self.where = url, timeout_s, max_bytes, f"stream {url}"
+
+    def _read(self) -> np.ndarray:
+        import httpx
+
+        buf = b""
+        try:
+            with httpx.stream("GET", self.url, timeout=self.timeout_s) as r:
+                if r.status_code != 200:
+                    raise CameraError(f"{self.where} answered HTTP {r.status_code}; check the stream URL.")
+                ctype = r.headers.get("content-type", "")
+                if "multipart" not in ctype:
+                    return decode_image(r.read(), self.where)
+                for chunk in r.iter_bytes():
+                    buf += chunk
+                    frame = _first_jpeg(buf)
+                    if frame is not None:
+                        return decode_image(frame, self.where)
+                    if len(buf) > self.max_bytes:
+                        break
+        except httpx.HTTPError as exc:
+            raise CameraError(f"{self.where} unreachable ({type(exc).__name__}); check the URL and that the camera service runs.") from exc
+        raise CameraError(f"{self.where} sent no complete JPEG frame; check that it is an MJPEG stream.")
+
+
+def _first_jpeg(buf: bytes) -> bytes | None:
+    """First complete JPEG (SOI..EOI) in a multipart buffer, or None."""
+    start = buf.find(b"\xff\xd8")
+    if start < 0:
+        return None
+    end = buf.find(b"\xff\xd9", start + 2)
+    return None if end < 0 else buf[start : end + 2]
+
+
+class DeviceCamera(Camera):
+    """Local V4L2/USB camera through ``cv2.VideoCapture``."""
+
+    def __init__(self, device: int | str = 0, *, flush: int = 3, **kw) -> None:
+        super().__init__(**kw)
+        self.device, self.flush, self.where, self._cap = device, flush, f"camera device {device}", None
+
+    def _read(self) -> np.ndarray:
+        import cv2
+
+        if self._cap is None or not self._cap.isOpened():
+            self._cap = cv2.VideoCapture(self.device)
+            if not self._cap.isOpened():
+                self._cap = None
+                raise CameraError(f"{self.where} cannot be opened; check the device path and permissions (video group).")
+        for _ in range(self.flush):  # drop buffered, older frames
+            self._cap.grab()
+        ok, img = self._cap.read()
+        if not ok or img is None:
+            raise CameraError(f"{self.where} returned no frame; check the cable and that no other program uses it.")
+        return check_frame(img, self.where)
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+class FolderCamera(Camera):
+    """Watched folder: each grab returns the newest image file not returned yet."""
+
+    EXT = (".jpg", ".jpeg", ".png", ".bmp")
+
+    def __init__(self, folder: str | Path, **kw) -> None:
+        kw.setdefault("retries", 0)
+        super().__init__(**kw)
+        self.folder, self.where = Path(folder), f"folder {folder}"
+        self._seen: set[Path] = set()
+
+    def _read(self) -> np.ndarray:
+        import cv2
+
+        if not self.folder.is_dir():
+            raise CameraError(f"{self.where} does not exist; create it or fix the path.")
+        files = sorted((p for p in self.folder.iterdir() if p.suffix.lower() in self.EXT and p not in self._seen),
+                       key=lambda p: (p.stat().st_mtime, p.name))
+        if not files:
+            raise CameraError(f"{self.where} has no new image; check that the capture script writes there.")
+        path = files[0]
+        self._seen.add(path)
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise CameraError(f"{path} is not a readable image; remove it.")
+        return check_frame(img, str(path))
+
+
+class SimCamera(Camera):
+    """Simulator source: ``frame(layer) -> ndarray``; call :meth:`set_layer` before grabbing."""
+
+    def __init__(self, frame: Callable[[int], np.ndarray], **kw) -> None:
+        kw.setdefault("stale_check", False)
+        super().__init__(**kw)
+        self.frame, self.layer, self.where = frame, 0, "simulated camera"
+
+    def set_layer(self, layer: int) -> None:
+        self.layer = int(layer)
+
+    def _read(self) -> np.ndarray:
+        return check_frame(np.asarray(self.frame(self.layer)), self.where)
+
+
+def open_camera(spec: str, **kw) -> Camera:
+    """Camera from a CLI spec: ``http(s)://...`` (``stream`` in the URL -> MJPEG), ``file:DIR``, ``/dev/videoN`` or ``v4l2:N``."""
+    if spec.startswith(("http://", "https://")):
+        return MjpegCamera(spec, **kw) if "action=stream" in spec or spec.rstrip("/").endswith("stream") else SnapshotCamera(spec, **kw)
+    if spec.startswith("file:"):
+        return FolderCamera(spec[5:], **kw)
+    if spec.startswith("/dev/video") or spec.startswith("v4l2:"):
+        dev = spec[5:] if spec.startswith("v4l2:") else spec
+        return DeviceCamera(int(dev) if dev.isdigit() else dev, **kw)
+    raise CameraError(f"unknown camera {spec!r}; use http://..., file:DIR, /dev/videoN or sim.")

@@ -1,0 +1,103 @@
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import cv2
+import numpy as np
+import pytest
+
+from layerwatch.errors import CameraError
+from layerwatch.monitor.cameras import (
+    FolderCamera,
+    MjpegCamera,
+    SimCamera,
+    SnapshotCamera,
+    open_camera,
+)
+
+
+def _jpeg(seed):
+    img = np.random.default_rng(seed).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    return cv2.imencode(".png", img)[1].tobytes(), img
+
+
+@pytest.fixture(scope="module")
+def server():
+    state = {"n": 0}
+
+    class H(BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802
+            if self.path.startswith("/snap"):
+                state["n"] += 1
+                body, ctype = _jpeg(state["n"])[0], "image/png"
+            elif self.path == "/same":
+                body, ctype = _jpeg(0)[0], "image/png"
+            elif self.path == "/html":
+                body, ctype = b"<!DOCTYPE html><html>login</html>", "text/html"
+            elif self.path == "/tiny":
+                body, ctype = cv2.imencode(".png", np.zeros((1, 1, 3), np.uint8))[1].tobytes(), "image/png"
+            elif self.path == "/stream":
+                jpg = cv2.imencode(".jpg", np.full((40, 60, 3), 128, np.uint8))[1].tobytes()
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                for _ in range(2):
+                    self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\n\r\n" + jpg + b"\r\n")
+                return
+            else:
+                self.send_response(404)
+                self.end_headers()
+                return
+            self.send_response(200)
+            self.send_header("Content-Type", ctype)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *a):
+            pass
+
+    srv = ThreadingHTTPServer(("127.0.0.1", 0), H)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{srv.server_address[1]}"
+    srv.shutdown()
+    srv.server_close()
+
+
+def test_snapshot_ok_and_errors(server):
+    cam = SnapshotCamera(server + "/snap?action=snapshot", sleep=lambda s: None)
+    a, b = cam.grab(), cam.grab()
+    assert a.shape == (48, 64, 3) and a.dtype == np.uint8 and not np.array_equal(a, b)
+    same = SnapshotCamera(server + "/same", sleep=lambda s: None)
+    same.grab()
+    with pytest.raises(CameraError, match="same frame twice"):
+        same.grab()
+    with pytest.raises(CameraError, match="web page"):
+        SnapshotCamera(server + "/html", sleep=lambda s: None).grab()
+    with pytest.raises(CameraError, match="1x1"):
+        SnapshotCamera(server + "/tiny", sleep=lambda s: None).grab()
+    with pytest.raises(CameraError, match="HTTP 404"):
+        SnapshotCamera(server + "/nothing", retries=1, sleep=lambda s: None).grab()
+    with pytest.raises(CameraError, match="unreachable"):
+        SnapshotCamera("http://127.0.0.1:9/x", retries=0, timeout_s=1).grab()
+
+
+def test_mjpeg_stream(server):
+    img = MjpegCamera(server + "/stream").grab()
+    assert img.shape == (40, 60, 3) and abs(int(img.mean()) - 128) <= 2
+    assert isinstance(open_camera(server + "/?action=stream"), MjpegCamera)
+
+
+def test_folder_and_sim(tmp_path):
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), _jpeg(10 + i)[1])
+    cam = open_camera(f"file:{tmp_path}")
+    assert isinstance(cam, FolderCamera)
+    assert np.array_equal(cam.grab(), _jpeg(10)[1])
+    assert np.array_equal(cam.grab(), _jpeg(11)[1])
+    with pytest.raises(CameraError, match="no new image"):
+        cam.grab()
+    sim = SimCamera(lambda layer: np.full((32, 32, 3), layer, np.uint8))
+    sim.set_layer(7)
+    assert sim.grab()[0, 0, 0] == 7
+    with pytest.raises(CameraError, match="unknown camera"):
+        open_camera("ftp://x")
