@@ -20,6 +20,15 @@ def test_demo_pauses_soon_after_onset(tmp_path, failure, onset):
     assert (tmp_path / "out" / "stack.png").is_file()
     assert (tmp_path / "out" / "overlays" / f"layer_{res.paused_at:04d}.png").is_file()
     assert (tmp_path / "out" / "prepared.gcode").read_text().count("layerwatch snapshot") >= res.paused_at
+    # the job is in the same history the monitor writes, with its report
+    from layerwatch.storage import History
+
+    with History(tmp_path / "out" / "history.db") as history:
+        (job,) = history.jobs()
+        assert job["outcome"] == "paused"
+        assert len(history.layers(job["id"])) == res.paused_at + 1
+        assert any(e["kind"] == "pause" for e in history.events(job["id"]))
+    assert res.report is not None and "<img" in res.report.read_text()
 
 
 def test_demo_cli_reports_pause(tmp_path, capsys):

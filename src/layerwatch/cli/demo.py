@@ -42,6 +42,9 @@ def demo(
         late = res.paused_at - res.onset
         console.print(f"[bold red]PAUSE[/] at layer {res.paused_at} ({late} layer(s) after the onset): {res.reason}")
     console.print(f"results in {res.out} (summary.md, overlays/, stack.png) in {res.seconds:.1f} s")
+    if res.report is not None:
+        console.print(f"report: {res.report}  (history: {res.out / 'history.db'}; "
+                      f"`layerwatch history --db {res.out / 'history.db'}`)")
 
 
 def register(app: typer.Typer) -> None:

@@ -31,6 +31,7 @@ class DemoResult:
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
     policy: str = ""
+    report: Path | None = None
 
 
 def load_job_toolpath(gcode: str | Path | None, notes: list[str] | None = None):
@@ -137,6 +138,7 @@ def run_demo(
             if stop_at_pause:
                 break
     folder.stack()
+    _record_history(out, gpath, results, res_demo)
     res_demo.seconds = time.perf_counter() - t0
     folder.summary(results, res_demo.paused_at, res_demo.reason, extra={
         "part": str(gpath) if gpath else "box_part()", "injected failure": f"{failure} from layer {onset}",
@@ -145,3 +147,29 @@ def run_demo(
     })
     return res_demo
 
+
+
+def _record_history(out: Path, gpath: Path | None, results: dict, res_demo: DemoResult) -> None:
+    """Store the demo job in ``out/history.db`` and write its HTML report to ``out/report/``.
+
+    The same history the live monitor writes, so ``layerwatch history --db
+    out/history.db`` and ``layerwatch report`` work on the demo job.
+    """
+    from layerwatch.storage import History
+    from layerwatch.web.report import build_report
+
+    if results and (out / "stack.png").is_file():
+        results[max(results)].images["stack"] = "stack.png"
+    history = History(out / "history.db")
+    try:
+        job = history.start_job("virtual", gcode_path=str(gpath) if gpath else None, part="demo part")
+        for res in results.values():
+            history.add_layer(job, res)
+        if res_demo.paused_at is not None:
+            history.add_event(job, "pause", f"paused at layer {res_demo.paused_at}: {res_demo.reason}")
+        history.end_job(job, "paused" if res_demo.paused_at is not None else "finished")
+        res_demo.report = build_report(history, job, out / "report", image_root=out)
+    finally:
+        close = getattr(history, "close", None)
+        if close is not None:
+            close()
