@@ -79,6 +79,8 @@ class PausePolicy:
         self._last_regions: list[Region] = []
         self._acked: list[tuple[tuple[float, float, float, float], float]] = []
         self._halted = False
+        self._last_ratio = 0.0
+        self._acked_ratio = 0.0
 
     @property
     def halted(self) -> bool:
@@ -89,6 +91,7 @@ class PausePolicy:
         """The operator resumed: forget the streak and accept the current regions."""
         for r in self._last_regions:
             self._acked.append((tuple(r.bbox_mm), float(r.area_mm2)))
+        self._acked_ratio = max(self._acked_ratio, self._last_ratio)
         self._streak = 0
         self._halted = False
 
@@ -137,7 +140,13 @@ class PausePolicy:
             fresh_outside = sum(r.area_mm2 * r.outside_fraction for r in regions)
             outside = min(outside, fresh_outside)
         prev, self._prev_regions = self._prev_regions, regions
-        self._streak = self._streak + 1 if ratio > s.pause_ratio else 0
+        if printed and printed > 0:  # anomaly not explained by regions (diffuse), for acknowledge()
+            self._last_ratio = max(result.anomalous_area_mm2 - sum(r.area_mm2 for r in result.regions), 0.0) / printed
+        else:
+            self._last_ratio = ratio
+        # after a resume, anomaly the operator accepted must grow before it counts again
+        limit = max(s.pause_ratio, self._acked_ratio * s.growth_ratio)
+        self._streak = self._streak + 1 if ratio > limit else 0
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
 
@@ -156,7 +165,7 @@ class PausePolicy:
         if self._streak >= s.consecutive_layers and persistent:
             return self._stop(
                 s.action,
-                f"layer {layer}: anomaly ratio {ratio:.1%} above {s.pause_ratio:.0%} "
+                f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.0%} "
                 f"for {self._streak} layers",
                 layer,
             )
@@ -179,8 +188,8 @@ class PausePolicy:
                         f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2",
                         layer,
                     )
-        if ratio > s.pause_ratio and s.notify_single_layer:
-            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {s.pause_ratio:.0%}", layer)
+        if ratio > limit and s.notify_single_layer:
+            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.0%}", layer)
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
 
     def _stop(self, action: Action, reason: str, layer: int) -> Decision:

@@ -1,0 +1,210 @@
+"""The monitor loop: printer triggers -> photo -> pipeline -> policy -> pause/notify.
+
+The printer is held only while the photo is taken: analysis runs on one
+worker thread (results stay in layer order) while the next layer prints,
+unless ``wait_for_verdict`` is set. Camera, pipeline and printer failures are
+alerted and logged, never turned into a pause; the printer connection is
+retried with exponential backoff.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.errors import CameraError, LayerwatchError, PrinterError
+from layerwatch.monitor.policy import Decision, PausePolicy
+from layerwatch.monitor.printers.base import Printer, SnapshotTrigger
+
+__all__ = ["Monitor", "MonitorReport"]
+
+log = logging.getLogger("layerwatch.monitor")
+
+
+class _Pipeline(Protocol):
+    def process(self, photo: np.ndarray, layer_index: int) -> LayerResult: ...
+
+
+@dataclass
+class MonitorReport:
+    """What happened during one monitored print."""
+
+    results: list[LayerResult] = field(default_factory=list)
+    decisions: list[Decision] = field(default_factory=list)
+    pauses: int = 0
+    alerts: int = 0
+    outcome: str = "unknown"
+
+    @property
+    def latencies_ms(self) -> list[float]:
+        """Trigger -> pause-request latencies, ms."""
+        return [r.extra["trigger_to_pause_ms"] for r in self.results if "trigger_to_pause_ms" in r.extra]
+
+
+def _log(event: str, **kv: Any) -> None:
+    log.info("%s %s", event, " ".join(f"{k}={v}" for k, v in kv.items()), extra={"event": event, **kv})
+
+
+class Monitor:
+    """Watch one print.
+
+    Parameters
+    ----------
+    printer : Printer
+        Connector (a :class:`VirtualPrinter` that was not started is stepped by the loop).
+    camera : Camera
+        Photo source with ``grab()`` (and ``set_layer`` for the simulator).
+    pipeline : object
+        ``process(photo, layer_index) -> LayerResult``.
+    policy : PausePolicy
+    notifier : Notifier, optional
+    history : History, optional
+        With ``job_id``; layers and events are recorded.
+    wait_for_verdict : bool
+        Analyse before releasing the trigger (printer waits for the verdict).
+    """
+
+    def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
+                 *, notifier: Any = None, history: Any = None, job_id: int | None = None,
+                 wait_for_verdict: bool = False, max_backoff_s: float = 30.0) -> None:
+        self.printer, self.camera, self.pipeline = printer, camera, pipeline
+        self.policy = policy or PausePolicy()
+        self.notifier, self.history, self.job_id = notifier, history, job_id
+        self.wait_for_verdict = wait_for_verdict
+        self.max_backoff_s = max_backoff_s
+        self.report = MonitorReport()
+        self.stop_event = threading.Event()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
+        self._futures: list[Future] = []
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ triggers
+    def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
+        """Take the photo for ``trigger`` and queue (or run) its analysis."""
+        _log("trigger", layer=trigger.layer, z=trigger.z, source=trigger.source)
+        if hasattr(self.camera, "set_layer"):
+            self.camera.set_layer(trigger.layer)
+        try:
+            photo = self.camera.grab()
+        except (CameraError, OSError) as exc:
+            res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=str(exc))
+            self._finish(trigger, res)
+            return res
+        t_photo = time.monotonic()
+        if self.wait_for_verdict:
+            return self._analyse(trigger, photo, t_photo)
+        self._futures.append(self._pool.submit(self._analyse, trigger, photo, t_photo))
+        return None
+
+    def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
+        try:
+            res = self.pipeline.process(photo, trigger.layer)
+        except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
+            log.exception("pipeline failed on layer %d", trigger.layer)
+            res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
+        res.extra["photo_ms"] = round((t_photo - trigger.time) * 1000, 1)
+        return self._finish(trigger, res)
+
+    def _finish(self, trigger: SnapshotTrigger, res: LayerResult) -> LayerResult:
+        with self._lock:
+            decision = self.policy.update(res)
+            if decision.stops:
+                try:
+                    (self.printer.pause if decision.action == "pause" else self.printer.cancel)()
+                    res.extra["trigger_to_pause_ms"] = round((time.monotonic() - trigger.time) * 1000, 1)
+                    self.report.pauses += 1
+                except LayerwatchError as exc:
+                    self._alert(f"could not {decision.action} the printer: {exc}", res)
+            res.extra["decision"] = decision.action
+            res.extra["decision_reason"] = decision.reason
+            self.report.results.append(res)
+            self.report.decisions.append(decision)
+            _log("layer", layer=res.layer, status=res.status, ratio=round(float(res.anomaly_ratio), 4),
+                 action=decision.action, latency_ms=res.extra.get("trigger_to_pause_ms"))
+            self._record(res, decision)
+            if decision.action != "none":
+                self._alert(decision.reason, res, level="critical" if decision.stops else "warning",
+                            force=decision.stops)
+        return res
+
+    def _record(self, res: LayerResult, decision: Decision) -> None:
+        if self.history is None or self.job_id is None:
+            return
+        try:
+            self.history.add_layer(self.job_id, res)
+            if decision.action != "none":
+                self.history.add_event(self.job_id, decision.action, decision.reason, {"layer": res.layer})
+        except LayerwatchError as exc:
+            log.warning("history write failed: %s", exc)
+
+    def _alert(self, message: str, res: LayerResult | None = None, *, level: str = "warning", force: bool = False) -> None:
+        self.report.alerts += 1
+        log.warning("alert: %s", message)
+        if self.notifier is not None:
+            image = res.images.get("overlay") if res is not None else None
+            self.notifier.notify(f"layerwatch: {message.split(':')[0]}", message, level=level, image=image,
+                                 data={"layer": res.layer if res else None}, force=force)
+
+    def acknowledge(self) -> None:
+        """Operator resumed the print: accept the regions seen so far."""
+        self.policy.acknowledge()
+
+    # ------------------------------------------------------------------ loop
+    def run(self, *, poll_s: float = 0.2, install_signals: bool = False) -> MonitorReport:
+        """Run until the print ends or :attr:`stop_event` is set (SIGTERM/SIGINT when ``install_signals``)."""
+        if install_signals and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, lambda *_: self.stop_event.set())
+        step = getattr(self.printer, "step_to_next_trigger", None)
+        driven = step is not None and getattr(self.printer, "_thread", None) is None
+        backoff = 1.0
+        try:
+            while not self.stop_event.is_set():
+                if driven:
+                    trig = step()
+                    if trig is not None:
+                        self.printer.poll_triggers()
+                        self.handle_trigger(trig)
+                    if self.printer.status().state == "paused":  # demo: wait for an operator
+                        self.stop_event.wait(poll_s)
+                    if trig is None and self.printer.status().state in ("finished", "cancelled"):
+                        break
+                    continue
+                try:
+                    for trig in self.printer.poll_triggers():
+                        self.handle_trigger(trig)
+                    state = self.printer.status().state
+                    backoff = 1.0
+                except PrinterError as exc:
+                    self._alert(f"printer unreachable, retrying in {backoff:.0f} s: {exc}")
+                    self.stop_event.wait(backoff)
+                    backoff = min(backoff * 2, self.max_backoff_s)
+                    continue
+                if state in ("finished", "cancelled", "idle") and self.report.results:
+                    break
+                self.stop_event.wait(poll_s)
+        finally:
+            self._pool.shutdown(wait=True)  # finish the current layer's record
+            self.report.outcome = self._outcome()
+            if self.history is not None and self.job_id is not None:
+                try:
+                    self.history.end_job(self.job_id, self.report.outcome)
+                except LayerwatchError as exc:
+                    log.warning("history end_job failed: %s", exc)
+        return self.report
+
+    def _outcome(self) -> str:
+        try:
+            state = self.printer.status().state
+        except LayerwatchError:
+            return "unknown"
+        return {"finished": "done", "cancelled": "cancelled", "paused": "paused"}.get(
+            state, "stopped" if self.stop_event.is_set() else state)

@@ -1,0 +1,96 @@
+import numpy as np
+
+from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.errors import CameraError
+from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.policy import PausePolicy
+from layerwatch.monitor.printers.virtual import VirtualPrinter
+from layerwatch.monitor.service import Monitor
+from layerwatch.monitor.settings import PolicySettings
+
+
+def _gcode(n):
+    return "\n".join(
+        f"G1 Z{0.3 * (i + 1):.2f}\n@layerwatch snapshot layer={i} z={0.3 * (i + 1):.3f}\n"
+        f"M118 E1 layerwatch snapshot layer={i} z={0.3 * (i + 1):.3f}" for i in range(n)
+    ).encode()
+
+
+class StandInPipeline:
+    """Stand-in for LayerPipeline: reads the 'failure' from the photo's brightness."""
+
+    def __init__(self):
+        self.seen = []
+
+    def process(self, photo, layer_index):
+        self.seen.append(layer_index)
+        bad = float(photo[0, 0, 0]) / 255.0
+        regions = [Region(200 * bad + 1, (90, 90, 110, 110), (100, 100), 4, 0.4)] if bad else []
+        return LayerResult(layer=layer_index, z=0.3 * (layer_index + 1), anomaly_ratio=bad,
+                           printed_area_mm2=1000, anomalous_area_mm2=1000 * bad, regions=regions)
+
+
+def _frame(onset):
+    def f(layer):
+        img = np.zeros((64, 64, 3), np.uint8)
+        img[0, 0] = 80 if onset is not None and layer >= onset else 0
+        img[1:, :, 1] = layer  # frames differ per layer
+        return img
+    return f
+
+
+def test_clean_virtual_print_no_pause():
+    vp = VirtualPrinter(_gcode(30))
+    pipe = StandInPipeline()
+    rep = Monitor(vp, SimCamera(_frame(None)), pipe, PausePolicy()).run(poll_s=0.001)
+    assert pipe.seen == list(range(30)) and rep.pauses == 0 and rep.outcome == "done"
+    assert vp.status().state == "finished"
+
+
+def test_failure_pauses_within_two_layers_and_latency_recorded():
+    vp = VirtualPrinter(_gcode(30))
+    mon = Monitor(vp, SimCamera(_frame(10)), StandInPipeline(), PausePolicy(PolicySettings()), wait_for_verdict=True)
+    mon.stop_event.set  # noqa: B018
+    # step until paused (the demo loop waits for the operator while paused)
+    while vp.status().state == "printing":
+        t = vp.step_to_next_trigger()
+        if t is None:
+            break
+        mon.handle_trigger(t)
+    assert vp.status().state == "paused" and vp.pause_count == 1
+    paused_at = mon.report.results[-1]
+    assert 10 <= paused_at.layer <= 11
+    lat = mon.report.latencies_ms
+    assert len(lat) == 1 and lat[0] >= 0
+    print(f"\ntrigger -> pause request latency (stand-in pipeline): {lat[0]:.1f} ms")
+    # operator resumes; the same (not growing) failure does not pause again
+    mon.acknowledge()
+    vp.resume()
+    while (t := vp.step_to_next_trigger()) is not None:
+        mon.handle_trigger(t)
+    assert vp.pause_count == 1 and vp.status().state == "finished"
+
+
+class BrokenCamera:
+    def grab(self):
+        raise CameraError("camera http://x returned a web page, not an image")
+
+
+def test_camera_errors_alert_but_never_pause():
+    vp = VirtualPrinter(_gcode(8))
+    sent = []
+
+    class N:
+        def notify(self, title, message, **kw):
+            sent.append(message)
+            return True
+
+    rep = Monitor(vp, BrokenCamera(), StandInPipeline(), notifier=N()).run(poll_s=0.001)
+    assert rep.pauses == 0 and vp.pause_count == 0 and rep.alerts == 8
+    assert all(r.status == "error" for r in rep.results) and "web page" in sent[0]
+
+
+def test_background_analysis_keeps_order():
+    vp = VirtualPrinter(_gcode(12))
+    rep = Monitor(vp, SimCamera(_frame(None)), StandInPipeline()).run(poll_s=0.001)
+    assert [r.layer for r in rep.results] == list(range(12))
