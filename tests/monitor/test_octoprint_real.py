@@ -1,0 +1,120 @@
+"""Integration test against a REAL OctoPrint (1.11) with its virtual printer."""
+
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from layerwatch.errors import PrinterError
+from layerwatch.monitor.printers.octoprint import OctoPrintPrinter, parse_octoprint_message
+
+ROOT = Path(__file__).resolve().parents[2]
+VENV = Path(os.environ.get("LAYERWATCH_OCTOPRINT_VENV", ROOT / ".venv-octoprint"))
+OCTO = VENV / "bin" / "octoprint"
+
+
+def test_parse_recorded_push_message():
+    msg = {"current": {"logs": ["Send: N12 M118 E1 layerwatch snapshot layer=3 z=1.200*77",
+                                "Recv: echo:layerwatch snapshot layer=3 z=1.200", "Recv: ok"]}}
+    (t,) = parse_octoprint_message(msg)
+    assert (t.layer, t.z, t.source) == (3, 1.2, "octoprint")
+    assert parse_octoprint_message({"event": {"type": "PrintStarted"}}) == []
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _until(fn, deadline_s, what):
+    end = time.monotonic() + deadline_s
+    last = None
+    while time.monotonic() < end:
+        try:
+            last = fn()
+            if last:
+                return last
+        except (httpx.HTTPError, KeyError):
+            pass
+        time.sleep(0.2)
+    pytest.fail(f"timed out waiting for {what} (last: {last!r})")
+
+
+@pytest.fixture(scope="session")
+def octoprint(tmp_path_factory):
+    if not OCTO.exists():
+        pytest.skip(f"OctoPrint not installed at {VENV}; run .ci/install-octoprint")
+    base = tmp_path_factory.mktemp("octoprint")
+    key = secrets.token_hex(16).upper()
+    (base / "config.yaml").write_text(
+        "server:\n  firstRun: false\n  onlineCheck:\n    enabled: false\n  pluginBlacklist:\n    enabled: false\n"
+        f"api:\n  key: {key}\n"
+        "devel:\n  virtualPrinter:\n    enabled: true\n    okAfterResend: false\n"
+        "plugins:\n  tracking:\n    enabled: false\n  announcements:\n    enabled: false\n  softwareupdate:\n    checks: {}\n"
+    )
+    subprocess.run([str(OCTO), "--basedir", str(base), "user", "add", "--password", "lw-test-pw", "--admin", "lwadmin"],
+                   check=True, capture_output=True, timeout=60)
+    port = _free_port()
+    log = open(base / "serve.log", "w")
+    proc = subprocess.Popen([str(OCTO), "serve", "--iknowwhatimdoing", "--basedir", str(base), "--host", "127.0.0.1",
+                             "--port", str(port)], stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        _until(lambda: httpx.get(url + "/api/version", headers={"X-Api-Key": key}, timeout=2).status_code == 200,
+               60, "OctoPrint to serve")
+        yield url, key
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+        sys.stdout.write((base / "serve.log").read_text()[-2000:] if proc.returncode not in (0, -15) else "")
+
+
+def _gcode(n_layers=6):
+    lines = ["G28", "G90", "M83"]
+    for i in range(n_layers):
+        z = 0.3 * (i + 1)
+        lines += [f"G1 Z{z:.2f} F600"]
+        lines += [f"G1 X{60 + 10 * (k % 2)} Y{60 + k} E0.1 F1200" for k in range(20)]
+        msg = f"layerwatch snapshot layer={i} z={z:.3f}"
+        lines += ["M400", f"@{msg}", f"M118 E1 {msg}", "G4 P200"]
+    return ("\n".join(lines) + "\n").encode()
+
+
+@pytest.mark.octoprint
+def test_real_octoprint_triggers_and_pause(octoprint):
+    url, key = octoprint
+    h = {"X-Api-Key": key}
+    with OctoPrintPrinter(url + "?key=WRONG", push=False) as bad, pytest.raises(PrinterError, match="refused the API key"):
+        bad.status()
+    httpx.post(url + "/api/connection", headers=h, json={"command": "connect", "port": "VIRTUAL", "baudrate": 115200,
+                                                          "autoconnect": False}, timeout=10).raise_for_status()
+    _until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
+           30, "virtual printer connection")
+    printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
+    try:
+        assert printer.wait_connected(15)
+        r = httpx.post(url + "/api/files/local", headers=h, files={"file": ("lw.gcode", _gcode(), "application/octet-stream")},
+                       data={"select": "true", "print": "true"}, timeout=10)
+        r.raise_for_status()
+        seen = []
+        _until(lambda: seen.extend(printer.poll_triggers()) or len(seen) >= 2, 40, "two layer triggers")
+        assert [t.layer for t in seen[:2]] == [0, 1]
+        t0 = seen[1].time
+        printer.pause()
+        print(f"\nOctoPrint: trigger -> pause request {1000 * (time.monotonic() - t0):.0f} ms (no analysis)")
+        _until(lambda: printer.status().state == "paused", 20, "job state Paused")
+        assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"].startswith("Paus")
+        printer.cancel()
+    finally:
+        printer.close()
