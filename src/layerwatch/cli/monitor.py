@@ -1,11 +1,123 @@
-"""CLI verbs for the monitor stage (filled in by its issue)."""
+"""``layerwatch monitor``: watch a print on OctoPrint, Moonraker or the virtual printer."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
 
 import typer
 
 __all__ = ["register"]
 
 
+def open_printer(spec: str, gcode: bytes | None = None):
+    """Printer connector from ``octoprint://host:port?key=K``, ``moonraker://host:port`` or ``virtual[:FILE]``."""
+    from layerwatch.errors import ConfigError
+
+    if spec.startswith("octoprint://"):
+        from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+
+        return OctoPrintPrinter(spec)
+    if spec.startswith("moonraker://"):
+        from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+
+        return MoonrakerPrinter(spec)
+    if spec == "virtual" or spec.startswith("virtual:"):
+        from layerwatch.monitor.printers.virtual import VirtualPrinter
+
+        path = spec[8:]
+        data = Path(path).read_bytes() if path else gcode
+        if data is None:
+            raise ConfigError("--printer virtual needs a G-code: virtual:FILE or --gcode FILE.")
+        return VirtualPrinter(data, name=Path(path).name if path else "virtual.gcode")
+    raise ConfigError(f"unknown --printer {spec!r}; use octoprint://host:port?key=..., moonraker://host:port or virtual:FILE.")
+
+
+def monitor(
+    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port?key=KEY | moonraker://host:port | virtual[:FILE]")] = "virtual",
+    camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | sim")] = "sim",
+    gcode: Annotated[Path | None, typer.Option("--gcode", help="The job's G-code (default: bundled example).")] = None,
+    camera_model: Annotated[Path | None, typer.Option("--camera-model", help="camera.toml with intrinsics and pose.")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="Job config TOML (policy, notify...).")] = None,
+    history: Annotated[Path | None, typer.Option("--history", help="SQLite history file to record the job in.")] = None,
+    settle: Annotated[float, typer.Option("--settle", min=0, help="Seconds to wait after the trigger before the photo.")] = 0.0,
+    wait_for_verdict: Annotated[bool, typer.Option("--wait-for-verdict", help="Hold the printer until the layer is analysed.")] = False,
+    failure: Annotated[str | None, typer.Option("--failure", help="sim camera: inject this failure type.")] = None,
+    onset: Annotated[int, typer.Option("--onset", min=1, help="sim camera: first failed layer.")] = 15,
+    seed: Annotated[int, typer.Option("--seed", help="sim camera: seed.")] = 1,
+) -> None:
+    """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
+    import dataclasses
+    import logging
+
+    from layerwatch.cli import console
+    from layerwatch.config import load_config
+    from layerwatch.errors import ConfigError
+    from layerwatch.examples import PART_GCODE
+    from layerwatch.gcode import read_toolpath
+    from layerwatch.gcode.postprocess import insert_snapshots
+    from layerwatch.geometry.camera import CameraModel
+    from layerwatch.monitor.cameras import SimCamera, open_camera
+    from layerwatch.monitor.notify import Notifier
+    from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.monitor.policy import PausePolicy
+    from layerwatch.monitor.printers.base import parse_trigger
+    from layerwatch.monitor.service import Monitor
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    from layerwatch.evaluate.recommended import recommended_config
+    from layerwatch.examples import PART_CONFIG
+
+    # no --config: the evaluation's recommended settings (and the example's job file for the example part)
+    cfg = load_config(config) if config else recommended_config(PART_CONFIG if gcode is None else None)
+    gpath = gcode or PART_GCODE
+    data = gpath.read_bytes()
+    toolpath = read_toolpath(data)
+    if printer.startswith("virtual") and not any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
+        console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
+        data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
+    tv = cfg.topview.topview()
+    if camera == "sim":
+        from layerwatch.geometry.pose import locate_bed
+        from layerwatch.simulate import Failure, PrintSimulator, default_camera
+
+        truth = default_camera(tv)
+        fails = [Failure(failure, onset=onset, seed=seed)] if failure else []
+        sim = PrintSimulator(toolpath, truth, tv, fails, seed=seed)
+        cam_src = SimCamera(lambda i: sim.frame(min(i, toolpath.n_layers - 1)).photo, settle_s=settle)
+        cam_model = (CameraModel.load(camera_model) if camera_model else
+                     locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), sim.frame(0).photo, cfg.markers, tv))
+    else:
+        if camera_model is None:
+            raise ConfigError("--camera-model camera.toml is needed with a real camera; make one with `layerwatch calibrate`.")
+        cam_src = open_camera(camera, settle_s=settle)
+        cam_model = CameraModel.load(camera_model)
+    prn = open_printer(printer, data)
+    hist = job = None
+    if history is not None:
+        from layerwatch.storage.history import History
+
+        hist = History(history)
+        job = hist.start_job(printer.split("?")[0], gpath, config=cfg)
+    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg), PausePolicy(cfg.policy),
+                  notifier=Notifier(cfg.notify), history=hist, job_id=job,
+                  wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict)
+    console.print(f"monitoring {printer.split('?')[0]} with camera {camera} ({toolpath.n_layers} layers)")
+    try:
+        rep = mon.run(install_signals=True, poll_s=0.2)
+    finally:
+        prn.close()
+        if hist is not None:
+            hist.close()
+    lat = rep.latencies_ms
+    console.print(f"{len(rep.results)} layers analysed, {rep.pauses} pause(s), {rep.alerts} alert(s); outcome {rep.outcome}")
+    for d in rep.decisions:
+        if d.stops:
+            console.print(f"[bold red]{d.action.upper()}[/] {d.reason}")
+    if lat:
+        console.print(f"trigger -> pause request: {', '.join(f'{x:.0f} ms' for x in lat)}")
+
+
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the root app."""
+    app.command("monitor")(monitor)

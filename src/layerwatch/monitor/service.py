@@ -173,8 +173,9 @@ class Monitor:
                     if trig is not None:
                         self.printer.poll_triggers()
                         self.handle_trigger(trig)
-                    if self.printer.status().state == "paused":  # demo: wait for an operator
-                        self.stop_event.wait(poll_s)
+                    if self.printer.status().state == "paused":  # no operator at a virtual printer
+                        self._pool.shutdown(wait=True)
+                        break
                     if trig is None and self.printer.status().state in ("finished", "cancelled"):
                         break
                     continue
