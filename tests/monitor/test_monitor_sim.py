@@ -1,0 +1,55 @@
+"""End-to-end: virtual printer + simulated 1080p camera + the real LayerPipeline + PausePolicy."""
+
+import dataclasses
+import logging
+
+import pytest
+
+from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.policy import PausePolicy
+from layerwatch.monitor.printers.virtual import VirtualPrinter
+from layerwatch.monitor.service import Monitor
+
+
+@pytest.fixture(scope="module")
+def job():
+    from layerwatch.evaluate.recommended import recommended_config
+    from layerwatch.examples import PART_CONFIG, PART_GCODE
+    from layerwatch.gcode import read_toolpath
+    from layerwatch.gcode.postprocess import insert_snapshots
+    from layerwatch.geometry.pose import locate_bed
+    from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.simulate import Failure, PrintSimulator, default_camera
+
+    logging.getLogger("layerwatch.render").setLevel(logging.ERROR)
+    cfg = recommended_config(PART_CONFIG)
+    tv = cfg.topview.topview()
+    data = PART_GCODE.read_bytes()
+    tp = read_toolpath(data)
+    truth = default_camera(tv, image_size=(1920, 1080))
+    n = 20
+    clean = PrintSimulator(tp, truth, tv, [], seed=3)
+    bad = PrintSimulator(tp, truth, tv, [Failure("spaghetti", onset=15, seed=1)], seed=1)
+    frames = {"clean": [clean.frame(i).photo for i in range(n)], "bad": [bad.frame(i).photo for i in range(n)]}
+    cam = locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), frames["clean"][0], cfg.markers, tv)
+    pipe = LayerPipeline(tp, cam, cfg)
+    prepared = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
+    # keep the first n layers' triggers only
+    cut = prepared.find(f"layerwatch snapshot layer={n} ".encode())
+    return cfg, pipe, prepared[: prepared.rfind(b"\n", 0, cut)], frames
+
+
+@pytest.mark.parametrize("wait", [True, False])
+def test_failure_pauses_within_two_layers_and_clean_print_never(job, wait):
+    cfg, pipe, gcode, frames = job
+    vp = VirtualPrinter(gcode)
+    rep = Monitor(vp, SimCamera(lambda i: frames["bad"][i]), pipe, PausePolicy(cfg.policy), wait_for_verdict=wait).run(poll_s=0.01)
+    stops = [d.layer for d in rep.decisions if d.stops]
+    assert stops and 15 <= stops[0] <= 16 and rep.pauses == 1
+    # without waiting, the instant replay may have ended before the verdict arrives
+    assert vp.status().state == "paused" if wait else vp.status().state in ("paused", "finished")
+    print(f"\n1080p, wait_for_verdict={wait}: trigger -> pause request {rep.latencies_ms[0]:.0f} ms "
+          "(includes queueing behind the previous layer when not waiting; the virtual printer has no print time)")
+    vp2 = VirtualPrinter(gcode)
+    rep2 = Monitor(vp2, SimCamera(lambda i: frames["clean"][i]), pipe, PausePolicy(cfg.policy), wait_for_verdict=wait).run(poll_s=0.01)
+    assert rep2.pauses == 0 and len(rep2.results) == 20 and vp2.status().state == "finished"
