@@ -94,3 +94,31 @@ def test_background_analysis_keeps_order():
     vp = VirtualPrinter(_gcode(12))
     rep = Monitor(vp, SimCamera(_frame(None)), StandInPipeline()).run(poll_s=0.001)
     assert [r.layer for r in rep.results] == list(range(12))
+
+
+class _ScriptedPrinter:
+    """Minimal non-virtual Printer stand-in: scripted states, one trigger per poll."""
+
+    def __init__(self, states, triggers):
+        self.states, self.triggers, self.paused = list(states), list(triggers), 0
+
+    def poll_triggers(self):
+        return [self.triggers.pop(0)] if self.triggers else []
+
+    def status(self):
+        from layerwatch.monitor.printers.base import PrinterStatus
+
+        return PrinterStatus(self.states.pop(0) if len(self.states) > 1 else self.states[0])
+
+    def pause(self):
+        self.paused += 1
+
+
+def test_operator_resume_acknowledges():
+    from layerwatch.monitor.printers.base import SnapshotTrigger
+
+    trig = [SnapshotTrigger(i, 0.3 * i) for i in range(1, 4)]
+    p = _ScriptedPrinter(["printing", "printing", "paused", "printing", "printing", "finished"], trig)
+    mon = Monitor(p, SimCamera(_frame(1)), StandInPipeline(), wait_for_verdict=True)
+    mon.run(poll_s=0.001)
+    assert p.paused == 1 and not mon.policy.halted

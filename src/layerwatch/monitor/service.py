@@ -166,6 +166,7 @@ class Monitor:
         step = getattr(self.printer, "step_to_next_trigger", None)
         driven = step is not None and getattr(self.printer, "_thread", None) is None
         backoff = 1.0
+        prev_state = ""
         try:
             while not self.stop_event.is_set():
                 if driven:
@@ -184,6 +185,10 @@ class Monitor:
                         self.handle_trigger(trig)
                     state = self.printer.status().state
                     backoff = 1.0
+                    if prev_state == "paused" and state == "printing" and self.policy.halted:
+                        _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
+                        self.acknowledge()  # the operator resumed: accept what was seen
+                    prev_state = state
                 except PrinterError as exc:
                     self._alert(f"printer unreachable, retrying in {backoff:.0f} s: {exc}")
                     self.stop_event.wait(backoff)
