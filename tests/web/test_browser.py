@@ -62,6 +62,8 @@ def shots(tmp_path):
 
 def test_dashboard_buttons_and_screenshots(server, printer, shots):
     sync_api = pytest.importorskip("playwright.sync_api")
+    # the event log updates over SSE (1 s poll); a loaded CI machine needs more than the 5 s default
+    sync_api.expect.set_options(timeout=20_000)
     url, ids, h = server
     with sync_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
