@@ -104,7 +104,7 @@ def test_real_octoprint_triggers_and_pause(octoprint):
     printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
     try:
         assert printer.wait_connected(15)
-        r = httpx.post(url + "/api/files/local", headers=h, files={"file": ("lw.gcode", _gcode(), "application/octet-stream")},
+        r = httpx.post(url + "/api/files/local", headers=h, files={"file": ("lw.gcode", _gcode(40), "application/octet-stream")},
                        data={"select": "true", "print": "true"}, timeout=10)
         r.raise_for_status()
         seen = []
@@ -114,7 +114,11 @@ def test_real_octoprint_triggers_and_pause(octoprint):
         printer.pause()
         print(f"\nOctoPrint: trigger -> pause request {1000 * (time.monotonic() - t0):.0f} ms (no analysis)")
         _until(lambda: printer.status().state == "paused", 20, "job state Paused")
-        assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"].startswith("Paus")
+        # "Pausing" also maps to paused; OctoPrint ignores a resume until the job is fully "Paused"
+        _until(lambda: httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Paused", 20, "Paused")
+        printer.resume()
+        _until(lambda: printer.status().state == "printing", 20, "job state Printing after resume")
+        assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Printing"
         printer.cancel()
     finally:
         printer.close()
