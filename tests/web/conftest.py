@@ -6,7 +6,7 @@ import pytest
 
 from layerwatch.storage.history import History
 from layerwatch.web.seed import seed_job
-from layerwatch.web.standin import virtual_printer
+from layerwatch.web.virtual import virtual_printer
 
 
 @pytest.fixture

@@ -166,3 +166,19 @@ def test_report_missing_image_file(seeded, tmp_path):
         p.unlink()
     text = build_report(h, ids["live"], tmp_path / "r").read_text()
     assert "missing" in text
+
+
+def test_virtual_printer_is_the_monitor_one(seeded, printer, tmp_path):
+    from layerwatch.errors import PrinterError
+    from layerwatch.monitor.printers.virtual import VirtualPrinter
+    from layerwatch.web.virtual import virtual_printer
+
+    assert isinstance(printer, VirtualPrinter)
+    c = client(seeded, printer)
+    (p,) = c.get("/api/printers").json()
+    assert p["status"]["state"] == "printing" and p["status"]["file"] == "part.gcode"
+    c.post("/api/printers/virtual/cancel")
+    assert printer.status().state == "cancelled"
+    assert c.post("/api/printers/virtual/resume").json()["status"]["state"] == "cancelled"  # no resume after cancel
+    with pytest.raises(PrinterError, match="cannot read G-code"):
+        virtual_printer(tmp_path / "missing.gcode")

@@ -81,12 +81,12 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
 
             page.click("button[data-action='pause']")
             sync_api.expect(state).to_have_text("paused")
-            assert printer.status()["state"] == "paused"
+            assert printer.status().state == "paused"
             page.click("button[data-action='acknowledge']")
             sync_api.expect(page.locator("#events")).to_contain_text("acknowledge requested")
             page.click("button[data-action='resume']")
             sync_api.expect(state).to_have_text("printing")
-            assert printer.status()["state"] == "printing"
+            assert printer.status().state == "printing"
             kinds = [e["kind"] for e in h.events(ids["live"])]
             assert kinds[-3:] == ["pause", "acknowledge", "resume"]
             page.wait_for_timeout(300)

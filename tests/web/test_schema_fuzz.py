@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, settings  # noqa: E402
 from layerwatch.storage.history import History  # noqa: E402
 from layerwatch.web.app import create_app  # noqa: E402
 from layerwatch.web.seed import seed_job  # noqa: E402
-from layerwatch.web.standin import StandInPrinter  # noqa: E402
+from layerwatch.web.virtual import virtual_printer  # noqa: E402
 
 pytestmark = [
     pytest.mark.filterwarnings("ignore::DeprecationWarning"),
@@ -25,7 +25,7 @@ pytestmark = [
 _ROOT = Path(tempfile.mkdtemp(prefix="lw-fuzz-"))
 _HIST = History(_ROOT / "history.db")
 seed_job(_HIST, _ROOT, n_layers=8, fail_at=4, images=True)
-APP = create_app(_HIST, printers={"virtual": StandInPrinter()}, image_root=_ROOT)
+APP = create_app(_HIST, printers={"virtual": virtual_printer()}, image_root=_ROOT)
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     schema = schemathesis.openapi.from_asgi("/openapi.json", APP).exclude(path="/api/stream")

@@ -85,7 +85,7 @@ def serve(
         console.print(f"open http://{host}:{port}/login?token=<token>")
     printers = {}
     if virtual:
-        from layerwatch.web.standin import virtual_printer
+        from layerwatch.web.virtual import virtual_printer
 
         printers["virtual"] = virtual_printer()
     app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent)
