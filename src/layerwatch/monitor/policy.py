@@ -87,6 +87,11 @@ class PausePolicy:
         """True after a pause/cancel decision until :meth:`acknowledge`."""
         return self._halted
 
+    @property
+    def acknowledged(self) -> list[tuple[tuple[float, float, float, float], float]]:
+        """Accepted regions as ``(bbox_mm (x0, y0, x1, y1), area_mm2)``; they count again only if they grow."""
+        return list(self._acked)
+
     def acknowledge(self) -> None:
         """The operator resumed: forget the streak and accept the current regions."""
         for r in self._last_regions:

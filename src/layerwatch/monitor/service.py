@@ -85,6 +85,7 @@ class Monitor:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
         self._futures: list[Future] = []
         self._lock = threading.Lock()
+        self._ack_seen = 0  # id of the last history event checked for dashboard acknowledgements
 
     # ------------------------------------------------------------------ triggers
     def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
@@ -153,9 +154,46 @@ class Monitor:
             self.notifier.notify(f"layerwatch: {message.split(':')[0]}", message, level=level, image=image,
                                  data={"layer": res.layer if res else None}, force=force)
 
-    def acknowledge(self) -> None:
-        """Operator resumed the print: accept the regions seen so far."""
-        self.policy.acknowledge()
+    def acknowledge(self, source: str = "resume") -> None:
+        """The operator accepted the regions seen so far (``source``: ``"resume"`` or ``"dashboard"``).
+
+        They do not trigger again unless they grow (see :meth:`PausePolicy.acknowledge`).
+        """
+        with self._lock:
+            before = len(self.policy.acknowledged)
+            self.policy.acknowledge()
+            n = len(self.policy.acknowledged) - before
+        _log("acknowledged", source=source, regions=n)
+        if self.history is not None and self.job_id is not None:
+            try:
+                self.history.add_event(self.job_id, "acknowledged",
+                                       f"policy accepted {n} region(s) ({source}); they pause again only if they grow",
+                                       {"source": source, "regions": n})
+            except LayerwatchError as exc:
+                log.warning("history write failed: %s", exc)
+
+    def poll_acknowledgements(self) -> int:
+        """Apply ``acknowledge`` events the dashboard wrote to this job's history since the last call.
+
+        Returns
+        -------
+        int
+            Number of acknowledgements applied (0 without a history).
+        """
+        if self.history is None or self.job_id is None:
+            return 0
+        try:
+            events = self.history.events(self.job_id, after=self._ack_seen)
+        except LayerwatchError as exc:
+            log.warning("history read failed: %s", exc)
+            return 0
+        if not events:
+            return 0
+        self._ack_seen = events[-1]["id"]
+        n = sum(e["kind"] == "acknowledge" for e in events)
+        if n:
+            self.acknowledge(source="dashboard")
+        return n
 
     # ------------------------------------------------------------------ loop
     def run(self, *, poll_s: float = 0.2, install_signals: bool = False) -> MonitorReport:
@@ -169,6 +207,7 @@ class Monitor:
         prev_state = ""
         try:
             while not self.stop_event.is_set():
+                self.poll_acknowledgements()  # the dashboard's acknowledge button (shared history)
                 if driven:
                     trig = step()
                     if trig is not None:
