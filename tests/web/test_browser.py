@@ -89,6 +89,9 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             assert printer.status().state == "printing"
             kinds = [e["kind"] for e in h.events(ids["live"])]
             assert kinds[-3:] == ["pause", "acknowledge", "resume"]
+            page.click("#ack-job")  # the live job's own button: the monitor of that job reads it
+            sync_api.expect(page.locator("#ack-msg")).to_have_text("acknowledged")
+            assert h.events(ids["live"])[-1]["kind"] == "acknowledge"
             page.wait_for_timeout(300)
             page.screenshot(path=str(shots / "dashboard-desktop.png"), full_page=True)
 

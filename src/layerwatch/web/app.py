@@ -170,8 +170,24 @@ def create_app(
             out.append({"name": name, "status": status})
         return out
 
+    def live_job(printer: str) -> int | None:
+        """Newest job of ``printer`` that has not ended, or None."""
+        return next((j["id"] for j in history.jobs() if j["printer"] == printer and j["outcome"] is None), None)
+
+    @app.post("/api/jobs/{job_id}/acknowledge",
+              summary="Accept the job's current failing regions",
+              description="Records an `acknowledge` event; the monitor watching this job (same history database) "
+                          "makes its pause policy accept the regions it sees now: they pause again only if they grow.")
+    def acknowledge_job(job_id: int) -> dict[str, Any]:
+        job = need_job(job_id)
+        if job["outcome"] is not None:
+            raise HTTPException(409, f"job {job_id} has ended ({job['outcome']}); only a running job can be acknowledged")
+        eid = history.add_event(job_id, "acknowledge", "acknowledge requested from the dashboard", {"source": "dashboard"})
+        return {"job_id": job_id, "event_id": eid}
+
     @app.post("/api/printers/{name}/{action}", summary="pause / resume / cancel / acknowledge")
     def printer_action(name: str, action: str, job_id: int | None = None) -> dict[str, Any]:
+        """Call the printer connector; the action is logged on ``job_id`` (acknowledge: default the printer's running job)."""
         if name not in printers:
             raise HTTPException(404, f"no printer {name!r}")
         if action not in ACTIONS:
@@ -182,6 +198,8 @@ def create_app(
             fn()
         elif action != "acknowledge":
             raise HTTPException(501, f"printer {name!r} cannot {action}")
+        if job_id is None and action == "acknowledge":
+            job_id = live_job(name)  # the monitor of that job reads the event and acknowledges its policy
         if job_id is not None and history.job(job_id) is not None:
             history.add_event(job_id, action, f"{action} requested from the dashboard", {"printer": name})
         try:

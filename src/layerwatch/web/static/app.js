@@ -6,7 +6,12 @@ let jobCount = -1;
 
 async function api(path, opts) {
   const r = await fetch(path, Object.assign({ credentials: "same-origin" }, opts || {}));
-  if (!r.ok) { throw new Error((await r.text()) || r.status); }
+  if (!r.ok) {
+    const text = await r.text();
+    let detail = text;
+    try { const d = JSON.parse(text).detail; detail = typeof d === "string" ? d : JSON.stringify(d); } catch (e) { /* not JSON */ }
+    throw new Error(detail || String(r.status));
+  }
   return r.json();
 }
 function img(el, path) {
@@ -74,6 +79,7 @@ async function loadJob(job) {
   const im = (latest && latest.images) || {};
   img($("img-top"), im.top || im.photo); img($("img-reference"), im.reference); img($("img-overlay"), im.overlay);
   img($("img-stack"), im.stack); $("stack-none").style.display = im.stack ? "none" : "block";
+  $("ack-job").hidden = !(job && job.outcome == null);
   drawCurve(rows, pause);
   $("curve-legend").innerHTML = `<span style="color:#2563eb">━</span> a% per layer &nbsp; <span style="color:#dc2626">╌</span> pause threshold ${pct(pause)}`;
   $("events").innerHTML = events.slice(-50).reverse().map((e) =>
@@ -100,6 +106,17 @@ document.addEventListener("click", async (ev) => {
     await api(`/api/printers/${encodeURIComponent(name)}/${action}` + (jobId != null ? `?job_id=${jobId}` : ""), { method: "POST" });
   } catch (e) { alert(e.message); }
   b.disabled = false;
+  await refresh();
+});
+
+$("ack-job").addEventListener("click", async () => {
+  if (jobId == null) { return; }
+  $("ack-job").disabled = true;
+  try {
+    await api(`/api/jobs/${jobId}/acknowledge`, { method: "POST" });
+    $("ack-msg").textContent = "acknowledged";
+  } catch (e) { $("ack-msg").textContent = e.message; }
+  $("ack-job").disabled = false;
   await refresh();
 });
 
