@@ -173,3 +173,34 @@ def test_latest_layer(tmp_path):
         for i in (2, 0, 5, 1):
             h.add_layer(job, LayerResult(layer=i, z=0.2 * i, anomaly_ratio=i / 10))
         assert h.latest_layer(job).layer == 5 == h.layers(job)[-1].layer
+
+
+def test_version_1_database_migrates_and_keeps_jobs(tmp_path):
+    from layerwatch.storage.history import MIGRATIONS
+
+    p = tmp_path / "v1.db"
+    with sqlite3.connect(p) as db:  # a database written by the first release (schema 1 only)
+        db.executescript(MIGRATIONS[0])
+        db.execute("INSERT INTO printers(name, created) VALUES ('mk4', 0)")
+        db.execute("INSERT INTO jobs(printer_id, started) VALUES (1, 0)")
+        db.execute("PRAGMA user_version = 1")
+    h = History(p)
+    assert h.schema_version == SCHEMA_VERSION >= 2
+    assert [j["printer"] for j in h.jobs()] == ["mk4"]
+    assert h.setting("job_config") is None
+    h.close()
+
+
+def test_settings_round_trip_and_replace(tmp_path):
+    from layerwatch.config import JobConfig
+
+    p = tmp_path / "h.db"
+    h = History(p)
+    h.set_setting("job_config", JobConfig.model_validate({"policy": {"pause_ratio": 0.2}}))
+    h.set_setting("other", {"x": [1, 2]})
+    h.set_setting("job_config", {"policy": {"pause_ratio": 0.3}})  # replaces, one row per name
+    h.close()
+    h = History(p)
+    assert h.setting("job_config") == {"policy": {"pause_ratio": 0.3}} and h.setting("other") == {"x": [1, 2]}
+    assert h._db.execute("SELECT COUNT(*) FROM settings").fetchone()[0] == 2
+    h.close()

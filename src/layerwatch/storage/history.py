@@ -1,6 +1,7 @@
 """Print history in SQLite: printers, jobs, per-layer results and events.
 
-One database file holds every job. It is opened in WAL mode with
+One database file holds every job, and the settings edited in the dashboard
+(table ``settings``). It is opened in WAL mode with
 ``synchronous=NORMAL`` so that a crash (even SIGKILL of the writer) loses at
 most the layer being written; each :meth:`History.add_layer` is one
 transaction. The schema version lives in ``PRAGMA user_version`` and the
@@ -62,6 +63,14 @@ MIGRATIONS: list[str] = [
         data TEXT
     );
     CREATE INDEX events_job ON events(job_id, id);
+    """,
+    # version 2: settings edited in the dashboard (JSON per name), kept across restarts
+    """
+    CREATE TABLE settings (
+        name TEXT PRIMARY KEY,
+        value TEXT NOT NULL,
+        updated REAL NOT NULL
+    );
     """,
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
@@ -245,6 +254,24 @@ class History:
             db.execute("UPDATE jobs SET ended = ?, outcome = ? WHERE id = ?", (time.time(), outcome, _int(job_id)))
 
         self._run(fn, write=True)
+
+    def set_setting(self, name: str, value: Any) -> None:
+        """Store (or replace) the JSON-able ``value`` under ``name`` (e.g. ``"job_config"``); one transaction."""
+        text = json.dumps(value.model_dump(mode="json") if hasattr(value, "model_dump") else value)
+
+        def fn(db: sqlite3.Connection) -> None:
+            db.execute(
+                "INSERT INTO settings(name, value, updated) VALUES (?, ?, ?) "
+                "ON CONFLICT(name) DO UPDATE SET value=excluded.value, updated=excluded.updated",
+                (str(name), text, time.time()),
+            )
+
+        self._run(fn, write=True)
+
+    def setting(self, name: str) -> Any | None:
+        """The value stored under ``name`` (as decoded JSON), or ``None`` if never set."""
+        row = self._run(lambda db: db.execute("SELECT value FROM settings WHERE name = ?", (str(name),)).fetchone())
+        return None if row is None else json.loads(row[0])
 
     # -- reading ------------------------------------------------------------------
     @staticmethod

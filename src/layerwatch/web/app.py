@@ -5,6 +5,12 @@ HTML page at ``/`` (vanilla JS/CSS from ``web/static``), live updates by
 server-sent events at ``/api/stream``. When a token is given every route but
 ``/login`` checks it (``Authorization: Bearer <token>`` or the cookie set by
 ``GET /login?token=...``) with a constant-time comparison.
+
+Settings edited in the dashboard (``PUT``/``PATCH /api/settings``) are
+validated by the same pydantic sections as the TOML job config and stored in
+the history database (table ``settings``, name :data:`SETTINGS_KEY`), so they
+survive a restart of the server and every dashboard on that database sees
+them; a hand-written TOML file is never rewritten.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import asyncio
 import dataclasses
 import hmac
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -20,24 +27,70 @@ from layerwatch.config import JobConfig
 from layerwatch.errors import LayerwatchError, StorageError, require
 from layerwatch.storage.history import History
 
-__all__ = ["create_app", "MAX_BODY", "COOKIE", "ACTIONS"]
+__all__ = ["create_app", "MAX_BODY", "COOKIE", "ACTIONS", "SETTINGS_KEY"]
+
+log = logging.getLogger("layerwatch.web")
 
 MAX_BODY = 1 << 20
 COOKIE = "layerwatch_token"
 ACTIONS = ("pause", "resume", "cancel", "acknowledge")
 STATIC = Path(__file__).parent / "static"
+SETTINGS_KEY = "job_config"
 
 
 _SECRET = ("key", "token", "password", "secret")
 
 
+def _hide_url(url: Any) -> Any:
+    """``"tgram://bot/chat"`` -> ``"tgram://***"``: notification URLs carry tokens in host and path."""
+    return f"{url.split('://', 1)[0]}://***" if isinstance(url, str) and "://" in url else url
+
+
 def _redact(value: Any) -> Any:
-    """Replace values of secret-looking keys (API keys, tokens) with ``"***"``."""
+    """Replace values of secret-looking keys (API keys, tokens, notification URLs) with ``"***"``."""
     if isinstance(value, dict):
-        return {k: ("***" if any(s in str(k).lower() for s in _SECRET) and v else _redact(v)) for k, v in value.items()}
+        out = {}
+        for k, v in value.items():
+            key = str(k).lower()
+            if any(s in key for s in _SECRET) and v:
+                out[k] = "***"
+            elif key.endswith("_url") or key.endswith("_urls"):
+                out[k] = [_hide_url(u) for u in v] if isinstance(v, list) else _hide_url(v)
+            else:
+                out[k] = _redact(v)
+        return out
     if isinstance(value, list):
         return [_redact(v) for v in value]
     return value
+
+
+def _keep_secrets(new: Any, current: Any) -> Any:
+    """``new`` where a value is exactly what :func:`_redact` showed of ``current``'s replaced by ``current``'s.
+
+    The page sends back the settings it was shown; a secret it never saw must not become ``"***"``.
+    """
+    if isinstance(new, dict) and isinstance(current, dict):
+        shown = _redact(current)
+        return {k: (current[k] if k in current and v == shown[k] and v != current[k]
+                    else _keep_secrets(v, current.get(k))) for k, v in new.items()}
+    return new
+
+
+def _validation_line(exc: Any) -> str:
+    """One line from a pydantic ``ValidationError``: the first bad key, why, and how many more."""
+    errs = exc.errors()
+    first = errs[0]
+    where = ".".join(str(p) for p in first["loc"]) or "settings"
+    more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+    return f"invalid setting {where}: {first['msg']}{more}; fix it and save again."
+
+
+def _merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``patch`` merged in, nested dicts merged key by key."""
+    out = dict(base)
+    for k, v in patch.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def _jsonable(value: Any) -> Any:
@@ -73,7 +126,8 @@ def create_app(
     image_root : Path, optional
         Folder whose files ``/api/image/{path}`` may serve; nothing else is served.
     settings : JobConfig, optional
-        Initial job settings shown/edited by ``/api/settings``.
+        Job settings shown by ``/api/settings`` until someone saves settings
+        in the dashboard (those are stored in ``history`` and win from then on).
     poll_s : float
         Database poll interval of the live-update stream, s.
     """
@@ -84,7 +138,7 @@ def create_app(
 
     printers = dict(printers or {})
     root = Path(image_root).resolve() if image_root is not None else None
-    state = {"settings": settings or JobConfig()}
+    fallback = settings or JobConfig()
     app = FastAPI(title="layerwatch", version="1", description="Layer-by-layer print monitoring dashboard.")
 
     def authorised(request: Request) -> bool:
@@ -214,19 +268,41 @@ def create_app(
 
         return list(METRIC_NAMES)
 
-    @app.get("/api/settings", summary="Current job settings")
-    def get_settings() -> dict[str, Any]:
-        return _redact(state["settings"].model_dump(mode="json"))
+    def current_settings() -> JobConfig:
+        """The settings saved in the history (read each time: other dashboards may save too), else ``fallback``."""
+        from pydantic import ValidationError
 
-    @app.put("/api/settings", summary="Replace job settings (validated)")
-    def put_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
+        stored = history.setting(SETTINGS_KEY)
+        if stored is None:
+            return fallback
+        try:
+            return JobConfig.model_validate(stored)
+        except ValidationError as exc:  # saved by another layerwatch version: show the defaults, keep the row
+            log.warning("saved dashboard settings are no longer valid (%s); showing defaults until saved again",
+                        _validation_line(exc))
+            return fallback
+
+    def save_settings(data: dict[str, Any]) -> dict[str, Any]:
         from pydantic import ValidationError
 
         try:
-            state["settings"] = JobConfig.model_validate(body)
+            cfg = JobConfig.model_validate(_keep_secrets(data, current_settings().model_dump(mode="json")))
         except ValidationError as exc:
-            raise HTTPException(422, json.loads(exc.json(include_url=False))) from None
-        return _redact(state["settings"].model_dump(mode="json"))
+            raise HTTPException(422, _validation_line(exc)) from None
+        history.set_setting(SETTINGS_KEY, cfg)
+        return _redact(cfg.model_dump(mode="json"))
+
+    @app.get("/api/settings", summary="Current job settings")
+    def get_settings() -> dict[str, Any]:
+        return _redact(current_settings().model_dump(mode="json"))
+
+    @app.put("/api/settings", summary="Replace job settings (validated, saved in the history database)")
+    def put_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
+        return save_settings(body)
+
+    @app.patch("/api/settings", summary="Change some settings, e.g. {\"policy\": {\"pause_ratio\": 0.2}} (validated, saved)")
+    def patch_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
+        return save_settings(_merge(current_settings().model_dump(mode="json"), body))
 
     @app.get("/api/image/{path:path}", summary="A stored picture under the image folder")
     def image(path: str):

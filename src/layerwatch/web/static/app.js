@@ -141,7 +141,7 @@ $("settings").addEventListener("submit", async (ev) => {
   try {
     settings = await api("/api/settings", { method: "PUT", headers: { "content-type": "application/json" }, body: JSON.stringify(s) });
     $("settings-msg").textContent = "saved";
-  } catch (e) { $("settings-msg").textContent = "invalid: " + e.message.slice(0, 120); }
+  } catch (e) { $("settings-msg").textContent = (e.message.startsWith("invalid") ? "" : "invalid: ") + e.message.slice(0, 160); }
   await refresh();
 });
 $("jobs").addEventListener("click", (ev) => {
