@@ -9,14 +9,21 @@ or the Klipper macro's ``layerwatch snapshot layer=<n> z=<z>`` response).
 
 from __future__ import annotations
 
+import json
 import re
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger"]
+from layerwatch.errors import PrinterError
+
+if TYPE_CHECKING:
+    import httpx
+
+__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail"]
 
 _TRIGGER = re.compile(
     r"(?:@layerwatch\s+snapshot|layerwatch\s+snapshot|LAYERWATCH_SNAPSHOT)\s+"
@@ -48,6 +55,87 @@ def parse_trigger(line: str, source: str = "") -> SnapshotTrigger | None:
         return SnapshotTrigger(layer=int(m["layer"]), z=float(m["z"]), source=source)
     except ValueError:
         return None
+
+
+def error_detail(body: str, limit: int = 160) -> str:
+    """The human part of an HTTP error body, one line.
+
+    Moonraker answers ``{"error": {"code", "message", "traceback"}}``, OctoPrint
+    ``{"error": "..."}`` or a short HTML/text page; the message is kept, a
+    traceback never.
+
+    Parameters
+    ----------
+    body : str
+        Response text.
+    limit : int
+        Maximum length of the result, characters.
+    """
+    text = body.strip()
+    try:
+        data = json.loads(text)
+    except ValueError:
+        data = None
+    if isinstance(data, dict):
+        err = data.get("error", data.get("message"))
+        if isinstance(err, dict):
+            err = err.get("message") or err.get("error")
+        if isinstance(err, str) and err.strip():
+            text = err
+    text = re.sub(r"<[^>]+>", " ", text)  # HTML error pages
+    text = " ".join(text.split())
+    return text[:limit] or "(empty body)"
+
+
+def http_request(http: httpx.Client, method: str, path: str, *, printer: str, credential: str,
+                 auth_hint: str, status_hints: Mapping[int, str] | None = None, **kw: Any) -> httpx.Response:
+    """Send one request of a printer connector and turn every failure into a :class:`PrinterError`.
+
+    Parameters
+    ----------
+    http : httpx.Client
+        Client with ``base_url`` set.
+    method, path : str
+        HTTP method and path (``"POST"``, ``"/api/job"``).
+    printer : str
+        Host software name for messages (``"OctoPrint"``, ``"Moonraker"``).
+    credential : str
+        What a 401/403 refused (``"the API key"``, ``"the request"``).
+    auth_hint : str
+        How to fix a 401/403 (one clause).
+    status_hints : mapping of int to str, optional
+        Extra explanation per status code (OctoPrint's 409: not connected / not printing).
+    **kw
+        Passed to :meth:`httpx.Client.request` (``params``, ``json``...).
+
+    Returns
+    -------
+    httpx.Response
+        A response with status < 400.
+
+    Raises
+    ------
+    PrinterError
+        Unreachable host (connection refused, timeout...), refused credentials,
+        or any status >= 400 (with the server's own message, never its traceback).
+    """
+    import httpx
+
+    base = str(http.base_url).rstrip("/")
+    try:
+        r = http.request(method, path, **kw)
+    except httpx.HTTPError as exc:
+        raise PrinterError(f"{printer} at {base} unreachable ({type(exc).__name__}); "
+                           "check host, port and that it runs.") from exc
+    if r.status_code < 400:
+        return r
+    detail = error_detail(r.text)
+    if r.status_code in (401, 403):
+        raise PrinterError(f"{printer} at {base} refused {credential} (HTTP {r.status_code}: {detail}); {auth_hint}.")
+    hint = (status_hints or {}).get(r.status_code)
+    if hint:
+        raise PrinterError(f"{printer} refused {method} {path} (HTTP {r.status_code}: {detail}); {hint}.")
+    raise PrinterError(f"{printer} {method} {path} failed with HTTP {r.status_code}: {detail}")
 
 
 @dataclass(frozen=True)

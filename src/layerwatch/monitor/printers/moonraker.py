@@ -15,8 +15,7 @@ from collections.abc import Iterable
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from layerwatch.errors import PrinterError
-from layerwatch.monitor.printers.base import Printer, PrinterStatus, parse_trigger
+from layerwatch.monitor.printers.base import Printer, PrinterStatus, http_request, parse_trigger
 
 __all__ = ["MoonrakerPrinter", "SUBSCRIBE"]
 
@@ -25,6 +24,8 @@ log = logging.getLogger("layerwatch.monitor.moonraker")
 #: JSON-RPC request sent after the websocket opens
 SUBSCRIBE = {"jsonrpc": "2.0", "method": "printer.objects.subscribe",
              "params": {"objects": {"print_stats": None, "gcode_move": None, "virtual_sdcard": ["progress"]}}, "id": 1}
+
+_HINTS = {503: "Klippy is not running or not ready (check klippy.log; FIRMWARE_RESTART)"}
 
 _STATES = {"printing": "printing", "paused": "paused", "complete": "finished", "cancelled": "cancelled",
            "standby": "idle", "error": "error"}
@@ -56,6 +57,7 @@ class MoonrakerPrinter(Printer):
         self._objects: dict[str, dict[str, Any]] = {}
         self._last_layer: int | None = None
         self._stop = threading.Event()
+        self._ws_ready = threading.Event()
         self._thread: threading.Thread | None = None
         if push:
             self._thread = threading.Thread(target=self._ws_loop, name="moonraker-ws", daemon=True)
@@ -63,16 +65,9 @@ class MoonrakerPrinter(Printer):
 
     # -- HTTP ------------------------------------------------------------------
     def _req(self, method: str, path: str, **kw) -> Any:
-        import httpx
-
-        try:
-            r = self._http.request(method, path, **kw)
-        except httpx.HTTPError as exc:
-            raise PrinterError(f"Moonraker at {self.base} unreachable ({type(exc).__name__}); check host, port and that it runs.") from exc
-        if r.status_code in (401, 403):
-            raise PrinterError(f"Moonraker at {self.base} refused the request (HTTP {r.status_code}); add ?key=API_KEY or trust this host.")
-        if r.status_code >= 400:
-            raise PrinterError(f"Moonraker {method} {path} failed with HTTP {r.status_code}: {r.text.strip()[:120]}")
+        r = http_request(self._http, method, path, printer="Moonraker", credential="the request",
+                         auth_hint="add ?key=API_KEY to the printer URL or add this host to "
+                                   "[authorization] trusted_clients", status_hints=_HINTS, **kw)
         return r.json().get("result") if r.content else None
 
     def server_info(self) -> dict[str, Any]:
@@ -130,6 +125,11 @@ class MoonrakerPrinter(Printer):
             self._merge(params[0])
         elif isinstance(msg.get("result"), dict) and "status" in msg["result"]:
             self._merge(msg["result"]["status"])
+            self._ws_ready.set()
+
+    def wait_connected(self, timeout: float = 10.0) -> bool:
+        """Wait until the websocket subscription was answered (triggers flow from then on)."""
+        return self._ws_ready.wait(timeout)
 
     def _ws_loop(self) -> None:
         from websockets.sync.client import connect

@@ -18,11 +18,13 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from layerwatch.errors import PrinterError
-from layerwatch.monitor.printers.base import Printer, PrinterStatus, parse_trigger
+from layerwatch.monitor.printers.base import Printer, PrinterStatus, http_request, parse_trigger
 
 __all__ = ["OctoPrintPrinter", "parse_octoprint_message"]
 
 log = logging.getLogger("layerwatch.monitor.octoprint")
+
+_HINTS = {409: "the printer is not connected, or the job is not in a state for this command"}
 
 _STATES = {"printing": "printing", "paused": "paused", "pausing": "paused", "operational": "idle",
            "cancelling": "cancelled", "offline": "offline", "error": "error", "finishing": "printing",
@@ -80,18 +82,8 @@ class OctoPrintPrinter(Printer):
 
     # -- REST --------------------------------------------------------------
     def _req(self, method: str, path: str, **kw) -> Any:
-        import httpx
-
-        try:
-            r = self._http.request(method, path, **kw)
-        except httpx.HTTPError as exc:
-            raise PrinterError(f"OctoPrint at {self.base} unreachable ({type(exc).__name__}); check host, port and that it runs.") from exc
-        if r.status_code in (401, 403):
-            raise PrinterError(f"OctoPrint at {self.base} refused the API key (HTTP {r.status_code}); copy the key from Settings > API.")
-        if r.status_code == 409:
-            raise PrinterError(f"OctoPrint refused {path}: {r.text.strip()[:120]} (printer not connected or not printing).")
-        if r.status_code >= 400:
-            raise PrinterError(f"OctoPrint {method} {path} failed with HTTP {r.status_code}: {r.text.strip()[:120]}")
+        r = http_request(self._http, method, path, printer="OctoPrint", credential="the API key",
+                         auth_hint="copy the key from Settings > API", status_hints=_HINTS, **kw)
         return r.json() if r.content and "json" in r.headers.get("content-type", "") else None
 
     def status(self) -> PrinterStatus:

@@ -1,0 +1,97 @@
+"""MoonrakerPrinter against a REAL Moonraker 0.11 and a REAL Klippy (no hardware).
+
+See moonraker_stack.py for how Klippy runs without a printer. Nothing here fakes
+Moonraker's HTTP or websocket API; the only test-side helper inside Klippy is the
+real-time layer wait (debug-output mode would otherwise print instantly).
+"""
+
+import pytest
+from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, until
+
+from layerwatch.errors import PrinterError
+from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+
+pytestmark = pytest.mark.moonraker
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    require_installed()
+    s = MoonrakerStack(tmp_path_factory.mktemp("moonraker"))
+    try:
+        s.start()
+        yield s
+    except BaseException:
+        print(s.log_tail())
+        raise
+    finally:
+        s.stop()
+
+
+def test_real_moonraker_triggers_status_pause_resume_cancel(stack):
+    info = MoonrakerPrinter(stack.url, push=False)
+    try:
+        si = info.server_info()
+        assert si["klippy_state"] == "ready" and si["moonraker_version"].startswith("0.11")
+        assert info.status().state == "idle"  # print_stats "standby"
+    finally:
+        info.close()
+
+    printer = MoonrakerPrinter(f"moonraker://127.0.0.1:{stack.port}")
+    try:
+        assert printer.wait_connected(15), "websocket subscription never answered"
+        stack.upload_and_print("lw_part.gcode", klipper_gcode(n_layers=40, layer_s=0.25))
+        seen = []
+        until(lambda: seen.extend(printer.poll_triggers()) or len(seen) >= 2, 30, "two layer triggers")
+        assert [(t.layer, t.z) for t in seen[:2]] == [(0, 0.3), (1, 0.6)]
+        st = until(lambda: (s := printer.status()).state == "printing" and s, 10, "state printing")
+        assert st.file == "lw_part.gcode" and st.layer is not None and st.layer >= 1
+        assert st.z is not None and st.z >= 0.6 and 0 < st.progress < 1
+
+        printer.pause()
+        until(lambda: printer.status().state == "paused", 15, "print_stats paused")
+        # Klippy itself, queried through Moonraker without layerwatch: paused, SD card stopped
+        q = stack.query("pause_resume", "print_stats", "virtual_sdcard")
+        assert q["pause_resume"]["is_paused"] is True and q["print_stats"]["state"] == "paused"
+        assert q["virtual_sdcard"]["is_active"] is False
+        layer_at_pause = printer.status().layer
+
+        printer.resume()
+        until(lambda: printer.status().state == "printing", 15, "printing after resume")
+        until(lambda: seen.extend(printer.poll_triggers()) or seen[-1].layer > layer_at_pause + 1, 15,
+              "triggers after resume")
+        # every layer reported once, in order, none lost across pause/resume
+        assert [t.layer for t in seen] == list(range(seen[-1].layer + 1))
+
+        printer.send_gcode('RESPOND MSG="layerwatch snapshot layer=999 z=99.000"')
+        until(lambda: any(t.layer == 999 for t in printer.poll_triggers()), 10, "trigger from send_gcode")
+
+        printer.cancel()
+        until(lambda: printer.status().state == "cancelled", 15, "print_stats cancelled")
+    finally:
+        printer.close()
+
+
+def test_klippy_restart_is_a_clear_error_then_triggers_flow_again(stack):
+    printer = MoonrakerPrinter(stack.url)
+    try:
+        assert printer.wait_connected(15)
+        stack.stop_klippy()
+        err = until(lambda: _error_of(printer.status), 10, "an error while Klippy is down")
+        assert "Klippy Host not connected" in str(err) and "traceback" not in str(err).lower()
+        stack.start_klippy()
+        stack.wait_ready()
+        # Moonraker re-subscribes for its clients when Klippy comes back: the same websocket delivers
+        until(lambda: printer.send_gcode('RESPOND MSG="layerwatch snapshot layer=7 z=2.100"') or
+              any(t.layer == 7 for t in printer.poll_triggers()), 15, "trigger after Klippy restart")
+        assert printer.status().state == "idle"
+    finally:
+        printer.close()
+
+
+def _error_of(fn):
+    try:
+        fn()
+    except PrinterError as exc:
+        return exc
+    return None
