@@ -5,6 +5,7 @@ Moonraker's HTTP or websocket API; the only test-side helper inside Klippy is th
 real-time layer wait (debug-output mode would otherwise print instantly).
 """
 
+import httpx
 import pytest
 from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, until
 
@@ -95,3 +96,21 @@ def _error_of(fn):
     except PrinterError as exc:
         return exc
     return None
+
+
+def test_klippy_shutdown_during_print_is_error_not_pause(stack):
+    """After M112 print_stats still says "paused"; the connector must report Klippy's shutdown."""
+    printer = MoonrakerPrinter(stack.url)
+    try:
+        assert printer.wait_connected(15)
+        stack.upload_and_print("lw_shutdown.gcode", klipper_gcode(n_layers=40, layer_s=0.25))
+        until(lambda: printer.poll_triggers(), 15, "a layer trigger")
+        httpx.post(stack.url + "/printer/emergency_stop", timeout=5).raise_for_status()
+        until(lambda: stack.query("webhooks")["webhooks"]["state"] == "shutdown", 10, "Klippy shutdown")
+        assert stack.query("print_stats")["print_stats"]["state"] in ("paused", "printing", "error")
+        assert printer.status().state == "error"
+        httpx.post(stack.url + "/printer/firmware_restart", timeout=10).raise_for_status()
+        stack.wait_ready()
+        until(lambda: printer.status().state == "idle", 15, "idle after FIRMWARE_RESTART")
+    finally:
+        printer.close()

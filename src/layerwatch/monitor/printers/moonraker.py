@@ -23,9 +23,13 @@ log = logging.getLogger("layerwatch.monitor.moonraker")
 
 #: JSON-RPC request sent after the websocket opens
 SUBSCRIBE = {"jsonrpc": "2.0", "method": "printer.objects.subscribe",
-             "params": {"objects": {"print_stats": None, "gcode_move": None, "virtual_sdcard": ["progress"]}}, "id": 1}
+             "params": {"objects": {"print_stats": None, "gcode_move": None, "virtual_sdcard": ["progress"],
+                                    "webhooks": ["state", "state_message"]}}, "id": 1}
 
 _HINTS = {503: "Klippy is not running or not ready (check klippy.log; FIRMWARE_RESTART)"}
+
+#: Klippy (``webhooks.state``) states that override print_stats
+_KLIPPY_STATES = {"shutdown": "error", "error": "error", "startup": "offline"}
 
 _STATES = {"printing": "printing", "paused": "paused", "complete": "finished", "cancelled": "cancelled",
            "standby": "idle", "error": "error"}
@@ -75,15 +79,21 @@ class MoonrakerPrinter(Printer):
         return self._req("GET", "/server/info")
 
     def status(self) -> PrinterStatus:
-        res = self._req("GET", "/printer/objects/query", params={"print_stats": "", "gcode_move": "", "virtual_sdcard": ""})
+        res = self._req("GET", "/printer/objects/query",
+                        params={"print_stats": "", "gcode_move": "", "virtual_sdcard": "progress",
+                                "webhooks": "state,state_message"})
         self._merge(res.get("status", {}))
         return self._status()
 
     def _status(self) -> PrinterStatus:
         ps = self._objects.get("print_stats", {})
+        klippy = str(self._objects.get("webhooks", {}).get("state", "ready"))
         pos = self._objects.get("gcode_move", {}).get("gcode_position")
         prog = self._objects.get("virtual_sdcard", {}).get("progress")
-        return PrinterStatus(_STATES.get(str(ps.get("state", "")), "idle"), ps.get("filename") or None,
+        # After a Klippy shutdown (M112, MCU error) print_stats still says "paused" or "printing":
+        # Klippy's own state wins, so a shutdown is never taken for a pause.
+        state = _KLIPPY_STATES.get(klippy) or _STATES.get(str(ps.get("state", "")), "idle")
+        return PrinterStatus(state, ps.get("filename") or None,
                              self._last_layer, float(pos[2]) if pos and len(pos) > 2 else None,
                              None if prog is None else float(prog))
 
