@@ -5,12 +5,19 @@ Moonraker's HTTP or websocket API; the only test-side helper inside Klippy is th
 real-time layer wait (debug-output mode would otherwise print instantly).
 """
 
+import threading
+
 import httpx
+import numpy as np
 import pytest
 from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, until
 
+from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.errors import PrinterError
+from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+from layerwatch.monitor.service import Monitor
 
 pytestmark = pytest.mark.moonraker
 
@@ -113,4 +120,57 @@ def test_klippy_shutdown_during_print_is_error_not_pause(stack):
         stack.wait_ready()
         until(lambda: printer.status().state == "idle", 15, "idle after FIRMWARE_RESTART")
     finally:
+        printer.close()
+
+
+class _FlagPipeline:
+    """Stand-in analysis (the real pipeline is tested elsewhere): a fixed failing region from ``onset`` on."""
+
+    def __init__(self, onset):
+        self.onset, self.seen = onset, []
+
+    def process(self, photo, layer_index):
+        self.seen.append(layer_index)
+        bad = layer_index >= self.onset
+        regions = [Region(60.0, (90, 90, 110, 110), (100, 100), 4, 0.4)] if bad else []
+        return LayerResult(layer=layer_index, z=0.3 * (layer_index + 1), anomaly_ratio=0.3 if bad else 0.0,
+                           printed_area_mm2=1000, anomalous_area_mm2=300 if bad else 0, regions=regions)
+
+
+def _frame(layer):
+    img = np.zeros((48, 64, 3), np.uint8)
+    img[..., 1] = layer % 256
+    return img
+
+
+def test_monitor_pauses_a_real_moonraker_print_and_acknowledges_the_operator_resume(stack):
+    printer = MoonrakerPrinter(stack.url)
+    pipe = _FlagPipeline(onset=3)
+    mon = Monitor(printer, SimCamera(_frame), pipe, PausePolicy())
+    out = {}
+    t = threading.Thread(target=lambda: out.setdefault("report", mon.run(poll_s=0.05)), daemon=True)
+    try:
+        assert printer.wait_connected(15)
+        stack.upload_and_print("lw_monitor.gcode", klipper_gcode(n_layers=40, layer_s=0.25))
+        t.start()
+        until(lambda: stack.query("print_stats")["print_stats"]["state"] == "paused", 20,
+              "Klippy paused by the monitor")
+        assert mon.report.pauses == 1 and mon.policy.halted
+        paused_on = next(r for r in mon.report.results if r.extra.get("decision") == "pause")
+        assert 3 <= paused_on.layer <= 4  # k=2 consecutive layers from the onset at layer 3
+        print(f"\nMoonraker: trigger -> pause request {paused_on.extra['trigger_to_pause_ms']} ms (stand-in analysis)")
+        # the operator resumes on the printer's own UI (not through layerwatch)
+        httpx.post(stack.url + "/printer/print/resume", timeout=10).raise_for_status()
+        until(lambda: not mon.policy.halted, 15, "the monitor to acknowledge the operator's resume")
+        n = len(pipe.seen)
+        until(lambda: len(pipe.seen) >= n + 2, 15, "layers analysed after the resume")
+        assert mon.report.pauses == 1  # the acknowledged region does not pause again
+        httpx.post(stack.url + "/printer/print/cancel", timeout=10).raise_for_status()
+        t.join(20)
+        assert not t.is_alive() and out["report"].outcome == "cancelled"
+        assert pipe.seen == list(range(len(pipe.seen)))
+    finally:
+        mon.stop_event.set()
+        if t.is_alive():
+            t.join(10)
         printer.close()
