@@ -113,9 +113,11 @@ def test_real_octoprint_triggers_and_pause(octoprint):
         t0 = seen[1].time
         printer.pause()
         print(f"\nOctoPrint: trigger -> pause request {1000 * (time.monotonic() - t0):.0f} ms (no analysis)")
-        _until(lambda: printer.status().state == "paused", 20, "job state Paused")
-        # "Pausing" also maps to paused; OctoPrint ignores a resume until the job is fully "Paused"
-        _until(lambda: httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Paused", 20, "Paused")
+        states = []
+        _until(lambda: states.append(printer.status().state) or states[-1] == "paused", 20, "job state Paused")
+        assert set(states) <= {"printing", "pausing", "paused"}, states
+        # "paused" now means OctoPrint's exact "Paused" ("Pausing" is its own state; a resume then is ignored)
+        assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Paused"
         printer.resume()
         _until(lambda: printer.status().state == "printing", 20, "job state Printing after resume")
         assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Printing"

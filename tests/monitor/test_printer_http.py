@@ -97,3 +97,16 @@ def test_unreachable_names_host_and_fix():
         http_request(c, "GET", "/x", printer="Moonraker", credential="the request", auth_hint="-")
     assert str(e.value) == ("Moonraker at http://127.0.0.1:9 unreachable (ConnectError); "
                             "check host, port and that it runs.")
+
+
+def test_octoprint_transient_states_and_resume_while_pausing(server):
+    _, hostport = server
+    with OctoPrintPrinter(f"octoprint://{hostport}?key=K", push=False) as p:
+        for octo, ours in [("Pausing", "pausing"), ("Paused", "paused"), ("Resuming", "resuming"),
+                           ("Cancelling", "cancelling"), ("Printing from SD", "printing"),
+                           ("Offline after error", "offline"), ("Opening serial connection", "offline")]:
+            _set(200, json.dumps({"state": octo, "job": {"file": {"name": "a.gcode"}}, "progress": {}}))
+            assert p.status().state == ours, octo
+        _set(200, json.dumps({"state": "Pausing", "job": {}, "progress": {}}))
+        with pytest.raises(PrinterError, match="still pausing"):
+            p.resume()

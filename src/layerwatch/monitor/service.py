@@ -22,7 +22,7 @@ import numpy as np
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import CameraError, LayerwatchError, PrinterError
 from layerwatch.monitor.policy import Decision, PausePolicy
-from layerwatch.monitor.printers.base import Printer, SnapshotTrigger
+from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 
 __all__ = ["Monitor", "MonitorReport"]
 
@@ -204,7 +204,7 @@ class Monitor:
         step = getattr(self.printer, "step_to_next_trigger", None)
         driven = step is not None and getattr(self.printer, "_thread", None) is None
         backoff = 1.0
-        prev_state = ""
+        prev_state = last_seen = ""
         try:
             while not self.stop_event.is_set():
                 self.poll_acknowledgements()  # the dashboard's acknowledge button (shared history)
@@ -224,10 +224,17 @@ class Monitor:
                         self.handle_trigger(trig)
                     state = self.printer.status().state
                     backoff = 1.0
-                    if prev_state == "paused" and state == "printing" and self.policy.halted:
-                        _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
-                        self.acknowledge()  # the operator resumed: accept what was seen
-                    prev_state = state
+                    if state in TRANSIENT_STATES:
+                        # pausing/resuming/cancelling: neither paused nor resumed yet; prev_state keeps
+                        # the last settled state, so "pausing -> printing" is no operator resume
+                        if state != last_seen:
+                            _log("transient", state=state)
+                    else:
+                        if prev_state == "paused" and state == "printing" and self.policy.halted:
+                            _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
+                            self.acknowledge()  # the operator resumed: accept what was seen
+                        prev_state = state
+                    last_seen = state
                 except PrinterError as exc:
                     self._alert(f"printer unreachable, retrying in {backoff:.0f} s: {exc}")
                     self.stop_event.wait(backoff)

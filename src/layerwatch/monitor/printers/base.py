@@ -23,7 +23,10 @@ from layerwatch.errors import PrinterError
 if TYPE_CHECKING:
     import httpx
 
-__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail"]
+__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES"]
+
+#: states a job passes through on its way to paused / printing / cancelled
+TRANSIENT_STATES = frozenset({"pausing", "resuming", "cancelling"})
 
 _TRIGGER = re.compile(
     r"(?:@layerwatch\s+snapshot|layerwatch\s+snapshot|LAYERWATCH_SNAPSHOT)\s+"
@@ -146,7 +149,9 @@ class PrinterStatus:
     ----------
     state : str
         ``"idle"``, ``"printing"``, ``"paused"``, ``"cancelled"``, ``"finished"``,
-        ``"error"`` or ``"offline"``.
+        ``"error"`` or ``"offline"``; or a transient ``"pausing"``, ``"resuming"``,
+        ``"cancelling"`` (OctoPrint) while the host is between two of those: a
+        ``"pausing"`` job is not paused yet (OctoPrint ignores a resume then).
     file : str or None
         Name of the job's G-code file.
     layer : int or None
@@ -162,6 +167,11 @@ class PrinterStatus:
     layer: int | None = None
     z: float | None = None
     progress: float | None = None
+
+    @property
+    def transient(self) -> bool:
+        """True while the host is pausing, resuming or cancelling (wait for the state it goes to)."""
+        return self.state in TRANSIENT_STATES
 
 
 @dataclass(frozen=True)

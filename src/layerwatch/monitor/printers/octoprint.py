@@ -26,9 +26,13 @@ log = logging.getLogger("layerwatch.monitor.octoprint")
 
 _HINTS = {409: "the printer is not connected, or the job is not in a state for this command"}
 
-_STATES = {"printing": "printing", "paused": "paused", "pausing": "paused", "operational": "idle",
-           "cancelling": "cancelled", "offline": "offline", "error": "error", "finishing": "printing",
-           "resuming": "printing", "starting": "printing"}
+#: OctoPrint job state (``/api/job`` ``state``, matched by prefix) -> PrinterStatus.state.
+#: "Pausing", "Resuming" and "Cancelling" stay transient: OctoPrint ignores a resume until
+#: the job is really "Paused", and a cancelling job may still move.
+_STATES = {"printing": "printing", "paused": "paused", "pausing": "pausing", "resuming": "resuming",
+           "cancelling": "cancelling", "operational": "idle", "finishing": "printing",
+           "starting": "printing", "offline": "offline", "opening serial": "offline",
+           "detecting serial": "offline", "connecting": "offline", "closed": "offline", "error": "error"}
 
 
 def parse_octoprint_message(msg: dict[str, Any], source: str = "octoprint") -> list:
@@ -98,6 +102,10 @@ class OctoPrintPrinter(Printer):
         self._req("POST", "/api/job", json={"command": "pause", "action": "pause"})
 
     def resume(self) -> None:
+        """Resume a paused job; refuses while OctoPrint is still "Pausing" (it would ignore the resume)."""
+        if self.status().state == "pausing":
+            raise PrinterError("OctoPrint is still pausing the job and would ignore a resume; "
+                               "resume once it shows Paused.")
         self._req("POST", "/api/job", json={"command": "pause", "action": "resume"})
 
     def cancel(self) -> None:
