@@ -164,6 +164,8 @@ async function refresh() {
 }
 
 (async function main() {
+  const linked = /^#job=(\d+)$/.exec(location.hash);  // /#job=12 opens that job (links, bookmarks)
+  if (linked) { jobId = parseInt(linked[1], 10); }
   settingsReady = loadSettings();
   await refresh();
   const es = new EventSource("/api/stream");
