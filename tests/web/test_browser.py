@@ -30,7 +30,8 @@ def server(seeded, printer):
 
     h, root, ids = seeded
     app = create_app(h, printers={"virtual": printer}, image_root=root, poll_s=0.2)
-    sock = socket.socket()
+    # IPPROTO_TCP as uvicorn binds it itself: asyncio sets TCP_NODELAY only then (else ~40 ms Nagle stalls)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
     srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
