@@ -22,7 +22,7 @@ test: $(STAMP)
 	$(PY) -m pytest
 
 bench: $(STAMP)
-	$(PY) -m pytest benchmarks -p no:cacheprovider -s
+	$(PY) -m pytest benchmarks -p no:cacheprovider -s -o python_files="bench_*.py"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
