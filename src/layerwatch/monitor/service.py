@@ -70,16 +70,21 @@ class Monitor:
         With ``job_id``; layers and events are recorded.
     wait_for_verdict : bool
         Analyse before releasing the trigger (printer waits for the verdict).
+    initial_backoff_s, max_backoff_s : float
+        First and largest wait between printer retries, s; the wait doubles after each
+        failed status poll and goes back to ``initial_backoff_s`` once the printer answers.
     """
 
     def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
                  *, notifier: Any = None, history: Any = None, job_id: int | None = None,
-                 wait_for_verdict: bool = False, max_backoff_s: float = 30.0) -> None:
+                 wait_for_verdict: bool = False, max_backoff_s: float = 30.0,
+                 initial_backoff_s: float = 1.0) -> None:
         self.printer, self.camera, self.pipeline = printer, camera, pipeline
         self.policy = policy or PausePolicy()
         self.notifier, self.history, self.job_id = notifier, history, job_id
         self.wait_for_verdict = wait_for_verdict
         self.max_backoff_s = max_backoff_s
+        self.initial_backoff_s = initial_backoff_s
         self.report = MonitorReport()
         self.stop_event = threading.Event()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
@@ -203,7 +208,8 @@ class Monitor:
                 signal.signal(sig, lambda *_: self.stop_event.set())
         step = getattr(self.printer, "step_to_next_trigger", None)
         driven = step is not None and getattr(self.printer, "_thread", None) is None
-        backoff = 1.0
+        backoff = self.initial_backoff_s
+        outage: tuple[float, int] | None = None  # (start, failed polls) while the printer is unreachable
         prev_state = last_seen = ""
         try:
             while not self.stop_event.is_set():
@@ -223,7 +229,11 @@ class Monitor:
                     for trig in self.printer.poll_triggers():
                         self.handle_trigger(trig)
                     state = self.printer.status().state
-                    backoff = 1.0
+                    backoff = self.initial_backoff_s
+                    if outage is not None:
+                        _log("printer_reconnected", after_s=round(time.monotonic() - outage[0], 1),
+                             failed_polls=outage[1], state=state)
+                        outage = None
                     if state in TRANSIENT_STATES:
                         # pausing/resuming/cancelling: neither paused nor resumed yet; prev_state keeps
                         # the last settled state, so "pausing -> printing" is no operator resume
@@ -236,7 +246,12 @@ class Monitor:
                         prev_state = state
                     last_seen = state
                 except PrinterError as exc:
-                    self._alert(f"printer unreachable, retrying in {backoff:.0f} s: {exc}")
+                    # never a pause: alert once per outage, then log each retry (capped exponential backoff)
+                    _log("printer_unreachable", retry_s=backoff, error=str(exc))
+                    if outage is None:
+                        outage = (time.monotonic(), 0)
+                        self._alert(f"printer unreachable, retrying with backoff up to {self.max_backoff_s:g} s: {exc}")
+                    outage = (outage[0], outage[1] + 1)
                     self.stop_event.wait(backoff)
                     backoff = min(backoff * 2, self.max_backoff_s)
                     continue

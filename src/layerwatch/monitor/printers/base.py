@@ -23,7 +23,11 @@ from layerwatch.errors import PrinterError
 if TYPE_CHECKING:
     import httpx
 
-__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES"]
+__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES", "WS_RETRY_S"]
+
+#: websocket reconnect wait of the connectors: first, largest (s); doubles per failed attempt.
+#: Capped low so that triggers flow again within seconds after a host restart.
+WS_RETRY_S = (0.5, 5.0)
 
 #: states a job passes through on its way to paused / printing / cancelled
 TRANSIENT_STATES = frozenset({"pausing", "resuming", "cancelling"})

@@ -15,7 +15,13 @@ from collections.abc import Iterable
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from layerwatch.monitor.printers.base import Printer, PrinterStatus, http_request, parse_trigger
+from layerwatch.monitor.printers.base import (
+    WS_RETRY_S,
+    Printer,
+    PrinterStatus,
+    http_request,
+    parse_trigger,
+)
 
 __all__ = ["MoonrakerPrinter", "SUBSCRIBE"]
 
@@ -144,13 +150,13 @@ class MoonrakerPrinter(Printer):
     def _ws_loop(self) -> None:
         from websockets.sync.client import connect
 
-        backoff = 0.5
+        backoff = WS_RETRY_S[0]
         while not self._stop.is_set():
             try:
                 with connect("ws" + self.base[4:] + "/websocket", open_timeout=5, close_timeout=1,
                              additional_headers=dict(self._http.headers.items()) if "x-api-key" in self._http.headers else None) as ws:
                     ws.send(json.dumps(SUBSCRIBE))
-                    backoff = 0.5
+                    backoff = WS_RETRY_S[0]
                     while not self._stop.is_set():
                         try:
                             self.handle_frame(ws.recv(timeout=0.5))
@@ -161,7 +167,7 @@ class MoonrakerPrinter(Printer):
                     return
                 log.warning("Moonraker websocket: %s; reconnecting in %.1f s", exc, backoff)
                 self._stop.wait(backoff)
-                backoff = min(backoff * 2, 30.0)
+                backoff = min(backoff * 2, WS_RETRY_S[1])
 
     def close(self) -> None:
         self._stop.set()

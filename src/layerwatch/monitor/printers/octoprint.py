@@ -18,7 +18,13 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from layerwatch.errors import PrinterError
-from layerwatch.monitor.printers.base import Printer, PrinterStatus, http_request, parse_trigger
+from layerwatch.monitor.printers.base import (
+    WS_RETRY_S,
+    Printer,
+    PrinterStatus,
+    http_request,
+    parse_trigger,
+)
 
 __all__ = ["OctoPrintPrinter", "parse_octoprint_message"]
 
@@ -119,14 +125,14 @@ class OctoPrintPrinter(Printer):
     def _ws_loop(self) -> None:
         from websockets.sync.client import connect
 
-        backoff = 0.5
+        backoff = WS_RETRY_S[0]
         ws_url = "ws" + self.base[4:] + "/sockjs/websocket"
         while not self._stop.is_set():
             try:
                 login = self._req("POST", "/api/login", json={"passive": True})
                 with connect(ws_url, open_timeout=5, close_timeout=1) as ws:
                     ws.send(json.dumps({"auth": f"{login['name']}:{login['session']}"}))
-                    backoff = 0.5
+                    backoff = WS_RETRY_S[0]
                     while not self._stop.is_set():
                         try:
                             raw = ws.recv(timeout=0.5)
@@ -139,7 +145,7 @@ class OctoPrintPrinter(Printer):
                     return
                 log.warning("OctoPrint websocket: %s; reconnecting in %.1f s", exc, backoff)
                 self._stop.wait(backoff)
-                backoff = min(backoff * 2, 30.0)
+                backoff = min(backoff * 2, WS_RETRY_S[1])
 
     def _on_message(self, raw: str | bytes) -> None:
         try:
