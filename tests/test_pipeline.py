@@ -51,9 +51,11 @@ def test_clean_low_failures_high(job, pipe):
 
 def test_reference_matches_independent_render(job, pipe):
     tp, _, cfg, tv = job
-    fresh = StackRenderer(tp, tv, cfg.render).render(LAYER)
+    fresh = StackRenderer(tp, tv, cfg.render).render(LAYER, pipe.camera.center_mm)
     ref = pipe.reference(LAYER)
     assert np.array_equal(ref.image, fresh.image)
+    top = StackRenderer(tp, tv, cfg.render).render(LAYER)  # seen from the camera, not from above
+    assert not np.array_equal(ref.image, top.image)
     assert np.array_equal(ref.footprint, fresh.mask)
     assert pipe.reference(LAYER) is ref  # memoised
 

@@ -163,3 +163,38 @@ def test_real_photo_pair_smoke(shared_data):
     assert r.regions and set(r.extra["per_metric"]) == set(METRIC_NAMES)
     same = analyze_layer(a, a, np.ones((600, 600), bool), tv)
     assert same.anomaly_ratio == 0.0 and np.all(same.heatmap == 1.0)
+
+
+def test_grow_regions_is_hysteresis():
+    from layerwatch.analysis.scoring import grow_regions
+
+    loose = np.zeros((10, 10), bool)
+    loose[1:4, 1:5] = True   # component with a seed
+    loose[7:9, 7:9] = True   # component without one
+    seeds = np.zeros_like(loose)
+    seeds[2, 2] = True
+    seeds[5, 0] = True       # a seed outside the loose mask stays
+    out = grow_regions(seeds, loose)
+    assert out[1:4, 1:5].all() and out[5, 0]
+    assert not out[7:9, 7:9].any()
+    assert out.sum() == 12 + 1
+
+
+def test_grown_regions_extend_what_is_shown_not_the_ratio():
+    ref, photo, foot = part_scene(0, "blob")
+    plain = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(threshold=0.5))
+    grown = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(threshold=0.5, grow_threshold=0.3))
+    assert grown.anomaly_ratio == plain.anomaly_ratio  # a% counts blocks below T_S only
+    assert plain.regions and grown.regions
+    assert grown.regions[0].area_mm2 > plain.regions[0].area_mm2
+    assert grown.extra["region_blocks"] > grown.n_anomalous
+
+
+def test_presmooth_removes_pixel_noise_before_the_hog():
+    ref, photo, foot = part_scene(0)
+    rng = np.random.default_rng(3)
+    noisy = np.clip(photo.astype(np.float32) + rng.normal(0, 10, photo.shape), 0, 255).astype(np.uint8)
+    raw = analyze_layer(noisy, ref, foot, TOPVIEW, AnalysisSettings(footprint_margin_mm=0))
+    smooth = analyze_layer(noisy, ref, foot, TOPVIEW, AnalysisSettings(footprint_margin_mm=0, presmooth_px=1.25))
+    assert smooth.extra["similarity_mean"] > raw.extra["similarity_mean"] + 0.02
+    assert smooth.anomaly_ratio < raw.anomaly_ratio

@@ -55,7 +55,7 @@ from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["analyze_layer", "block_geometry", "to_grey255"]
+__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "to_grey255"]
 
 
 def block_geometry(cell_px: int = 8, block_cells: int = 2, px_per_mm: float = 6.67) -> dict[str, float]:
@@ -106,6 +106,63 @@ def to_grey255(image: np.ndarray, name: str = "image") -> np.ndarray:
     if not np.all(np.isfinite(grey)):
         raise AnalysisError(f"{name} contains NaN or infinite pixels; fix the image before the analysis.")
     return grey
+
+
+def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSettings) -> tuple[np.ndarray, np.ndarray]:
+    """HOG block tensors of photo and reference as the analysis compares them.
+
+    Both images go to grey 0-255 (:func:`to_grey255`), are pre-filtered when
+    ``settings.presmooth_px > 0`` (Gaussian, same sigma for both), and block
+    pairs that are featureless in both images (mean gradient magnitude below
+    ``settings.min_gradient``) are zeroed so that they score similarity 1.
+
+    Returns
+    -------
+    h_top, h_ref : ndarray, shape (N, M, k), float32
+        ``k = block_cells**2 * bins`` (36 for the paper's parameters).
+    """
+    import cv2
+
+    g_top, g_ref = to_grey255(top, "photo top view"), to_grey255(reference, "reference")
+    if settings.presmooth_px > 0:
+        sig = float(settings.presmooth_px)
+        g_top = cv2.GaussianBlur(np.asarray(g_top, np.float32), (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
+        g_ref = cv2.GaussianBlur(np.asarray(g_ref, np.float32), (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
+    args = {"cell_px": settings.cell_px, "block_cells": settings.block_cells, "bins": settings.bins,
+            "block_norm": settings.block_norm, "gamma": settings.gamma}
+    h_top, e_top = hog_blocks(g_top, **args, return_energy=True)
+    h_ref, e_ref = hog_blocks(g_ref, **args, return_energy=True)
+    flat = (e_top < settings.min_gradient) & (e_ref < settings.min_gradient)
+    h_top[flat] = 0.0  # featureless in both: identical (similarity 1)
+    h_ref[flat] = 0.0
+    return h_top, h_ref
+
+
+def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
+    """Hysteresis: the 8-connected components of ``loose`` that contain a seed.
+
+    Parameters
+    ----------
+    seeds : ndarray, shape (N, M), bool
+        Anomalous blocks (similarity below T_S).
+    loose : ndarray, shape (N, M), bool
+        Blocks below the looser threshold (a superset of ``seeds`` is expected;
+        seeds outside it are kept).
+
+    Returns
+    -------
+    ndarray, shape (N, M), bool
+    """
+    from scipy import ndimage
+
+    allowed = loose | seeds
+    labels, n = ndimage.label(allowed, structure=np.ones((3, 3), dtype=bool))
+    if n == 0:
+        return seeds.copy()
+    keep = np.zeros(n + 1, bool)
+    keep[np.unique(labels[seeds])] = True
+    keep[0] = False
+    return keep[labels]
 
 
 def _mask(arr, shape, name) -> np.ndarray:
@@ -266,15 +323,8 @@ def analyze_layer(
         raise AnalysisError(f"images are {shape} px but the top view is {topview.shape}; use the TopView the images were made with.")
     foot = _mask(footprint, shape, "footprint")
     seen = np.ones(shape, dtype=bool) if valid is None else _mask(valid, shape, "valid")
-    g_top, g_ref = to_grey255(top_a, "photo top view"), to_grey255(ref_a, "reference")
-
     c, b = st.cell_px, st.block_cells
-    hog_args = {"cell_px": c, "block_cells": b, "bins": st.bins, "block_norm": st.block_norm, "gamma": st.gamma}
-    h_top, e_top = hog_blocks(g_top, **hog_args, return_energy=True)
-    h_ref, e_ref = hog_blocks(g_ref, **hog_args, return_energy=True)
-    flat = (e_top < st.min_gradient) & (e_ref < st.min_gradient)
-    h_top[flat] = 0.0  # featureless in both: identical (similarity 1)
-    h_ref[flat] = 0.0
+    h_top, h_ref = block_hogs(top_a, ref_a, st)
     t1 = time.perf_counter()
     heat = similarity(h_top, h_ref, st.metric)
     t2 = time.perf_counter()
@@ -289,10 +339,12 @@ def analyze_layer(
         considered &= _box_sums(_integral(~seen), rows, cols, b * c) == 0
     off = (b - 1) * c // 2
     foot_frac = _box_sums(foot_int, rows + off, cols + off, c) / float(c * c)
-    anom, regions = _regions(
-        considered & (heat < st.threshold), heat, foot_frac,
-        {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}, topview,
-    )
+    grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
+    anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
+    shown = anom
+    if st.grow_threshold > 0 and anom.any():
+        shown = grow_regions(anom, considered & (heat < st.threshold + st.grow_threshold))
+        _, regions = _regions(shown, heat, foot_frac, {**grid, "min_region_blocks": 1}, topview)
     t3 = time.perf_counter()
 
     tile_mm2 = (c / topview.px_per_mm) ** 2
@@ -319,6 +371,8 @@ def analyze_layer(
         "similarity_mean": float(vals.mean()) if vals.size else 1.0,
         "similarity_min": float(vals.min()) if vals.size else 1.0,
     }
+    if shown is not anom:
+        res.extra["region_blocks"] = int(shown.sum())
     if all_metrics:
         per = {}
         for name, s in similarity_all(h_top, h_ref, METRIC_NAMES).items():

@@ -43,3 +43,11 @@ class AnalysisSettings(Section):
     # matches an empty reference.
     min_gradient: float = Field(5.0, ge=0)
     gamma: bool = False
+    # Gaussian pre-filter (sigma, top-view px) of both images before the HOG:
+    # removes sensor noise and the moire a warped photo shows above the
+    # camera's resolvable frequency; 0 = the paper's unfiltered images.
+    presmooth_px: float = Field(0.0, ge=0, le=5)
+    # Hysteresis for the regions shown to the operator: blocks below
+    # threshold + grow_threshold that touch (8-neighbourhood) an anomalous
+    # block join its region. a% still counts only blocks below the threshold.
+    grow_threshold: float = Field(0.0, ge=0, le=1)

@@ -55,7 +55,8 @@ class LayerRecord:
     iou : ndarray, shape (12, T), float32, or None
         Pixel IoU of anomalous tiles vs ``truth_area`` (failed layers only).
     clean_high : tuple of int
-        ``(blocks on printed area with cosine > 0.7, blocks on printed area)`` (clean layers only).
+        ``(blocks on printed area with cosine > 0.7, blocks on printed area, of
+        those the blocks featureless in both images)`` (clean layers only).
     region : ndarray, shape (12, T), float32, or None
         Area of the largest 8-connected group of anomalous blocks, mm^2 (a layer
         score that small local defects on large layers do not dilute).
@@ -67,7 +68,7 @@ class LayerRecord:
     size_mm: float
     a: np.ndarray
     iou: np.ndarray | None = None
-    clean_high: tuple[int, int] = (0, 0)
+    clean_high: tuple[int, ...] = (0, 0, 0)
     region: np.ndarray | None = None
 
 
@@ -134,21 +135,15 @@ def _largest(anom: np.ndarray) -> int:
 
 def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: list | None = None):
     """``(a (12, T), iou (12, T) or None, clean_high)``; fills ``regions`` with the (12, T) largest-region areas."""
-    from layerwatch.analysis.hog import hog_blocks
     from layerwatch.analysis.metrics import similarity_all
-    from layerwatch.analysis.scoring import analyze_layer, to_grey255
+    from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions
 
     res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid)
     considered = res.mask
     c, b = settings.cell_px, settings.block_cells
-    args = {"cell_px": c, "block_cells": b, "bins": settings.bins, "block_norm": settings.block_norm,
-            "gamma": settings.gamma}
-    h_t, e_t = hog_blocks(to_grey255(top), **args, return_energy=True)
-    h_r, e_r = hog_blocks(to_grey255(ref.image), **args, return_energy=True)
-    flat = (e_t < settings.min_gradient) & (e_r < settings.min_gradient)
-    h_t[flat] = 0.0
-    h_r[flat] = 0.0
+    h_t, h_r = block_hogs(top, ref.image, settings)
     sims = similarity_all(h_t, h_r, METRIC_NAMES)
+    grow = float(settings.grow_threshold)
     n, m = considered.shape
     tile_px = float(c * c)
     tile_mm2 = (c / pipe.topview.px_per_mm) ** 2
@@ -172,15 +167,23 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
         cnt = below.sum(axis=0)
         a[k] = np.minimum(1.0, cnt * tile_mm2 / printed) if printed > 0 else 0.0
         if iou is not None:
-            inter = (below * truth_tiles[:, None]).sum(axis=0)
-            union = cnt * tile_px + truth_px - inter
+            shown, n_shown = below, cnt
+            if grow > 0:  # the regions the operator sees (hysteresis), as analyze_layer draws them
+                full = sims[name]
+                shown = np.stack([grow_regions(considered & (full < t), considered & (full < t + grow))[considered]
+                                  for t in T], axis=1)
+                n_shown = shown.sum(axis=0)
+            inter = (shown * truth_tiles[:, None]).sum(axis=0)
+            union = n_shown * tile_px + truth_px - inter
             iou[k] = np.where(union > 0, inter / np.maximum(union, 1e-9), 1.0)
-    clean_high = (0, 0)
+    clean_high = (0, 0, 0)
     if frame.truth_area is None:
         on_print = tile_fraction(ref.footprint, n, m, c, b) >= 0.5
         on_print &= considered
         cos = sims["cosine"]
-        clean_high = (int(np.count_nonzero(cos[on_print] > 0.7)), int(np.count_nonzero(on_print)))
+        flat = ~(h_t.any(axis=2) | h_r.any(axis=2))  # featureless in both: similarity 1 by rule
+        clean_high = (int(np.count_nonzero(cos[on_print] > 0.7)), int(np.count_nonzero(on_print)),
+                      int(np.count_nonzero(flat[on_print])))
     if regions is not None:
         regions.append(reg)
     return a, iou, clean_high

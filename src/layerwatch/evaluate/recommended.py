@@ -13,7 +13,8 @@ __all__ = ["RECOMMENDED", "recommended_config"]
 
 #: per-section overrides (merged over a job config)
 RECOMMENDED: dict[str, dict] = {
-    "analysis": {"metric": "pearson", "threshold": 0.45, "footprint_margin_mm": 0.0},
+    "analysis": {"metric": "pearson", "threshold": 0.45, "footprint_margin_mm": 0.0,
+                 "presmooth_px": 1.25, "grow_threshold": 0.2},
     "policy": {"pause_ratio": 0.04, "consecutive_layers": 2, "skip_first_layers": 1},
 }
 

@@ -6,7 +6,10 @@ G-code (toolpath), camera pose and config are known:
 1. **warp** the photo into the top view of the layer's plane ``Z = z``
    (:class:`~layerwatch.geometry.warp.TopViewWarper`, eq. 3);
 2. **reference**: render the ideal layer (:class:`~layerwatch.render.fast.StackRenderer`,
-   incremental, memoised in memory and optionally on disk), and optionally
+   incremental, memoised in memory and optionally on disk) as the camera sees
+   it through the layer's plane (``render.view = "camera"``, the default:
+   walls and the parallax of lower layers as in the warped photo, see
+   :mod:`layerwatch.render.camera_view`), and optionally
    blur it by the camera's sampling footprint on that plane
    (:func:`~layerwatch.render.camera_match.match_camera`);
 3. **analyse**: HOG of both images, similarity heatmap, anomaly ratio a%
@@ -127,11 +130,20 @@ class LayerPipeline:
             self._hash = toolpath_hash(toolpath)
 
     # ------------------------------------------------------------ references
+    @property
+    def view_center_mm(self) -> np.ndarray | None:
+        """Camera centre the references are seen from (``render.view = "camera"``), else ``None``."""
+        if self.config.render.view != "camera" or not self.camera.has_pose:
+            return None
+        return np.asarray(self.camera.center_mm, np.float64)
+
     def _render(self, index: int):
+        c = self.view_center_mm
         if self._cache is None:
-            return self.renderer.render(index)
-        key = self._cache.key(self._hash, self.config.render, self.topview, index)
-        return self._cache.get_or_render(key, lambda: self.renderer.render(index))
+            return self.renderer.render(index, c)
+        kind = "ref" if c is None else "cam:" + ",".join(f"{v:.3f}" for v in c)
+        key = self._cache.key(self._hash, self.config.render, self.topview, index, kind=kind)
+        return self._cache.get_or_render(key, lambda: self.renderer.render(index, c))
 
     def reference(self, index: int) -> Reference:
         """The (memoised) reference of layer ``index``.

@@ -167,8 +167,17 @@ class StackRenderer:
         m = np.zeros((1, 1), bool) if mask is None else mask
         return raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
 
-    def render(self, index: int) -> Rendered:
+    def render(self, index: int, camera_center_mm: np.ndarray | None = None) -> Rendered:
         """Render layer ``index`` (all layers ``0..index``), reusing earlier work.
+
+        Parameters
+        ----------
+        index : int
+        camera_center_mm : ndarray, shape (3,), optional
+            Camera centre in bed mm. Given, the image is the scene as that
+            camera sees it through the layer's plane
+            (:func:`~layerwatch.render.camera_view.view_from_camera`: walls,
+            parallax of lower layers); omitted, the orthographic top view.
 
         Raises
         ------
@@ -193,7 +202,7 @@ class StackRenderer:
                 "layer %d: %d segments reach outside the observed square and are clipped",
                 index, clipped,
             )
-        return self._shade(index, layer.z, layer.height, mask, clipped)
+        return self._shade(index, layer.z, layer.height, mask, clipped, camera_center_mm)
 
     def _raster_height_only(self, i: int) -> None:
         self._raster(i, None)
@@ -207,7 +216,8 @@ class StackRenderer:
         dummy = np.zeros(p0.shape[0], np.float64)
         return raster_capsules(self.height, mask, p0, p1, r, dummy, dummy, False, True)
 
-    def _shade(self, index: int, z: float, lh: float, mask: np.ndarray, clipped: int) -> Rendered:
+    def _shade(self, index: int, z: float, lh: float, mask: np.ndarray, clipped: int,
+               camera_center_mm: np.ndarray | None = None) -> Rendered:
         s = self.settings
         lh = lh if lh > 0 and np.isfinite(lh) else 0.2
         light = np.empty(self.topview.shape, np.float32)
@@ -232,6 +242,13 @@ class StackRenderer:
             light *= 1.0 - np.float32(s.cavity) * occl
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
         img = albedo * light
+        if camera_center_mm is not None:
+            from layerwatch.render.camera_view import view_from_camera
+
+            img, _ = view_from_camera(
+                self.height, img, camera_center_mm, self.topview, z, layer_height_mm=lh,
+                wall_value=s.wall_light * self._mat, wall_line_contrast=s.wall_line_contrast,
+            )
         if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
             img = cv2.GaussianBlur(img, (0, 0), s.image_blur_px, borderType=cv2.BORDER_REPLICATE)
         image = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)

@@ -18,6 +18,11 @@ class RenderSettings(Section):
     ----------
     backend : {"fast", "blender"}
         CPU rasteriser (default) or Blender Cycles through the ``blender`` executable.
+    view : {"camera", "top"}
+        ``"camera"``: where the job has a posed camera, the reference is the
+        scene as that camera sees it through the layer's plane (walls facing
+        the camera, parallax of lower layers; :mod:`layerwatch.render.camera_view`),
+        i.e. what the warped photo shows; ``"top"``: the orthographic top view.
     material_rgb, bed_rgb : tuple of float
         Linear albedo of the filament and of the bed, each channel in [0, 1].
     light : {"ring", "directional"}
@@ -45,6 +50,11 @@ class RenderSettings(Section):
     image_blur_px : float
         Gaussian sigma (px) of the final image (camera optics / warp
         resampling); 0 disables it.
+    wall_light : float
+        Brightness of a wall facing the camera relative to a lit top surface
+        (camera-view references only, see :mod:`layerwatch.render.camera_view`).
+    wall_line_contrast : float
+        Depth of the layer lines drawn on such walls, fraction of their brightness.
     markers_mm : list of (x, y) or None
         Bed markers (white dots) drawn on the bed, bed mm; ``None`` draws none.
     marker_diameter_mm : float
@@ -56,6 +66,7 @@ class RenderSettings(Section):
     """
 
     backend: Literal["fast", "blender"] = "fast"
+    view: Literal["camera", "top"] = "camera"
     material_rgb: tuple[float, float, float] = (0.85, 0.85, 0.82)
     bed_rgb: tuple[float, float, float] = (0.12, 0.12, 0.13)
     light: Literal["ring", "directional"] = "ring"
@@ -63,12 +74,14 @@ class RenderSettings(Section):
     light_elevation_deg: float = 45.0
     ambient: float = Field(0.15, ge=0, le=1)
     layers_visible_below: int = Field(3, ge=0)
-    depth_darkening: float = Field(0.5, ge=0, le=1)
+    depth_darkening: float = Field(0.2, ge=0, le=1)
     relief: float = Field(1.5, gt=0, le=20)
     smooth_px: float = Field(0.7, ge=0, le=5)
     cavity: float = Field(0.1, ge=0, le=1)
     cavity_radius_mm: float = Field(0.35, gt=0, le=5)
     image_blur_px: float = Field(1.0, ge=0, le=5)
+    wall_light: float = Field(0.85, ge=0, le=1)
+    wall_line_contrast: float = Field(0.2, ge=0, le=1)
     markers_mm: list[tuple[float, float]] | None = None
     marker_diameter_mm: float = Field(6.0, gt=0)
     blender_samples: int = Field(16, ge=1, le=4096)

@@ -1,0 +1,179 @@
+"""The reference as the calibrated camera sees it, brought back onto the layer plane.
+
+A photo warped into the top view of the plane ``Z = z`` (eq. 3) is exact
+only for points *on* that plane. Everything else reaches the top view along
+the camera's rays: the walls of the part facing the camera appear as a band
+in front of its edge, the floor of a hole or the layers below a sparse infill
+appear shifted towards the camera (parallax), and the part hides what lies
+behind its walls. An orthographic top view of the ideal layer has none of
+this, so clean layers lose similarity wherever the print is not flat.
+
+:func:`view_from_camera` gives the reference exactly that geometry: for every
+top-view pixel ``P`` on the plane ``Z = z`` it follows the ray from the
+camera centre ``C`` through ``P`` on into the rendered height map and takes
+the first surface it meets: a top surface shows its shaded value (the fast
+renderer's shading at the hit point), a wall shows the wall brightness with
+the layer lines a wall has; a ray that reaches the bed shows the bed. The
+result is what warping a camera photo of the rendered scene with the same
+homography would give, without rendering the camera image first (so no
+resampling loss and no dependence on the camera's resolution).
+
+References
+----------
+Petsiuk & Pearce (2022), Section 2.3, eqs. (1)-(3) (the plane homography
+whose rays are followed here).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from layerwatch.geometry.topview import TopView
+
+__all__ = ["view_from_camera"]
+
+
+@njit(cache=True)
+def _bilinear(img, x, y):
+    H, W = img.shape
+    x = min(max(x, 0.0), W - 1.0)
+    y = min(max(y, 0.0), H - 1.0)
+    x0 = min(int(x), W - 2) if W > 1 else 0
+    y0 = min(int(y), H - 2) if H > 1 else 0
+    fx = x - x0
+    fy = y - y0
+    x1 = min(x0 + 1, W - 1)
+    y1 = min(y0 + 1, H - 1)
+    top = img[y0, x0] * (1.0 - fx) + img[y0, x1] * fx
+    bot = img[y1, x0] * (1.0 - fx) + img[y1, x1] * fx
+    return top * (1.0 - fy) + bot * fy
+
+
+@njit(cache=True)
+def _march(height, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, line_contrast, layer_h,
+           out, hit_z):
+    """Follow the camera ray through every top-view pixel into the height map.
+
+    ``(cu, cv)`` is the camera centre in top-view pixels, ``cz`` its height
+    over the bed (mm, above ``z``); see :func:`view_from_camera`.
+    """
+    H, W = height.shape
+    two_pi = 2.0 * math.pi
+    for v in range(H):
+        for u in range(W):
+            du = u - cu
+            dv = v - cv
+            L = math.sqrt(du * du + dv * dv)
+            if L < 1e-6:  # looking straight down: the plane point itself
+                out[v, u] = shaded[v, u]
+                hit_z[v, u] = height[v, u]
+                continue
+            dt = step_px / L
+            dx = du * dt
+            dy = dv * dt
+            dz = dt * (cz - z)  # descent per step, mm
+            x = float(u)
+            y = float(v)
+            zz = z
+            val = shaded[v, u]
+            hz = height[v, u]
+            for k in range(max_steps):
+                xi = int(x + 0.5)
+                yi = int(y + 0.5)
+                if xi < 0 or yi < 0 or xi >= W or yi >= H:
+                    # left the rendered square: what lies there is bed or unknown
+                    val = _bilinear(shaded, x, y)
+                    hz = 0.0
+                    break
+                h = height[yi, xi]
+                if h >= zz:
+                    if k > 0 and h - zz > 1.5 * dz:
+                        # entered the column through its side: a wall facing the camera
+                        ph = zz / layer_h if layer_h > 0 else 0.0
+                        lines = 0.5 * (1.0 + math.cos(two_pi * ph))
+                        val = wall_value * (1.0 - line_contrast * lines)
+                        hz = zz
+                    else:
+                        val = _bilinear(shaded, x, y)
+                        hz = h
+                    break
+                if zz <= 0.0:
+                    val = _bilinear(shaded, x, y)
+                    hz = 0.0
+                    break
+                x += dx
+                y += dy
+                zz -= dz
+            out[v, u] = val
+            hit_z[v, u] = hz
+
+
+def view_from_camera(
+    height: np.ndarray,
+    shaded: np.ndarray,
+    center_mm: np.ndarray,
+    topview: TopView,
+    z: float,
+    *,
+    layer_height_mm: float = 0.2,
+    wall_value: float = 0.55,
+    wall_line_contrast: float = 0.2,
+    step_px: float = 0.75,
+    max_depth_mm: float = 30.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Resample a rendered top view along the camera's rays (see module notes).
+
+    Parameters
+    ----------
+    height : ndarray, shape (H, W), float32
+        Rendered height map of the layers so far, mm (0 = bed).
+    shaded : ndarray, shape (H, W), float32
+        Shaded top view (albedo x light, 0-1) of the same scene.
+    center_mm : ndarray, shape (3,)
+        Camera centre in bed mm (``CameraModel.center_mm``); must lie above ``z``.
+    topview : TopView
+        Frame of ``height``/``shaded`` and of the result.
+    z : float
+        Height of the plane the photo is warped to (the layer's top), mm.
+    layer_height_mm : float
+        Period of the layer lines drawn on walls.
+    wall_value : float
+        Brightness (0-1) of a wall facing the camera.
+    wall_line_contrast : float
+        Depth of the layer lines on walls, fraction of ``wall_value``.
+    step_px : float
+        Horizontal step of the ray march, top-view pixels.
+    max_depth_mm : float
+        A ray that has descended this far below ``z`` without a hit shows
+        what lies under it there (tall parts: bounds the work per pixel).
+
+    Returns
+    -------
+    image : ndarray, shape (H, W), float32
+        What the camera sees through each point of the plane, 0-1.
+    hit_z : ndarray, shape (H, W), float32
+        Height of the surface each ray met, mm.
+    """
+    c = np.asarray(center_mm, np.float64).reshape(-1)
+    if c.size != 3 or not np.all(np.isfinite(c)):
+        raise ValueError("center_mm must be the camera centre (x, y, z) in bed mm")
+    if c[2] <= z:
+        raise ValueError(f"the camera (z = {c[2]:.1f} mm) must be above the layer plane (z = {z:.1f} mm)")
+    cu, cv = topview.to_px(c[:2])
+    h = np.ascontiguousarray(height, np.float32)
+    s = np.ascontiguousarray(shaded, np.float32)
+    out = np.empty_like(s)
+    hit = np.empty_like(h)
+    # steps needed to descend max_depth_mm at the steepest ray over the square
+    corners = topview.to_px(topview.corners_mm)
+    near = max(float(np.min(np.hypot(corners[:, 0] - cu, corners[:, 1] - cv))), 1.0)
+    far = max(float(np.max(np.hypot(corners[:, 0] - cu, corners[:, 1] - cv))), near)
+    # descent per step is step_px / L * (cz - z); the smallest descent (largest L) needs most steps
+    min_dz = step_px / far * (c[2] - z)
+    max_steps = int(min(max_depth_mm, max(z, 0.0) + 1.0) / max(min_dz, 1e-6)) + 2
+    _march(h, s, float(cu), float(cv), float(c[2]), float(z), float(step_px), max_steps,
+           float(wall_value), float(wall_line_contrast), float(layer_height_mm), out, hit)
+    return out, hit
