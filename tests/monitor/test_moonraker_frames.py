@@ -42,3 +42,15 @@ def test_recorded_frames():
 def test_unreachable_moonraker_is_a_clear_error():
     with MoonrakerPrinter("moonraker://127.0.0.1:9", push=False, timeout_s=1) as p, pytest.raises(PrinterError, match="unreachable"):
         p.pause()
+
+
+def test_klippy_connection_notifications_override_print_stats():
+    with MoonrakerPrinter("moonraker://127.0.0.1:9", push=False) as p:
+        p.handle_frame({"jsonrpc": "2.0", "method": "notify_status_update", "params": [{"print_stats": {"state": "printing"}}, 1.0]})
+        assert p._status().state == "printing"
+        p.handle_frame({"jsonrpc": "2.0", "method": "notify_klippy_shutdown"})
+        assert p._status().state == "error"  # print_stats still says "printing" / "paused" after M112
+        p.handle_frame({"jsonrpc": "2.0", "method": "notify_klippy_disconnected"})
+        assert p._status().state == "offline"
+        p.handle_frame({"jsonrpc": "2.0", "method": "notify_klippy_ready"})
+        assert p._status().state == "printing"

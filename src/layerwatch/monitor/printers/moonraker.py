@@ -37,6 +37,10 @@ _HINTS = {503: "Klippy is not running or not ready (check klippy.log; FIRMWARE_R
 #: Klippy (``webhooks.state``) states that override print_stats
 _KLIPPY_STATES = {"shutdown": "error", "error": "error", "startup": "offline"}
 
+#: Moonraker's Klippy connection notifications -> the webhooks state they imply
+_KLIPPY_EVENTS = {"notify_klippy_shutdown": "shutdown", "notify_klippy_disconnected": "startup",
+                  "notify_klippy_ready": "ready"}
+
 _STATES = {"printing": "printing", "paused": "paused", "complete": "finished", "cancelled": "cancelled",
            "standby": "idle", "error": "error"}
 
@@ -139,6 +143,8 @@ class MoonrakerPrinter(Printer):
                     self._emit(trig)
         elif method == "notify_status_update" and params and isinstance(params[0], dict):
             self._merge(params[0])
+        elif method in _KLIPPY_EVENTS:
+            self._merge({"webhooks": {"state": _KLIPPY_EVENTS[method]}})
         elif isinstance(msg.get("result"), dict) and "status" in msg["result"]:
             self._merge(msg["result"]["status"])
             self._ws_ready.set()
