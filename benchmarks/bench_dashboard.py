@@ -149,6 +149,9 @@ class JsonFileHistory:
             r.pop("config", None)
         return sorted(rows, key=lambda r: -r["id"])
 
+    def last_job_id(self) -> int | None:
+        return max((int(p.name[4:]) for p in self.root.glob("job_*")), default=None)
+
     def job(self, job_id: int) -> dict[str, Any] | None:
         row = self._read(self._dir(job_id) / "job.json")
         if row is not None:

@@ -182,3 +182,15 @@ def test_virtual_printer_is_the_monitor_one(seeded, printer, tmp_path):
     assert c.post("/api/printers/virtual/resume").json()["status"]["state"] == "cancelled"  # no resume after cancel
     with pytest.raises(PrinterError, match="cannot read G-code"):
         virtual_printer(tmp_path / "missing.gcode")
+
+
+def test_index_names_the_newest_job(seeded, printer, tmp_path):
+    c = client(seeded, printer)
+    assert f'<body data-newest="{seeded[2]["live"]}">' in c.get("/").text
+    from layerwatch.storage.history import History
+
+    empty = History(tmp_path / "empty.db")
+    assert empty.last_job_id() is None
+    r = TestClient(create_app(empty)).get("/")
+    assert r.status_code == 200 and "<body>" in r.text and "data-newest" not in r.text
+    empty.close()

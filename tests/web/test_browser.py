@@ -103,6 +103,12 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             width = phone.evaluate("document.documentElement.scrollWidth")
             assert width <= 390, "the page must not scroll sideways on a phone"
             phone.screenshot(path=str(shots / "dashboard-phone.png"), full_page=True)
+
+            linked = browser.new_page()
+            linked.goto(url + f"/#job={ids['done']}")  # a link to a past job opens that job
+            linked.wait_for_selector("#curve polyline")
+            sync_api.expect(linked.locator("#job-title")).to_contain_text(f"Job #{ids['done']}")
+            assert linked.locator("#ack-job").is_hidden()  # an ended job has nothing to acknowledge
         finally:
             browser.close()
 

@@ -300,6 +300,10 @@ class History:
 
         return self._run(fn)
 
+    def last_job_id(self) -> int | None:
+        """Id of the newest job (one indexed read), or ``None`` when there is none."""
+        return self._run(lambda db: db.execute("SELECT MAX(id) FROM jobs").fetchone()[0])
+
     def job(self, job_id: int) -> dict[str, Any] | None:
         """One job as a dict (config included), or ``None`` if unknown."""
 

@@ -181,9 +181,18 @@ def create_app(
             resp.set_cookie(COOKIE, token, httponly=True, samesite="strict")
         return resp
 
+    page = (STATIC / "index.html").read_text(encoding="utf-8")
+
     @app.get("/", include_in_schema=False)
     def index():
-        return FileResponse(STATIC / "index.html", media_type="text/html")
+        from fastapi.responses import HTMLResponse
+
+        try:  # the newest job's id lets the page fetch its rows together with the job list
+            newest = history.last_job_id()
+        except StorageError:
+            newest = None  # the page shows the API's 503 itself
+        html = page if newest is None else page.replace("<body>", f'<body data-newest="{int(newest)}">', 1)
+        return HTMLResponse(html)
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 

@@ -65,10 +65,13 @@ function drawCurve(rows, threshold) {
   svg.innerHTML = s;
 }
 
-async function loadJob(job) {
+function fetchJob(id) {
+  return Promise.all([api(`/api/jobs/${id}/layers`), api(`/api/jobs/${id}/latest`), api(`/api/jobs/${id}/events`)]);
+}
+
+async function loadJob(job, early) {
   if (jobId == null) { $("job-title").textContent = "No jobs yet"; return; }
-  const [rows, latest, events] = await Promise.all([
-    api(`/api/jobs/${jobId}/layers`), api(`/api/jobs/${jobId}/latest`), api(`/api/jobs/${jobId}/events`)]);
+  const [rows, latest, events] = await (early && early.id === jobId ? early.data : fetchJob(jobId));
   const pause = settings ? settings.policy.pause_ratio : null;
   const first = rows.find((r) => pause != null && r.anomaly_ratio != null && r.anomaly_ratio > pause);
   $("job-title").textContent = `Job #${jobId}: ${job && job.part ? job.part : ""}`;
@@ -156,7 +159,10 @@ async function refresh() {
   if (busy) { return; }
   busy = true;
   try {
-    await Promise.all([Promise.all([loadJobs(), settingsReady]).then(([job]) => loadJob(job)), loadPrinters()]);
+    // the job's rows are fetched alongside the job list, not after it (one round trip less)
+    const early = jobId != null ? { id: jobId, data: fetchJob(jobId) } : null;
+    if (early) { early.data.catch(() => {}); }  // unused when the job vanished; loadJob fetches again
+    await Promise.all([Promise.all([loadJobs(), settingsReady]).then(([job]) => loadJob(job, early)), loadPrinters()]);
   }
   catch (e) { $("live").textContent = "error"; }
   finally { busy = false; }
@@ -166,6 +172,7 @@ async function refresh() {
 (async function main() {
   const linked = /^#job=(\d+)$/.exec(location.hash);  // /#job=12 opens that job (links, bookmarks)
   if (linked) { jobId = parseInt(linked[1], 10); }
+  else if (document.body.dataset.newest) { jobId = parseInt(document.body.dataset.newest, 10); }  // set by the server
   settingsReady = loadSettings();
   await refresh();
   const es = new EventSource("/api/stream");
