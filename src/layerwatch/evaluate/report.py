@@ -150,6 +150,8 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
                  f"{rate:.1f} ({fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
                  f"2-layer rule; 95 % upper bound {up:.1f}) | {'yes' if up <= 1 else ('consistent' if fa == 0 else 'no')} |")
     L.append(f"| clean printed-area blocks with cosine > 0.7 | >= 95 % | {_fmt(s.clean_block_share, True)} % "
+             f"({_fmt(s.clean_flat_share, True)} % of the blocks are featureless in both images and match by rule; "
+             f"{_fmt(s.clean_textured_share, True)} % of the others are above 0.7) "
              f"| {'yes' if s.clean_block_share >= 0.95 else 'no'} |")
     L += ["", "Detection at the recommended pause ratio (share of failed layers above it): "
           + ", ".join(f"{t} {100 * v:.0f} %" for t, v in zip(s.types, s.tpr[r], strict=True)) + ".", ""]

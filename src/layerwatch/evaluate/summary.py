@@ -49,6 +49,8 @@ class Summary:
     rec_t: int
     fa_upper: float
     clean_block_share: float   # share of clean printed-area blocks with cosine > 0.7
+    clean_flat_share: float    # share of those blocks featureless in both images (similarity 1 by rule)
+    clean_textured_share: float  # share above cosine 0.7 among the blocks that are not featureless
     auc_region: np.ndarray     # (M, K) AUROC of the largest-region area at the measure's best T
     scores: dict               # raw a% arrays of the recommended setting: {"clean": ..., type: ...}
 
@@ -120,6 +122,7 @@ def summarize(data: EvalData) -> Summary:
     fa_upper = false_alarm_rate(0, n_clean)[1] if n_clean else float("nan")
     hi = sum(r.clean_high[0] for r in recs if r.kind == "clean")
     tot = sum(r.clean_high[1] for r in recs if r.kind == "clean")
+    flat = sum(r.clean_high[2] for r in recs if r.kind == "clean" and len(r.clean_high) > 2)
     jr = best_t[rec]
     scores = {"clean": A[clean, rec, jr]}
     for t in types:
@@ -130,5 +133,7 @@ def summarize(data: EvalData) -> Summary:
         a_failed=a_failed, a_clean=a_clean, dp=dp, dprime=dprime, iou=iou, iou_all=iou_all, iou_best=iou_best, fa_rate=fa,
         pause_ratio=pause, tpr=tpr, rec_metric=rec, rec_t=int(jr), fa_upper=fa_upper,
         clean_block_share=hi / tot if tot else float("nan"), scores=scores,
+        clean_flat_share=flat / tot if tot else float("nan"),
+        clean_textured_share=(hi - flat) / (tot - flat) if tot > flat else float("nan"),
         auc_region=auc_region,
     )

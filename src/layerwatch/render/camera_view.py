@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 from numba import njit
 
@@ -53,12 +54,14 @@ def _bilinear(img, x, y):
 
 
 @njit(cache=True)
-def _march(height, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, line_contrast, layer_h,
-           out, hit_z):
+def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, wall_ambient,
+           line_contrast, layer_h, out, hit_z):
     """Follow the camera ray through every top-view pixel into the height map.
 
     ``(cu, cv)`` is the camera centre in top-view pixels, ``cz`` its height
-    over the bed (mm, above ``z``); see :func:`view_from_camera`.
+    over the bed (mm, above ``z``); ``hmax`` is ``height`` dilated by
+    ``skip_px`` (max over the square of that half-side), which lets a ray skip
+    empty space in strides of ``skip_px``; see :func:`view_from_camera`.
     """
     H, W = height.shape
     two_pi = 2.0 * math.pi
@@ -80,7 +83,9 @@ def _march(height, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, line_c
             zz = z
             val = shaded[v, u]
             hz = height[v, u]
-            for k in range(max_steps):
+            jump = skip_px / step_px  # steps covered by one skip
+            k = 0
+            while k < max_steps:
                 xi = int(x + 0.5)
                 yi = int(y + 0.5)
                 if xi < 0 or yi < 0 or xi >= W or yi >= H:
@@ -88,13 +93,31 @@ def _march(height, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, line_c
                     val = _bilinear(shaded, x, y)
                     hz = 0.0
                     break
+                if k > 0 and hmax[yi, xi] < zz - jump * dz and zz - jump * dz > 0.0:
+                    # nothing within skip_px reaches the ray over the next skip_px: skip ahead
+                    x += dx * jump
+                    y += dy * jump
+                    zz -= dz * jump
+                    k += int(jump)
+                    continue
                 h = height[yi, xi]
                 if h >= zz:
                     if k > 0 and h - zz > 1.5 * dz:
-                        # entered the column through its side: a wall facing the camera
+                        # entered the column through its side: a wall facing the camera,
+                        # lit as seen from the camera (cosine of its normal to the view)
+                        xm = max(xi - 1, 0)
+                        xp = min(xi + 1, W - 1)
+                        ym = max(yi - 1, 0)
+                        yp = min(yi + 1, H - 1)
+                        gx = height[yi, xp] - height[yi, xm]
+                        gy = height[yp, xi] - height[ym, xi]
+                        g = math.sqrt(gx * gx + gy * gy)
+                        facing = 1.0
+                        if g > 1e-9:
+                            facing = max((gx * du + gy * dv) / (g * L), 0.0)
                         ph = zz / layer_h if layer_h > 0 else 0.0
                         lines = 0.5 * (1.0 + math.cos(two_pi * ph))
-                        val = wall_value * (1.0 - line_contrast * lines)
+                        val = wall_value * (wall_ambient + (1.0 - wall_ambient) * facing) * (1.0 - line_contrast * lines)
                         hz = zz
                     else:
                         val = _bilinear(shaded, x, y)
@@ -107,6 +130,7 @@ def _march(height, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, line_c
                 x += dx
                 y += dy
                 zz -= dz
+                k += 1
             out[v, u] = val
             hit_z[v, u] = hz
 
@@ -121,6 +145,7 @@ def view_from_camera(
     layer_height_mm: float = 0.2,
     wall_value: float = 0.55,
     wall_line_contrast: float = 0.2,
+    wall_ambient: float = 1.0,
     step_px: float = 0.75,
     max_depth_mm: float = 30.0,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -141,7 +166,11 @@ def view_from_camera(
     layer_height_mm : float
         Period of the layer lines drawn on walls.
     wall_value : float
-        Brightness (0-1) of a wall facing the camera.
+        Brightness (0-1) of a wall facing the camera squarely.
+    wall_ambient : float
+        Share of ``wall_value`` a wall keeps whatever its orientation; the rest
+        falls with the cosine between its normal and the direction to the
+        camera (a light at the camera, as a ring light round the lens).
     wall_line_contrast : float
         Depth of the layer lines on walls, fraction of ``wall_value``.
     step_px : float
@@ -174,6 +203,8 @@ def view_from_camera(
     # descent per step is step_px / L * (cz - z); the smallest descent (largest L) needs most steps
     min_dz = step_px / far * (c[2] - z)
     max_steps = int(min(max_depth_mm, max(z, 0.0) + 1.0) / max(min_dz, 1e-6)) + 2
-    _march(h, s, float(cu), float(cv), float(c[2]), float(z), float(step_px), max_steps,
-           float(wall_value), float(wall_line_contrast), float(layer_height_mm), out, hit)
+    skip = 8
+    hmax = cv2.dilate(h, np.ones((2 * skip + 1, 2 * skip + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    _march(h, hmax, float(skip), s, float(cu), float(cv), float(c[2]), float(z), float(step_px), max_steps,
+           float(wall_value), float(wall_ambient), float(wall_line_contrast), float(layer_height_mm), out, hit)
     return out, hit

@@ -248,6 +248,7 @@ class StackRenderer:
             img, _ = view_from_camera(
                 self.height, img, camera_center_mm, self.topview, z, layer_height_mm=lh,
                 wall_value=s.wall_light * self._mat, wall_line_contrast=s.wall_line_contrast,
+                wall_ambient=s.wall_ambient,
             )
         if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
             img = cv2.GaussianBlur(img, (0, 0), s.image_blur_px, borderType=cv2.BORDER_REPLICATE)

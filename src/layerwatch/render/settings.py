@@ -53,6 +53,9 @@ class RenderSettings(Section):
     wall_light : float
         Brightness of a wall facing the camera relative to a lit top surface
         (camera-view references only, see :mod:`layerwatch.render.camera_view`).
+    wall_ambient : float
+        Share of ``wall_light`` a wall keeps whatever its orientation; the rest
+        follows the cosine between its normal and the direction to the camera.
     wall_line_contrast : float
         Depth of the layer lines drawn on such walls, fraction of their brightness.
     markers_mm : list of (x, y) or None
@@ -81,6 +84,7 @@ class RenderSettings(Section):
     cavity_radius_mm: float = Field(0.35, gt=0, le=5)
     image_blur_px: float = Field(1.0, ge=0, le=5)
     wall_light: float = Field(0.85, ge=0, le=1)
+    wall_ambient: float = Field(1.0, ge=0, le=1)
     wall_line_contrast: float = Field(0.2, ge=0, le=1)
     markers_mm: list[tuple[float, float]] | None = None
     marker_diameter_mm: float = Field(6.0, gt=0)
