@@ -6,8 +6,8 @@ the local server with 1,000 layers of history.
 
 A history is seeded with :func:`layerwatch.web.seed.seed_job` (a live job of
 300 and one of 1,000 layers, images every 10th layer and for the failing
-ones, plus two finished jobs), the real app is served by uvicorn on
-127.0.0.1, and chromium (``/usr/bin/chromium`` through Playwright, headless,
+ones, plus two finished jobs), ``layerwatch serve --virtual`` serves it on
+127.0.0.1 in its own process, and chromium (``/usr/bin/chromium`` through Playwright, headless,
 a fresh browser context per load: nothing cached) opens ``/``. The page's own
 clock gives the figure (the page opens the job from its ``/#job=ID`` link): ``performance.now()`` (0 = navigation start) in the
 first animation frame after the a% polyline holds every layer of the job.
@@ -16,7 +16,7 @@ So it covers the HTML, CSS and JS requests, the API calls
 
 Baselines, measured in the same process on the same data, loads interleaved:
 
-* ``json-files``: the same app and page over a JSON-file-per-layer store
+* ``json-files``: the same app and page (uvicorn, its own process) over a JSON-file-per-layer store
   (one ``layer_XXXX.json`` per layer, a ``job.json`` with running totals and
   an ``events.json`` per job; the naive store of ``bench_history.py``);
 * ``full-api``: the same SQLite history, but the page asks for the unpaginated
@@ -37,6 +37,8 @@ import json
 import os
 import socket
 import statistics
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -193,37 +195,62 @@ def seed(history: Any, root: Path) -> dict[int, int]:
     return {n: seed_job(history, root, n_layers=n, fail_at=int(0.9 * n), part=f"tower {n}", seed=n) for n in SIZES}
 
 
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sk:
+        sk.bind(("127.0.0.1", 0))
+        return sk.getsockname()[1]
+
+
 class Server:
-    """The dashboard app over ``history`` on 127.0.0.1 (uvicorn in a thread)."""
+    """A dashboard server process on 127.0.0.1 (``layerwatch serve``, or the JSON-store app).
 
-    def __init__(self, history: Any, image_root: Path) -> None:
-        import uvicorn
+    Its own process, as users run it: it shares no interpreter lock with Playwright's client.
+    """
 
-        from layerwatch.web.app import create_app
-        from layerwatch.web.virtual import virtual_printer
-
-        app = create_app(history, printers={"virtual": virtual_printer()}, image_root=image_root)
-        # proto IPPROTO_TCP as uvicorn itself would bind: asyncio sets TCP_NODELAY only on such sockets
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-        self.sock.bind(("127.0.0.1", 0))
-        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
-        self.srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-        self.thread = threading.Thread(target=self.srv.run, kwargs={"sockets": [self.sock]}, daemon=True)
-        self.thread.start()
+    def __init__(self, store: str, root: Path) -> None:
         import httpx
 
-        for _ in range(400):
+        port = _free_port()
+        self.url = f"http://127.0.0.1:{port}"
+        if store == "sqlite":
+            exe = Path(sys.executable).with_name("layerwatch")
+            cmd = [str(exe), "serve", "--db", str(root / "history.db"), "--images", str(root), "--port", str(port),
+                   "--virtual"]
+        else:
+            cmd = [sys.executable, __file__, "--serve-json", str(root), str(port)]
+        self.log = tempfile.TemporaryFile()
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=self.log)
+        for _ in range(600):
+            if self.proc.poll() is not None:
+                self.log.seek(0)
+                raise RuntimeError(f"dashboard server exited: {self.log.read().decode()[-500:]}")
             try:
                 if httpx.get(self.url + "/api/jobs", timeout=2).status_code == 200:
                     return
             except httpx.HTTPError:
-                self.thread.join(0.05)
+                time.sleep(0.05)
+        self.close()
         raise RuntimeError(f"dashboard did not start on {self.url}")
 
     def close(self) -> None:
-        self.srv.should_exit = True
-        self.thread.join(10)
-        self.sock.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.log.close()
+
+
+def serve_json(root: Path, port: int) -> None:
+    """The baseline server: the same app over :class:`JsonFileHistory` (like ``layerwatch serve``)."""
+    import uvicorn
+
+    from layerwatch.web.app import create_app
+    from layerwatch.web.virtual import virtual_printer
+
+    app = create_app(JsonFileHistory(root), printers={"virtual": virtual_printer()}, image_root=root)
+    uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning")
 
 
 def _load(browser, url: str, job: int, n_layers: int, layers_route: str | None) -> dict[str, float]:
@@ -268,12 +295,13 @@ def run(repeats: int = REPEATS) -> dict[str, Any]:
         t0 = time.perf_counter()
         hist = History(tmp / "sqlite" / "history.db")
         ids_sql = seed(hist, tmp / "sqlite")
+        hist.close()
         t1 = time.perf_counter()
         files = JsonFileHistory(tmp / "json")
         ids_json = seed(files, tmp / "json")
         t2 = time.perf_counter()
         out["seed_s"] = {"sqlite": t1 - t0, "json-files": t2 - t1}
-        servers = {"sqlite": Server(hist, tmp / "sqlite"), "json-files": Server(files, tmp / "json")}
+        servers = {"sqlite": Server("sqlite", tmp / "sqlite"), "json-files": Server("json-files", tmp / "json")}
         variants = {  # name: (server, job ids, interception of the layers request)
             "layerwatch": ("sqlite", ids_sql, None),
             "json-files": ("json-files", ids_json, None),
@@ -286,18 +314,19 @@ def run(repeats: int = REPEATS) -> dict[str, Any]:
                 warnings.simplefilter("ignore")
                 browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
                 try:
+                    plan = [(v, n) for n in SIZES for v in variants]
                     for k in range(WARMUP + repeats):
-                        for n in SIZES:
-                            for v, (srv, ids, route) in variants.items():  # interleaved: load drift hits all alike
-                                t = _load(browser, servers[srv].url, ids[n], n, route)
-                                if k >= WARMUP:
-                                    times[(v, n)].append(t)
+                        # interleaved, and the order rotates each round: load drift and order effects hit all alike
+                        for v, n in plan[k % len(plan):] + plan[:k % len(plan)]:
+                            srv, ids, route = variants[v]
+                            t = _load(browser, servers[srv].url, ids[n], n, route)
+                            if k >= WARMUP:
+                                times[(v, n)].append(t)
                 finally:
                     browser.close()
         finally:
-            for s in servers.values():
-                s.close()
-            hist.close()
+            for srv in servers.values():
+                srv.close()
     out["times"] = times
     out["loadavg"] = os.getloadavg()
     return out
@@ -343,4 +372,7 @@ def test_bench_dashboard():
 
 
 if __name__ == "__main__":
-    report(run())
+    if sys.argv[1:2] == ["--serve-json"]:
+        serve_json(Path(sys.argv[2]), int(sys.argv[3]))
+    else:
+        report(run())
