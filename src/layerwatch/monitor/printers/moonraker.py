@@ -2,8 +2,12 @@
 
 Triggers come from the ``LAYERWATCH_SNAPSHOT`` macro's
 ``RESPOND MSG="layerwatch snapshot layer=<n> z=<z>"``, delivered as
-``notify_gcode_response``; ``print_stats`` and ``gcode_move`` are subscribed
-with ``printer.objects.subscribe`` for state, file and Z.
+``notify_gcode_response``; ``print_stats``, ``gcode_move``, ``virtual_sdcard``
+and ``webhooks`` are subscribed with ``printer.objects.subscribe`` for state,
+file, Z, progress and Klippy's own state (a Klippy shutdown leaves
+``print_stats`` at "paused"/"printing", so ``webhooks.state`` wins).
+Checked against a real Moonraker 0.11 and Klippy in
+``tests/monitor/test_moonraker_real.py``.
 """
 
 from __future__ import annotations
