@@ -43,7 +43,11 @@ def _grid(result: LayerResult) -> tuple[int, int, int]:
 
 
 def anomalous_blocks(result: LayerResult) -> np.ndarray:
-    """Blocks counted as anomalous in ``result`` (considered, below T_S, in kept regions), (N, M) bool."""
+    """Blocks of the failing regions in ``result``, (N, M) bool.
+
+    Considered blocks below T_S in groups of at least ``min_region_blocks``,
+    grown by hysteresis when the analysis used ``grow_threshold``.
+    """
     from scipy import ndimage
 
     heat = np.asarray(result.heatmap, dtype=np.float32)
@@ -53,6 +57,11 @@ def anomalous_blocks(result: LayerResult) -> np.ndarray:
     if min_blocks > 1 and anom.any():
         labels, _ = ndimage.label(anom, structure=np.ones((3, 3), dtype=bool))
         anom = (np.bincount(labels.ravel()) >= min_blocks)[labels] & anom
+    grow = float((result.extra or {}).get("grid", {}).get("grow_threshold", 0.0))
+    if grow > 0 and anom.any():  # the regions as analyze_layer reports them (hysteresis)
+        from layerwatch.analysis.scoring import grow_regions
+
+        anom = grow_regions(anom, mask & (heat < result.threshold + grow))
     return anom
 
 

@@ -366,6 +366,7 @@ def analyze_layer(
     res.extra = {
         "grid": {
             "cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks,
+            "grow_threshold": st.grow_threshold,
             **block_geometry(c, b, topview.px_per_mm),
         },
         "similarity_mean": float(vals.mean()) if vals.size else 1.0,
