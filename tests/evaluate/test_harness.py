@@ -67,6 +67,12 @@ def test_run_evaluation_small(job):
     s = summarize(data)
     assert s.auc.shape == (12, len(s.types), len(THRESHOLDS))
     assert 0 <= s.rec_metric < 12 and np.isfinite(s.pause_ratio).all()
+    # failed layers know how far past the onset they are; clean ones do not
+    assert all(r.since_onset >= 0 for r in data.records if r.kind != "clean")
+    assert all(r.since_onset == -1 for r in data.records if r.kind == "clean")
+    for t, rows in s.auc_since.items():
+        assert sum(n for _, n, _ in rows) == s.n_failed[t]
+    assert 0.0 <= s.clean_flat_share <= 1.0
 
 
 def test_clean_false_alarms_counts(job):

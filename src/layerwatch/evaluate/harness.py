@@ -60,6 +60,8 @@ class LayerRecord:
     region : ndarray, shape (12, T), float32, or None
         Area of the largest 8-connected group of anomalous blocks, mm^2 (a layer
         score that small local defects on large layers do not dilute).
+    since_onset : int
+        Layers printed since the failure's onset (0 = the onset layer); -1 for clean layers.
     """
 
     scenario: str
@@ -70,6 +72,7 @@ class LayerRecord:
     iou: np.ndarray | None = None
     clean_high: tuple[int, ...] = (0, 0, 0)
     region: np.ndarray | None = None
+    since_onset: int = -1
 
 
 @dataclass
@@ -248,8 +251,9 @@ def run_evaluation(
                 data.errors.append(f"{scen.name} layer {i}: {type(exc).__name__}: {exc}")
                 continue
             kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
+            since = int(i) - scen.failures[0].onset if kind != "clean" else -1
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high, regs[0]))
+                                            a, iou, clean_high, regs[0], since))
             done += 1
             if progress is not None:
                 progress(done, total)

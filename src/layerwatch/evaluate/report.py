@@ -163,6 +163,14 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
         a = s.auc[m, :, bt]
         L.append(f"| {n} | {s.thresholds[bt]:.2f} | {100 * s.a_clean[m]:.1f} | "
                  + " | ".join(_fmt(v) for v in a) + f" | {_fmt(np.nanmin(a))} |")
+    if s.auc_since:
+        depths = sorted({d for rows in s.auc_since.values() for d, _, _ in rows})
+        L += ["", "AUROC of the recommended setting by layers printed since the failure's onset (patch failures "
+              "deepen layer by layer; n in brackets):", "",
+              "| type | " + " | ".join(f"+{d}" for d in depths) + " |", "|---|" + "---:|" * len(depths)]
+        for t, rows in s.auc_since.items():
+            by = {d: (n, a) for d, n, a in rows}
+            L.append(f"| {t} | " + " | ".join(f"{_fmt(by[d][1])} ({by[d][0]})" if d in by else "" for d in depths) + " |")
     L += ["", "AUROC with the area of the largest anomalous region (mm^2) as the layer score instead of a% "
           "(same T_S; local defects on large layers are not diluted by the layer's area):", "",
           "| measure | " + " | ".join(f"AUROC {t}" for t in s.types) + " | min |", "|---|" + "---:|" * (len(s.types) + 1)]

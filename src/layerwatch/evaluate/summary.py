@@ -53,6 +53,7 @@ class Summary:
     clean_textured_share: float  # share above cosine 0.7 among the blocks that are not featureless
     auc_region: np.ndarray     # (M, K) AUROC of the largest-region area at the measure's best T
     scores: dict               # raw a% arrays of the recommended setting: {"clean": ..., type: ...}
+    auc_since: dict            # recommended setting: {type: [(layers since onset, n layers, AUROC), ...]}
 
 
 def summarize(data: EvalData) -> Summary:
@@ -127,6 +128,14 @@ def summarize(data: EvalData) -> Summary:
     scores = {"clean": A[clean, rec, jr]}
     for t in types:
         scores[t] = A[kinds == t, rec, jr]
+    since = np.array([r.since_onset for r in recs])
+    auc_since: dict = {}
+    for t in types:
+        rows = []
+        for d in sorted(set(since[kinds == t].tolist())):
+            sel = (kinds == t) & (since == d)
+            rows.append((int(d), int(sel.sum()), roc_auc(A[sel, rec, jr], A[clean, rec, jr])))
+        auc_since[t] = rows
     return Summary(
         metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
         n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,
@@ -135,5 +144,5 @@ def summarize(data: EvalData) -> Summary:
         clean_block_share=hi / tot if tot else float("nan"), scores=scores,
         clean_flat_share=flat / tot if tot else float("nan"),
         clean_textured_share=(hi - flat) / (tot - flat) if tot > flat else float("nan"),
-        auc_region=auc_region,
+        auc_region=auc_region, auc_since=auc_since,
     )
