@@ -289,7 +289,7 @@ def _stats(xs: list[float]) -> tuple[float, float]:
 def run(repeats: int = REPEATS) -> dict[str, Any]:
     from playwright.sync_api import sync_playwright
 
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {"loadavg_before": os.getloadavg()}
     with tempfile.TemporaryDirectory(prefix="lw-bench-dash-") as tmp:
         tmp = Path(tmp)
         t0 = time.perf_counter()
@@ -338,7 +338,8 @@ def report(out: dict[str, Any]) -> None:
     print(f"\ndashboard page load to 'curve drawn', headless {CHROMIUM} ({reps} cold loads each, "
           f"interleaved; in-page performance.now(), 0 = navigation start)")
     print(f"  seeding: SQLite {out['seed_s']['sqlite']:.1f} s, JSON files {out['seed_s']['json-files']:.1f} s; "
-          f"load average after the run {out['loadavg'][0]:.1f} on {os.cpu_count()} CPUs")
+          f"1-min load average {out['loadavg_before'][0]:.1f} before, {out['loadavg'][0]:.1f} after "
+          f"(this benchmark included) on {os.cpu_count()} CPUs")
     for n in SIZES:
         med_of = {}
         for v, base in (("layerwatch", None), ("json-files", "layerwatch"), ("lw-routed", None),
