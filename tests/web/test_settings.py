@@ -110,3 +110,53 @@ def test_stale_saved_settings_fall_back_to_defaults(tmp_path):
     assert c.patch("/api/settings", json={"policy": {"pause_ratio": 0.2}}).status_code == 200  # saving repairs it
     assert h.setting(SETTINGS_KEY)["policy"]["pause_ratio"] == 0.2
     h.close()
+
+
+def test_settings_survive_restarting_layerwatch_serve(tmp_path):
+    """The real CLI server process, stopped and started again on the same database file."""
+    import socket
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    import httpx
+
+    exe = Path(sys.executable).with_name("layerwatch")
+    if not exe.exists():
+        pytest.skip("the layerwatch console script is not installed in this environment")
+    db = tmp_path / "history.db"
+
+    def serve():
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        proc = subprocess.Popen([str(exe), "serve", "--db", str(db), "--port", str(port)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        url = f"http://127.0.0.1:{port}"
+        end = time.monotonic() + 60
+        while True:
+            assert proc.poll() is None, "layerwatch serve exited"
+            try:
+                httpx.get(url + "/api/settings", timeout=2)
+                return proc, url
+            except httpx.HTTPError:
+                assert time.monotonic() < end, "layerwatch serve did not start"
+                time.sleep(0.1)
+
+    proc, url = serve()
+    try:
+        r = httpx.patch(url + "/api/settings", json={"policy": {"pause_ratio": 0.042}, "analysis": {"metric": "dice"}})
+        assert r.status_code == 200
+        bad = httpx.patch(url + "/api/settings", json={"policy": {"nonsense": 1}})
+        assert bad.status_code == 422 and bad.json()["detail"].startswith("invalid setting policy.nonsense:")
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    proc, url = serve()
+    try:
+        got = httpx.get(url + "/api/settings").json()
+        assert got["policy"]["pause_ratio"] == 0.042 and got["analysis"]["metric"] == "dice"
+    finally:
+        proc.terminate()
+        proc.wait(10)
