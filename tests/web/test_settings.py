@@ -160,3 +160,10 @@ def test_settings_survive_restarting_layerwatch_serve(tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_error_line_stays_one_line_for_odd_keys(tmp_path):
+    h, c = _serve(tmp_path / "h.db")
+    r = c.patch("/api/settings", json={"policy": {"two\nlines\r\nkey": 1}})
+    assert r.status_code == 422 and "\n" not in r.json()["detail"] and "\r" not in r.json()["detail"]
+    h.close()

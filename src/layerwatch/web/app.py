@@ -82,7 +82,7 @@ def _validation_line(exc: Any) -> str:
     first = errs[0]
     where = ".".join(str(p) for p in first["loc"]) or "settings"
     more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
-    return f"invalid setting {where}: {first['msg']}{more}; fix it and save again."
+    return " ".join(f"invalid setting {where}: {first['msg']}{more}; fix it and save again.".split())
 
 
 def _merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
