@@ -51,13 +51,17 @@ def _format_validation(exc: ValidationError) -> str:
     return f"{where}: {err['msg']}"
 
 
-def load_config(path: str | Path | None = None, **overrides: dict) -> JobConfig:
+def load_config(path: str | Path | None = None, defaults: dict[str, dict] | None = None,
+                **overrides: dict) -> JobConfig:
     """Read a job config file (TOML); missing file or ``None`` gives the defaults.
 
     Parameters
     ----------
     path : str or Path or None
         TOML file. ``None`` returns defaults.
+    defaults : dict of dict, optional
+        Per-section values applied *under* the file: the file's own keys win
+        (e.g. the evaluation's recommended settings, :mod:`layerwatch.evaluate.recommended`).
     **overrides : dict
         Per-section dictionaries merged over the file, e.g.
         ``analysis={"metric": "pearson"}``.
@@ -76,6 +80,14 @@ def load_config(path: str | Path | None = None, **overrides: dict) -> JobConfig:
             data = tomllib.loads(p.read_text(encoding="utf-8", errors="replace"))
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: not valid TOML ({exc}); fix the file.") from None
+    if defaults:
+        merged: dict = {k: dict(v) for k, v in defaults.items()}
+        for section, values in data.items():
+            if isinstance(values, dict) and isinstance(merged.get(section), dict):
+                merged[section].update(values)
+            else:
+                merged[section] = values
+        data = merged
     for section, values in overrides.items():
         data.setdefault(section, {}).update(values)
     try:

@@ -181,13 +181,17 @@ def test_grow_regions_is_hysteresis():
 
 
 def test_grown_regions_extend_what_is_shown_not_the_ratio():
+    from layerwatch.analysis.overlay import anomalous_blocks
+
     ref, photo, foot = part_scene(0, "blob")
     plain = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(threshold=0.5))
     grown = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(threshold=0.5, grow_threshold=0.3))
     assert grown.anomaly_ratio == plain.anomaly_ratio  # a% counts blocks below T_S only
-    assert plain.regions and grown.regions
-    assert grown.regions[0].area_mm2 > plain.regions[0].area_mm2
+    assert grown.regions == plain.regions  # so do the regions the pause policy reads
     assert grown.extra["region_blocks"] > grown.n_anomalous
+    drawn = anomalous_blocks(grown)
+    assert drawn.sum() == grown.extra["region_blocks"]
+    assert (drawn >= anomalous_blocks(plain)).all()
 
 
 def test_presmooth_removes_pixel_noise_before_the_hog():

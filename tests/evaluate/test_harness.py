@@ -77,10 +77,14 @@ def test_run_evaluation_small(job):
 
 def test_clean_false_alarms_counts(job):
     from layerwatch.evaluate.harness import clean_false_alarms
+    from layerwatch.evaluate.recommended import recommended_config
 
-    tp, cam, cfg, _ = job
+    tp, cam, _, _ = job
+    cfg = recommended_config()  # the monitor's policy with the recommended analysis: no pause on a clean print
     never = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=1.0)
     assert never["prints"] == 1 and never["layers"] == tp.n_layers
     assert never["layer_alarms"] == 0 and never["pauses"] == 0
-    always = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=-1.0)
+    # every block anomalous (T_S = 1): every judged layer alarms and the policy pauses once
+    everything = recommended_config(analysis={"threshold": 1.0})
+    always = clean_false_alarms(tp, everything, cam, n_layers=8, pause_ratio=0.0)
     assert always["layer_alarms"] == tp.n_layers - 1 and always["pauses"] == 1

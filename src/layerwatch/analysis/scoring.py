@@ -341,10 +341,9 @@ def analyze_layer(
     foot_frac = _box_sums(foot_int, rows + off, cols + off, c) / float(c * c)
     grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
     anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
-    shown = anom
+    shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
     if st.grow_threshold > 0 and anom.any():
         shown = grow_regions(anom, considered & (heat < st.threshold + st.grow_threshold))
-        _, regions = _regions(shown, heat, foot_frac, {**grid, "min_region_blocks": 1}, topview)
     t3 = time.perf_counter()
 
     tile_mm2 = (c / topview.px_per_mm) ** 2

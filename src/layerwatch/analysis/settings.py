@@ -47,7 +47,8 @@ class AnalysisSettings(Section):
     # removes sensor noise and the moire a warped photo shows above the
     # camera's resolvable frequency; 0 = the paper's unfiltered images.
     presmooth_px: float = Field(0.0, ge=0, le=5)
-    # Hysteresis for the regions shown to the operator: blocks below
-    # threshold + grow_threshold that touch (8-neighbourhood) an anomalous
-    # block join its region. a% still counts only blocks below the threshold.
+    # Hysteresis for the failing area drawn on the overlay (localisation):
+    # blocks below threshold + grow_threshold that touch (8-neighbourhood) an
+    # anomalous block are drawn with it. a%, the regions and so the pause
+    # policy still count only blocks below the threshold.
     grow_threshold: float = Field(0.0, ge=0, le=1)

@@ -51,7 +51,6 @@ def monitor(
     import logging
 
     from layerwatch.cli import console
-    from layerwatch.config import load_config
     from layerwatch.errors import ConfigError
     from layerwatch.examples import PART_GCODE
     from layerwatch.gcode import read_toolpath
@@ -68,8 +67,9 @@ def monitor(
     from layerwatch.evaluate.recommended import recommended_config
     from layerwatch.examples import PART_CONFIG
 
-    # no --config: the evaluation's recommended settings (and the example's job file for the example part)
-    cfg = load_config(config) if config else recommended_config(PART_CONFIG if gcode is None else None)
+    # the evaluation's recommended settings under the job file (its own keys win); no --config and no
+    # --gcode: the example part's job file
+    cfg = recommended_config(config if config else (PART_CONFIG if gcode is None else None))
     gpath = gcode or PART_GCODE
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)

@@ -274,8 +274,11 @@ def clean_false_alarms(
     """Simulate whole clean prints (about ``n_layers`` photos) and count false alarms.
 
     Uses ``config.analysis`` as is (measure, T_S, margin). A *layer* alarm is
-    a% > ``pause_ratio``; a *pause* is ``consecutive`` such layers in a row
-    (the monitor's rule), counted once per print.
+    a% > ``pause_ratio``; a *pause* is what the monitor's own
+    :class:`~layerwatch.monitor.policy.PausePolicy` decides with
+    ``config.policy`` and that pause ratio and ``consecutive`` layers (a%
+    above the ratio on consecutive layers with overlapping regions, or a
+    strong event of material outside the part), counted once per print.
 
     Returns
     -------
@@ -283,33 +286,34 @@ def clean_false_alarms(
         ``layers``, ``prints``, ``layer_alarms``, ``pauses``, ``max_a``, ``a`` (list).
     """
     from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.monitor.policy import PausePolicy
     from layerwatch.simulate import PrintSimulator
 
     tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
+    policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),
+                                                       "consecutive_layers": int(consecutive)})
     prints = max(1, int(round(n_layers / toolpath.n_layers)))
     out = {"layers": 0, "prints": prints, "layer_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
     done = 0
     for k in range(prints):
         sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
-        run = 0
+        policy = PausePolicy(policy_settings)
         paused = False
         for i in range(toolpath.n_layers):
             res = pipe.process(sim.frame(i).photo, i)
             done += 1
             if progress is not None:
                 progress(done, prints * toolpath.n_layers)
+            decision = policy.update(res)
             if res.status != "ok":
                 continue
             out["layers"] += 1
             out["a"].append(float(res.anomaly_ratio))
             out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
-            if i < 1:
-                continue
-            alarm = res.anomaly_ratio > pause_ratio
-            out["layer_alarms"] += int(alarm)
-            run = run + 1 if alarm else 0
-            if run >= consecutive and not paused:
+            if i >= policy_settings.skip_first_layers:
+                out["layer_alarms"] += int(res.anomaly_ratio > pause_ratio)
+            if decision.stops and not paused:
                 out["pauses"] += 1
                 paused = True
     return out

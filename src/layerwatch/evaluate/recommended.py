@@ -3,8 +3,9 @@
 The paper's block threshold (T_S = 0.7 cosine) flags a large share of *clean*
 blocks on our simulated camera photos (obliquely seen walls, bed texture,
 bead noise), so offline runs and the demo use the values the evaluation
-chose. They are merged *over* the job file's values (pass ``use_recommended=False``
-to the commands that offer it to keep the file's own analysis settings).
+chose. They are applied *under* the job file: a key the file sets wins, the
+rest comes from here (``layerwatch analyze --paper-settings`` uses the
+paper's values instead).
 """
 
 from __future__ import annotations
@@ -13,17 +14,18 @@ __all__ = ["RECOMMENDED", "recommended_config"]
 
 #: per-section overrides (merged over a job config)
 RECOMMENDED: dict[str, dict] = {
-    "analysis": {"metric": "pearson", "threshold": 0.45, "footprint_margin_mm": 0.0,
+    "analysis": {"metric": "jaccard", "threshold": 0.20, "footprint_margin_mm": 0.0,
                  "presmooth_px": 1.25, "grow_threshold": 0.2},
-    "policy": {"pause_ratio": 0.04, "consecutive_layers": 2, "skip_first_layers": 1},
+    "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1},
 }
 
 
 def recommended_config(path=None, **overrides):
-    """``load_config(path)`` with :data:`RECOMMENDED` merged in, then ``overrides`` on top."""
+    """The job config with :data:`RECOMMENDED` as defaults.
+
+    Precedence: ``overrides`` > the file's own keys > :data:`RECOMMENDED` >
+    the sections' built-in defaults (the paper's values).
+    """
     from layerwatch.config import load_config
 
-    merged: dict[str, dict] = {k: dict(v) for k, v in RECOMMENDED.items()}
-    for section, values in overrides.items():
-        merged.setdefault(section, {}).update(values)
-    return load_config(path, **merged)
+    return load_config(path, defaults=RECOMMENDED, **overrides)

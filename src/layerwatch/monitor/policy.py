@@ -170,7 +170,7 @@ class PausePolicy:
         if self._streak >= s.consecutive_layers and persistent:
             return self._stop(
                 s.action,
-                f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.0%} "
+                f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
                 f"for {self._streak} layers",
                 layer,
             )
@@ -194,7 +194,7 @@ class PausePolicy:
                         layer,
                     )
         if ratio > limit and s.notify_single_layer:
-            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.0%}", layer)
+            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer)
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
 
     def _stop(self, action: Action, reason: str, layer: int) -> Decision:
