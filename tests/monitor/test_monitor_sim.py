@@ -53,3 +53,27 @@ def test_failure_pauses_within_two_layers_and_clean_print_never(job, wait):
     vp2 = VirtualPrinter(gcode)
     rep2 = Monitor(vp2, SimCamera(lambda i: frames["clean"][i]), pipe, PausePolicy(cfg.policy), wait_for_verdict=wait).run(poll_s=0.01)
     assert rep2.pauses == 0 and len(rep2.results) == 20 and vp2.status().state == "finished"
+
+
+def test_pause_alert_carries_the_overlay_of_the_failing_layer(job):
+    cfg, pipe, gcode, frames = job
+
+    class Recorder:
+        def __init__(self):
+            self.sent = []
+
+        def notify(self, title, message, *, level="warning", image=None, data=None, force=False):
+            self.sent.append((level, image, data))
+            return True
+
+    rec = Recorder()
+    vp = VirtualPrinter(gcode)
+    rep = Monitor(vp, SimCamera(lambda i: frames["bad"][i]), pipe, PausePolicy(cfg.policy), notifier=rec,
+                  wait_for_verdict=True).run(poll_s=0.01)
+    assert rep.pauses == 1
+    critical = [(img, data) for level, img, data in rec.sent if level == "critical"]
+    assert critical, rec.sent
+    img, data = critical[0]
+    assert img is not None and img.shape == (*pipe.topview.shape, 3) and img.dtype.name == "uint8"
+    assert 15 <= data["layer"] <= 16
+    assert img.std() > 10  # a picture, not a blank

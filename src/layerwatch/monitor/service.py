@@ -117,9 +117,10 @@ class Monitor:
             log.exception("pipeline failed on layer %d", trigger.layer)
             res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
         res.extra["photo_ms"] = round((t_photo - trigger.time) * 1000, 1)
-        return self._finish(trigger, res)
+        top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None  # one analysis thread
+        return self._finish(trigger, res, top)
 
-    def _finish(self, trigger: SnapshotTrigger, res: LayerResult) -> LayerResult:
+    def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
         with self._lock:
             decision = self.policy.update(res)
             if decision.stops:
@@ -138,8 +139,23 @@ class Monitor:
             self._record(res, decision)
             if decision.action != "none":
                 self._alert(decision.reason, res, level="critical" if decision.stops else "warning",
-                            force=decision.stops)
+                            force=decision.stops, image=self._overlay(res, top))
         return res
+
+    def _overlay(self, res: LayerResult, top: np.ndarray | None) -> np.ndarray | str | None:
+        """The failing regions over the photo's top view for an alert (RGB), or a saved overlay's path."""
+        if res.images.get("overlay"):
+            return res.images["overlay"]
+        if top is None or res.heatmap is None:
+            return None
+        try:
+            from layerwatch.analysis.overlay import overlay_image
+
+            foot = self.pipeline.reference(res.layer).footprint
+            return overlay_image(top, res, self.pipeline.topview, foot)
+        except (LayerwatchError, ValueError, AttributeError) as exc:  # the alert goes out without a picture
+            log.warning("overlay for layer %d not drawn: %s", res.layer, exc)
+            return None
 
     def _record(self, res: LayerResult, decision: Decision) -> None:
         if self.history is None or self.job_id is None:
@@ -151,11 +167,13 @@ class Monitor:
         except LayerwatchError as exc:
             log.warning("history write failed: %s", exc)
 
-    def _alert(self, message: str, res: LayerResult | None = None, *, level: str = "warning", force: bool = False) -> None:
+    def _alert(self, message: str, res: LayerResult | None = None, *, level: str = "warning", force: bool = False,
+               image: np.ndarray | str | None = None) -> None:
         self.report.alerts += 1
         log.warning("alert: %s", message)
         if self.notifier is not None:
-            image = res.images.get("overlay") if res is not None else None
+            if image is None and res is not None:
+                image = res.images.get("overlay")
             self.notifier.notify(f"layerwatch: {message.split(':')[0]}", message, level=level, image=image,
                                  data={"layer": res.layer if res else None}, force=force)
 
