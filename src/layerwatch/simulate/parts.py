@@ -6,7 +6,7 @@ import numpy as np
 
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 
-__all__ = ["box_part"]
+__all__ = ["box_part", "tower_part", "toolpath_gcode"]
 
 
 def _loop(x0, y0, x1, y1):
@@ -80,3 +80,166 @@ def box_part(
         np.concatenate(starts), np.concatenate(ends), np.array(zs), width=width,
         feature=np.array(feats, np.uint8), layer_height=layer_h, source="<box_part>",
     )
+
+
+def _ring(cx, cy, r, n=48):
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    c = np.c_[cx + r * np.cos(a), cy + r * np.sin(a)]
+    return c, np.roll(c, -1, axis=0)
+
+
+def _clip_line(p0, d, half, r_in, r_out):
+    """Parameter intervals ``[t0, t1]`` of the line ``p0 + t*d`` (``|d| = 1``, centre-relative) that lie in the
+    square ``|x|, |y| <= half``, outside the circle ``r_in`` and (if ``r_out``) inside the circle ``r_out``."""
+    lo, hi = -np.inf, np.inf
+    for k in range(2):
+        if abs(d[k]) < 1e-12:
+            if abs(p0[k]) > half:
+                return []
+            continue
+        t0, t1 = sorted(((-half - p0[k]) / d[k], (half - p0[k]) / d[k]))
+        lo, hi = max(lo, t0), min(hi, t1)
+    tc = -float(p0 @ d)  # closest approach to the centre
+    dist2 = float(p0 @ p0) - tc * tc
+    if r_out is not None:
+        if dist2 >= r_out**2:
+            return []
+        w = np.sqrt(r_out**2 - dist2)
+        lo, hi = max(lo, tc - w), min(hi, tc + w)
+    if lo >= hi:
+        return []
+    if dist2 >= r_in**2:
+        return [(lo, hi)]
+    w = np.sqrt(r_in**2 - dist2)
+    return [(a, b) for a, b in ((lo, min(hi, tc - w)), (max(lo, tc + w), hi)) if b > a]
+
+
+def tower_part(
+    size_mm: float = 30.0,
+    height_mm: float = 100.0,
+    layer_h: float = 0.2,
+    center: tuple[float, float] = (0.0, 0.0),
+    hole_mm: float = 10.0,
+    boss_mm: float = 18.0,
+    boss_from_mm: float = 70.0,
+    infill_spacing_mm: float = 2.0,
+    width: float = 0.45,
+) -> Toolpath:
+    """A tall part: a square block with a round through-hole, topped by a round boss (a tube) around the hole.
+
+    Every layer has an outer and an inner perimeter around the outside and
+    around the hole, and sparse rectilinear infill (alternating +-45 deg,
+    ``infill_spacing_mm`` apart) clipped between them; at ``boss_from_mm``
+    the footprint shrinks from the square block to the boss's ring, so the
+    block's infilled top stays in view beside the boss.
+
+    Parameters
+    ----------
+    size_mm : float
+        Side of the square block, mm.
+    height_mm, layer_h : float
+        Print height and layer height, mm (100 mm at 0.2 mm = 500 layers).
+    center : (float, float)
+        Part centre on the bed, mm.
+    hole_mm, boss_mm : float
+        Diameters of the through-hole and of the boss, mm.
+    boss_from_mm : float
+        Height where the block ends and the boss begins, mm.
+    infill_spacing_mm : float
+        Distance between infill lines, mm (2 mm at 0.45 mm beads ~ 22 % infill).
+    width : float
+        Bead width, mm.
+
+    Returns
+    -------
+    Toolpath
+        Features: external_perimeter, perimeter, infill.
+    """
+    cx, cy = center
+    h = size_mm / 2
+    r_hole, r_boss = hole_mm / 2, boss_mm / 2
+    ext, per, inf = (FEATURES.index(n) for n in ("external_perimeter", "perimeter", "infill"))
+    starts, ends, zs, feats = [], [], [], []
+    n_layers = int(round(height_mm / layer_h))
+    for k in range(n_layers):
+        z = round((k + 1) * layer_h, 6)
+        block = z <= boss_from_mm + 1e-9
+        loops = [(_ring(cx, cy, r_hole + width / 2), ext), (_ring(cx, cy, r_hole + 1.5 * width), per)]
+        if block:
+            loops += [(_loop(cx - h + width / 2, cy - h + width / 2, cx + h - width / 2, cy + h - width / 2), ext),
+                      (_loop(cx - h + 1.5 * width, cy - h + 1.5 * width, cx + h - 1.5 * width, cy + h - 1.5 * width), per)]
+        else:
+            loops += [(_ring(cx, cy, r_boss - width / 2, 64), ext), (_ring(cx, cy, r_boss - 1.5 * width, 64), per)]
+        for (a, b), code in loops:
+            starts.append(a)
+            ends.append(b)
+            feats += [code] * len(a)
+        half = h - 2 * width if block else r_boss
+        r_out = None if block else r_boss - 2 * width
+        d = np.array([1.0, 1.0 if k % 2 == 0 else -1.0]) / np.sqrt(2.0)
+        nrm = np.array([-d[1], d[0]])
+        for c in np.arange(-np.sqrt(2) * half + infill_spacing_mm / 2, np.sqrt(2) * half, infill_spacing_mm):
+            p0 = c * nrm
+            for t0, t1 in _clip_line(p0, d, half, r_hole + 2 * width, r_out):
+                if t1 - t0 < width:
+                    continue
+                starts.append([[cx, cy] + p0 + t0 * d])
+                ends.append([[cx, cy] + p0 + t1 * d])
+                feats.append(inf)
+        zs += [z] * (sum(len(s) for s in starts) - len(zs))
+    return Toolpath.from_segments(
+        np.concatenate(starts), np.concatenate(ends), np.array(zs), width=width,
+        feature=np.array(feats, np.uint8), layer_height=layer_h, source="<tower_part>",
+    )
+
+
+_TYPE_NAMES = {"external_perimeter": "External perimeter", "perimeter": "Perimeter", "infill": "Internal infill",
+               "solid_infill": "Solid infill", "top_solid_infill": "Top solid infill"}
+
+
+def toolpath_gcode(toolpath: Toolpath, filament_diameter: float = 1.75, feed_mm_min: float = 2400.0) -> bytes:
+    """PrusaSlicer-style G-code of a synthetic toolpath, for the virtual printer and ``insert_snapshots``.
+
+    Layers are tagged ``;LAYER_CHANGE`` / ``;Z:`` / ``;HEIGHT:``, features
+    ``;TYPE:``; extrusion is relative (``M83``), ``E`` = bead cross-section
+    (rounded rectangle, ``(w - h) h + pi h^2 / 4``) x length / filament area; travels are ``G0``
+    moves without extrusion. :func:`layerwatch.gcode.read_toolpath` reads the
+    same layers, segments and features back.
+
+    Parameters
+    ----------
+    toolpath : Toolpath
+        E.g. from :func:`tower_part` or :func:`box_part`.
+    filament_diameter : float
+        mm.
+    feed_mm_min : float
+        Print feed rate, mm/min.
+
+    Returns
+    -------
+    bytes
+        ASCII G-code.
+    """
+    area = np.pi * (filament_diameter / 2) ** 2
+    out = ["; generated by layerwatch.simulate.parts.toolpath_gcode", f"; filament_diameter = {filament_diameter}",
+           "G21", "G90", "M83", "G28"]
+    prev_z = 0.0
+    for lay in toolpath.layers:
+        sl = slice(lay.seg_start, lay.seg_stop)
+        z = float(lay.z)
+        lh = max(z - prev_z, 0.05)
+        out += [";LAYER_CHANGE", f";Z:{z:.3f}", f";HEIGHT:{lh:.3f}", f"G1 Z{z:.3f} F720"]
+        pos, feat = None, None
+        for a, b, w, f in zip(toolpath.start[sl], toolpath.end[sl], toolpath.width[sl], toolpath.feature[sl],
+                              strict=True):
+            if pos is None or np.hypot(*(a - pos)) > 1e-6:
+                out.append(f"G0 X{a[0]:.3f} Y{a[1]:.3f} F9000")
+            if f != feat:
+                out.append(f";TYPE:{_TYPE_NAMES.get(FEATURES[f], 'Internal infill')}")
+                feat = f
+            e = float(np.hypot(*(b - a))) * ((float(w) - lh) * lh + np.pi * lh * lh / 4) / area
+            out.append(f"G1 X{b[0]:.3f} Y{b[1]:.3f} E{e:.5f} F{feed_mm_min:.0f}")
+            pos = b
+        prev_z = z
+    out += ["M107", "M84", ""]
+    return "\n".join(out).encode()
