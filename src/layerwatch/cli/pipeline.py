@@ -57,8 +57,8 @@ def analyze(
     out: Annotated[Path, typer.Option("-o", "--out", help="Results folder (re-running resumes).")] = Path("results"),
     config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
     cache: Annotated[Path | None, typer.Option("--cache", help="Reference cache folder.")] = None,
-    paper: Annotated[bool, typer.Option("--paper-settings", help="Use the config's analysis settings as they are "
-                                        "(default: the evaluation's recommended measure/threshold over them).")] = False,
+    paper: Annotated[bool, typer.Option("--paper-settings", help="Leave out the evaluation's recommended settings: "
+                                        "the config file over the paper's defaults (cosine, T_S 0.7, 5 mm margin).")] = False,
 ) -> None:
     """Analyse photos of a print layer by layer: warp, reference, HOG comparison, pause decision."""
     from layerwatch.cli import console
