@@ -7,7 +7,110 @@ from typing import Annotated
 
 import typer
 
-__all__ = ["register"]
+__all__ = ["register", "monitor_config", "dashboard_settings"]
+
+SOURCES = ("file", "dashboard", "recommended")  # highest precedence first; "default" = the section's built-in values
+
+
+def dashboard_settings(history) -> dict[str, dict]:
+    """The settings the dashboard saved in ``history`` that differ from the sections' built-in defaults.
+
+    The dashboard stores the whole job config it showed (``PUT``/``PATCH /api/settings``), so a key it never
+    changed holds the built-in default; only the changed keys form the "dashboard" layer, and the recommended
+    settings stay in force under it. (A key deliberately set back to its built-in value is therefore
+    indistinguishable from an untouched one; the recommended value, if any, applies there.)
+
+    Parameters
+    ----------
+    history : History
+        Open history database (schema >= 2, table ``settings``).
+
+    Returns
+    -------
+    dict of str to dict
+        Per section, the keys to apply (JSON values), e.g. ``{"policy": {"pause_ratio": 0.05}}``.
+
+    Raises
+    ------
+    ConfigError
+        The saved settings no longer validate (e.g. saved by another layerwatch version).
+    """
+    from pydantic import ValidationError
+
+    from layerwatch.config import JobConfig
+    from layerwatch.errors import ConfigError
+    from layerwatch.web.app import SETTINGS_KEY
+
+    saved = history.setting(SETTINGS_KEY)
+    if saved is None:
+        return {}
+    try:
+        cfg = JobConfig.model_validate(saved)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "settings"
+        msg = " ".join(str(err["msg"]).split())
+        raise ConfigError(f"{history.path}: the dashboard's saved setting {where} is invalid ({msg}); save the "
+                          "settings again in the dashboard (layerwatch serve --db ...) or drop --history.") from None
+    base = JobConfig().model_dump(mode="json")
+    out: dict[str, dict] = {}
+    for section, values in cfg.model_dump(mode="json").items():
+        changed = {k: v for k, v in values.items() if v != base[section].get(k)}
+        if changed:
+            out[section] = changed
+    return out
+
+
+def monitor_config(path: Path | None, history=None):
+    """The monitor's job config and where each section's values came from.
+
+    Precedence, per key: the job file's own keys > the dashboard's saved settings (:func:`dashboard_settings`)
+    > the evaluation's recommended settings (:data:`layerwatch.evaluate.recommended.RECOMMENDED`) > the
+    sections' built-in defaults.
+
+    Parameters
+    ----------
+    path : Path or None
+        Job config TOML (``--config``, or the bundled example's job file).
+    history : History or None
+        Database whose dashboard settings apply (``--history``).
+
+    Returns
+    -------
+    cfg : JobConfig
+    sources : dict of str to str
+        Per section, the sources whose keys are in force, highest first, joined by ``+``
+        (``"file+recommended"``), or ``"default"``.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable or invalid file or saved settings (one line naming the fix).
+    """
+    import tomllib
+
+    from layerwatch.config import JobConfig, load_config
+    from layerwatch.evaluate.recommended import RECOMMENDED
+
+    dash = dashboard_settings(history) if history is not None else {}
+    defaults: dict[str, dict] = {k: dict(v) for k, v in RECOMMENDED.items()}
+    for section, values in dash.items():
+        defaults.setdefault(section, {}).update(values)
+    cfg = load_config(path, defaults=defaults)
+    file = tomllib.loads(Path(path).read_text(encoding="utf-8", errors="replace")) if path is not None else {}
+    layers = {"file": file, "dashboard": dash, "recommended": RECOMMENDED}
+    sources: dict[str, str] = {}
+    for section in JobConfig.model_fields:
+        seen: set[str] = set()
+        used = []
+        for name in SOURCES:
+            values = layers[name].get(section)
+            keys = set(values) if isinstance(values, dict) else set()
+            if keys - seen:
+                used.append(name)
+            seen |= keys
+        sources[section] = "+".join(used) or "default"
+    return cfg, sources
 
 
 def open_printer(spec: str, gcode: bytes | None = None):
@@ -39,7 +142,7 @@ def monitor(
     gcode: Annotated[Path | None, typer.Option("--gcode", help="The job's G-code (default: bundled example).")] = None,
     camera_model: Annotated[Path | None, typer.Option("--camera-model", help="camera.toml with intrinsics and pose.")] = None,
     config: Annotated[Path | None, typer.Option("--config", help="Job config TOML (policy, notify...).")] = None,
-    history: Annotated[Path | None, typer.Option("--history", help="SQLite history file to record the job in.")] = None,
+    history: Annotated[Path | None, typer.Option("--history", help="SQLite history file to record the job in; settings saved there by the dashboard apply (under --config keys).")] = None,
     settle: Annotated[float, typer.Option("--settle", min=0, help="Seconds to wait after the trigger before the photo.")] = 0.0,
     wait_for_verdict: Annotated[bool, typer.Option("--wait-for-verdict", help="Hold the printer until the layer is analysed.")] = False,
     failure: Annotated[str | None, typer.Option("--failure", help="sim camera: inject this failure type.")] = None,
@@ -64,12 +167,21 @@ def monitor(
     from layerwatch.monitor.service import Monitor
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
-    from layerwatch.evaluate.recommended import recommended_config
     from layerwatch.examples import PART_CONFIG
 
-    # the evaluation's recommended settings under the job file (its own keys win); no --config and no
-    # --gcode: the example part's job file
-    cfg = recommended_config(config if config else (PART_CONFIG if gcode is None else None))
+    # per key: the job file (--config; no --config and no --gcode: the example part's job file) > the
+    # settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults
+    from layerwatch.storage.history import History
+
+    job_file = config if config else (PART_CONFIG if gcode is None else None)
+    if history is not None:
+        with History(history) as saved:
+            cfg, sources = monitor_config(job_file, saved)
+    else:
+        cfg, sources = monitor_config(job_file)
+    logging.getLogger("layerwatch.monitor").info(
+        "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
+        job_file or "none", history or "none")
     gpath = gcode or PART_GCODE
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)
@@ -95,8 +207,6 @@ def monitor(
     prn = open_printer(printer, data)
     hist = job = None
     if history is not None:
-        from layerwatch.storage.history import History
-
         hist = History(history)
         job = hist.start_job(printer.split("?")[0], gpath, config=cfg)
     mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg), PausePolicy(cfg.policy),
