@@ -1,11 +1,14 @@
 """500-layer soak: a clean simulated print through the real monitor stack, then one with a failure.
 
 Run: ``python benchmarks/bench_soak.py`` or ``pytest benchmarks/bench_soak.py -s`` (``make bench``).
-``SOAK_LAYERS=120 python benchmarks/bench_soak.py`` runs a shorter print.
+``SOAK_LAYERS=120 python benchmarks/bench_soak.py`` runs a shorter print;
+``SOAK_SOLID_LAYERS=0`` prints the block's top as sparse infill (no solid top).
 
 The part is :func:`layerwatch.simulate.parts.tower_part`: a 30 mm square
 block with a 10 mm through-hole and ~22 % rectilinear infill up to 70 mm,
-then an 18 mm round boss (a tube) up to 100 mm, 0.2 mm layers = 500 layers.
+then an 18 mm round boss (a tube) up to 100 mm, 0.2 mm layers = 500 layers;
+4 solid bottom and top layers on the block and on the boss, as a slicer
+prints them.
 Its G-code (:func:`~layerwatch.simulate.parts.toolpath_gcode`) gets the
 snapshot block after every layer (``insert_snapshots``, octoprint profile)
 and is replayed by the :class:`VirtualPrinter`; each trigger makes the
@@ -91,7 +94,7 @@ def _camera(tv, size):
     return dataclasses.replace(cam, rvec=rvec, tvec=tvec)
 
 
-def job(layers: int = 500, size: tuple[int, int] = (1920, 1080)):
+def job(layers: int = 500, size: tuple[int, int] = (1920, 1080), solid_layers: int = 4):
     """Config, toolpath, prepared G-code, true camera and the pipeline (pose recovered from the markers)."""
     from layerwatch.evaluate.recommended import recommended_config
     from layerwatch.gcode import read_toolpath
@@ -105,7 +108,7 @@ def job(layers: int = 500, size: tuple[int, int] = (1920, 1080)):
     cfg = recommended_config(topview={"width_mm": 60.0, "height_mm": 60.0, "center_mm": list(CENTER)})
     tv = cfg.topview.topview()
     part = tower_part(center=CENTER, height_mm=layers * LAYER_H, layer_h=LAYER_H,
-                      boss_from_mm=min(70.0, 0.7 * layers * LAYER_H))
+                      boss_from_mm=min(70.0, 0.7 * layers * LAYER_H), solid_layers=solid_layers)
     data = toolpath_gcode(part)
     tp = read_toolpath(data)
     truth = _camera(tv, size)
@@ -156,7 +159,7 @@ def soak(cfg, tp, prepared, truth, pipe, failures=(), seed: int = 7, resume: boo
         "lat_median_ms": float(np.median(lat)) if lat else float("nan"),
         "lat_p90_ms": float(np.percentile(lat, 90)) if lat else float("nan"),
         "render_median_ms": 1e3 * float(np.median(list(render_s.values()))) if render_s else float("nan"),
-        "wall_s": wall, "pause_ratio": ratio, "state": vp.status().state,
+        "wall_s": wall, "pause_ratio": ratio, "consecutive": cfg.policy.consecutive_layers, "state": vp.status().state,
     }
 
 
@@ -166,19 +169,21 @@ def run(layers: int | None = None, size: tuple[int, int] = (1920, 1080), onset: 
     layers = layers or int(os.environ.get("SOAK_LAYERS", "500"))
     onset = min(onset, int(0.6 * layers))
     t = time.perf_counter()
-    parts = job(layers, size)
+    solid = int(os.environ.get("SOAK_SOLID_LAYERS", "4"))
+    parts = job(layers, size, solid)
     setup = time.perf_counter() - t
     clean = soak(*parts, resume=True)
     bad = soak(*parts, failures=[Failure("spaghetti", onset=onset, seed=1)], seed=11)
     return {"clean": clean, "bad": bad, "onset": onset, "size": size, "n_layers": parts[1].n_layers,
-            "setup_s": setup}
+            "setup_s": setup, "solid_layers": solid}
 
 
 def report(r: dict) -> None:
     c, b = r["clean"], r["bad"]
     w, h = r["size"]
-    print(f"\nsoak, tower_part {r['n_layers']} layers (0.2 mm), {w}x{h} simulated photos, recommended config "
-          f"(pause a% > {100 * c['pause_ratio']:.1f} % on {2} layers), wait_for_verdict; set-up {r['setup_s']:.0f} s")
+    print(f"\nsoak, tower_part {r['n_layers']} layers (0.2 mm, {r['solid_layers']} solid bottom/top layers), "
+          f"{w}x{h} simulated photos, recommended config "
+          f"(pause a% > {100 * c['pause_ratio']:.1f} % on {c['consecutive']} layers), wait_for_verdict; set-up {r['setup_s']:.0f} s")
     print(f"clean: {c['layers']} layers analysed ({c['errors']} errors), {len(c['alarms'])} single-layer alarms "
           f"(a% > pause ratio), {c['notifies']} notify decisions, {c['pauses']} pause(s); "
           f"a% median {100 * c['a_median']:.2f} %, p99 {100 * c['a_p99']:.2f} %, "

@@ -124,6 +124,7 @@ def tower_part(
     boss_from_mm: float = 70.0,
     infill_spacing_mm: float = 2.0,
     width: float = 0.45,
+    solid_layers: int = 0,
 ) -> Toolpath:
     """A tall part: a square block with a round through-hole, topped by a round boss (a tube) around the hole.
 
@@ -131,7 +132,10 @@ def tower_part(
     around the hole, and sparse rectilinear infill (alternating +-45 deg,
     ``infill_spacing_mm`` apart) clipped between them; at ``boss_from_mm``
     the footprint shrinks from the square block to the boss's ring, so the
-    block's infilled top stays in view beside the boss.
+    block's top stays in view beside the boss. With ``solid_layers`` > 0 the
+    bottom and top ``solid_layers`` layers of the block and of the boss are
+    solid infill (lines one bead width apart), as a slicer prints them;
+    with 0 the block's top is sparse infill seen from above.
 
     Parameters
     ----------
@@ -149,16 +153,20 @@ def tower_part(
         Distance between infill lines, mm (2 mm at 0.45 mm beads ~ 22 % infill).
     width : float
         Bead width, mm.
+    solid_layers : int
+        Solid bottom/top layers of the block and of the boss.
 
     Returns
     -------
     Toolpath
-        Features: external_perimeter, perimeter, infill.
+        Features: external_perimeter, perimeter, infill, solid_infill, top_solid_infill.
     """
     cx, cy = center
     h = size_mm / 2
     r_hole, r_boss = hole_mm / 2, boss_mm / 2
-    ext, per, inf = (FEATURES.index(n) for n in ("external_perimeter", "perimeter", "infill"))
+    ext, per, inf, sol, top = (FEATURES.index(n) for n in ("external_perimeter", "perimeter", "infill",
+                                                          "solid_infill", "top_solid_infill"))
+    n_block = int(round(boss_from_mm / layer_h))
     starts, ends, zs, feats = [], [], [], []
     n_layers = int(round(height_mm / layer_h))
     for k in range(n_layers):
@@ -178,14 +186,18 @@ def tower_part(
         r_out = None if block else r_boss - 2 * width
         d = np.array([1.0, 1.0 if k % 2 == 0 else -1.0]) / np.sqrt(2.0)
         nrm = np.array([-d[1], d[0]])
-        for c in np.arange(-np.sqrt(2) * half + infill_spacing_mm / 2, np.sqrt(2) * half, infill_spacing_mm):
+        first, last = (0, n_block - 1) if block else (n_block, n_layers - 1)
+        spacing, code = infill_spacing_mm, inf
+        if k < first + solid_layers or k > last - solid_layers:
+            spacing, code = width, (top if k > last - solid_layers else sol)
+        for c in np.arange(-np.sqrt(2) * half + spacing / 2, np.sqrt(2) * half, spacing):
             p0 = c * nrm
             for t0, t1 in _clip_line(p0, d, half, r_hole + 2 * width, r_out):
                 if t1 - t0 < width:
                     continue
                 starts.append([[cx, cy] + p0 + t0 * d])
                 ends.append([[cx, cy] + p0 + t1 * d])
-                feats.append(inf)
+                feats.append(code)
         zs += [z] * (sum(len(s) for s in starts) - len(zs))
     return Toolpath.from_segments(
         np.concatenate(starts), np.concatenate(ends), np.array(zs), width=width,
