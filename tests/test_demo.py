@@ -28,7 +28,14 @@ def test_demo_pauses_soon_after_onset(tmp_path, failure, onset):
         assert job["outcome"] == "paused"
         assert len(history.layers(job["id"])) == res.paused_at + 1
         assert any(e["kind"] == "pause" for e in history.events(job["id"]))
+        # the job keeps the settings it ran with, so the report draws the real pause threshold
+        from layerwatch.evaluate.recommended import RECOMMENDED
+
+        stored = history.job(job["id"])["config"]
+        assert stored["policy"]["pause_ratio"] == RECOMMENDED["policy"]["pause_ratio"]
+    assert (tmp_path / "out" / "refs" / f"layer_{res.paused_at:04d}.png").is_file()
     assert res.report is not None and "<img" in res.report.read_text()
+    assert f"{100 * RECOMMENDED['policy']['pause_ratio']:.1f} %" in res.report.read_text()
 
 
 def test_demo_cli_reports_pause(tmp_path, capsys):

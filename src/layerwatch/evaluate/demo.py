@@ -126,7 +126,8 @@ def run_demo(
         res = pipe.process(frame.photo, i)
         res.extra["simulated_failures"] = frame.meta.get("failures", [])
         ref = pipe.reference(i) if res.status != "error" else None
-        folder.write(res, pipe.last_top, None if ref is None else ref.footprint)
+        folder.write(res, pipe.last_top, None if ref is None else ref.footprint,
+                             None if ref is None else ref.image)
         results[i] = res
         res_demo.anomaly[i] = float(res.anomaly_ratio) if res.status == "ok" else float("nan")
         decision = policy.update(res)
@@ -138,7 +139,7 @@ def run_demo(
             if stop_at_pause:
                 break
     folder.stack()
-    _record_history(out, gpath, results, res_demo)
+    _record_history(out, gpath, results, res_demo, cfg)
     res_demo.seconds = time.perf_counter() - t0
     folder.summary(results, res_demo.paused_at, res_demo.reason, extra={
         "part": str(gpath) if gpath else "box_part()", "injected failure": f"{failure} from layer {onset}",
@@ -149,7 +150,7 @@ def run_demo(
 
 
 
-def _record_history(out: Path, gpath: Path | None, results: dict, res_demo: DemoResult) -> None:
+def _record_history(out: Path, gpath: Path | None, results: dict, res_demo: DemoResult, cfg=None) -> None:
     """Store the demo job in ``out/history.db`` and write its HTML report to ``out/report/``.
 
     The same history the live monitor writes, so ``layerwatch history --db
@@ -162,7 +163,7 @@ def _record_history(out: Path, gpath: Path | None, results: dict, res_demo: Demo
         results[max(results)].images["stack"] = "stack.png"
     history = History(out / "history.db")
     try:
-        job = history.start_job("virtual", gcode_path=str(gpath) if gpath else None, part="demo part")
+        job = history.start_job("virtual", gcode_path=str(gpath) if gpath else None, part="demo part", config=cfg)
         for res in results.values():
             history.add_layer(job, res)
         if res_demo.paused_at is not None:

@@ -117,7 +117,8 @@ def run_offline(
                 res = pipe.process(photo, i)
                 ref = pipe.reference(i) if res.status != "error" else None
                 res.images["photo"] = str(path)
-                folder.write(res, pipe.last_top, None if ref is None else ref.footprint)
+                folder.write(res, pipe.last_top, None if ref is None else ref.footprint,
+                             None if ref is None else ref.image)
             run.results[i] = res
             if res.status == "error":
                 run.problems.append(f"layer {i} ({mapping[i].name}): {res.message}")

@@ -5,6 +5,7 @@ Layout (``layer_NNNN`` = 0-based layer index, zero-padded)::
     layers/layer_NNNN.json     LayerResult (heatmap included)
     overlays/layer_NNNN.png    heatmap overlay on the warped photo (paper Figs. 13, 15)
     tops/layer_NNNN.png        grey top view of the photo (for the layer stack)
+    refs/layer_NNNN.png        the reference it was compared with
     stack.png                  the layer stack of all analysed top views
     summary.json, summary.md   table of every layer and the first pause
 
@@ -47,7 +48,7 @@ class ResultsFolder:
     def __init__(self, root: str | Path, topview: TopView) -> None:
         self.root = Path(root)
         self.topview = topview
-        for sub in ("layers", "overlays", "tops"):
+        for sub in ("layers", "overlays", "tops", "refs"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
 
     def _name(self, layer: int) -> str:
@@ -65,8 +66,8 @@ class ResultsFolder:
         return out
 
     def write(self, result: LayerResult, top: np.ndarray | None = None,
-              footprint: np.ndarray | None = None) -> LayerResult:
-        """Write one layer (overlay and top view only when ``top`` is given); returns ``result``."""
+              footprint: np.ndarray | None = None, reference: np.ndarray | None = None) -> LayerResult:
+        """Write one layer (overlay and top view only when ``top`` is given, the reference when given)."""
         import cv2
 
         from layerwatch.analysis.overlay import overlay_image
@@ -83,6 +84,11 @@ class ResultsFolder:
                 if ok:
                     _atomic_write(self.root / "overlays" / f"{name}.png", buf.tobytes())
                     result.images["overlay"] = f"overlays/{name}.png"
+        if reference is not None:
+            ok, buf = cv2.imencode(".png", reference)
+            if ok:
+                _atomic_write(self.root / "refs" / f"{name}.png", buf.tobytes())
+                result.images["reference"] = f"refs/{name}.png"
         _atomic_write(self.root / "layers" / f"{name}.json",
                       result.to_json(include_heatmap=True).encode())
         return result
