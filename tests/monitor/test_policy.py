@@ -143,3 +143,17 @@ def test_consecutive_spikes_must_share_a_place():
     q = PausePolicy(PolicySettings(pause_ratio=0.1, consecutive_layers=2, growth_min_area_mm2=1e9))
     q.update(_res(2, 0.12, [_region(15, x=40)]))
     assert q.update(_res(3, 0.12, [_region(15, x=41)])).stops
+
+
+def test_small_footprint_needs_min_area_before_the_ratio_rule_pauses():
+    """Two edge blocks (2.9 mm^2) on a 100 mm^2 boss are 2.9 % — above a 2.5 % ratio, but not a failure."""
+    def small(layer, area):
+        return LayerResult(layer=layer, z=0.2 * layer, anomaly_ratio=area / 100.0, printed_area_mm2=100.0,
+                           anomalous_area_mm2=area, regions=[_region(area)])
+
+    p = PausePolicy(PolicySettings(pause_ratio=0.025, consecutive_layers=2, min_area_mm2=5.0))
+    assert all(p.update(small(i, 2.88)).action == "none" for i in range(2, 12))
+    assert p.update(small(12, 5.76)).action == "notify"
+    assert p.update(small(13, 5.76)).stops
+    no_floor = PausePolicy(PolicySettings(pause_ratio=0.025, consecutive_layers=2, min_area_mm2=0.0))
+    assert no_floor.update(small(2, 2.88)).action == "notify" and no_floor.update(small(3, 2.88)).stops

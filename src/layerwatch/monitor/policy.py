@@ -2,7 +2,8 @@
 
 Rules (all thresholds in :class:`PolicySettings`):
 
-1. ``a%`` above ``pause_ratio`` for ``consecutive_layers`` analysed layers
+1. ``a%`` above ``pause_ratio`` (and at least ``min_area_mm2`` of anomalous
+   area) for ``consecutive_layers`` analysed layers
    in a row, with a failing region in the same place on consecutive layers
    (noise spikes land at random places) -> ``settings.action``; a single layer above it -> ``notify``
    (when ``notify_single_layer``).
@@ -151,7 +152,11 @@ class PausePolicy:
             self._last_ratio = ratio
         # after a resume, anomaly the operator accepted must grow before it counts again
         limit = max(s.pause_ratio, self._acked_ratio * s.growth_ratio)
-        self._streak = self._streak + 1 if ratio > limit else 0
+        # a% of a small footprint jumps by a whole block at a time (1.44 mm^2 for the paper's grid): the ratio
+        # rule also needs min_area_mm2 of fresh anomalous area, so two or three edge blocks never pause
+        fresh_area = ratio * printed if printed and printed > 0 else float(result.anomalous_area_mm2)
+        alarm = ratio > limit and fresh_area >= s.min_area_mm2
+        self._streak = self._streak + 1 if alarm else 0
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
 
@@ -193,7 +198,7 @@ class PausePolicy:
                         f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2",
                         layer,
                     )
-        if ratio > limit and s.notify_single_layer:
+        if alarm and s.notify_single_layer:
             return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer)
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
 

@@ -15,6 +15,9 @@ class PolicySettings(Section):
     """When a failure pauses the print (defaults come from the evaluation report)."""
 
     pause_ratio: float = Field(0.10, ge=0, le=1)
+    # the ratio rule also needs this much anomalous area (mm^2): on a small
+    # footprint two or three blocks of 1.44 mm^2 exceed any useful pause ratio
+    min_area_mm2: float = Field(5.0, ge=0)
     consecutive_layers: int = Field(2, ge=1)
     strong_outside_area_mm2: float = Field(150.0, ge=0)
     growth_ratio: float = Field(1.5, ge=1)
