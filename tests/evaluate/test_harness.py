@@ -88,3 +88,22 @@ def test_clean_false_alarms_counts(job):
     everything = recommended_config(analysis={"threshold": 1.0})
     always = clean_false_alarms(tp, everything, cam, n_layers=8, pause_ratio=0.0)
     assert always["layer_alarms"] == tp.n_layers - 1 and always["pauses"] == 1
+
+
+def test_grown_iou_scores_what_the_overlay_draws(job):
+    """With hysteresis growth beyond the footprint, the harness's IoU is that of analyze_layer's drawn blocks."""
+    from layerwatch.analysis.overlay import anomalous_blocks
+
+    tp, cam, cfg, tv = job
+    grown = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={
+        "metric": "cosine", "threshold": 0.5, "presmooth_px": 1.25, "grow_threshold": 0.25, "grow_margin_mm": 5.0})})
+    pipe = LayerPipeline(tp, cam, grown)
+    frame = simulate_layer(tp, 6, cam, tv, (Failure("spaghetti", onset=4, size_mm=14.0, seed=3),), seed=2)
+    res = pipe.process(frame.photo, 6)
+    a, ious, _ = _score(pipe.last_top, pipe.reference(6), pipe.last_valid, pipe, grown.analysis, frame)
+    drawn = anomalous_blocks(res)
+    assert drawn.sum() > res.n_anomalous  # it did grow
+    assert (drawn & ~res.mask).any()  # and beyond the considered blocks, towards the strands beside the part
+    pix = block_tiles(drawn, tv.shape, 8, 2, fill=False)
+    j = int(np.argmin(abs(THRESHOLDS - 0.5)))
+    assert ious[0, j] == pytest.approx(iou(pix, frame.truth_area), abs=1e-6)

@@ -45,23 +45,24 @@ def _grid(result: LayerResult) -> tuple[int, int, int]:
 def anomalous_blocks(result: LayerResult) -> np.ndarray:
     """Blocks of the failing regions in ``result``, (N, M) bool.
 
-    Considered blocks below T_S in groups of at least ``min_region_blocks``,
-    grown by hysteresis when the analysis used ``grow_threshold``.
+    The blocks the analysis drew (``extra["shown_blocks"]``: grown by
+    hysteresis when it used ``grow_threshold``), else the considered blocks
+    below T_S in groups of at least ``min_region_blocks``.
     """
     from scipy import ndimage
 
     heat = np.asarray(result.heatmap, dtype=np.float32)
+    shown = (result.extra or {}).get("shown_blocks")
+    if shown is not None:  # grown by the analysis (hysteresis, possibly beyond the considered blocks)
+        out = np.zeros(heat.size, bool)
+        out[np.asarray(shown, dtype=np.int64)] = True
+        return out.reshape(heat.shape)
     mask = np.ones(heat.shape, bool) if result.mask is None else np.asarray(result.mask, bool)
     anom = mask & (heat < result.threshold)
     min_blocks = _grid(result)[2]
     if min_blocks > 1 and anom.any():
         labels, _ = ndimage.label(anom, structure=np.ones((3, 3), dtype=bool))
         anom = (np.bincount(labels.ravel()) >= min_blocks)[labels] & anom
-    grow = float((result.extra or {}).get("grid", {}).get("grow_threshold", 0.0))
-    if grow > 0 and anom.any():  # the regions as analyze_layer reports them (hysteresis)
-        from layerwatch.analysis.scoring import grow_regions
-
-        anom = grow_regions(anom, mask & (heat < result.threshold + grow))
     return anom
 
 

@@ -55,7 +55,7 @@ from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "to_grey255"]
+__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "near_footprint", "to_grey255"]
 
 
 def block_geometry(cell_px: int = 8, block_cells: int = 2, px_per_mm: float = 6.67) -> dict[str, float]:
@@ -136,6 +136,46 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
     h_top[flat] = 0.0  # featureless in both: identical (similarity 1)
     h_ref[flat] = 0.0
     return h_top, h_ref
+
+
+def near_footprint(
+    footprint: np.ndarray,
+    grid_shape: tuple[int, int],
+    topview: TopView,
+    settings: AnalysisSettings,
+    margin_mm: float,
+    valid: np.ndarray | None = None,
+    footprint_integral: np.ndarray | None = None,
+) -> np.ndarray:
+    """Blocks with a cell within ``margin_mm`` of a footprint cell and wholly seen by the camera.
+
+    Parameters
+    ----------
+    footprint : ndarray, shape (H, W), bool
+    grid_shape : (N, M)
+        Block grid of the HOG (``hog_blocks`` output's first two axes).
+    topview : TopView
+    settings : AnalysisSettings
+        ``cell_px`` and ``block_cells``.
+    margin_mm : float
+        Cell centre to cell centre, resolved to whole cells.
+    valid : ndarray, shape (H, W), bool, optional
+        Pixels the camera saw; blocks with an unseen pixel are left out.
+    footprint_integral : ndarray, optional
+        ``cv2.integral`` of ``footprint`` when the caller has it.
+
+    Returns
+    -------
+    ndarray, shape (N, M), bool
+    """
+    c, b = settings.cell_px, settings.block_cells
+    n, m = grid_shape
+    foot_int = _integral(np.asarray(footprint, bool)) if footprint_integral is None else footprint_integral
+    cells_r, cells_c = np.arange(n + b - 1) * c, np.arange(m + b - 1) * c
+    out = _near_blocks(_box_sums(foot_int, cells_r, cells_c, c), b, margin_mm * topview.px_per_mm / c)
+    if valid is not None:
+        out &= _box_sums(_integral(~np.asarray(valid, bool)), np.arange(n) * c, np.arange(m) * c, b * c) == 0
+    return out
 
 
 def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
@@ -332,18 +372,19 @@ def analyze_layer(
     n, m = heat.shape
     rows, cols = np.arange(n) * c, np.arange(m) * c
     foot_int = _integral(foot)
-    cells_r, cells_c = np.arange(n + b - 1) * c, np.arange(m + b - 1) * c
-    margin_cells = st.footprint_margin_mm * topview.px_per_mm / c
-    considered = _near_blocks(_box_sums(foot_int, cells_r, cells_c, c), b, margin_cells)
-    if valid is not None:
-        considered &= _box_sums(_integral(~seen), rows, cols, b * c) == 0
+    considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm,
+                                None if valid is None else seen, foot_int)
     off = (b - 1) * c // 2
     foot_frac = _box_sums(foot_int, rows + off, cols + off, c) / float(c * c)
     grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
     anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
     shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
     if st.grow_threshold > 0 and anom.any():
-        shown = grow_regions(anom, considered & (heat < st.threshold + st.grow_threshold))
+        reach = considered
+        if st.grow_margin_mm > st.footprint_margin_mm:
+            reach = near_footprint(foot, heat.shape, topview, st, st.grow_margin_mm,
+                                   None if valid is None else seen, foot_int)
+        shown = grow_regions(anom, reach & (heat < st.threshold + st.grow_threshold))
     t3 = time.perf_counter()
 
     tile_mm2 = (c / topview.px_per_mm) ** 2
@@ -373,6 +414,7 @@ def analyze_layer(
     }
     if shown is not anom:
         res.extra["region_blocks"] = int(shown.sum())
+        res.extra["shown_blocks"] = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
     if all_metrics:
         per = {}
         for name, s in similarity_all(h_top, h_ref, METRIC_NAMES).items():

@@ -52,3 +52,7 @@ class AnalysisSettings(Section):
     # anomalous block are drawn with it. a%, the regions and so the pause
     # policy still count only blocks below the threshold.
     grow_threshold: float = Field(0.0, ge=0, le=1)
+    # How far beside the footprint a drawn region may grow (spaghetti, a
+    # displaced part); regions still have to start on the considered blocks.
+    # Values below footprint_margin_mm mean the footprint margin.
+    grow_margin_mm: float = Field(0.0, ge=0)

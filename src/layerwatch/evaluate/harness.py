@@ -139,7 +139,7 @@ def _largest(anom: np.ndarray) -> int:
 def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: list | None = None):
     """``(a (12, T), iou (12, T) or None, clean_high)``; fills ``regions`` with the (12, T) largest-region areas."""
     from layerwatch.analysis.metrics import similarity_all
-    from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions
+    from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions, near_footprint
 
     res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid)
     considered = res.mask
@@ -155,10 +155,14 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
     a = np.zeros((len(METRIC_NAMES), len(T)), np.float32)
     iou = None
     truth_tiles = truth_px = None
+    reach = considered  # where a drawn region may grow (analyze_layer's grow_margin_mm)
     if frame.truth_area is not None:
         iou = np.zeros_like(a)
-        truth_tiles = tile_fraction(frame.truth_area, n, m, c, b)[considered] * tile_px
+        truth_full = tile_fraction(frame.truth_area, n, m, c, b) * tile_px
+        truth_tiles = truth_full[considered]
         truth_px = float(np.count_nonzero(frame.truth_area))
+        if grow > 0 and settings.grow_margin_mm > settings.footprint_margin_mm:
+            reach = near_footprint(ref.footprint, (n, m), pipe.topview, settings, settings.grow_margin_mm, valid)
     reg = np.zeros_like(a)
     for k, name in enumerate(METRIC_NAMES):
         if regions is not None:
@@ -170,13 +174,15 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
         cnt = below.sum(axis=0)
         a[k] = np.minimum(1.0, cnt * tile_mm2 / printed) if printed > 0 else 0.0
         if iou is not None:
-            shown, n_shown = below, cnt
             if grow > 0:  # the regions the operator sees (hysteresis), as analyze_layer draws them
                 full = sims[name]
-                shown = np.stack([grow_regions(considered & (full < t), considered & (full < t + grow))[considered]
+                shown = np.stack([grow_regions(considered & (full < t), reach & (full < t + grow)).ravel()
                                   for t in T], axis=1)
                 n_shown = shown.sum(axis=0)
-            inter = (shown * truth_tiles[:, None]).sum(axis=0)
+                inter = (shown * truth_full.ravel()[:, None]).sum(axis=0)
+            else:
+                n_shown = cnt
+                inter = (below * truth_tiles[:, None]).sum(axis=0)
             union = n_shown * tile_px + truth_px - inter
             iou[k] = np.where(union > 0, inter / np.maximum(union, 1e-9), 1.0)
     clean_high = (0, 0, 0)
