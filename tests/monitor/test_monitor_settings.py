@@ -15,7 +15,7 @@ from layerwatch.cli import app
 from layerwatch.cli.monitor import monitor_config
 from layerwatch.config import JobConfig
 from layerwatch.errors import ConfigError
-from layerwatch.evaluate.recommended import RECOMMENDED
+from layerwatch.evaluate.recommended import RECOMMENDED, recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import SETTINGS_KEY
 
@@ -97,7 +97,7 @@ def test_monitor_config_precedence_without_a_run(tmp_path):
         cfg, src = monitor_config(toml, h)  # nothing saved yet
         assert cfg.policy.pause_ratio == RECOMMENDED["policy"]["pause_ratio"] and cfg.policy.consecutive_layers == 4
         assert src["policy"] == "file+recommended" and src["topview"] == "default"
-        saved = JobConfig().model_dump(mode="json")  # what the dashboard stores: the full config it showed
+        saved = recommended_config().model_dump(mode="json")  # what the dashboard stores: the full config it showed
         saved["policy"].update(pause_ratio=0.07, consecutive_layers=3)
         saved["analysis"]["grow_threshold"] = 0.3
         h.set_setting(SETTINGS_KEY, saved)

@@ -7,6 +7,7 @@ import warnings
 import pytest
 
 from layerwatch.config import JobConfig
+from layerwatch.evaluate.recommended import recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import SETTINGS_KEY, create_app
 
@@ -25,7 +26,7 @@ def test_settings_survive_a_server_restart(tmp_path):
     db = tmp_path / "history.db"
     h, c = _serve(db)
     s = c.get("/api/settings").json()
-    assert s == JobConfig().model_dump(mode="json")
+    assert s == recommended_config().model_dump(mode="json")  # what the monitor runs with
     s["analysis"]["metric"], s["analysis"]["threshold"] = "pearson", 0.45
     s["policy"]["pause_ratio"], s["policy"]["action"] = 0.037, "notify"
     assert c.put("/api/settings", json=s).status_code == 200
@@ -81,7 +82,7 @@ def test_patch_merges_put_replaces(tmp_path):
     assert s["analysis"]["metric"] == "pearson" and s["policy"]["pause_ratio"] == 0.25
     assert c.put("/api/settings", json={"policy": {"pause_ratio": 0.3}}).status_code == 200
     s = c.get("/api/settings").json()
-    assert s["analysis"]["metric"] == JobConfig().analysis.metric and s["policy"]["pause_ratio"] == 0.3
+    assert s["analysis"]["metric"] == recommended_config().analysis.metric and s["policy"]["pause_ratio"] == 0.3
     h.close()
 
 
@@ -106,7 +107,7 @@ def test_stale_saved_settings_fall_back_to_defaults(tmp_path):
     h, c = _serve(tmp_path / "h.db")
     h.set_setting(SETTINGS_KEY, {"analysis": {"renamed_in_a_later_version": 1}})
     r = c.get("/api/settings")
-    assert r.status_code == 200 and r.json() == JobConfig().model_dump(mode="json")
+    assert r.status_code == 200 and r.json() == recommended_config().model_dump(mode="json")
     assert c.patch("/api/settings", json={"policy": {"pause_ratio": 0.2}}).status_code == 200  # saving repairs it
     assert h.setting(SETTINGS_KEY)["policy"]["pause_ratio"] == 0.2
     h.close()

@@ -13,12 +13,13 @@ SOURCES = ("file", "dashboard", "recommended")  # highest precedence first; "def
 
 
 def dashboard_settings(history) -> dict[str, dict]:
-    """The settings the dashboard saved in ``history`` that differ from the sections' built-in defaults.
+    """The settings the dashboard saved in ``history`` that differ from what it shows unsaved.
 
-    The dashboard stores the whole job config it showed (``PUT``/``PATCH /api/settings``), so a key it never
-    changed holds the built-in default; only the changed keys form the "dashboard" layer, and the recommended
-    settings stay in force under it. (A key deliberately set back to its built-in value is therefore
-    indistinguishable from an untouched one; the recommended value, if any, applies there.)
+    The dashboard stores the whole job config it showed (``PUT``/``PATCH /api/settings``); unsaved, it shows
+    the recommended settings (:func:`~layerwatch.evaluate.recommended.recommended_config`), so a key it never
+    changed holds the recommended value; only the changed keys form the "dashboard" layer. (A key
+    deliberately set back to its recommended value is indistinguishable from an untouched one, and the
+    result is the same.)
 
     Parameters
     ----------
@@ -52,7 +53,9 @@ def dashboard_settings(history) -> dict[str, dict]:
         msg = " ".join(str(err["msg"]).split())
         raise ConfigError(f"{history.path}: the dashboard's saved setting {where} is invalid ({msg}); save the "
                           "settings again in the dashboard (layerwatch serve --db ...) or drop --history.") from None
-    base = JobConfig().model_dump(mode="json")
+    from layerwatch.evaluate.recommended import recommended_config
+
+    base = recommended_config().model_dump(mode="json")
     out: dict[str, dict] = {}
     for section, values in cfg.model_dump(mode="json").items():
         changed = {k: v for k, v in values.items() if v != base[section].get(k)}

@@ -127,7 +127,8 @@ def create_app(
         Folder whose files ``/api/image/{path}`` may serve; nothing else is served.
     settings : JobConfig, optional
         Job settings shown by ``/api/settings`` until someone saves settings
-        in the dashboard (those are stored in ``history`` and win from then on).
+        in the dashboard (those are stored in ``history`` and win from then on);
+        default: the evaluation's recommended settings, as the monitor uses them.
     poll_s : float
         Database poll interval of the live-update stream, s.
     """
@@ -138,7 +139,11 @@ def create_app(
 
     printers = dict(printers or {})
     root = Path(image_root).resolve() if image_root is not None else None
-    fallback = settings or JobConfig()
+    if settings is None:  # what the monitor would run with: the evaluation's recommended settings
+        from layerwatch.evaluate.recommended import recommended_config
+
+        settings = recommended_config()
+    fallback = settings
     app = FastAPI(title="layerwatch", version="1", description="Layer-by-layer print monitoring dashboard.")
 
     def authorised(request: Request) -> bool:
@@ -305,9 +310,10 @@ def create_app(
     def get_settings() -> dict[str, Any]:
         return _redact(current_settings().model_dump(mode="json"))
 
-    @app.put("/api/settings", summary="Replace job settings (validated, saved in the history database)")
+    @app.put("/api/settings", summary="Replace job settings (validated, saved in the history database); "
+             "keys left out take the unsaved defaults (the recommended settings)")
     def put_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
-        return save_settings(body)
+        return save_settings(_merge(fallback.model_dump(mode="json"), body))
 
     @app.patch("/api/settings", summary="Change some settings, e.g. {\"policy\": {\"pause_ratio\": 0.2}} (validated, saved)")
     def patch_settings(body: dict[str, Any] = Body(...)) -> dict[str, Any]:  # noqa: B008
