@@ -83,11 +83,12 @@ def test_clean_false_alarms_counts(job):
     cfg = recommended_config()  # the monitor's policy with the recommended analysis: no pause on a clean print
     never = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=1.0)
     assert never["prints"] == 1 and never["layers"] == tp.n_layers
-    assert never["layer_alarms"] == 0 and never["pauses"] == 0
+    assert never["layer_alarms"] == 0 and never["pauses"] == 0 and never["policy_alarms"] == 0
     # every block anomalous (T_S = 1): every judged layer alarms and the policy pauses once
     everything = recommended_config(analysis={"threshold": 1.0})
     always = clean_false_alarms(tp, everything, cam, n_layers=8, pause_ratio=0.0)
     assert always["layer_alarms"] == tp.n_layers - 1 and always["pauses"] == 1
+    assert always["policy_alarms"] >= 1  # the pause itself (and the notice before it)
 
 
 def test_grown_iou_scores_what_the_overlay_draws(job):

@@ -289,7 +289,8 @@ def clean_false_alarms(
     Returns
     -------
     dict
-        ``layers``, ``prints``, ``layer_alarms``, ``pauses``, ``max_a``, ``a`` (list).
+        ``layers``, ``prints``, ``layer_alarms`` (a% above the ratio), ``policy_alarms``
+        (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list).
     """
     from layerwatch.monitor.pipeline import LayerPipeline
     from layerwatch.monitor.policy import PausePolicy
@@ -300,7 +301,7 @@ def clean_false_alarms(
     policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),
                                                        "consecutive_layers": int(consecutive)})
     prints = max(1, int(round(n_layers / toolpath.n_layers)))
-    out = {"layers": 0, "prints": prints, "layer_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
+    out = {"layers": 0, "prints": prints, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
     done = 0
     for k in range(prints):
         sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
@@ -319,6 +320,8 @@ def clean_false_alarms(
             out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
             if i >= policy_settings.skip_first_layers:
                 out["layer_alarms"] += int(res.anomaly_ratio > pause_ratio)
+            if not paused:  # after a pause the policy waits for the operator: nothing more to count
+                out["policy_alarms"] += int(decision.action != "none")
             if decision.stops and not paused:
                 out["pauses"] += 1
                 paused = True

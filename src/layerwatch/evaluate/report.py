@@ -149,6 +149,12 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
         L.append(f"| false alarms / 1000 clean layers, {clean_run['prints']} whole clean prints | <= 1 | "
                  f"{rate:.1f} ({fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
                  f"2-layer rule; 95 % upper bound {up:.1f}) | {'yes' if up <= 1 else ('consistent' if fa == 0 else 'no')} |")
+        if "policy_alarms" in clean_run:  # what the monitor would actually raise (notify or pause)
+            pa = clean_run["policy_alarms"]
+            prate, pup = false_alarm_rate(pa, n)
+            L.append(f"| alerts raised by the monitor's policy / 1000 clean layers | <= 1 | {prate:.1f} ({pa} "
+                     f"notify/pause decisions in {n} layers: ratio, minimum area, growth and outside rules; 95 % "
+                     f"upper bound {pup:.1f}) | {'yes' if pup <= 1 else ('consistent' if pa == 0 else 'no')} |")
     L.append(f"| clean printed-area blocks with cosine > 0.7 | >= 95 % | {_fmt(s.clean_block_share, True)} % "
              f"({_fmt(s.clean_flat_share, True)} % of the blocks are featureless in both images and match by rule; "
              f"{_fmt(s.clean_textured_share, True)} % of the others are above 0.7) "
