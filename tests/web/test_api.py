@@ -6,6 +6,7 @@ import warnings
 
 import pytest
 
+from layerwatch.evaluate.recommended import RECOMMENDED
 from layerwatch.web.app import MAX_BODY, create_app
 
 pytest.importorskip("fastapi")
@@ -28,7 +29,7 @@ def test_jobs_layers_events(seeded, printer):
     assert [r["layer"] for r in rows] == list(range(40))
     assert rows[30]["anomaly_ratio"] > rows[5]["anomaly_ratio"]
     full = c.get(f"/api/jobs/{ids['live']}/layers?full=true").json()
-    assert full[35]["regions"] and full[35]["metric"] == "pearson"
+    assert full[35]["regions"] and full[35]["metric"] == RECOMMENDED["analysis"]["metric"]
     latest = c.get(f"/api/jobs/{ids['live']}/latest").json()
     assert latest["layer"] == 39 and "stack" in latest["images"]
     kinds = [e["kind"] for e in c.get(f"/api/jobs/{ids['live']}/events").json()]

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.evaluate.recommended import RECOMMENDED
 from layerwatch.storage.history import History
 
 __all__ = ["seed_job"]
@@ -92,7 +93,8 @@ def seed_job(
         if blob > 0:
             regions = [Region(area_mm2=300 * ratio, bbox_mm=(112.0, 96.0, 120.0 + 8 * blob, 104.0 + 8 * blob),
                               centroid_mm=(116.0, 100.0), n_blocks=int(40 * ratio) + 1, mean_similarity=0.4)]
-        res = LayerResult(layer=i, z=0.3 * (i + 1), metric="pearson", threshold=0.45, anomaly_ratio=ratio,
+        res = LayerResult(layer=i, z=0.3 * (i + 1), metric=RECOMMENDED["analysis"]["metric"],
+                          threshold=RECOMMENDED["analysis"]["threshold"], anomaly_ratio=ratio,
                           printed_area_mm2=400.0, anomalous_area_mm2=400.0 * ratio, n_blocks=120,
                           n_anomalous=int(120 * ratio), regions=regions,
                           timings_ms={"warp": 4.0, "render": 6.0, "hog": 3.0}, images=rel)
