@@ -48,3 +48,12 @@ def test_bad_input_exit_2(argv, example_gcode, tmp_path, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "error:" in err and "Traceback" not in err
+
+
+def test_info_on_text_without_extrusion_is_a_one_line_error(tmp_path, capsys):
+    text = tmp_path / "notes.gcode"
+    text.write_text("hello world\nthis is not gcode\n")
+    assert main(["gcode", "info", str(text)]) == 2
+    err = capsys.readouterr().err
+    assert "no G-code moves" in err and "Traceback" not in err
+    assert len([ln for ln in err.strip().splitlines() if ln.startswith("error:")]) == 1

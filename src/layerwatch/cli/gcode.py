@@ -40,6 +40,10 @@ def info(file: Annotated[Path, typer.Argument(help="A .gcode (or .bgcode) file."
     from layerwatch.cli import console, err_console
 
     tp = _read_with_progress(file)
+    if tp.n_layers == 0 and not _has_moves(file):  # no move at all: not G-code (CNC files are still described)
+        from layerwatch.errors import GcodeError
+
+        raise GcodeError(f"{file.name} has no G-code moves: not a G-code file; pass the file your slicer exported.")
     table = Table(title=f"{file.name}", show_header=False)
     table.add_column("field", style="bold")
     table.add_column("value")
@@ -60,6 +64,15 @@ def info(file: Annotated[Path, typer.Argument(help="A .gcode (or .bgcode) file."
     console.print(table)
     for w in tp.warnings:
         err_console.print(f"[yellow]warning:[/] {w}", highlight=False)
+
+
+def _has_moves(file: Path, limit: int = 1 << 20) -> bool:
+    """True when the file's first ``limit`` bytes hold a G0-G3 move (binary .bgcode counts as G-code)."""
+    import re
+
+    with open(file, "rb") as fh:
+        head = fh.read(limit)
+    return head.startswith(b"GCDE") or re.search(rb"(?m)^[ \t]*[Gg]0*[0-3](?![0-9.])", head) is not None
 
 
 @gcode_app.command("prepare")
