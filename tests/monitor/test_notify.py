@@ -9,26 +9,42 @@ from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.settings import NotifySettings
 
 
-@pytest.fixture
-def hook():
-    got = []
+def _post_server(record):
+    """Start a local HTTP server; every POST is passed to ``record(handler, body)``, which returns the status.
+
+    Returns the server (``server_address[1]`` is its port); shut it down with :func:`_stop`.
+    """
 
     class H(BaseHTTPRequestHandler):
         def do_POST(self):  # noqa: N802
-            n = int(self.headers["Content-Length"])
-            got.append(json.loads(self.rfile.read(n)))
-            self.send_response(500 if self.path == "/fail" else 200)
+            body = self.rfile.read(int(self.headers["Content-Length"]))
+            self.send_response(record(self, body))
             self.end_headers()
 
         def log_message(self, *a):
             pass
 
     srv = HTTPServer(("127.0.0.1", 0), H)
-    t = threading.Thread(target=srv.serve_forever, daemon=True)
-    t.start()
-    yield f"http://127.0.0.1:{srv.server_address[1]}", got
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    return srv
+
+
+def _stop(srv):
     srv.shutdown()
     srv.server_close()
+
+
+@pytest.fixture
+def hook():
+    got = []
+
+    def record(handler, body):
+        got.append(json.loads(body))
+        return 500 if handler.path == "/fail" else 200
+
+    srv = _post_server(record)
+    yield f"http://127.0.0.1:{srv.server_address[1]}", got
+    _stop(srv)
 
 
 def test_webhook_posts_json_with_image_and_rate_limits(hook):
@@ -62,22 +78,13 @@ def inbox():
     """Local HTTP server recording (path, content type, raw body) of every POST."""
     got = []
 
-    class H(BaseHTTPRequestHandler):
-        def do_POST(self):  # noqa: N802
-            n = int(self.headers["Content-Length"])
-            got.append((self.path, self.headers.get("Content-Type", ""), self.rfile.read(n)))
-            self.send_response(200)
-            self.end_headers()
+    def record(handler, body):
+        got.append((handler.path, handler.headers.get("Content-Type", ""), body))
+        return 200
 
-        def log_message(self, *a):
-            pass
-
-    srv = HTTPServer(("127.0.0.1", 0), H)
-    t = threading.Thread(target=srv.serve_forever, daemon=True)
-    t.start()
+    srv = _post_server(record)
     yield f"127.0.0.1:{srv.server_address[1]}", got
-    srv.shutdown()
-    srv.server_close()
+    _stop(srv)
 
 
 def _overlay_png(tmp_path):
