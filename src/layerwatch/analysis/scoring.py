@@ -55,7 +55,7 @@ from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "near_footprint", "to_grey255"]
+__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "growth_reach", "near_footprint", "to_grey255"]
 
 
 def block_geometry(cell_px: int = 8, block_cells: int = 2, px_per_mm: float = 6.67) -> dict[str, float]:
@@ -176,6 +176,33 @@ def near_footprint(
     if valid is not None:
         out &= _box_sums(_integral(~np.asarray(valid, bool)), np.arange(n) * c, np.arange(m) * c, b * c) == 0
     return out
+
+
+def growth_reach(
+    considered: np.ndarray,
+    footprint: np.ndarray,
+    topview: TopView,
+    settings: AnalysisSettings,
+    valid: np.ndarray | None = None,
+    footprint_integral: np.ndarray | None = None,
+) -> np.ndarray:
+    """Blocks a drawn region may grow into: the considered blocks, or those within ``grow_margin_mm``.
+
+    Parameters
+    ----------
+    considered : ndarray, shape (N, M), bool
+        Blocks within ``footprint_margin_mm`` (:func:`near_footprint`).
+    footprint, topview, settings, valid, footprint_integral
+        As for :func:`near_footprint`.
+
+    Returns
+    -------
+    ndarray, shape (N, M), bool
+    """
+    if settings.grow_margin_mm <= settings.footprint_margin_mm:
+        return considered
+    return near_footprint(footprint, considered.shape, topview, settings, settings.grow_margin_mm, valid,
+                          footprint_integral)
 
 
 def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
@@ -380,10 +407,7 @@ def analyze_layer(
     anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
     shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
     if st.grow_threshold > 0 and anom.any():
-        reach = considered
-        if st.grow_margin_mm > st.footprint_margin_mm:
-            reach = near_footprint(foot, heat.shape, topview, st, st.grow_margin_mm,
-                                   None if valid is None else seen, foot_int)
+        reach = growth_reach(considered, foot, topview, st, None if valid is None else seen, foot_int)
         shown = grow_regions(anom, reach & (heat < st.threshold + st.grow_threshold))
     t3 = time.perf_counter()
 
@@ -406,7 +430,6 @@ def analyze_layer(
     res.extra = {
         "grid": {
             "cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks,
-            "grow_threshold": st.grow_threshold,
             **block_geometry(c, b, topview.px_per_mm),
         },
         "similarity_mean": float(vals.mean()) if vals.size else 1.0,

@@ -139,7 +139,7 @@ def _largest(anom: np.ndarray) -> int:
 def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: list | None = None):
     """``(a (12, T), iou (12, T) or None, clean_high)``; fills ``regions`` with the (12, T) largest-region areas."""
     from layerwatch.analysis.metrics import similarity_all
-    from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions, near_footprint
+    from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions, growth_reach
 
     res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid)
     considered = res.mask
@@ -161,8 +161,8 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
         truth_full = tile_fraction(frame.truth_area, n, m, c, b) * tile_px
         truth_tiles = truth_full[considered]
         truth_px = float(np.count_nonzero(frame.truth_area))
-        if grow > 0 and settings.grow_margin_mm > settings.footprint_margin_mm:
-            reach = near_footprint(ref.footprint, (n, m), pipe.topview, settings, settings.grow_margin_mm, valid)
+        if grow > 0:
+            reach = growth_reach(considered, ref.footprint, pipe.topview, settings, valid)
     reg = np.zeros_like(a)
     for k, name in enumerate(METRIC_NAMES):
         if regions is not None:

@@ -123,7 +123,7 @@ def summarize(data: EvalData) -> Summary:
     fa_upper = false_alarm_rate(0, n_clean)[1] if n_clean else float("nan")
     hi = sum(r.clean_high[0] for r in recs if r.kind == "clean")
     tot = sum(r.clean_high[1] for r in recs if r.kind == "clean")
-    flat = sum(r.clean_high[2] for r in recs if r.kind == "clean" and len(r.clean_high) > 2)
+    flat = sum(r.clean_high[2] for r in recs if r.kind == "clean")
     jr = best_t[rec]
     scores = {"clean": A[clean, rec, jr]}
     for t in types:
