@@ -137,8 +137,9 @@ class PausePolicy:
         self._last_regions = list(result.regions)
         acked_area = sum(r.area_mm2 for r in result.regions if r not in regions)
         printed = result.printed_area_mm2
+        fresh_area = max(result.anomalous_area_mm2 - acked_area, 0.0)  # anomaly the operator has not accepted
         if printed and printed > 0:
-            ratio = max(result.anomalous_area_mm2 - acked_area, 0.0) / printed
+            ratio = fresh_area / printed
         else:
             ratio = float(result.anomaly_ratio) if not self._acked else 0.0
         outside = result.outside_area_mm2
@@ -154,7 +155,6 @@ class PausePolicy:
         limit = max(s.pause_ratio, self._acked_ratio * s.growth_ratio)
         # a% of a small footprint jumps by a whole block at a time (1.44 mm^2 for the paper's grid): the ratio
         # rule also needs min_area_mm2 of fresh anomalous area, so two or three edge blocks never pause
-        fresh_area = ratio * printed if printed and printed > 0 else float(result.anomalous_area_mm2)
         alarm = ratio > limit and fresh_area >= s.min_area_mm2
         self._streak = self._streak + 1 if alarm else 0
         if self._halted:
