@@ -68,3 +68,18 @@ def test_camera_below_the_plane_is_refused():
     height, shaded, _ = _box_scene()
     with pytest.raises(ValueError, match="above the layer plane"):
         view_from_camera(height, shaded, np.array([0.0, -50.0, 3.0]), TV, 5.0)
+
+
+def test_a_ray_stopped_by_the_depth_limit_shows_what_lies_under_it_there():
+    """Past ``max_depth_mm`` the ray's current point is shown, not the plane point it started from."""
+    height = np.zeros(TV.shape, np.float32)
+    rows = np.arange(TV.shape[0], dtype=np.float32)[:, None]
+    shaded = np.repeat(rows / TV.shape[0], TV.shape[1], axis=1)  # brightness = row / H
+    cam = np.array([0.0, -100.0, 110.0])  # 45 deg onto the plane z = 10 at the centre
+    v, u = TV.shape[0] // 2, TV.shape[1] // 2
+    deep, _ = view_from_camera(height, shaded, cam, TV, 10.0, max_depth_mm=30.0)
+    # reaches the bed 10 mm further from the camera (+Y = 100 rows up)
+    assert deep[v, u] == pytest.approx((v - 100) / TV.shape[0], abs=3 / TV.shape[0])
+    short, _ = view_from_camera(height, shaded, cam, TV, 10.0, max_depth_mm=2.0)
+    # stopped at least 2 mm down: at least 20 rows away from the start, short of the bed
+    assert (v - 100) / TV.shape[0] < short[v, u] <= (v - 19) / TV.shape[0]

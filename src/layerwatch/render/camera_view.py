@@ -85,6 +85,7 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
             hz = height[v, u]
             jump = skip_px / step_px  # steps covered by one skip
             k = 0
+            hit = False
             while k < max_steps:
                 xi = int(x + 0.5)
                 yi = int(y + 0.5)
@@ -92,6 +93,7 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
                     # left the rendered square: what lies there is bed or unknown
                     val = _bilinear(shaded, x, y)
                     hz = 0.0
+                    hit = True
                     break
                 if k > 0 and hmax[yi, xi] < zz - jump * dz and zz - jump * dz > 0.0:
                     # nothing within skip_px reaches the ray over the next skip_px: skip ahead
@@ -122,15 +124,20 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
                     else:
                         val = _bilinear(shaded, x, y)
                         hz = h
+                    hit = True
                     break
                 if zz <= 0.0:
                     val = _bilinear(shaded, x, y)
                     hz = 0.0
+                    hit = True
                     break
                 x += dx
                 y += dy
                 zz -= dz
                 k += 1
+            if not hit:  # max_depth_mm reached: what lies under the ray there
+                val = _bilinear(shaded, x, y)
+                hz = height[min(max(int(y + 0.5), 0), H - 1), min(max(int(x + 0.5), 0), W - 1)]
             out[v, u] = val
             hit_z[v, u] = hz
 
