@@ -90,6 +90,36 @@ def test_camera_errors_alert_but_never_pause():
     assert all(r.status == "error" for r in rep.results) and "web page" in sent[0]
 
 
+def test_slow_notifier_does_not_hold_up_analysis_and_every_alert_is_sent():
+    import threading
+
+    vp = VirtualPrinter(_gcode(6))
+    release, sent = threading.Event(), []
+
+    class SlowNotifier:  # a target that hangs until the print is over
+        def notify(self, title, message, **kw):
+            release.wait(timeout=30)
+            sent.append(message)
+            return True
+
+    pipe = StandInPipeline()
+    mon = Monitor(vp, BrokenCamera(), pipe, notifier=SlowNotifier())
+    done = threading.Event()
+    runner = threading.Thread(target=lambda: (mon.run(poll_s=0.001), done.set()))
+    runner.start()
+    # all six layers are handled while the first alert is still stuck in the notifier
+    for _ in range(500):
+        if len(mon.report.results) == 6:
+            break
+        threading.Event().wait(0.01)
+    assert len(mon.report.results) == 6 and sent == []
+    assert not done.is_set()  # run() waits for the queued alerts: none is lost
+    release.set()
+    runner.join(timeout=30)
+    assert done.is_set() and len(sent) == 6 and mon.report.alerts == 6
+    assert all("web page" in m for m in sent)
+
+
 def test_background_analysis_keeps_order():
     vp = VirtualPrinter(_gcode(12))
     rep = Monitor(vp, SimCamera(_frame(None)), StandInPipeline()).run(poll_s=0.001)

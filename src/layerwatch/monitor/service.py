@@ -2,7 +2,11 @@
 
 The printer is held only while the photo is taken: analysis runs on one
 worker thread (results stay in layer order) while the next layer prints,
-unless ``wait_for_verdict`` is set. Camera, pipeline and printer failures are
+unless ``wait_for_verdict`` is set. Alerts go out on a second worker thread,
+in order, so a slow or dead notification target never holds up the
+analysis of the next layer or a pause (the pause request is sent first, from
+the analysis thread); :meth:`Monitor.close` (called by :meth:`Monitor.run`)
+waits for the queued alerts. Camera, pipeline and printer failures are
 alerted and logged, never turned into a pause; the printer connection is
 retried with exponential backoff.
 """
@@ -88,6 +92,8 @@ class Monitor:
         self.report = MonitorReport()
         self.stop_event = threading.Event()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
+        self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-notify")
+        self._sender_open = True
         self._futures: list[Future] = []
         self._lock = threading.Lock()
         self._ack_seen = 0  # id of the last history event checked for dashboard acknowledgements
@@ -171,11 +177,31 @@ class Monitor:
                image: np.ndarray | str | None = None) -> None:
         self.report.alerts += 1
         log.warning("alert: %s", message)
-        if self.notifier is not None:
-            if image is None and res is not None:
-                image = res.images.get("overlay")
-            self.notifier.notify(f"layerwatch: {message.split(':')[0]}", message, level=level, image=image,
-                                 data={"layer": res.layer if res else None}, force=force)
+        if self.notifier is None:
+            return
+        if image is None and res is not None:
+            image = res.images.get("overlay")
+        args = (f"layerwatch: {message.split(':')[0]}", message)
+        kw = {"level": level, "image": image, "data": {"layer": res.layer if res else None}, "force": force}
+        if self._sender_open:
+            try:
+                self._sender.submit(self._send, args, kw)
+                return
+            except RuntimeError:  # closed meanwhile: send it from here rather than lose it
+                pass
+        self._send(args, kw)
+
+    def _send(self, args: tuple, kw: dict) -> None:
+        try:
+            self.notifier.notify(*args, **kw)
+        except Exception:  # noqa: BLE001 - a notifier bug must not stop the monitor
+            log.exception("notification failed: %s", args[0])
+
+    def close(self) -> None:
+        """Finish the queued analysis and send every queued alert (blocks until they are out)."""
+        self._pool.shutdown(wait=True)
+        self._sender_open = False
+        self._sender.shutdown(wait=True)
 
     def acknowledge(self, source: str = "resume") -> None:
         """The operator accepted the regions seen so far (``source``: ``"resume"`` or ``"dashboard"``).
@@ -277,7 +303,7 @@ class Monitor:
                     break
                 self.stop_event.wait(poll_s)
         finally:
-            self._pool.shutdown(wait=True)  # finish the current layer's record
+            self.close()  # finish the current layer's record and send its alerts
             self.report.outcome = self._outcome()
             if self.history is not None and self.job_id is not None:
                 try:
