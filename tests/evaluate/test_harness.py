@@ -58,7 +58,7 @@ def test_score_iou_and_a_match_pixel_computation(job):
         assert a[k, j] == pytest.approx(res.anomaly_ratio, abs=1e-6)
 
 
-def test_run_evaluation_small(job):
+def test_run_evaluation_small(job, tmp_path):
     tp, cam, cfg, _ = job
     data = run_evaluation(tp, cfg, cam, n_layers=30, seed=1)
     assert not data.errors
@@ -73,6 +73,15 @@ def test_run_evaluation_small(job):
     for t, rows in s.auc_since.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
     assert 0.0 <= s.clean_flat_share <= 1.0
+    # the report's false-pause row: 0 pauses in 3000 clean layers bound the rate at <= 1 per 1000 (95 %),
+    # 0 in 2000 layers do not
+    from layerwatch.evaluate.report import write_report
+
+    for n, met in ((3000, "yes"), (2000, "consistent")):
+        run = {"layers": n, "prints": n // 33, "layer_alarms": 1, "policy_alarms": 1, "pauses": 0}
+        text = write_report(s, tmp_path / f"r{n}", data.setup, data.seconds, clean_run=run).read_text()
+        row = next(line for line in text.splitlines() if line.startswith("| false pauses"))
+        assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
 
 
 def test_clean_false_alarms_counts(job):

@@ -336,6 +336,7 @@ def analyze_layer(
     layer: int = 0,
     z: float = 0.0,
     all_metrics: bool = False,
+    hogs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LayerResult:
     """Compare the photo's top view with the reference of one layer.
 
@@ -359,6 +360,10 @@ def analyze_layer(
         Also score every measure of Table 2 into ``result.extra["per_metric"]``
         (``{name: {"anomaly_ratio", "n_anomalous", "mean_similarity"}}``, same
         blocks and threshold, before the ``min_region_blocks`` filter).
+    hogs : (ndarray, ndarray), optional
+        ``block_hogs(top, reference, settings)`` when the caller already has
+        them (the evaluation harness scores every measure from the same
+        tensors); computed here otherwise.
 
     Returns
     -------
@@ -391,7 +396,7 @@ def analyze_layer(
     foot = _mask(footprint, shape, "footprint")
     seen = np.ones(shape, dtype=bool) if valid is None else _mask(valid, shape, "valid")
     c, b = st.cell_px, st.block_cells
-    h_top, h_ref = block_hogs(top_a, ref_a, st)
+    h_top, h_ref = block_hogs(top_a, ref_a, st) if hogs is None else hogs
     t1 = time.perf_counter()
     heat = similarity(h_top, h_ref, st.metric)
     t2 = time.perf_counter()

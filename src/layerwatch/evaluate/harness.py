@@ -141,10 +141,10 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
     from layerwatch.analysis.metrics import similarity_all
     from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions, growth_reach
 
-    res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid)
+    h_t, h_r = block_hogs(top, ref.image, settings)  # once, for analyze_layer and all twelve measures
+    res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid, hogs=(h_t, h_r))
     considered = res.mask
     c, b = settings.cell_px, settings.block_cells
-    h_t, h_r = block_hogs(top, ref.image, settings)
     sims = similarity_all(h_t, h_r, METRIC_NAMES)
     grow = float(settings.grow_threshold)
     n, m = considered.shape

@@ -155,6 +155,11 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
             L.append(f"| alerts raised by the monitor's policy / 1000 clean layers | <= 1 | {prate:.1f} ({pa} "
                      f"notify/pause decisions in {n} layers: ratio, minimum area, growth and outside rules; 95 % "
                      f"upper bound {pup:.1f}) | {'yes' if pup <= 1 else ('consistent' if pa == 0 else 'no')} |")
+        npause = clean_run["pauses"]
+        srate, sup = false_alarm_rate(npause, n)
+        L.append(f"| false pauses / 1000 clean layers (the monitor's policy stops a clean print) | <= 1 | "
+                 f"{srate:.1f} ({npause} pauses in {n} layers of {clean_run['prints']} clean prints; 95 % upper "
+                 f"bound {sup:.2f}) | {'yes' if sup <= 1 else ('consistent' if npause == 0 else 'no')} |")
     L.append(f"| clean printed-area blocks with cosine > 0.7 | >= 95 % | {_fmt(s.clean_block_share, True)} % "
              f"({_fmt(s.clean_flat_share, True)} % of the blocks are featureless in both images and match by rule; "
              f"{_fmt(s.clean_textured_share, True)} % of the others are above 0.7) "
