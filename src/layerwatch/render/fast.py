@@ -65,7 +65,10 @@ class Rendered:
     z : float
         Top of the layer, mm.
     light : ndarray, shape (H, W), float32
-        Light factor in [0, 1] (shading times depth darkening).
+        Light factor in [0, 1] (shading times depth darkening) of the scene
+        seen from straight above; a camera-view ``image`` is resampled from
+        this shading along the camera's rays, so ``light`` (and :meth:`rgb`)
+        stay the top-view rendering of the same scene.
     clipped : int
         Segments of the layer (partly) outside the observed square.
     """
@@ -79,7 +82,11 @@ class Rendered:
     clipped: int = 0
 
     def rgb(self, settings: RenderSettings | None = None) -> np.ndarray:
-        """Colour version, shape (H, W, 3), uint8 RGB, from the material/bed colours."""
+        """Colour top view of the scene, shape (H, W, 3), uint8 RGB, from the material/bed colours.
+
+        Always the view from straight above (``light``), also when ``image``
+        is the camera-view reference.
+        """
         s = settings or RenderSettings()
         albedo = np.where(
             (self.height > 0)[..., None],
