@@ -72,6 +72,10 @@ def test_run_evaluation_small(job, tmp_path):
     assert all(r.since_onset == -1 for r in data.records if r.kind == "clean")
     for t, rows in s.auc_since.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
+    # every failed layer is classed by what the plan prints under it (box_part: sparse infill and walls)
+    assert {r.surface for r in data.records if r.kind != "clean"} <= {"sparse", "walls"}
+    for t, rows in s.auc_surface.items():
+        assert sum(n for _, n, _ in rows) == s.n_failed[t]
     assert 0.0 <= s.clean_flat_share <= 1.0
     # the report's false-pause row: 0 pauses in 3000 clean layers bound the rate at <= 1 per 1000 (95 %),
     # 0 in 2000 layers do not
@@ -117,3 +121,24 @@ def test_grown_iou_scores_what_the_overlay_draws(job):
     pix = block_tiles(drawn, tv.shape, 8, 2, fill=False)
     j = int(np.argmin(abs(THRESHOLDS - 0.5)))
     assert ious[0, j] == pytest.approx(iou(pix, frame.truth_area), abs=1e-6)
+
+
+def test_surface_under_tells_solid_sparse_and_walls_apart():
+    from layerwatch.evaluate.harness import surface_under
+    from layerwatch.geometry.topview import TopView
+    from layerwatch.simulate.parts import tower_part
+
+    tp = tower_part(height_mm=3.0, layer_h=0.2, center=(110.0, 100.0), boss_from_mm=2.0, solid_layers=2)
+    tv = TopView(6.67, 60.0, 60.0, (110.0, 100.0))
+    yy, xx = np.mgrid[: tv.shape[0], : tv.shape[1]]
+    u, v = tv.to_px(np.array([[119.0, 109.0]]))[0]  # between the hole and the outer walls
+    patch = (xx - u) ** 2 + (yy - v) ** 2 < (3.0 * tv.px_per_mm) ** 2
+    assert surface_under(tp, 0, patch, tv) == "solid"  # bottom solid layer
+    assert surface_under(tp, 5, patch, tv) == "sparse"  # sparse infill above it
+    u, v = tv.to_px(np.array([[124.55, 100.0]]))[0]  # on the block's two perimeters along its +x side
+    rim = (np.abs(xx - u) < 0.5 * tv.px_per_mm) & (np.abs(yy - v) < 4 * tv.px_per_mm)
+    sl = tp.layer_slice(5)
+    mid = 0.5 * (tp.start[sl] + tp.end[sl])
+    assert (np.abs(mid[:, 0] - 124.55) < 0.5).sum() >= 2  # the mask holds perimeter midpoints
+    assert surface_under(tp, 5, rim, tv) == "walls"
+    assert surface_under(tp, 5, np.zeros(tv.shape, bool), tv) == "walls"

@@ -32,7 +32,7 @@ from layerwatch.config import JobConfig
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 
-__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "tile_fraction"]
+__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "surface_under", "tile_fraction"]
 
 #: block thresholds T_S scanned for every measure
 THRESHOLDS = np.round(np.arange(0.05, 0.901, 0.05), 2)
@@ -62,6 +62,9 @@ class LayerRecord:
         score that small local defects on large layers do not dilute).
     since_onset : int
         Layers printed since the failure's onset (0 = the onset layer); -1 for clean layers.
+    surface : str
+        What the layer's plan prints where the failure is (:func:`surface_under`):
+        ``"solid"``, ``"sparse"`` or ``"walls"``; ``""`` for clean layers.
     """
 
     scenario: str
@@ -73,6 +76,39 @@ class LayerRecord:
     clean_high: tuple[int, ...] = (0, 0, 0)
     region: np.ndarray | None = None
     since_onset: int = -1
+    surface: str = ""
+
+
+#: toolpath features counted as a solid surface / as sparse infill by :func:`surface_under`
+SOLID_FEATURES = ("solid_infill", "top_solid_infill", "bridge")
+SPARSE_FEATURES = ("infill",)
+
+
+def surface_under(tp: Toolpath, index: int, mask: np.ndarray, topview) -> str:
+    """What layer ``index`` of the plan prints inside ``mask``: ``"solid"``, ``"sparse"`` or ``"walls"``.
+
+    The majority class of the layer's segments whose midpoints fall in the
+    top-view ``mask`` (solid/top/bridge infill, sparse infill, anything else);
+    ``"walls"`` when no segment does. Missing sparse infill shows the same
+    pattern one layer lower, a hole in a solid layer shows the layer below, so
+    detection differs by class (the report splits AUROC by it).
+    """
+    from layerwatch.gcode.toolpath import FEATURES
+
+    sl = tp.layer_slice(index)
+    mid = 0.5 * (tp.start[sl] + tp.end[sl])
+    uv = np.round(topview.to_px(mid)).astype(int)
+    h, w = mask.shape
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    inside = np.zeros(len(mid), bool)
+    inside[ok] = mask[uv[ok, 1], uv[ok, 0]]
+    feats = tp.feature[sl][inside]
+    if feats.size == 0:
+        return "walls"
+    solid = int(np.isin(feats, [FEATURES.index(n) for n in SOLID_FEATURES]).sum())
+    sparse = int(np.isin(feats, [FEATURES.index(n) for n in SPARSE_FEATURES]).sum())
+    other = feats.size - solid - sparse
+    return max((solid, "solid"), (sparse, "sparse"), (other, "walls"))[1]
 
 
 @dataclass
@@ -258,8 +294,9 @@ def run_evaluation(
                 continue
             kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
             since = int(i) - scen.failures[0].onset if kind != "clean" else -1
+            surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high, regs[0], since))
+                                            a, iou, clean_high, regs[0], since, surface))
             done += 1
             if progress is not None:
                 progress(done, total)

@@ -14,7 +14,7 @@ Clopper-Pearson bound on the false-alarm rate the sample size allows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -54,6 +54,7 @@ class Summary:
     auc_region: np.ndarray     # (M, K) AUROC of the largest-region area at the measure's best T
     scores: dict               # raw a% arrays of the recommended setting: {"clean": ..., type: ...}
     auc_since: dict            # recommended setting: {type: [(layers since onset, n layers, AUROC), ...]}
+    auc_surface: dict = field(default_factory=dict)  # recommended setting: {type: [(surface under the failure, n layers, AUROC), ...]}
 
 
 def summarize(data: EvalData) -> Summary:
@@ -136,6 +137,12 @@ def summarize(data: EvalData) -> Summary:
             sel = (kinds == t) & (since == d)
             rows.append((int(d), int(sel.sum()), roc_auc(A[sel, rec, jr], A[clean, rec, jr])))
         auc_since[t] = rows
+    surf = np.array([r.surface for r in recs])
+    auc_surface: dict = {}
+    for t in types:
+        auc_surface[t] = [(c, int(((kinds == t) & (surf == c)).sum()),
+                           roc_auc(A[(kinds == t) & (surf == c), rec, jr], A[clean, rec, jr]))
+                          for c in ("solid", "sparse", "walls") if ((kinds == t) & (surf == c)).any()]
     return Summary(
         metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
         n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,
@@ -144,5 +151,5 @@ def summarize(data: EvalData) -> Summary:
         clean_block_share=hi / tot if tot else float("nan"), scores=scores,
         clean_flat_share=flat / tot if tot else float("nan"),
         clean_textured_share=(hi - flat) / (tot - flat) if tot > flat else float("nan"),
-        auc_region=auc_region, auc_since=auc_since,
+        auc_region=auc_region, auc_since=auc_since, auc_surface=auc_surface,
     )
