@@ -235,10 +235,10 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
           "texture is at the resolution limit of a 1280x720 camera. The operating points therefore use low T_S "
           "(only strongly dissimilar blocks count), which costs localisation (IoU) because a failed region's "
           "weaker blocks are not counted.",
-          "- **False alarms**: the pause ratio is set above every clean layer of the scored sample, whose ~100 clean "
-          "layers can only bound the rate at ~27 per 1000 (95 %); `--clean-layers N` adds whole clean prints and "
-          "counts single layers above the ratio and pauses under the 2-layer rule separately. Showing <= 1 per "
-          "1000 needs ~3000 clean layers with none above the ratio.",
+          "- **False alarms**: the pause ratio is set above every clean layer of the scored sample, whose ~300 clean "
+          "layers can only bound the rate at ~9 per 1000 (95 %); `--clean-layers N` adds whole clean prints and "
+          "counts single layers above the ratio, the policy's notices and its pauses separately. Showing <= 1 per "
+          "1000 at 95 % needs about 3000 clean layers with no event of that kind.",
           "- **Layer shifts** are drawn 1.5-5 mm, so few reach the 5 mm IoU class (n/a = none in the sample).",
           "- The simulator is ours, so these are figures on simulated photos only; no labelled real photos exist.",
           ""]
