@@ -77,13 +77,27 @@ def test_run_evaluation_small(job, tmp_path):
     for t, rows in s.auc_surface.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
     assert 0.0 <= s.clean_flat_share <= 1.0
+    # a fixed setting's figures (the configured one) agree with the summary's at the same setting
+    from layerwatch.evaluate.summary import at_setting
+
+    r, j = s.rec_metric, s.rec_t
+    fixed = at_setting(data, s.metrics[r], float(s.thresholds[j]), float(s.pause_ratio[r]))
+    for k, t in enumerate(s.types):
+        n_t, auc_t, det_t, iou_t = fixed["types"][t]
+        assert n_t == s.n_failed[t] and det_t == pytest.approx(s.tpr[r, k])
+        assert auc_t == pytest.approx(s.auc[r, k, j], nan_ok=True)
+        assert iou_t == pytest.approx(s.iou[r, k], nan_ok=True)
+    assert fixed["clean_above"] == 0  # the summary's pause ratio sits above every clean layer
+    assert at_setting(data, s.metrics[r], 0.123, 0.02) is None and at_setting(data, "nope", 0.2, 0.02) is None
     # the report's false-pause row: 0 pauses in 3000 clean layers bound the rate at <= 1 per 1000 (95 %),
     # 0 in 2000 layers do not
     from layerwatch.evaluate.report import write_report
 
     for n, met in ((3000, "yes"), (2000, "consistent")):
         run = {"layers": n, "prints": n // 33, "layer_alarms": 1, "policy_alarms": 1, "pauses": 0}
-        text = write_report(s, tmp_path / f"r{n}", data.setup, data.seconds, clean_run=run).read_text()
+        text = write_report(s, tmp_path / f"r{n}", data.setup, data.seconds, clean_run=run,
+                            configured=fixed).read_text()
+        assert "## The configured setting on this sample" in text
         row = next(line for line in text.splitlines() if line.startswith("| false pauses"))
         assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
 

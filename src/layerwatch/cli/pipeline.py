@@ -141,7 +141,7 @@ def evaluate(
     from layerwatch.cli import console
     from layerwatch.evaluate.harness import run_evaluation
     from layerwatch.evaluate.report import rich_table, write_report
-    from layerwatch.evaluate.summary import summarize
+    from layerwatch.evaluate.summary import at_setting, summarize
     from layerwatch.simulate import default_camera
 
     tp = _toolpath(gcode)
@@ -167,8 +167,14 @@ def evaluate(
             clean_run = clean_false_alarms(tp, rec_cfg, cam, clean_layers, float(s.pause_ratio[r]),
                                            progress=lambda d, n: bar.update(task, completed=d, total=n))
         clean_run.pop("a", None)
-    path = write_report(s, out, data.setup, data.seconds, notes=notes, clean_run=clean_run)
+    configured = at_setting(data, cfg.analysis.metric, cfg.analysis.threshold, cfg.policy.pause_ratio)
+    path = write_report(s, out, data.setup, data.seconds, notes=notes, clean_run=clean_run, configured=configured)
     console.print(rich_table(s))
+    if configured:
+        console.print(f"configured: {configured['metric']} T_S={configured['threshold']:.2f}, pause a% > "
+                      f"{100 * configured['pause_ratio']:.1f} %: clean layers above it {configured['clean_above']}/"
+                      f"{configured['n_clean']}; AUROC " + ", ".join(
+                          f"{t} {v[1]:.2f}" for t, v in configured["types"].items()))
     r = s.rec_metric
     console.print(f"recommended: {s.metrics[r]} T_S={s.thresholds[s.rec_t]:.2f}, pause a% > "
                   f"{100 * s.pause_ratio[r]:.1f} %; report {path} ({data.seconds:.0f} s)")

@@ -110,11 +110,13 @@ def _fmt(v, pct=False, nd=2):
 
 
 def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes: list[str] | None = None,
-                 clean_run: dict | None = None) -> Path:
+                 clean_run: dict | None = None, configured: dict | None = None) -> Path:
     """Write ``report.md`` and the charts into ``out``; returns the report path.
 
     ``clean_run`` is the output of :func:`~layerwatch.evaluate.harness.clean_false_alarms`
-    (whole clean prints under the recommended setting), reported with the targets.
+    (whole clean prints under the recommended setting), reported with the targets;
+    ``configured`` that of :func:`~layerwatch.evaluate.summary.at_setting` for the
+    setting the job would run with (its own section).
     """
     from layerwatch.evaluate.stats import false_alarm_rate
     out = Path(out)
@@ -166,6 +168,17 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
              f"| {'yes' if s.clean_block_share >= 0.95 else 'no'} |")
     L += ["", "Detection at the recommended pause ratio (share of failed layers above it): "
           + ", ".join(f"{t} {100 * v:.0f} %" for t, v in zip(s.types, s.tpr[r], strict=True)) + ".", ""]
+    if configured:
+        c = configured
+        L += ["## The configured setting on this sample", "",
+              f"What a job on this part runs with unless its file says otherwise: **{c['metric']}**, "
+              f"T_S = {c['threshold']:.2f}, pause when a% > {100 * c['pause_ratio']:.1f} % (the recommendation above "
+              f"is what suits this sample best). Clean layers above the pause ratio: {c['clean_above']} of "
+              f"{c['n_clean']} (highest clean a% {_fmt(100 * c['max_clean'], nd=1)} %).", "",
+              "| type | layers | AUROC | above the pause ratio | IoU (>= 5 mm) |", "|---|---:|---:|---:|---:|"]
+        for t, (n, auc_t, det_t, iou_t) in c["types"].items():
+            L.append(f"| {t} | {n} | {_fmt(auc_t)} | {100 * det_t:.0f} % | {_fmt(iou_t)} |")
+        L.append("")
     L += ["## Per measure (each at its own best T_S)", "",
           "| measure | T_S | mean a% clean | " + " | ".join(f"AUROC {t}" for t in s.types) + " | min AUROC |",
           "|---|---:|---:|" + "---:|" * (len(s.types) + 1)]

@@ -21,7 +21,7 @@ import numpy as np
 from layerwatch.evaluate.harness import EvalData
 from layerwatch.evaluate.stats import discriminative_power, false_alarm_rate, roc_auc
 
-__all__ = ["Summary", "summarize"]
+__all__ = ["Summary", "at_setting", "summarize"]
 
 
 @dataclass
@@ -153,3 +153,53 @@ def summarize(data: EvalData) -> Summary:
         clean_textured_share=(hi - flat) / (tot - flat) if tot > flat else float("nan"),
         auc_region=auc_region, auc_since=auc_since, auc_surface=auc_surface,
     )
+
+
+def at_setting(data: EvalData, metric: str, threshold: float, pause_ratio: float) -> dict | None:
+    """Figures of one fixed setting on the sample: the one a job would run with, chosen elsewhere.
+
+    :func:`summarize` picks the setting that suits *this* sample best; on
+    another part the question is how the configured setting (the evaluation's
+    recommendation for the example part, or the job file's) does.
+
+    Parameters
+    ----------
+    data : EvalData
+    metric : str
+        Measure name (one of ``data.metrics``).
+    threshold : float
+        Block threshold T_S; must be one of ``data.thresholds``.
+    pause_ratio : float
+        a% (0-1) above which a layer alarms.
+
+    Returns
+    -------
+    dict or None
+        ``metric``, ``threshold``, ``pause_ratio``, ``n_clean``, ``clean_above`` (clean layers above
+        the pause ratio), ``max_clean`` (highest clean a%), and per failure type ``{type: (n layers,
+        AUROC, share above the pause ratio, mean IoU of failures >= 5 mm or nan)}`` under ``types``;
+        None when the measure or T_S was not scored.
+    """
+    from layerwatch.simulate import FAILURE_TYPES
+
+    if metric not in data.metrics or not data.records:
+        return None
+    hit = np.flatnonzero(np.isclose(data.thresholds, threshold))
+    if hit.size == 0:
+        return None
+    m, j = data.metrics.index(metric), int(hit[0])
+    recs = data.records
+    a = np.array([r.a[m, j] for r in recs])
+    kinds = np.array([r.kind for r in recs])
+    clean = a[kinds == "clean"]
+    types = {}
+    for t in FAILURE_TYPES:
+        sel = kinds == t
+        if not sel.any():
+            continue
+        big = [r.iou[m, j] for r in recs if r.kind == t and r.iou is not None and r.size_mm >= 5.0]
+        types[t] = (int(sel.sum()), roc_auc(a[sel], clean), float((a[sel] > pause_ratio).mean()),
+                    float(np.mean(big)) if big else float("nan"))
+    return {"metric": metric, "threshold": float(data.thresholds[j]), "pause_ratio": float(pause_ratio),
+            "n_clean": int(clean.size), "clean_above": int((clean > pause_ratio).sum()),
+            "max_clean": float(clean.max()) if clean.size else float("nan"), "types": types}
