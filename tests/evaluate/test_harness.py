@@ -156,3 +156,19 @@ def test_surface_under_tells_solid_sparse_and_walls_apart():
     assert (np.abs(mid[:, 0] - 124.55) < 0.5).sum() >= 2  # the mask holds perimeter midpoints
     assert surface_under(tp, 5, rim, tv) == "walls"
     assert surface_under(tp, 5, np.zeros(tv.shape, bool), tv) == "walls"
+
+
+def test_a_failure_type_the_part_cannot_take_is_reported_not_a_crash():
+    """G-code without perimeters (no feature tags): no thin-wall onset exists; the run goes on without it."""
+    from layerwatch.evaluate.harness import plan_frames
+    from layerwatch.gcode.toolpath import FEATURES
+
+    cfg = JobConfig(analysis={"footprint_margin_mm": 0.0})
+    cam = default_camera(cfg.topview.topview(), image_size=(640, 360))
+    tp = box_part(size_mm=24.0, height_mm=1.8, layer_h=0.3)
+    tp.feature[:] = FEATURES.index("infill")  # everything infill: no walls, no outer perimeter
+    plan = plan_frames(tp, 20, seed=0)
+    assert plan and all(sc.failures[0].type != "thin_wall" for sc, _ in plan if sc.failures)
+    data = run_evaluation(tp, cfg, cam, n_layers=14, seed=0)
+    assert any(e.startswith("thin_wall: not injected") for e in data.errors)
+    assert "thin_wall" not in {r.kind for r in data.records} and data.records

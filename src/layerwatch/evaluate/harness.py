@@ -149,6 +149,8 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
     n_fail = max(len(FAILURE_TYPES), int(round((n_layers - n_clean_frames) / per_fail)))
     plan = []
     for s in random_scenarios(tp, n_fail, seed=seed, clean_fraction=0.0):
+        if not s.failures:  # a type no layer of this part can take (run_evaluation says which)
+            continue
         f = s.failures[0]
         last = tp.n_layers - 1
         layers = sorted({max(f.onset - 1, 0), *(min(f.onset + k, last) for k in range(frames_after))})
@@ -265,7 +267,7 @@ def run_evaluation(
     EvalData
     """
     from layerwatch.monitor.pipeline import LayerPipeline
-    from layerwatch.simulate import PrintSimulator
+    from layerwatch.simulate import FAILURE_TYPES, PrintSimulator
 
     t0 = time.perf_counter()
     tv = config.topview.topview()
@@ -276,6 +278,11 @@ def run_evaluation(
         "analysis": config.analysis.model_dump(), "match_camera": match_camera,
         "toolpath": toolpath.source, "toolpath_layers": toolpath.n_layers, "seed": seed,
     })
+    planned = {sc.failures[0].type for sc, _ in plan if sc.failures}
+    for t in FAILURE_TYPES:
+        if t not in planned:
+            data.errors.append(f"{t}: not injected, no layer of this part can take it (e.g. no infill or no "
+                               "perimeters marked in the G-code); not scored")
     pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
     done = 0
     for k, (scen, layers) in enumerate(plan):
