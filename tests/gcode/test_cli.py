@@ -57,3 +57,26 @@ def test_info_on_text_without_extrusion_is_a_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "no G-code moves" in err and "Traceback" not in err
     assert len([ln for ln in err.strip().splitlines() if ln.startswith("error:")]) == 1
+
+
+def test_a_bug_is_one_line_with_the_traceback_saved_not_a_traceback(example_gcode, monkeypatch, capsys):
+    import layerwatch.cli.gcode as cli_gcode
+
+    def broken(*a, **k):
+        raise IndexError("tuple index out of range")
+
+    monkeypatch.delenv("LAYERWATCH_DEBUG", raising=False)
+    monkeypatch.setattr(cli_gcode, "_read_with_progress", broken)
+    assert main(["gcode", "info", str(example_gcode)]) == 70
+    err = capsys.readouterr().err
+    line = " ".join(err.split())
+    assert "Traceback" not in err and "internal error: IndexError: tuple index out of range" in line
+    saved = line.split("traceback in ")[-1].strip()
+    from pathlib import Path
+
+    text = Path(saved).read_text()
+    Path(saved).unlink()
+    assert "Traceback" in text and "broken" in text, (saved, text[-300:])
+    monkeypatch.setenv("LAYERWATCH_DEBUG", "1")
+    with pytest.raises(IndexError):
+        main(["gcode", "info", str(example_gcode)])

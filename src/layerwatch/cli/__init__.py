@@ -78,8 +78,29 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, click.ClickException):
             exc.show()
             return exc.exit_code
-        raise
+        return _internal_error(exc)
     return 0
+
+
+def _internal_error(exc: BaseException) -> int:
+    """A bug, not bad input: one line naming a file with the traceback (``LAYERWATCH_DEBUG=1`` re-raises)."""
+    import os
+    import tempfile
+    import time
+    import traceback
+
+    if os.environ.get("LAYERWATCH_DEBUG"):
+        raise exc
+    where = "(not saved)"
+    try:
+        fd, where = tempfile.mkstemp(prefix=f"layerwatch-crash-{time.strftime('%Y%m%d-%H%M%S')}-", suffix=".txt")
+        with os.fdopen(fd, "w") as f:
+            f.write("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+    except OSError:
+        pass
+    err_console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc} — a layerwatch bug; please report it "
+                      f"with the traceback in {where}", highlight=False, soft_wrap=True)
+    return 70  # EX_SOFTWARE
 
 
 if __name__ == "__main__":  # pragma: no cover
