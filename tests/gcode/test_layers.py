@@ -96,3 +96,33 @@ def test_z_fallback_purge_line_above_first_layer_joins_it():
     tp = read_toolpath(purge + part(5, None))
     assert tp.detection == "z" and tp.n_layers == 5
     assert tp.layers[0].z == pytest.approx(0.2) and tp.layers[0].n_segments == 5
+
+
+def interleaved(steps=(0.26, 0.28), n=8) -> bytes:
+    """Two objects side by side with their own layer heights, printed in order of Z (as KISSlicer does)."""
+    zs = sorted((round(h * (k + 1), 3), o) for o, h in enumerate(steps) for k in range(n))
+    out, e = ["G90\nM82\n"], 0.0
+    for z, o in zs:
+        x0 = 40.0 * o
+        out.append(f"G1 Z{z:.3f}\nG1 X{x0} Y0\n")
+        for x, y in [(x0 + 10, 0), (x0 + 10, 10), (x0, 10), (x0, 0)]:
+            e += 0.4
+            out.append(f"G1 X{x} Y{y} E{e:.4f}\n")
+    return "".join(out).encode()
+
+
+def test_interleaved_objects_get_their_own_layer_thickness():
+    tp = read_toolpath(interleaved())
+    assert tp.n_layers == 16
+    for lay in tp.layers:
+        x0 = tp.start[lay.seg_start][0]
+        own = 0.26 if x0 < 20 else 0.28  # the step from the same object's previous layer, not 0.02
+        assert lay.height == pytest.approx(own, abs=1e-3)
+    w = tp.width
+    assert w.max() < 1.5 * np.median(w)  # no bead inflated by a 0.02 mm "layer"
+
+
+def test_kisslicer_per_object_layers_have_plausible_widths(shared_data):
+    tp = read_toolpath(shared_data / "gcode" / "kisslicer-2.0.6.gcode")
+    per_layer = [np.median(tp.width[tp.layer_slice(i)]) for i in range(tp.n_layers)]
+    assert max(per_layer) < 0.6 and min(lay.height for lay in tp.layers) > 0.25

@@ -115,6 +115,37 @@ def _bead_width(
     return np.clip(w, 0.0, 10.0 * d, out=w)
 
 
+def _layer_thickness(lz: np.ndarray, a: np.ndarray, b: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Bead thickness of each layer: its Z minus that of the last lower layer printed under it, mm (L,).
+
+    Usually the step from the previous layer. Where objects are printed at
+    interleaved heights (KISSlicer's per-object layers: 0.263, 0.278, 0.526,
+    0.556 ... mm) the previous layer is another object's, and the 0.015 mm
+    step would make the beads several mm wide; "under it" is the last lower
+    layer whose bounding box overlaps this one's (the bed when there is none).
+    """
+    n = len(lz)
+    steps = np.diff(np.concatenate([[0.0], lz]))
+    if n < 2 or len(bounds) != n + 1 or len(a) == 0:
+        return steps
+    nonempty = np.diff(bounds) > 0
+    idx = np.minimum(bounds[:-1], len(a) - 1)
+    lo = np.minimum(np.minimum.reduceat(a, idx, axis=0), np.minimum.reduceat(b, idx, axis=0))
+    hi = np.maximum(np.maximum.reduceat(a, idx, axis=0), np.maximum.reduceat(b, idx, axis=0))
+    # the common case, vectorised: the previous layer overlaps this one
+    prev_ok = np.zeros(n, bool)
+    prev_ok[1:] = ((lo[:-1] <= hi[1:]) & (lo[1:] <= hi[:-1])).all(axis=1) & nonempty[:-1] & nonempty[1:]
+    out = steps.copy()
+    for k in np.flatnonzero(~prev_ok[1:] & nonempty[1:]) + 1:
+        below = 0.0
+        for j in range(k - 1, max(k - 200, -1), -1):
+            if nonempty[j] and lz[j] < lz[k] and (lo[j] <= hi[k]).all() and (lo[k] <= hi[j]).all():
+                below = float(lz[j])
+                break
+        out[k] = min(float(lz[k]) - below, 2.0)
+    return out
+
+
 def read_toolpath(
     source: str | Path | bytes,
     *,
@@ -189,7 +220,7 @@ def read_toolpath(
     n = seg_z.shape[0]
     if n == 0:
         warnings.append(f"{short}: no extruding moves found (not a 3D-printer file, or E is never used)")
-    heights = np.diff(np.concatenate([[0.0], lz]))
+    heights = _layer_thickness(lz, seg_a, seg_b, bounds)
     good = heights[heights > 0.01]
     fallback_h = float(np.median(good)) if good.size else 0.2
     heights = np.where(heights > 0.01, heights, fallback_h)
