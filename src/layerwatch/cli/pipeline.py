@@ -135,7 +135,7 @@ def evaluate(
     margin: Annotated[float | None, typer.Option("--margin-mm", help="Footprint margin of the considered blocks.")] = None,
     match_camera: Annotated[bool, typer.Option("--match-camera", help="Camera-matched references.")] = False,
     clean_layers: Annotated[int, typer.Option("--clean-layers", min=0, help="Also simulate about N layers of whole "
-                                              "clean prints and count false alarms of the recommended setting.")] = 0,
+                                              "clean prints and count false alarms of the configured setting.")] = 0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
     from layerwatch.cli import console
@@ -156,17 +156,17 @@ def evaluate(
     s = summarize(data)
     notes = [f"{e}" for e in data.errors]
     clean_run = None
-    if clean_layers:
+    if clean_layers:  # whole clean prints under the setting a job runs with (what the monitor would do)
         from layerwatch.evaluate.harness import clean_false_alarms
 
-        r = s.rec_metric
-        rec_cfg = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={
-            "metric": s.metrics[r], "threshold": float(s.thresholds[s.rec_t])})})
         with _progress() as bar:
             task = bar.add_task("clean prints (false alarms)", total=clean_layers)
-            clean_run = clean_false_alarms(tp, rec_cfg, cam, clean_layers, float(s.pause_ratio[r]),
+            clean_run = clean_false_alarms(tp, cfg, cam, clean_layers, float(cfg.policy.pause_ratio),
+                                           consecutive=cfg.policy.consecutive_layers,
                                            progress=lambda d, n: bar.update(task, completed=d, total=n))
         clean_run.pop("a", None)
+        clean_run["setting"] = (f"{cfg.analysis.metric} T_S {cfg.analysis.threshold:.2f}, pause a% > "
+                                f"{100 * cfg.policy.pause_ratio:.1f} % on {cfg.policy.consecutive_layers} layers")
     configured = at_setting(data, cfg.analysis.metric, cfg.analysis.threshold, cfg.policy.pause_ratio)
     path = write_report(s, out, data.setup, data.seconds, notes=notes, clean_run=clean_run, configured=configured)
     console.print(rich_table(s))

@@ -114,7 +114,8 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     """Write ``report.md`` and the charts into ``out``; returns the report path.
 
     ``clean_run`` is the output of :func:`~layerwatch.evaluate.harness.clean_false_alarms`
-    (whole clean prints under the recommended setting), reported with the targets;
+    (whole clean prints under the configured setting, named by its ``"setting"`` key),
+    reported with the targets;
     ``configured`` that of :func:`~layerwatch.evaluate.summary.at_setting` for the
     setting the job would run with (its own section).
     """
@@ -148,7 +149,8 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     if clean_run:
         n, fa = clean_run["layers"], clean_run["layer_alarms"]
         rate, up = false_alarm_rate(fa, n)
-        L.append(f"| false alarms / 1000 clean layers, {clean_run['prints']} whole clean prints | <= 1 | "
+        setting = f" ({clean_run['setting']})" if clean_run.get("setting") else ""
+        L.append(f"| false alarms / 1000 clean layers, {clean_run['prints']} whole clean prints{setting} | <= 1 | "
                  f"{rate:.1f} ({fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
                  f"2-layer rule; 95 % upper bound {up:.1f}) | {'yes' if up <= 1 else ('consistent' if fa == 0 else 'no')} |")
         if "policy_alarms" in clean_run:  # what the monitor would actually raise (notify or pause)
