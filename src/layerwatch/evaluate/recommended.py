@@ -15,7 +15,7 @@ __all__ = ["RECOMMENDED", "recommended_config"]
 #: per-section overrides (merged over a job config)
 RECOMMENDED: dict[str, dict] = {
     "analysis": {"metric": "jaccard", "threshold": 0.20, "footprint_margin_mm": 0.0,
-                 "presmooth_px": 1.25, "grow_threshold": 0.2, "grow_margin_mm": 5.0},
+                 "presmooth_px": 1.25, "flat_tolerance": 1.5, "grow_threshold": 0.2, "grow_margin_mm": 5.0},
     "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1},
 }
 
