@@ -73,7 +73,7 @@ def test_run_evaluation_small(job, tmp_path):
     for t, rows in s.auc_since.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
     # every failed layer is classed by what the plan prints under it (box_part: sparse infill and walls)
-    assert {r.surface for r in data.records if r.kind != "clean"} <= {"sparse", "walls"}
+    assert {r.surface for r in data.records if r.kind != "clean"} <= {"sparse", "walls", "none"}
     for t, rows in s.auc_surface.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
     assert 0.0 <= s.clean_flat_share <= 1.0
@@ -155,7 +155,7 @@ def test_surface_under_tells_solid_sparse_and_walls_apart():
     mid = 0.5 * (tp.start[sl] + tp.end[sl])
     assert (np.abs(mid[:, 0] - 124.55) < 0.5).sum() >= 2  # the mask holds perimeter midpoints
     assert surface_under(tp, 5, rim, tv) == "walls"
-    assert surface_under(tp, 5, np.zeros(tv.shape, bool), tv) == "walls"
+    assert surface_under(tp, 5, np.zeros(tv.shape, bool), tv) == "none"  # beside the part
 
 
 def test_a_failure_type_the_part_cannot_take_is_reported_not_a_crash():

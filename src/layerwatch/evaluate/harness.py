@@ -64,7 +64,7 @@ class LayerRecord:
         Layers printed since the failure's onset (0 = the onset layer); -1 for clean layers.
     surface : str
         What the layer's plan prints where the failure is (:func:`surface_under`):
-        ``"solid"``, ``"sparse"`` or ``"walls"``; ``""`` for clean layers.
+        ``"solid"``, ``"sparse"``, ``"walls"`` or ``"none"``; ``""`` for clean layers.
     """
 
     scenario: str
@@ -85,11 +85,11 @@ SPARSE_FEATURES = ("infill",)
 
 
 def surface_under(tp: Toolpath, index: int, mask: np.ndarray, topview) -> str:
-    """What layer ``index`` of the plan prints inside ``mask``: ``"solid"``, ``"sparse"`` or ``"walls"``.
+    """What layer ``index`` of the plan prints inside ``mask``: ``"solid"``, ``"sparse"``, ``"walls"`` or ``"none"``.
 
     The majority class of the layer's segments whose midpoints fall in the
     top-view ``mask`` (solid/top/bridge infill, sparse infill, anything else);
-    ``"walls"`` when no segment does. Missing sparse infill shows the same
+    ``"none"`` when no segment does (beside the part). Missing sparse infill shows the same
     pattern one layer lower, a hole in a solid layer shows the layer below, so
     detection differs by class (the report splits AUROC by it).
     """
@@ -104,7 +104,7 @@ def surface_under(tp: Toolpath, index: int, mask: np.ndarray, topview) -> str:
     inside[ok] = mask[uv[ok, 1], uv[ok, 0]]
     feats = tp.feature[sl][inside]
     if feats.size == 0:
-        return "walls"
+        return "none"
     solid = int(np.isin(feats, [FEATURES.index(n) for n in SOLID_FEATURES]).sum())
     sparse = int(np.isin(feats, [FEATURES.index(n) for n in SPARSE_FEATURES]).sum())
     other = feats.size - solid - sparse

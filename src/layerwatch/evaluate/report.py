@@ -199,14 +199,14 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
             L.append(f"| {t} | " + " | ".join(f"{_fmt(by[d][1])} ({by[d][0]})" if d in by else "" for d in depths) + " |")
     if s.auc_surface:
         L += ["", "AUROC of the recommended setting by what the plan prints where the failure is (majority of the "
-              "layer's segments inside the failed region: solid, top or bridge infill / sparse infill / walls; n in "
-              "brackets). Sparse infill repeats from layer to layer, so a patch missing from it shows the same lines "
-              "a layer lower; a patch missing from a solid layer shows the sparse layer below:", "",
-              "| type | solid | sparse | walls |", "|---|---:|---:|---:|"]
+              "layer's segments inside the failed region: solid, top or bridge infill / sparse infill / walls / "
+              "nothing, beside the part; n in brackets). Sparse infill repeats from layer to layer, so a patch missing "
+              "from it shows the same lines a layer lower; a patch missing from a solid layer shows the layer below:",
+              "", "| type | solid | sparse | walls | nothing |", "|---|---:|---:|---:|---:|"]
         for t, rows in s.auc_surface.items():
             by = {c: (n, a) for c, n, a in rows}
             L.append(f"| {t} | " + " | ".join(f"{_fmt(by[c][1])} ({by[c][0]})" if c in by else ""
-                                               for c in ("solid", "sparse", "walls")) + " |")
+                                               for c in ("solid", "sparse", "walls", "none")) + " |")
     L += ["", "AUROC with the area of the largest anomalous region (mm^2) as the layer score instead of a% "
           "(same T_S; local defects on large layers are not diluted by the layer's area):", "",
           "| measure | " + " | ".join(f"AUROC {t}" for t in s.types) + " | min |", "|---|" + "---:|" * (len(s.types) + 1)]

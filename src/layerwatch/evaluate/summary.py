@@ -142,7 +142,7 @@ def summarize(data: EvalData) -> Summary:
     for t in types:
         auc_surface[t] = [(c, int(((kinds == t) & (surf == c)).sum()),
                            roc_auc(A[(kinds == t) & (surf == c), rec, jr], A[clean, rec, jr]))
-                          for c in ("solid", "sparse", "walls") if ((kinds == t) & (surf == c)).any()]
+                          for c in ("solid", "sparse", "walls", "none") if ((kinds == t) & (surf == c)).any()]
     return Summary(
         metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
         n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,
