@@ -114,8 +114,9 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
     Both images go to grey 0-255 (:func:`to_grey255`), are pre-filtered when
     ``settings.presmooth_px > 0`` (Gaussian, same sigma for both), and block
     pairs that are featureless (mean gradient magnitude below
-    ``settings.min_gradient`` in one image and below ``flat_tolerance`` times
-    that in the other) are zeroed so that they score similarity 1.
+    ``settings.min_gradient`` in both images, or in the photo with the
+    reference below ``flat_tolerance`` times that) are zeroed so that they
+    score similarity 1.
 
     Returns
     -------
@@ -133,8 +134,8 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
             "block_norm": settings.block_norm, "gamma": settings.gamma}
     h_top, e_top = hog_blocks(g_top, **args, return_energy=True)
     h_ref, e_ref = hog_blocks(g_ref, **args, return_energy=True)
-    low, high = np.minimum(e_top, e_ref), np.maximum(e_top, e_ref)
-    flat = (low < settings.min_gradient) & (high < settings.flat_tolerance * settings.min_gradient)
+    tol = max(float(settings.flat_tolerance), 1.0)  # faint reference texture the photo does not show
+    flat = (e_top < settings.min_gradient) & (e_ref < tol * settings.min_gradient)
     h_top[flat] = 0.0  # featureless in both: identical (similarity 1)
     h_ref[flat] = 0.0
     return h_top, h_ref

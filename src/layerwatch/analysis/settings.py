@@ -42,11 +42,13 @@ class AnalysisSettings(Section):
     # (similarity 1), so sensor noise (sigma up to ~2.5 levels) on a bare bed
     # matches an empty reference.
     min_gradient: float = Field(5.0, ge=0)
-    # The same rule with tolerance: a pair also counts as featureless when one
-    # block is below min_gradient and the other below flat_tolerance x
-    # min_gradient (faint bead lines the camera resolves in one image and not
-    # in the other are no failure; block normalisation would turn them into
-    # unrelated histograms). 1 = both below min_gradient.
+    # The same rule with tolerance for what the camera may not resolve: a pair
+    # also counts as featureless when the PHOTO's block is below min_gradient
+    # and the REFERENCE's below flat_tolerance x min_gradient (faint bead
+    # lines the renderer draws and the photo does not show are no failure;
+    # block normalisation would turn them into unrelated histograms). Texture
+    # in the photo where the reference is flat is always compared: that is
+    # what a hole, an object or strands look like. 1 = both below min_gradient.
     flat_tolerance: float = Field(1.0, ge=1.0, le=10.0)
     gamma: bool = False
     # Gaussian pre-filter (sigma, top-view px) of both images before the HOG:
