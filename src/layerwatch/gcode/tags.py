@@ -110,14 +110,18 @@ def decode_tags(data: bytes, cmt: np.ndarray) -> TagScan:
     last_cura: bytes | None = None
     cache: dict[bytes, tuple] = {}
     find = data.find
-    for off, line in cmt.tolist():
+    # two flat lists (a nested tolist() builds a small list per comment); the raw line is the
+    # cache key and only a cache miss strips its CR
+    offs = cmt[:, 0].tolist() if len(cmt) else []
+    lines = cmt[:, 1].tolist() if len(cmt) else []
+    for off, line in zip(offs, lines):
         end = find(b"\n", off, off + 200)
-        text = data[off : end if end >= 0 else off + 200].rstrip(b"\r")
-        hit = cache.get(text)
+        raw = data[off : end if end >= 0 else off + 200]
+        hit = cache.get(raw)
         if hit is None:
-            hit = _classify(text)
+            hit = _classify(raw.rstrip(b"\r"))
             if len(cache) < 100000:
-                cache[text] = hit
+                cache[raw] = hit
         style, z, code, zval = hit
         if style is not None:
             if style == "cura":
