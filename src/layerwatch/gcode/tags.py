@@ -114,7 +114,7 @@ def decode_tags(data: bytes, cmt: np.ndarray) -> TagScan:
     # cache key and only a cache miss strips its CR
     offs = cmt[:, 0].tolist() if len(cmt) else []
     lines = cmt[:, 1].tolist() if len(cmt) else []
-    for off, line in zip(offs, lines):
+    for off, line in zip(offs, lines, strict=True):
         end = find(b"\n", off, off + 200)
         raw = data[off : end if end >= 0 else off + 200]
         hit = cache.get(raw)
