@@ -115,23 +115,22 @@ def _bead_width(
     return np.clip(w, 0.0, 10.0 * d, out=w)
 
 
-def _layer_thickness(lz: np.ndarray, a: np.ndarray, b: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+def _layer_thickness(lz: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | None,
+                     bounds: np.ndarray) -> np.ndarray:
     """Bead thickness of each layer: its Z minus that of the last lower layer printed under it, mm (L,).
 
     Usually the step from the previous layer. Where objects are printed at
     interleaved heights (KISSlicer's per-object layers: 0.263, 0.278, 0.526,
     0.556 ... mm) the previous layer is another object's, and the 0.015 mm
     step would make the beads several mm wide; "under it" is the last lower
-    layer whose bounding box overlaps this one's (the bed when there is none).
+    layer whose bounding box (``lo``, ``hi``: (L, 2) corners, mm) overlaps this
+    one's (the bed when there is none).
     """
     n = len(lz)
     steps = np.diff(np.concatenate([[0.0], lz]))
-    if n < 2 or len(bounds) != n + 1 or len(a) == 0:
+    if n < 2 or lo is None or hi is None or len(bounds) != n + 1:
         return steps
     nonempty = np.diff(bounds) > 0
-    idx = np.minimum(bounds[:-1], len(a) - 1)
-    lo = np.minimum(np.minimum.reduceat(a, idx, axis=0), np.minimum.reduceat(b, idx, axis=0))
-    hi = np.maximum(np.maximum.reduceat(a, idx, axis=0), np.maximum.reduceat(b, idx, axis=0))
     # the common case, vectorised: the previous layer overlaps this one
     prev_ok = np.zeros(n, bool)
     prev_ok[1:] = ((lo[:-1] <= hi[1:]) & (lo[1:] <= hi[:-1])).all(axis=1) & nonempty[:-1] & nonempty[1:]
@@ -220,7 +219,14 @@ def read_toolpath(
     n = seg_z.shape[0]
     if n == 0:
         warnings.append(f"{short}: no extruding moves found (not a 3D-printer file, or E is never used)")
-    heights = _layer_thickness(lz, seg_a, seg_b, bounds)
+    nl = len(lz)
+    lo = hi = ext = None
+    if nl:  # layer bounding boxes and extrusion, for the thickness below and the Layer records
+        idx = bounds[:-1]
+        lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
+        hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
+        ext = np.add.reduceat(seg_e, idx)
+    heights = _layer_thickness(lz, lo, hi, bounds)
     good = heights[heights > 0.01]
     fallback_h = float(np.median(good)) if good.size else 0.2
     heights = np.where(heights > 0.01, heights, fallback_h)
@@ -247,15 +253,9 @@ def read_toolpath(
         starts[0] = 1
         starts = np.maximum.accumulate(starts)
     layers = starts
-    nl = len(lz)
     starts = np.asarray(layers, np.int64)
     stops = np.append(starts[1:], n_lines + 1) if nl else starts
     n_trav = np.searchsorted(travel_line, stops) - np.searchsorted(travel_line, starts)
-    if nl:
-        idx = bounds[:-1]
-        lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
-        hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
-        ext = np.add.reduceat(seg_e, idx)
     layer_objs = [
         Layer(
             index=k,
