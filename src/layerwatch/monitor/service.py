@@ -93,7 +93,6 @@ class Monitor:
         self.stop_event = threading.Event()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
         self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-notify")
-        self._sender_open = True
         self._futures: list[Future] = []
         self._lock = threading.Lock()
         self._ack_seen = 0  # id of the last history event checked for dashboard acknowledgements
@@ -183,13 +182,10 @@ class Monitor:
             image = res.images.get("overlay")
         args = (f"layerwatch: {message.split(':')[0]}", message)
         kw = {"level": level, "image": image, "data": {"layer": res.layer if res else None}, "force": force}
-        if self._sender_open:
-            try:
-                self._sender.submit(self._send, args, kw)
-                return
-            except RuntimeError:  # closed meanwhile: send it from here rather than lose it
-                pass
-        self._send(args, kw)
+        try:
+            self._sender.submit(self._send, args, kw)
+        except RuntimeError:  # the sender is closed (close() ran): send it from here rather than lose it
+            self._send(args, kw)
 
     def _send(self, args: tuple, kw: dict) -> None:
         try:
@@ -200,7 +196,6 @@ class Monitor:
     def close(self) -> None:
         """Finish the queued analysis and send every queued alert (blocks until they are out)."""
         self._pool.shutdown(wait=True)
-        self._sender_open = False
         self._sender.shutdown(wait=True)
 
     def acknowledge(self, source: str = "resume") -> None:
