@@ -134,8 +134,8 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
             "block_norm": settings.block_norm, "gamma": settings.gamma}
     h_top, e_top = hog_blocks(g_top, **args, return_energy=True)
     h_ref, e_ref = hog_blocks(g_ref, **args, return_energy=True)
-    tol = max(float(settings.flat_tolerance), 1.0)  # faint reference texture the photo does not show
-    flat = (e_top < settings.min_gradient) & (e_ref < tol * settings.min_gradient)
+    # featureless photo; reference featureless or only faintly textured (flat_tolerance >= 1, validated)
+    flat = (e_top < settings.min_gradient) & (e_ref < settings.flat_tolerance * settings.min_gradient)
     h_top[flat] = 0.0  # featureless in both: identical (similarity 1)
     h_ref[flat] = 0.0
     return h_top, h_ref
