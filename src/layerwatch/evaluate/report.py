@@ -109,6 +109,15 @@ def _fmt(v, pct=False, nd=2):
     return f"{100 * v:.1f}" if pct else f"{v:.{nd}f}"
 
 
+def _rate_row(target: str, count: int, n: int, detail: str, bound_digits: int = 1) -> str:
+    """A targets-table row for ``count`` events in ``n`` clean layers against <= 1 per 1000 (with its 95 % bound)."""
+    from layerwatch.evaluate.stats import false_alarm_rate
+
+    rate, up = false_alarm_rate(count, n)
+    met = "yes" if up <= 1 else ("consistent" if count == 0 else "no")
+    return f"| {target} | <= 1 | {rate:.1f} ({detail}; 95 % upper bound {up:.{bound_digits}f}) | {met} |"
+
+
 def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes: list[str] | None = None,
                  clean_run: dict | None = None, configured: dict | None = None) -> Path:
     """Write ``report.md`` and the charts into ``out``; returns the report path.
@@ -119,7 +128,6 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     ``configured`` that of :func:`~layerwatch.evaluate.summary.at_setting` for the
     setting the job would run with (its own section).
     """
-    from layerwatch.evaluate.stats import false_alarm_rate
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = _charts(s, out)
@@ -147,23 +155,20 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     L.append(f"| false alarms / 1000 clean layers | <= 1 | {s.fa_rate[r]:.1f} in {s.n_clean} clean layers "
              f"(95 % upper bound {s.fa_upper:.0f}; the sample is too small to show <= 1) | not shown |")
     if clean_run:
-        n, fa = clean_run["layers"], clean_run["layer_alarms"]
-        rate, up = false_alarm_rate(fa, n)
+        n, prints = clean_run["layers"], clean_run["prints"]
         setting = f" ({clean_run['setting']})" if clean_run.get("setting") else ""
-        L.append(f"| false alarms / 1000 clean layers, {clean_run['prints']} whole clean prints{setting} | <= 1 | "
-                 f"{rate:.1f} ({fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
-                 f"2-layer rule; 95 % upper bound {up:.1f}) | {'yes' if up <= 1 else ('consistent' if fa == 0 else 'no')} |")
+        fa = clean_run["layer_alarms"]
+        L.append(_rate_row(f"false alarms / 1000 clean layers, {prints} whole clean prints{setting}", fa, n,
+                           f"{fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
+                           "2-layer rule"))
         if "policy_alarms" in clean_run:  # what the monitor would actually raise (notify or pause)
             pa = clean_run["policy_alarms"]
-            prate, pup = false_alarm_rate(pa, n)
-            L.append(f"| alerts raised by the monitor's policy / 1000 clean layers | <= 1 | {prate:.1f} ({pa} "
-                     f"notify/pause decisions in {n} layers: ratio, minimum area, growth and outside rules; 95 % "
-                     f"upper bound {pup:.1f}) | {'yes' if pup <= 1 else ('consistent' if pa == 0 else 'no')} |")
+            L.append(_rate_row("alerts raised by the monitor's policy / 1000 clean layers", pa, n,
+                               f"{pa} notify/pause decisions in {n} layers: ratio, minimum area, growth and "
+                               "outside rules"))
         npause = clean_run["pauses"]
-        srate, sup = false_alarm_rate(npause, n)
-        L.append(f"| false pauses / 1000 clean layers (the monitor's policy stops a clean print) | <= 1 | "
-                 f"{srate:.1f} ({npause} pauses in {n} layers of {clean_run['prints']} clean prints; 95 % upper "
-                 f"bound {sup:.2f}) | {'yes' if sup <= 1 else ('consistent' if npause == 0 else 'no')} |")
+        L.append(_rate_row("false pauses / 1000 clean layers (the monitor's policy stops a clean print)", npause, n,
+                           f"{npause} pauses in {n} layers of {prints} clean prints", bound_digits=2))
     L.append(f"| clean printed-area blocks with cosine > 0.7 | >= 95 % | {_fmt(s.clean_block_share, True)} % "
              f"({_fmt(s.clean_flat_share, True)} % of the blocks are featureless in both images and match by rule; "
              f"{_fmt(s.clean_textured_share, True)} % of the others are above 0.7) "
