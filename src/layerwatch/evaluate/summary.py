@@ -21,7 +21,10 @@ import numpy as np
 from layerwatch.evaluate.harness import EvalData
 from layerwatch.evaluate.stats import discriminative_power, false_alarm_rate, roc_auc
 
-__all__ = ["Summary", "at_setting", "summarize"]
+__all__ = ["IOU_MIN_SIZE_MM", "Summary", "at_setting", "summarize"]
+
+#: failures at least this large (mm) are scored for localisation IoU (the issue's ">= 5 mm")
+IOU_MIN_SIZE_MM = 5.0
 
 
 @dataclass
@@ -91,7 +94,7 @@ def summarize(data: EvalData) -> Summary:
     tpr = np.full((M, K), np.nan)
     pause = np.zeros(M)
     fa = np.zeros(M)
-    big = np.array([r.size_mm >= 5.0 and r.iou is not None for r in recs])
+    big = np.array([r.size_mm >= IOU_MIN_SIZE_MM and r.iou is not None for r in recs])
     for m in range(M):
         j = best_t[m]
         c = A[clean, m, j]
@@ -197,7 +200,7 @@ def at_setting(data: EvalData, metric: str, threshold: float, pause_ratio: float
         sel = kinds == t
         if not sel.any():
             continue
-        big = [r.iou[m, j] for r in recs if r.kind == t and r.iou is not None and r.size_mm >= 5.0]
+        big = [r.iou[m, j] for r in recs if r.kind == t and r.iou is not None and r.size_mm >= IOU_MIN_SIZE_MM]
         types[t] = (int(sel.sum()), roc_auc(a[sel], clean), float((a[sel] > pause_ratio).mean()),
                     float(np.mean(big)) if big else float("nan"))
     return {"metric": metric, "threshold": float(data.thresholds[j]), "pause_ratio": float(pause_ratio),
