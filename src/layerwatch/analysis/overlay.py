@@ -16,9 +16,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
+from matplotlib import colormaps
+from scipy import ndimage
 
 from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scoring import to_grey255
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
@@ -31,8 +35,6 @@ _REGION_RGB = (255, 0, 255)
 
 def _colormap(values: np.ndarray) -> np.ndarray:
     """Map values in [0, 1] to RGB uint8 with matplotlib's colormap (no pyplot)."""
-    from matplotlib import colormaps
-
     rgba = colormaps[_CMAP](np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0), bytes=True)
     return rgba[..., :3]
 
@@ -49,8 +51,6 @@ def anomalous_blocks(result: LayerResult) -> np.ndarray:
     hysteresis when it used ``grow_threshold``), else the considered blocks
     below T_S in groups of at least ``min_region_blocks``.
     """
-    from scipy import ndimage
-
     heat = np.asarray(result.heatmap, dtype=np.float32)
     shown = (result.extra or {}).get("shown_blocks")
     if shown is not None:  # grown by the analysis (hysteresis, possibly beyond the considered blocks)
@@ -93,15 +93,11 @@ def block_tiles(values: np.ndarray, shape: tuple[int, int], cell_px: int, block_
 
 
 def _to_rgb(top: np.ndarray) -> np.ndarray:
-    from layerwatch.analysis.scoring import to_grey255
-
     grey = np.clip(to_grey255(top, "top view"), 0, 255).astype(np.uint8)
     return np.repeat(grey[..., None], 3, axis=2)
 
 
 def _outline(img: np.ndarray, mask: np.ndarray, rgb, thickness: int) -> None:
-    import cv2
-
     if not mask.any():
         return
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
@@ -140,8 +136,6 @@ def overlay_image(
     -------
     ndarray, shape (H, W, 3), uint8, RGB
     """
-    import cv2
-
     shape = tuple(topview.shape)
     if np.asarray(top).shape[:2] != shape:
         raise AnalysisError(f"top view is {np.asarray(top).shape[:2]} px but the TopView is {shape}; pass matching images.")
@@ -197,8 +191,6 @@ def heatmap_image(result: LayerResult, scale: int = 8) -> np.ndarray:
 
 def write_png(path: str | Path, rgb: np.ndarray) -> Path:
     """Write an RGB uint8 image as PNG, creating parent folders."""
-    import cv2
-
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     arr = np.ascontiguousarray(rgb)

@@ -12,10 +12,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import CalibrationError
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.markers import _aruco_dictionary, to_grey
 
 __all__ = ["BoardSpec", "find_board", "calibrate_intrinsics", "approximate_intrinsics", "read_photo"]
 
@@ -52,10 +54,6 @@ class BoardSpec:
             raise CalibrationError(f"board {self.cols}x{self.rows} with {self.square_mm} mm squares is invalid; give e.g. --board-size 9x6 --square-mm 25.")
 
     def charuco(self):
-        import cv2
-
-        from layerwatch.geometry.markers import _aruco_dictionary
-
         marker = self.marker_mm or 0.75 * self.square_mm
         return cv2.aruco.CharucoBoard((self.cols, self.rows), self.square_mm, marker,
                                       _aruco_dictionary(self.dictionary))
@@ -63,8 +61,6 @@ class BoardSpec:
 
 def read_photo(path: str | Path) -> np.ndarray:
     """Read an image file as BGR uint8 (h, w, 3); :class:`CalibrationError` when unreadable."""
-    import cv2
-
     p = Path(path)
     img = cv2.imread(str(p), cv2.IMREAD_COLOR) if p.is_file() else None
     if img is None:
@@ -74,10 +70,6 @@ def read_photo(path: str | Path) -> np.ndarray:
 
 def find_board(photo: np.ndarray, board: BoardSpec) -> tuple[np.ndarray, np.ndarray] | None:
     """Detect the board: ``(object points (n, 3) mm, image points (n, 2) px)`` or None."""
-    import cv2
-
-    from layerwatch.geometry.markers import to_grey
-
     grey = to_grey(photo)
     if board.kind == "chessboard":
         size = (board.cols, board.rows)
@@ -124,8 +116,6 @@ def calibrate_intrinsics(photos: Sequence, board: BoardSpec = BoardSpec(), *, mi
     CalibrationError
         Mixed sizes, or fewer than ``min_views`` usable photos.
     """
-    import cv2
-
     objs, imgs, size = [], [], None
     for k, ph in enumerate(photos):
         img = read_photo(ph) if isinstance(ph, (str, Path)) else ph

@@ -18,6 +18,7 @@ import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import CalibrationError, ConfigError
@@ -98,8 +99,6 @@ class CameraModel:
     @property
     def R(self) -> np.ndarray:
         """Rotation of ``camera_from_bed``, shape (3, 3)."""
-        import cv2
-
         if self.rvec is None:
             raise CalibrationError(
                 "the camera model has no bed pose yet: run `layerwatch calibrate --markers PHOTO`."

@@ -19,9 +19,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import MarkerError
+from layerwatch.geometry.warp import check_image
 
 __all__ = ["Blob", "detect_dots", "detect_aruco", "photo_problem", "to_grey"]
 
@@ -39,10 +41,6 @@ class Blob:
 
 def to_grey(photo: np.ndarray) -> np.ndarray:
     """uint8 grey image ``(h, w)`` of a BGR/grey photo (uint8 or uint16)."""
-    import cv2
-
-    from layerwatch.geometry.warp import check_image
-
     img = check_image(photo)
     if img.dtype != np.uint8:
         img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
@@ -53,8 +51,6 @@ def to_grey(photo: np.ndarray) -> np.ndarray:
 
 def photo_problem(photo: np.ndarray) -> str | None:
     """A short reason why a photo is unusable (overexposed, dark, blurred, flat), or None."""
-    import cv2
-
     g = to_grey(photo)
     small = cv2.resize(g, (320, max(1, int(320 * g.shape[0] / g.shape[1]))), interpolation=cv2.INTER_AREA)
     if np.mean(small >= 250) > 0.4:
@@ -82,7 +78,6 @@ def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, fl
     if peak - bg < 20:
         return None
     cov = np.clip((roi - bg) / (peak - bg) * 1.15 - 0.075, 0.0, 1.0)  # soft background floor
-    import cv2
 
     # keep only the component under the candidate (neighbours and texture out)
     n, lab = cv2.connectedComponents((cov > 0.5).astype(np.uint8))
@@ -102,8 +97,6 @@ def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, fl
 
 def _score_contour(c, grey, tophat, f, k) -> Blob | None:
     """A :class:`Blob` for one contour of the thresholded top-hat, or None when it is no dot."""
-    import cv2
-
     area = cv2.contourArea(c)
     if area < 6 or area > 0.6 * k * k:
         return None
@@ -150,8 +143,6 @@ def detect_dots(photo: np.ndarray, *, max_candidates: int = 12, min_contrast: fl
     list of Blob
         Sorted by decreasing ``score``; may be empty.
     """
-    import cv2
-
     grey = to_grey(photo)
     H, W = grey.shape
     f = min(1.0, max_side_px / max(H, W))
@@ -183,8 +174,6 @@ def detect_dots(photo: np.ndarray, *, max_candidates: int = 12, min_contrast: fl
 
 
 def _aruco_dictionary(name: str):
-    import cv2
-
     const = getattr(cv2.aruco, name, None)
     if not isinstance(const, int):
         raise MarkerError(f"unknown ArUco dictionary {name!r}; use e.g. DICT_4X4_50 or DICT_APRILTAG_36h11.")
@@ -197,8 +186,6 @@ def detect_aruco(photo: np.ndarray, dictionary: str = "DICT_4X4_50") -> dict[int
     The centre is the intersection of the tag's diagonals. Raises
     :class:`MarkerError` when an id is seen twice.
     """
-    import cv2
-
     grey = to_grey(photo)
     det = cv2.aruco.ArucoDetector(_aruco_dictionary(dictionary), cv2.aruco.DetectorParameters())
     corners, ids, _ = det.detectMarkers(grey)

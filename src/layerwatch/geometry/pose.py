@@ -22,14 +22,18 @@ Petsiuk & Pearce (2022), eq. (1); Collins & Bartoli (2014), IPPE.
 
 from __future__ import annotations
 
+import datetime as _dt
 import logging
 from dataclasses import dataclass, replace
 from itertools import combinations
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import MarkerError
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.markers import detect_aruco, detect_dots, photo_problem
+from layerwatch.geometry.synthetic import project_points
 
 __all__ = ["solve_pose", "locate_bed", "camera_moved", "MoveCheck", "marker_layout", "reprojection_rms"]
 
@@ -52,16 +56,12 @@ def _obj(markers_mm: np.ndarray) -> np.ndarray:
 
 def reprojection_rms(camera: CameraModel, rvec, tvec, image_points, markers_mm) -> float:
     """RMS distance (px) between ``image_points`` (n, 2) and the projected markers."""
-    import cv2
-
     uv = cv2.projectPoints(_obj(markers_mm), np.asarray(rvec, float), np.asarray(tvec, float),
                            camera.K, camera.dist)[0].reshape(-1, 2)
     return float(np.sqrt(np.mean(np.sum((uv - np.asarray(image_points, float)) ** 2, axis=1))))
 
 
 def _plausible(rvec, tvec, obj) -> str | None:
-    import cv2
-
     R = cv2.Rodrigues(rvec)[0]
     C = -R.T @ tvec.reshape(3)
     if C[2] <= 1.0:
@@ -74,8 +74,6 @@ def _plausible(rvec, tvec, obj) -> str | None:
 
 def _candidates(camera, image_points, obj):
     """Plausible ``(rms, rvec, tvec)`` IPPE solutions for one pairing."""
-    import cv2
-
     img = np.asarray(image_points, np.float64).reshape(-1, 1, 2)
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj.reshape(-1, 1, 3), img, camera.K, camera.dist,
@@ -91,8 +89,6 @@ def _candidates(camera, image_points, obj):
 
 def _disc_bias(camera, rvec, tvec, markers_mm, radius_mm, *, areas: bool = False) -> np.ndarray:
     """Area centroid of each imaged disc minus the image of its centre, (n, 2) px (or the areas, (n,) px²)."""
-    import cv2
-
     a = np.linspace(0, 2 * np.pi, 96, endpoint=False)
     out = []
     for m in np.asarray(markers_mm, float):
@@ -136,8 +132,6 @@ def solve_pose(camera: CameraModel, image_points, markers_mm, *, max_error_px: f
     MarkerError
         Too few points, or no plausible pose within ``max_error_px``.
     """
-    import cv2
-
     img = np.asarray(image_points, np.float64).reshape(-1, 2)
     obj = _obj(markers_mm)
     if len(img) != len(obj) or len(img) < 4:
@@ -168,8 +162,6 @@ def solve_pose(camera: CameraModel, image_points, markers_mm, *, max_error_px: f
 
 
 def _azimuth(rvec, tvec, centre) -> float:
-    import cv2
-
     R = cv2.Rodrigues(np.asarray(rvec, float))[0]
     C = -R.T @ np.asarray(tvec, float)
     return float(np.arctan2(C[1] - centre[1], C[0] - centre[0]))
@@ -252,8 +244,6 @@ def locate_bed(camera: CameraModel, photo: np.ndarray, markers, topview) -> Came
         Markers missing, duplicated, or the pose is implausible; the message
         says what to fix (and whether the photo is blurred/overexposed).
     """
-    from layerwatch.geometry.markers import detect_aruco, detect_dots, photo_problem
-
     h, w = photo.shape[:2]
     cam = camera.scaled_to((w, h))
     layout = marker_layout(markers, topview)
@@ -277,7 +267,6 @@ def locate_bed(camera: CameraModel, photo: np.ndarray, markers, topview) -> Came
         if why:
             raise MarkerError(f"{str(exc).rstrip('.')} ({why}).") from None
         raise
-    import datetime as _dt
 
     return replace(camera, rvec=posed.rvec, tvec=posed.tvec, markers_mm=layout.copy(),
                    marker_kind=markers.kind, errors={**camera.errors, "pose_px": posed.errors["pose_px"]},
@@ -303,9 +292,6 @@ def camera_moved(camera: CameraModel, photo: np.ndarray, markers=None, topview=N
     image diagonal, at least 3 px) or at most half of them are found; a
     warning is logged then. Never raises on a bad photo.
     """
-    from layerwatch.geometry.markers import detect_aruco, detect_dots
-    from layerwatch.geometry.synthetic import project_points
-
     if not camera.has_pose or camera.markers_mm is None:
         return MoveCheck(True, float("inf"), "the camera model has no saved marker pose; recalibrate with --markers.")
     h, w = photo.shape[:2]

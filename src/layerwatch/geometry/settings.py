@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
 __all__ = ["TopViewSettings", "MarkerSettings"]
@@ -20,8 +21,6 @@ class TopViewSettings(Section):
     center_mm: tuple[float, float] = (0.0, 0.0)
 
     def topview(self):
-        from layerwatch.geometry.topview import TopView
-
         return TopView(self.px_per_mm, self.width_mm, self.height_mm, tuple(self.center_mm))
 
 

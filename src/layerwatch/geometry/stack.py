@@ -7,6 +7,7 @@ Petsiuk & Pearce (2022), Fig. 7.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import WarpError
@@ -29,8 +30,6 @@ def _rgb(img: np.ndarray) -> np.ndarray:
 
 def layer_array(tops: list[np.ndarray], size: int | None = None) -> np.ndarray:
     """Stack top views into a grey volume, uint8 ``(L, H, W)`` (resized to ``size`` px wide if given)."""
-    import cv2
-
     if len(tops) == 0:
         raise WarpError("no layers to stack; warp at least one photo first.")
     out = []
@@ -72,8 +71,6 @@ def layer_stack(tops: list[np.ndarray], *, mode: str = "oblique", size: int = 20
     -------
     ndarray, uint8, shape (h, w, 3)
     """
-    import cv2
-
     if len(tops) == 0:
         raise WarpError("no layers to stack; warp at least one photo first.")
     layers = []

@@ -13,9 +13,11 @@ arguments are RGB triples.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.markers import _aruco_dictionary
 
 __all__ = ["project_points", "render_plane", "render_bed_scene", "chessboard_texture"]
 
@@ -39,8 +41,6 @@ def project_points(camera: CameraModel, xyz_mm: np.ndarray) -> np.ndarray:
     ----------
     Petsiuk & Pearce (2022), eq. (1), plus OpenCV's distortion model.
     """
-    import cv2
-
     p = np.asarray(xyz_mm, dtype=np.float64).reshape(-1, np.shape(xyz_mm)[-1])
     if p.shape[1] == 2:
         p = np.c_[p, np.zeros(len(p))]
@@ -50,8 +50,6 @@ def project_points(camera: CameraModel, xyz_mm: np.ndarray) -> np.ndarray:
 
 def _undistorted_normalised(camera: CameraModel, ss: int) -> tuple[np.ndarray, np.ndarray]:
     """Normalised undistorted coordinates of every supersampled pixel, each (h*ss, w*ss)."""
-    import cv2
-
     w, h = camera.image_size
     # exact undistortion on a coarse grid, bilinear in between (the field is smooth)
     step = 4
@@ -91,8 +89,6 @@ def render_plane(camera: CameraModel, texture: np.ndarray, texture_from_plane: n
     ndarray, float32, shape (h, w, 3)
         Linear intensities 0..255 (BGR), before noise and blur.
     """
-    import cv2
-
     ss = int(supersample)
     nx, ny = _undistorted_normalised(camera, ss)
     R, C = camera.R, camera.center_mm
@@ -119,10 +115,6 @@ def render_plane(camera: CameraModel, texture: np.ndarray, texture_from_plane: n
 
 
 def _draw_aruco(tex, A, markers_mm, side_mm, px_per_mm, dictionary):
-    import cv2
-
-    from layerwatch.geometry.markers import _aruco_dictionary
-
     d = _aruco_dictionary(dictionary)
     n = int(round(side_mm * px_per_mm))
     for i, (mx, my) in enumerate(np.asarray(markers_mm, float).reshape(-1, 2)):
@@ -137,8 +129,6 @@ def _draw_aruco(tex, A, markers_mm, side_mm, px_per_mm, dictionary):
 
 
 def _bed_texture(center, extent_mm, px_per_mm, bed_rgb, texture, markers_mm, radius_mm, marker_rgb, rng):
-    import cv2
-
     n = int(round(extent_mm * px_per_mm))
     tex = np.empty((n, n, 3), np.float32)
     tex[:] = np.asarray(bed_rgb[::-1], np.float32)
@@ -219,8 +209,6 @@ def render_bed_scene(camera: CameraModel, markers_mm: np.ndarray, marker_diamete
     ndarray, uint8, shape (h, w, 3)
         BGR photo.
     """
-    import cv2
-
     rng = np.random.default_rng(seed)
     markers = np.asarray(markers_mm, float).reshape(-1, 2)
     center = np.asarray(bed_center_mm if bed_center_mm is not None

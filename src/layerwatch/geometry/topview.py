@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from layerwatch.errors import ConfigError
+
 __all__ = ["TopView"]
 
 
@@ -47,8 +49,6 @@ class TopView:
     center_mm: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        from layerwatch.errors import ConfigError
-
         if not (self.px_per_mm > 0 and np.isfinite(self.px_per_mm)):
             raise ConfigError(f"top view px_per_mm must be > 0, got {self.px_per_mm}.")
         if not (self.width_mm > 0 and self.height_mm > 0):

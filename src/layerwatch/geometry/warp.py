@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import WarpError
@@ -94,7 +95,6 @@ class TopViewWarper:
         """``(camera at size, S, lookup (Lh, Lw, 2) float32)``; ``S`` maps undistorted px -> lookup px."""
         if size in self._lookups:
             return self._lookups[size]
-        import cv2
 
         cam = self.camera.scaled_to(size)
         w, h = size
@@ -123,8 +123,6 @@ class TopViewWarper:
         camera's). ``valid`` marks top-view pixels whose source lies inside
         the photo and in front of the camera.
         """
-        import cv2
-
         size = tuple(int(v) for v in (image_size or self.camera.image_size))
         key = self._key(z, size)
         hit = self._maps.get(key)
@@ -195,8 +193,6 @@ class TopViewWarper:
         WarpError
             Not an image, another aspect ratio than the calibration, no pose.
         """
-        import cv2
-
         photo = check_image(photo)
         h, w = photo.shape[:2]
         map1, map2, valid = self.maps(z, (w, h))

@@ -23,9 +23,11 @@ is used here).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.homography import apply_homography, image_from_top, top_from_image
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["footprint_covariance", "match_camera"]
@@ -55,8 +57,6 @@ def footprint_covariance(
         Standard deviation of the camera's point-spread, camera pixels
         (optics + demosaicing + JPEG, ~0.5-1).
     """
-    from layerwatch.geometry.homography import apply_homography, image_from_top, top_from_image
-
     cam = camera
     c = topview.to_px(np.asarray(at_mm if at_mm is not None else topview.center_mm, float))
     H_it = image_from_top(cam, topview, z)
@@ -108,8 +108,6 @@ def match_camera(
     -------
     ndarray, same shape and dtype as ``reference``.
     """
-    import cv2
-
     cov = footprint_covariance(camera, topview, z, at_mm=at_mm, psf_px=psf_px)
     cov = cov + (min_sigma_px**2) * np.eye(2)
     kernel = _gaussian_kernel(cov)

@@ -20,12 +20,15 @@ import logging
 import math
 from pathlib import Path
 
+import manifold3d
 import numpy as np
+import trimesh
 from numba import njit
 
 from layerwatch.errors import RenderError
 from layerwatch.gcode.toolpath import Toolpath, feature_code
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.fast import _check_index, segment_pixels
 from layerwatch.render.raster import raster_capsules
 
 __all__ = ["closed_loops", "gcode_mask", "stl_mask", "load_mesh", "slice_polygons", "fill_polygons"]
@@ -87,8 +90,6 @@ def gcode_mask(toolpath: Toolpath, index: int, topview: TopView, *, solid: bool 
         of the layer (plus the filled loops with ``solid``). Empty layers
         give an all-False mask.
     """
-    from layerwatch.render.fast import _check_index, segment_pixels
-
     index = _check_index(toolpath, index)
     shape = topview.shape
     mask = np.zeros(shape, bool)
@@ -126,8 +127,6 @@ def load_mesh(mesh_or_path):
     RenderError
         Unreadable file, empty mesh, or a mesh that cannot be repaired.
     """
-    import trimesh
-
     if isinstance(mesh_or_path, trimesh.Trimesh):
         mesh = mesh_or_path.copy()
         name = "mesh"
@@ -165,8 +164,6 @@ def slice_polygons(mesh, z: float) -> list[np.ndarray]:
         Outer boundaries and holes in bed mm (manifold3d winding: outer
         counter-clockwise, holes clockwise).
     """
-    import manifold3d
-
     man = manifold3d.Manifold(
         manifold3d.Mesh(
             vert_properties=np.asarray(mesh.vertices, np.float32),

@@ -14,10 +14,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from layerwatch.errors import ConfigError
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
+from layerwatch.geometry.topview import TopView
+from layerwatch.simulate.raster import solid_area
 
 __all__ = [
     "FAILURE_TYPES",
@@ -161,11 +164,6 @@ def thin_wall_segments(tp: Toolpath, index: int, max_wall_mm: float = 2.2) -> np
     -------
     ndarray, bool, shape (n_segments_of_layer,)
     """
-    import cv2
-
-    from layerwatch.geometry.topview import TopView
-    from layerwatch.simulate.raster import solid_area
-
     sl = tp.layer_slice(index)
     n = sl.stop - sl.start
     if n == 0:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -45,9 +47,6 @@ def save_frame(frame: SimFrame, folder, stem: str | None = None) -> dict:
 
     ``stem`` defaults to ``layer_<NNNN>``. Returns the written paths by kind.
     """
-    import json
-    from pathlib import Path
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     stem = stem or f"layer_{frame.layer:04d}"

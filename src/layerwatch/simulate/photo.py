@@ -15,6 +15,7 @@ import numpy as np
 
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.simulate.raster import grid_params
 from layerwatch.simulate.scene import default_markers
 from layerwatch.simulate.settings import SimSettings
 from layerwatch.simulate.shade import bed_albedo_image, finish, render_view
@@ -51,8 +52,6 @@ class Photographer:
 
     def __init__(self, camera: CameraModel, topview: TopView, grid: TopView, settings: SimSettings,
                  seed: int) -> None:
-        from layerwatch.simulate.raster import grid_params
-
         self.camera, self.topview, self.grid = camera, topview, grid
         self.settings, self.seed = settings, int(seed)
         self.gp = grid_params(grid)

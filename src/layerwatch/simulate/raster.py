@@ -14,6 +14,7 @@ Grids are addressed like a :class:`~layerwatch.geometry.topview.TopView`:
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numba import njit
 
@@ -173,8 +174,6 @@ def solid_area(start: np.ndarray, end: np.ndarray, half_width, topview, close_mm
     -------
     ndarray, bool, shape topview.shape
     """
-    import cv2
-
     fp = capsule_mask(start, end, half_width, topview).astype(np.uint8)
     k = max(int(round(close_mm * topview.px_per_mm)) | 1, 3)
     pad = k

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from layerwatch.geometry.camera import CameraModel
@@ -20,8 +21,6 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
     Image x points along ``forward x (0, 0, 1)`` (bed-horizontal), image y down.
     """
-    import cv2
-
     f = np.asarray(target, float) - np.asarray(eye, float)
     f /= np.linalg.norm(f)
     x = np.cross(f, [0.0, 0.0, 1.0])
@@ -70,8 +69,6 @@ def default_camera(
     CameraModel
         With ``K``, ``dist``, pose and ``markers_mm`` = :func:`default_markers`.
     """
-    import cv2
-
     w, h = (int(v) for v in image_size)
     f = (w / 2.0) / np.tan(np.deg2rad(hfov_deg) / 2.0)
     K = np.array([[f, 0, (w - 1) / 2.0], [0, f, (h - 1) / 2.0], [0, 0, 1.0]])
