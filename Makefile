@@ -5,7 +5,7 @@ PYTHON ?= python3
 STAMP := $(VENV)/.installed-stamp
 OUT ?= demo-out
 
-.PHONY: demo test bench lint install clean
+.PHONY: demo test check bench lint types install clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,11 +21,18 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest
 
+# Fast feedback (issue 17): lint + types + every test not marked `slow`.
+check: lint types
+	$(PY) -m pytest -m "not slow" -q
+
 bench: $(STAMP)
 	$(PY) -m pytest benchmarks -p no:cacheprovider -s -o python_files="bench_*.py"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
+
+types: $(STAMP)
+	$(VENV)/bin/mypy src/layerwatch
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .benchmarks .layerwatch-cache
