@@ -7,15 +7,17 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import SEED, Finite
+
 __all__ = ["register"]
 
 
 def demo(
     out: Annotated[Path, typer.Option("--out", "-o", help="Results folder.")] = Path("demo-out"),
-    layers: Annotated[int | None, typer.Option("--layers", "-n", min=1, help="Simulate only the first N layers.")] = None,
+    layers: Annotated[int | None, typer.Option("--layers", "-n", parser=Finite(1, 100_000, integer=True), help="Simulate only the first N layers.")] = None,
     failure: Annotated[str, typer.Option("--failure", help="Injected failure type (spaghetti, layer_shift, ...).")] = "spaghetti",
-    onset: Annotated[int, typer.Option("--onset", min=1, help="First failed layer (0-based).")] = 15,
-    seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
+    onset: Annotated[int, typer.Option("--onset", parser=Finite(1, 100_000, integer=True), help="First failed layer (0-based).")] = 15,
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 1,
     keep_going: Annotated[bool, typer.Option("--keep-going", help="Do not stop at the pause; simulate every layer.")] = False,
 ) -> None:
     """Simulate the bundled example part with a failure part-way; stop where a printer would pause."""

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import Finite
+
 __all__ = ["register"]
 
 gcode_app = typer.Typer(
@@ -80,9 +82,9 @@ def prepare(
     file: Annotated[Path, typer.Argument(help="Input .gcode file.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Where to write the new G-code.")],
     profile: Annotated[str, typer.Option("--profile", "-p", help="|".join(_PROFILES))] = "octoprint",
-    every: Annotated[int, typer.Option("--every", min=1, help="Snapshot after every Nth layer.")] = 1,
-    lift: Annotated[float, typer.Option("--lift", help="Z lift for the photo, mm.")] = 5.0,
-    retract: Annotated[float, typer.Option("--retract", help="Retraction before parking, mm.")] = 1.0,
+    every: Annotated[int, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer.")] = 1,
+    lift: Annotated[float, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm.")] = 5.0,
+    retract: Annotated[float, typer.Option("--retract", parser=Finite(0, 20, unit="mm"), help="Retraction before parking, mm.")] = 1.0,
     park: Annotated[str, typer.Option("--park", help="Park 'X,Y' in mm (default: back corner).")] = "",
     volume: Annotated[str, typer.Option("--volume", help="Printer volume 'X,Y,Z' max, mm.")] = "",
 ) -> None:

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import SEED, Finite
+
 __all__ = ["register"]
 
 
@@ -92,9 +94,9 @@ def simulate(
     failure: Annotated[list[str] | None, typer.Option("--failure", "-f", help="TYPE@LAYER[:SIZE_MM], repeatable, "
                                                        "e.g. spaghetti@15 or layer_shift@10:3.")] = None,
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (photos, truth masks, camera.toml).")] = Path("sim"),
-    layers: Annotated[int | None, typer.Option("--layers", "-n", min=1, help="Only the first N layers.")] = None,
-    seed: Annotated[int, typer.Option("--seed")] = 0,
-    width: Annotated[int, typer.Option("--width", help="Photo width px (16:9).")] = 1280,
+    layers: Annotated[int | None, typer.Option("--layers", "-n", parser=Finite(1, 100_000, integer=True), help="Only the first N layers.")] = None,
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 0,
+    width: Annotated[int, typer.Option("--width", parser=Finite(64, 8192, integer=True, unit="px"), help="Photo width px (16:9).")] = 1280,
     config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML ([topview]).")] = None,
 ) -> None:
     """Simulate camera photos of a print (with failures and ground-truth masks)."""
@@ -127,14 +129,14 @@ def simulate(
 
 def evaluate(
     gcode: Annotated[Path | None, typer.Option("--gcode", "-g", help="G-code (default: the bundled example part).")] = None,
-    layers: Annotated[int, typer.Option("--layers", "-n", min=14, help="Approximate number of simulated layer photos.")] = 200,
+    layers: Annotated[int, typer.Option("--layers", "-n", parser=Finite(14, 100_000, integer=True), help="Approximate number of simulated layer photos.")] = 200,
     out: Annotated[Path, typer.Option("-o", "--out", help="Report folder.")] = Path("docs/evaluation"),
-    seed: Annotated[int, typer.Option("--seed")] = 0,
-    width: Annotated[int, typer.Option("--width", help="Photo width px (16:9).")] = 1280,
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 0,
+    width: Annotated[int, typer.Option("--width", parser=Finite(64, 8192, integer=True, unit="px"), help="Photo width px (16:9).")] = 1280,
     config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
-    margin: Annotated[float | None, typer.Option("--margin-mm", help="Footprint margin of the considered blocks.")] = None,
+    margin: Annotated[float | None, typer.Option("--margin-mm", parser=Finite(0, 100, unit="mm"), help="Footprint margin of the considered blocks.")] = None,
     match_camera: Annotated[bool, typer.Option("--match-camera", help="Camera-matched references.")] = False,
-    clean_layers: Annotated[int, typer.Option("--clean-layers", min=0, help="Also simulate about N layers of whole "
+    clean_layers: Annotated[int, typer.Option("--clean-layers", parser=Finite(0, 100_000, integer=True), help="Also simulate about N layers of whole "
                                               "clean prints and count false alarms of the configured setting.")] = 0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import Finite
+
 __all__ = ["register", "parse_layers"]
 
 
@@ -62,7 +64,7 @@ def render(
     config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML ([topview], [render]).")] = None,
     backend: Annotated[str | None, typer.Option("--backend", help="fast (default) or blender.")] = None,
     mask: Annotated[bool, typer.Option("--mask", help="Also write the footprint mask of each layer.")] = False,
-    workers: Annotated[int, typer.Option("--workers", "-j", min=0, help="Worker processes (0 = all cores).")] = 1,
+    workers: Annotated[int, typer.Option("--workers", "-j", parser=Finite(0, 1024, integer=True), help="Worker processes (0 = all cores).")] = 1,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address, or 'local'.")] = None,
     cache: Annotated[Path | None, typer.Option("--cache", help="Reference cache folder (render once, reuse).")] = None,
 ) -> None:

@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import Finite
+
 __all__ = ["register", "default_db"]
 
 
@@ -47,7 +49,7 @@ def history(db: DbOpt = None) -> None:
 
 
 def report(
-    job: Annotated[int, typer.Argument(help="Job id (see `layerwatch history`).")],
+    job: Annotated[int, typer.Argument(parser=Finite(1, 2**63 - 1, integer=True), help="Job id (see `layerwatch history`).")],
     db: DbOpt = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for report.html.")] = Path("report"),
     images: Annotated[Path | None, typer.Option("--images", help="Folder the stored image paths are relative to (default: beside the database).")] = None,
@@ -64,7 +66,7 @@ def report(
 def serve(
     db: DbOpt = None,
     host: Annotated[str, typer.Option("--host", help="Interface to bind; anything but loopback requires the token.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option("--port", min=1, max=65535)] = 8765,
+    port: Annotated[int, typer.Option("--port", parser=Finite(1, 65535, integer=True), help="TCP port to listen on.")] = 8765,
     images: Annotated[Path | None, typer.Option("--images", help="Folder of stored pictures (default: beside the database).")] = None,
     virtual: Annotated[bool, typer.Option("--virtual", help="Attach a virtual printer (for trying the buttons).")] = False,
 ) -> None:

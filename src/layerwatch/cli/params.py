@@ -1,0 +1,129 @@
+"""Validation of command-line values at the edge: finite numbers in range.
+
+Every numeric option of every verb is declared with ``parser=Finite(lo, hi, ...)``::
+
+    lift: Annotated[float, typer.Option("--lift", parser=Finite(0, 50, unit="mm"), help=...)] = 5.0
+
+so ``nan``, ``inf``, ``1e999``, ``abc``, ``1.5`` for a count and values outside the range are
+refused before the command runs: one line naming the option, what was given and what to give,
+exit code 2 (a :class:`typer.BadParameter`, a usage error). ``tests/cli`` checks that every
+``int``/``float`` option of the app has such a parser.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import typer
+
+__all__ = ["Finite", "SEED", "finite_of"]
+
+_INT = re.compile(r"[+-]?\d+")
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+class Finite:
+    """Parser of a finite number in ``[lo, hi]`` (bounds optional, each may be open).
+
+    Parameters
+    ----------
+    lo, hi : float or None
+        Bounds; ``None`` leaves that side unbounded (the value must still be finite).
+    integer : bool
+        A whole number written as digits (``1.5``, ``1e3``, ``0x10`` are refused).
+    lo_open, hi_open : bool
+        Exclude the bound itself (``Finite(0, lo_open=True)``: strictly positive).
+    unit : str
+        Unit named in the error message (``"mm"``, ``"s"``, ``"px"``).
+
+    Examples
+    --------
+    >>> Finite(0, 50, unit="mm")("5")
+    5.0
+    >>> Finite(1, 100_000, integer=True)(" 12 ")
+    12
+    """
+
+    def __init__(self, lo: float | None = None, hi: float | None = None, *, integer: bool = False,
+                 lo_open: bool = False, hi_open: bool = False, unit: str = "") -> None:
+        self.lo, self.hi, self.integer = lo, hi, integer
+        self.lo_open, self.hi_open, self.unit = lo_open, hi_open, unit
+
+    @property
+    def range_text(self) -> str:
+        """The accepted values in words, e.g. ``"a whole number from 1 to 100000"``."""
+        kind = "a whole number" if self.integer else "a finite number"
+        unit = f" {self.unit}" if self.unit else ""
+        lo, hi = self.lo, self.hi
+        if lo is not None and hi is not None and not (self.lo_open or self.hi_open):
+            return f"{kind} from {_fmt(lo)} to {_fmt(hi)}{unit}"
+        parts = []
+        if lo is not None:
+            parts.append(f"{'>' if self.lo_open else '>='} {_fmt(lo)}")
+        if hi is not None:
+            parts.append(f"{'<' if self.hi_open else '<='} {_fmt(hi)}")
+        return f"{kind}{' ' + ' and '.join(parts) if parts else ''}{unit}"
+
+    @property
+    def range_hint(self) -> str:
+        """Compact range for help texts, e.g. ``"0<=x<=50 mm"``."""
+        lo = "" if self.lo is None else f"{_fmt(self.lo)}{'<' if self.lo_open else '<='}"
+        hi = "" if self.hi is None else f"{'<' if self.hi_open else '<='}{_fmt(self.hi)}"
+        core = f"{lo}x{hi}" if (lo or hi) else "finite"
+        return f"{core}{' ' + self.unit if self.unit else ''}"
+
+    def _in_range(self, x: float) -> bool:
+        if self.lo is not None and (x <= self.lo if self.lo_open else x < self.lo):
+            return False
+        return not (self.hi is not None and (x >= self.hi if self.hi_open else x > self.hi))
+
+    def __call__(self, value: object) -> int | float:
+        """Parse ``value`` (the command-line text, or a default already a number).
+
+        Raises
+        ------
+        typer.BadParameter
+            Not a number, not finite, not whole where required, or outside the range.
+        """
+        if isinstance(value, bool):
+            raise typer.BadParameter(f"{value!r} is not a number; give {self.range_text}.")
+        if isinstance(value, (int, float)):
+            x: int | float = value
+            shown = repr(value)
+        else:
+            text = str(value).strip()
+            shown = repr(str(value))
+            try:
+                if self.integer:
+                    if not _INT.fullmatch(text):
+                        raise ValueError(text)
+                    x = int(text)
+                else:
+                    x = float(text.replace("_", "#"))  # Python reads 1_0 as 10; a user did not mean it
+            except ValueError:
+                raise typer.BadParameter(f"{shown} is not {'a whole number' if self.integer else 'a number'}; "
+                                         f"give {self.range_text}.") from None
+        if isinstance(x, float) and not math.isfinite(x):
+            raise typer.BadParameter(f"{shown} is not finite; give {self.range_text}.")
+        if self.integer and isinstance(x, float):
+            if x != int(x):
+                raise typer.BadParameter(f"{shown} is not a whole number; give {self.range_text}.")
+            x = int(x)
+        if not self._in_range(x):
+            raise typer.BadParameter(f"{shown} is out of range; give {self.range_text}.")
+        return x if self.integer else float(x)
+
+
+SEED = Finite(0, 2**32 - 1, integer=True)
+"""Random seeds: what NumPy's legacy and new generators both accept."""
+
+
+def finite_of(param) -> Finite | None:
+    """The :class:`Finite` parser of a typer-built click parameter, or ``None``."""
+    info = getattr(getattr(param, "type_descriptor", None), "parameter_info", None)
+    parser = getattr(info, "parser", None)
+    return parser if isinstance(parser, Finite) else None

@@ -1,0 +1,257 @@
+"""Deterministic generator of bad ``layerwatch`` command lines, and an in-process runner.
+
+The generator reads the verbs and their parameters from the app itself (the click command
+tree typer builds), so a verb or option added later is fuzzed without touching this file.
+Each generated line carries at least one mistake a user can make: an unknown option, a typo
+in a verb, a missing required parameter or value, a number that is not finite, not a number
+or out of any sensible range, an unknown choice, an extra argument, or a path that is not
+the file it should be.
+
+:func:`run_line` calls :func:`layerwatch.cli.main` with stdout/stderr captured. Long-running
+work (the monitor loop, the dashboard server, evaluation, demo, simulation, offline analysis,
+rendering) is replaced by a function raising :class:`ReachedWork`: a bad line that gets that far
+was accepted, which is reported as the outcome ``"work"`` instead of an exit code.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import random
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from unittest import mock
+
+import typer
+
+from layerwatch.cli import app, main
+
+__all__ = ["ReachedWork", "Outcome", "leaf_commands", "bad_lines", "run_line", "run_all", "make_fixtures"]
+
+# Values no numeric option of layerwatch accepts (not a number, not finite, absurd).
+BAD_FLOATS = ("nan", "NaN", "inf", "-inf", "1e999", "-1e999", "abc", "", "1,5", "0x1p3", "1e12", "-1e12")
+BAD_INTS = ("nan", "inf", "1.5", "1e3", "abc", "", "-99999999", "99999999999", "0b11")
+BAD_CHOICES = ("bogus", "[markers]", "", " ")
+BAD_PATHS = ("/nonexistent/dir/file", ".", "/dev/null", "")
+CHOICE_OPTIONS = {"--profile", "--metric", "--backend", "--failure", "--printer", "--camera", "--scheduler"}
+
+
+class ReachedWork(BaseException):  # noqa: N818 - a signal, not an error
+    """Raised by the stand-ins of long-running work: the command line was accepted."""
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one command line did: exit code (or ``"work"``) and its captured stderr."""
+
+    argv: tuple[str, ...]
+    code: int | str
+    stderr: str
+
+    @property
+    def traceback(self) -> bool:
+        return "Traceback (most recent call last)" in self.stderr
+
+    @property
+    def stderr_lines(self) -> list[str]:
+        return [ln for ln in self.stderr.splitlines() if ln.strip()]
+
+
+def leaf_commands() -> dict[tuple[str, ...], object]:
+    """Every runnable command as ``{("gcode", "prepare"): click_command, ...}``."""
+    out: dict[tuple[str, ...], object] = {}
+
+    def walk(cmd, path):
+        subs = getattr(cmd, "commands", None)
+        if subs:
+            for name, sub in subs.items():
+                walk(sub, (*path, name))
+        else:
+            out[path] = cmd
+
+    walk(typer.main.get_command(app), ())
+    return out
+
+
+def _annotation(param):
+    return getattr(getattr(param, "type_descriptor", None), "annotation", None)
+
+
+def _is_flag(param) -> bool:
+    return bool(getattr(param, "is_flag", False))
+
+
+def make_fixtures(root: Path) -> dict[str, Path]:
+    """Small valid input files under ``root``: G-code, images, camera model, job config."""
+    import cv2
+    import numpy as np
+
+    from layerwatch.examples import PART_CONFIG, PART_GCODE
+    from layerwatch.geometry.topview import TopView
+    from layerwatch.simulate import default_camera
+
+    root.mkdir(parents=True, exist_ok=True)
+    png = root / "img.png"
+    cv2.imwrite(str(png), np.full((60, 60, 3), 128, np.uint8))
+    cam = root / "camera.toml"
+    default_camera(TopView(6.67, 90, 90, (110, 100))).save(cam)
+    return {"gcode": PART_GCODE, "png": png, "camera": cam, "config": PART_CONFIG, "out": root / "out"}
+
+
+def _valid_value(param, fx: dict[str, Path]) -> str:
+    """A plausible valid value for ``param`` (files from ``fx``)."""
+    name = param.name or ""
+    ann = _annotation(param)
+    if ann in (int, float):
+        return "1"
+    if "camera" in name and ann is not str:
+        return str(fx["camera"])
+    if name in {"photo", "photo_top", "reference", "mask", "photos", "markers"}:
+        return str(fx["png"])
+    if name in {"config"}:
+        return str(fx["config"])
+    if name in {"output", "out", "outdir", "json_out", "cache", "db", "images"}:
+        return str(fx["out"] / name)
+    if name == "printer":
+        return "virtual"
+    return str(fx["gcode"])
+
+
+def _base(path, cmd, fx) -> list[str]:
+    """The command with every required parameter filled with a valid value."""
+    argv = list(path)
+    for p in cmd.params:
+        if not p.required:
+            continue
+        v = _valid_value(p, fx)
+        argv += [v] if p.param_type_name == "argument" else [p.opts[0], v]
+    return argv
+
+
+def _typo(word: str, rng: random.Random) -> str:
+    i = rng.randrange(len(word))
+    kind = rng.choice(("double", "drop", "swap", "upper"))
+    if kind == "double" or len(word) < 3:
+        return word[: i + 1] + word[i] + word[i + 1:]
+    if kind == "drop":
+        return word[:i] + word[i + 1:]
+    if kind == "swap" and i < len(word) - 1:
+        return word[:i] + word[i + 1] + word[i] + word[i + 2:]
+    return word.upper()
+
+
+def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
+    base = _base(path, cmd, fx)
+    n = len(path)
+    out = [
+        base + ["--bogus"],
+        base + ["--bogus=1"],
+        [*path, "--no-such-option", "x"],
+        base + ["extra-argument"] * 4,
+    ]
+    for k in range(n):  # typo in each level of the verb
+        bad = list(path)
+        bad[k] = _typo(path[k], rng)
+        if bad[k] != path[k]:
+            out.append(bad + base[n:])
+    for p in cmd.params:  # each required parameter left out
+        if p.required:
+            without = list(path)
+            for q in cmd.params:
+                if q.required and q is not p:
+                    v = _valid_value(q, fx)
+                    without += [v] if q.param_type_name == "argument" else [q.opts[0], v]
+            out.append(without)
+    for p in cmd.params:
+        if p.param_type_name != "option" or _is_flag(p) or p.name == "help":
+            continue
+        opt = p.opts[0]
+        out.append(base + [opt])  # option without its value
+        ann = _annotation(p)
+        if ann is float:
+            out += [base + [opt, v] for v in rng.sample(BAD_FLOATS, 6)]
+        elif ann is int:
+            out += [base + [opt, v] for v in rng.sample(BAD_INTS, 5)]
+        elif set(p.opts) & CHOICE_OPTIONS:
+            out += [base + [opt, v] for v in BAD_CHOICES[:2]]
+        elif ann is Path and p.name in {"gcode", "camera", "camera_model", "config", "mask", "markers"}:
+            out += [base + [opt, v] for v in rng.sample(BAD_PATHS, 2)]
+    return out
+
+
+def bad_lines(seed: int = 19) -> list[list[str]]:
+    """Every generated bad command line over every verb (deterministic for a given seed)."""
+    import tempfile
+
+    fx = make_fixtures(Path(tempfile.gettempdir()) / "layerwatch-badlines")
+    rng = random.Random(seed)
+    lines = [["--bogus"], ["renderr"], ["--version", "--bogus"], ["gcode", "--bogus"], ["gcodee", "info"]]
+    for path, cmd in sorted(leaf_commands().items()):
+        lines += _lines_for(path, cmd, fx, rng)
+    return lines
+
+
+_HEAVY = (
+    "layerwatch.monitor.service.Monitor.run",
+    "layerwatch.evaluate.harness.run_evaluation",
+    "layerwatch.evaluate.demo.run_demo",
+    "layerwatch.evaluate.offline.run_offline",
+    "layerwatch.simulate.simulate_print",
+    "layerwatch.render.backend.render_layers",
+    "uvicorn.run",
+)
+
+
+def _reached(*_a, **_k):
+    raise ReachedWork
+
+
+def run_line(argv: list[str], cwd: Path | None = None) -> Outcome:
+    """Run ``layerwatch ARGV`` in-process; long-running work raises :class:`ReachedWork`."""
+    import os
+
+    err, out = io.StringIO(), io.StringIO()
+    old = os.getcwd()
+    with contextlib.ExitStack() as stack:
+        for target in _HEAVY:
+            stack.enter_context(mock.patch(target, _reached))
+        stack.enter_context(contextlib.redirect_stderr(err))
+        stack.enter_context(contextlib.redirect_stdout(out))
+        if cwd is not None:
+            os.chdir(cwd)
+        try:
+            code: int | str = main(list(argv))
+        except ReachedWork:
+            code = "work"
+        except SystemExit as exc:  # main() must not exit; count it as what the shell would see
+            code = f"SystemExit({exc.code})"
+        except BaseException as exc:  # noqa: BLE001 - anything escaping main() is a finding
+            code = f"raised {type(exc).__name__}"
+            err.write(f"Traceback (most recent call last): {exc!r}\n")
+        finally:
+            os.chdir(old)
+    return Outcome(tuple(argv), code, err.getvalue())
+
+
+def run_all(lines: list[list[str]], cwd: Path) -> tuple[list[Outcome], Counter]:
+    """Run every line; return the outcomes and the histogram of exit codes."""
+    results = [run_line(a, cwd) for a in lines]
+    return results, Counter(str(r.code) for r in results)
+
+
+if __name__ == "__main__":  # python tests/cli/cli_badlines.py: print the histogram and the findings
+    import sys
+    import tempfile
+    import time
+
+    t0 = time.perf_counter()
+    lines = bad_lines()
+    with tempfile.TemporaryDirectory() as d:
+        results, hist = run_all(lines, Path(d))
+    print(f"{len(lines)} bad command lines in {time.perf_counter() - t0:.1f} s: {dict(sorted(hist.items()))}")
+    verbose = "-v" in sys.argv
+    for r in results:
+        multi = r.code == 2 and len(r.stderr_lines) != 1
+        if r.code not in (1, 2) or r.traceback or multi or verbose:
+            print(r.code, "multi-line" if multi else "", " ".join(map(repr, r.argv)), "->", r.stderr.strip()[:300])
