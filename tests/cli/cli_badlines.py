@@ -8,7 +8,7 @@ or out of any sensible range, an unknown choice, an extra argument, or a path th
 the file it should be.
 
 :func:`run_line` calls :func:`layerwatch.cli.main` with stdout/stderr captured. Long-running
-work (the monitor loop, the dashboard server, evaluation, demo, simulation, offline analysis,
+work (the monitor loop, the dashboard server, evaluation, demo, simulation,
 rendering) is replaced by a function raising :class:`ReachedWork`: a bad line that gets that far
 was accepted, which is reported as the outcome ``"work"`` instead of an exit code.
 """
@@ -33,7 +33,13 @@ __all__ = ["ReachedWork", "Outcome", "leaf_commands", "bad_lines", "run_line", "
 BAD_FLOATS = ("nan", "NaN", "inf", "-inf", "1e999", "-1e999", "abc", "", "1,5", "0x1p3", "1e12", "-1e12")
 BAD_INTS = ("nan", "inf", "1.5", "1e3", "abc", "", "-99999999", "99999999999", "0b11")
 BAD_CHOICES = ("bogus", "[markers]", "", " ")
-BAD_PATHS = ("/nonexistent/dir/file", ".", "/dev/null", "")
+# Paths that cannot be created even by root (/proc refuses new entries; /dev/null is no folder).
+BAD_PATHS = ("/proc/layerwatch-missing/file", ".", "/dev/null", "")
+WRONG_FILES = ("junk", "empty", "png", "gcode", "toml_bad")  # fixtures that are the wrong kind of file
+BAD_OUTPUTS = ("/proc/layerwatch-missing/out", "/dev/null/out")
+FILE_OUTPUTS = {"output", "json_out"}
+DIR_OUTPUTS = {"out", "outdir", "cache"}
+DIR_INPUTS = {"images"}
 CHOICE_OPTIONS = {"--profile", "--metric", "--backend", "--failure", "--printer", "--camera", "--scheduler"}
 
 
@@ -92,11 +98,15 @@ def make_fixtures(root: Path) -> dict[str, Path]:
     from layerwatch.simulate import default_camera
 
     root.mkdir(parents=True, exist_ok=True)
+    (root / "junk.bin").write_bytes(bytes(range(256)) * 40)
+    (root / "empty.txt").write_bytes(b"")
+    (root / "bad.toml").write_text("[topview]\npx_per_mm = 'many'\n[[[\n")
     png = root / "img.png"
     cv2.imwrite(str(png), np.full((60, 60, 3), 128, np.uint8))
     cam = root / "camera.toml"
     default_camera(TopView(6.67, 90, 90, (110, 100))).save(cam)
-    return {"gcode": PART_GCODE, "png": png, "camera": cam, "config": PART_CONFIG, "out": root / "out"}
+    return {"gcode": PART_GCODE, "png": png, "camera": cam, "config": PART_CONFIG, "out": root / "out",
+            "junk": root / "junk.bin", "empty": root / "empty.txt", "toml_bad": root / "bad.toml"}
 
 
 def _valid_value(param, fx: dict[str, Path]) -> str:
@@ -126,6 +136,33 @@ def _base(path, cmd, fx) -> list[str]:
             continue
         v = _valid_value(p, fx)
         argv += [v] if p.param_type_name == "argument" else [p.opts[0], v]
+    return argv
+
+
+def _bad_paths(param, fx) -> tuple[str, ...]:
+    """Values that are wrong for this path parameter (by its role: input file or folder, output)."""
+    name = param.name or ""
+    if name in FILE_OUTPUTS:  # a file to write: where no file can be
+        return BAD_OUTPUTS + ("/",)
+    if name in DIR_OUTPUTS:  # a folder to write into: under a file, or an existing file
+        return BAD_OUTPUTS + (str(fx["png"]),)
+    if name in DIR_INPUTS:
+        return ("/proc/layerwatch-missing/dir", str(fx["png"]))
+    wrong = [k for k in WRONG_FILES if str(fx[k]) != _valid_value(param, fx)]
+    if name in {"config", "db", "history"}:  # an empty file is a valid (empty) config or database
+        wrong.remove("empty")
+    return BAD_PATHS + tuple(str(fx[k]) for k in wrong)
+
+
+def _with(path, cmd, fx, param, value: str) -> list[str]:
+    """The command with ``param`` set to ``value`` and the other required parameters valid."""
+    argv = list(path)
+    for q in cmd.params:
+        if q is param:
+            argv += [value] if q.param_type_name == "argument" else [q.opts[0], value]
+        elif q.required:
+            v = _valid_value(q, fx)
+            argv += [v] if q.param_type_name == "argument" else [q.opts[0], v]
     return argv
 
 
@@ -163,6 +200,12 @@ def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
                     v = _valid_value(q, fx)
                     without += [v] if q.param_type_name == "argument" else [q.opts[0], v]
             out.append(without)
+    for p in cmd.params:  # every input path: missing, a folder, a device, empty, the wrong kind of file
+        if _annotation(p) is not Path or _is_flag(p):
+            continue
+        values = _bad_paths(p, fx)
+        for v in values:
+            out.append(_with(path, cmd, fx, p, v))
     for p in cmd.params:
         if p.param_type_name != "option" or _is_flag(p) or p.name == "help":
             continue
@@ -175,16 +218,15 @@ def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
             out += [base + [opt, v] for v in rng.sample(BAD_INTS, 5)]
         elif set(p.opts) & CHOICE_OPTIONS:
             out += [base + [opt, v] for v in BAD_CHOICES[:2]]
-        elif ann is Path and p.name in {"gcode", "camera", "camera_model", "config", "mask", "markers"}:
-            out += [base + [opt, v] for v in rng.sample(BAD_PATHS, 2)]
     return out
 
 
-def bad_lines(seed: int = 19) -> list[list[str]]:
-    """Every generated bad command line over every verb (deterministic for a given seed)."""
-    import tempfile
+def bad_lines(root: Path, seed: int = 19) -> list[list[str]]:
+    """Every generated bad command line over every verb, with its input files made under ``root``.
 
-    fx = make_fixtures(Path(tempfile.gettempdir()) / "layerwatch-badlines")
+    The lines depend only on ``seed`` and ``root``; run them with ``cwd=root``.
+    """
+    fx = make_fixtures(root / "fixtures")
     rng = random.Random(seed)
     lines = [["--bogus"], ["renderr"], ["--version", "--bogus"], ["gcode", "--bogus"], ["gcodee", "info"]]
     for path, cmd in sorted(leaf_commands().items()):
@@ -196,7 +238,6 @@ _HEAVY = (
     "layerwatch.monitor.service.Monitor.run",
     "layerwatch.evaluate.harness.run_evaluation",
     "layerwatch.evaluate.demo.run_demo",
-    "layerwatch.evaluate.offline.run_offline",
     "layerwatch.simulate.simulate_print",
     "layerwatch.render.backend.render_layers",
     "uvicorn.run",
@@ -220,6 +261,7 @@ def run_line(argv: list[str], cwd: Path | None = None) -> Outcome:
         stack.enter_context(contextlib.redirect_stdout(out))
         if cwd is not None:
             os.chdir(cwd)
+            stack.enter_context(mock.patch("tempfile.tempdir", str(cwd)))  # crash files stay in cwd
         try:
             code: int | str = main(list(argv))
         except ReachedWork:
@@ -246,8 +288,8 @@ if __name__ == "__main__":  # python tests/cli/cli_badlines.py: print the histog
     import time
 
     t0 = time.perf_counter()
-    lines = bad_lines()
     with tempfile.TemporaryDirectory() as d:
+        lines = bad_lines(Path(d))
         results, hist = run_all(lines, Path(d))
     print(f"{len(lines)} bad command lines in {time.perf_counter() - t0:.1f} s: {dict(sorted(hist.items()))}")
     verbose = "-v" in sys.argv

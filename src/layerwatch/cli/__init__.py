@@ -169,6 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     except aborts:
         _error_line("aborted", "", style="yellow")
         return 1
+    except OSError as exc:
+        if exc.filename is None:  # not about a path the user gave: a bug (or a connector not wrapping it)
+            return _internal_error(exc)
+        # a path that passed the checks at the edge but cannot be used (read-only mount, full disk, /proc)
+        where = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+        _error_line("error:", f"{where}: {exc.strerror or exc}; check the path, its folder and permissions.")
+        return 2
     except Exception as exc:
         return _internal_error(exc)
     return rv if isinstance(rv, int) and not isinstance(rv, bool) else 0

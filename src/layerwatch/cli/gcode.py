@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from layerwatch.cli.params import Finite
+from layerwatch.cli.params import WRITE_FILE, Finite
 
 __all__ = ["register"]
 
@@ -35,7 +35,7 @@ def _read_with_progress(path: Path):
 
 
 @gcode_app.command("info")
-def info(file: Annotated[Path, typer.Argument(help="A .gcode (or .bgcode) file.")]) -> None:
+def info(file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="A .gcode (or .bgcode) file.")]) -> None:
     """Print layers, Z range, detection method, extrusion length and bounds."""
     from rich.table import Table
 
@@ -79,8 +79,8 @@ def _has_moves(file: Path, limit: int = 1 << 20) -> bool:
 
 @gcode_app.command("prepare")
 def prepare(
-    file: Annotated[Path, typer.Argument(help="Input .gcode file.")],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Where to write the new G-code.")],
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Input .gcode file.")],
+    output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Where to write the new G-code.")],
     profile: Annotated[str, typer.Option("--profile", "-p", help="|".join(_PROFILES))] = "octoprint",
     every: Annotated[int, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer.")] = 1,
     lift: Annotated[float, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm.")] = 5.0,

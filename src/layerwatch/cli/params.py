@@ -1,4 +1,4 @@
-"""Validation of command-line values at the edge: finite numbers in range.
+"""Validation of command-line values at the edge: finite numbers in range, paths to write.
 
 Every numeric option of every verb is declared with ``parser=Finite(lo, hi, ...)``::
 
@@ -8,18 +8,25 @@ so ``nan``, ``inf``, ``1e999``, ``abc``, ``1.5`` for a count and values outside 
 refused before the command runs: one line naming the option, what was given and what to give,
 exit code 2 (a :class:`typer.BadParameter`, a usage error). ``tests/cli`` checks that every
 ``int``/``float`` option of the app has such a parser.
+
+Paths the command writes use ``parser=WRITE_FILE`` or ``parser=WRITE_DIR`` (:class:`Writable`);
+paths it reads use typer's own checks, ``exists=True, dir_okay=False`` (a file) or
+``exists=True, file_okay=False`` (a folder).
 """
 
 from __future__ import annotations
 
 import math
+import os
 import re
+from pathlib import Path
 
 import typer
 
-__all__ = ["Finite", "SEED", "finite_of"]
+__all__ = ["Finite", "SEED", "finite_of", "Writable", "WRITE_FILE", "WRITE_DIR", "scheduler_address"]
 
 _INT = re.compile(r"[+-]?\d+")
+
 
 
 def _fmt(x: float) -> str:
@@ -127,3 +134,60 @@ def finite_of(param) -> Finite | None:
     info = getattr(getattr(param, "type_descriptor", None), "parameter_info", None)
     parser = getattr(info, "parser", None)
     return parser if isinstance(parser, Finite) else None
+
+
+class Writable:
+    """Parser of a path layerwatch will write: a file (``folder=False``) or a folder to fill.
+
+    The path must not be the other kind of thing already, and its nearest existing parent
+    must be a folder this user may write in (missing folders in between are created by the
+    command). What only the write itself can tell (a full disk, a read-only mount) is still
+    reported by :func:`layerwatch.cli.main` as one line.
+    """
+
+    def __init__(self, folder: bool = False) -> None:
+        self.folder = folder
+
+    def __call__(self, value: object) -> Path:
+        """Return ``value`` as a :class:`~pathlib.Path`, or raise :class:`typer.BadParameter`."""
+        path = Path(str(value))
+        if str(value).strip() == "":
+            raise typer.BadParameter(f"the path is empty; give a {'folder' if self.folder else 'file name'}.")
+        if not self.folder and path.is_dir():
+            raise typer.BadParameter(f"{str(path)!r} is a folder; give a file name (e.g. {path / 'out'}).")
+        if self.folder and path.exists() and not path.is_dir():
+            raise typer.BadParameter(f"{str(path)!r} is a file, not a folder; give a folder to write into.")
+        parent = path if self.folder else path.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise typer.BadParameter(f"{str(parent)!r} is not a folder, so {str(path)!r} cannot be created; "
+                                     "give a path in a folder you can write to.")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise typer.BadParameter(f"cannot write in {str(parent)!r} (permission denied); "
+                                     "give a path in a folder you can write to.")
+        return path
+
+
+WRITE_FILE = Writable(folder=False)
+"""An output file (``-o out.gcode``, ``--json``, a database to create)."""
+WRITE_DIR = Writable(folder=True)
+"""An output folder (``-o results``, ``--cache``)."""
+
+
+_DASK_ADDRESS = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?[A-Za-z0-9_.-]+:\d{1,5}")
+
+
+def scheduler_address(value: object) -> str:
+    """Parser of a Dask scheduler address: ``local`` or ``[tcp://]host:port``.
+
+    Raises
+    ------
+    typer.BadParameter
+        Anything else (a typo would otherwise wait for a connection time-out).
+    """
+    text = str(value).strip()
+    if text == "local" or _DASK_ADDRESS.fullmatch(text) and 0 < int(text.rsplit(":", 1)[1]) < 65536:
+        return text
+    raise typer.BadParameter(f"{text!r} is not a Dask scheduler address; give 'local' or host:port "
+                             "(e.g. tcp://10.0.0.5:8786).")
