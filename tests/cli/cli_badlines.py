@@ -40,6 +40,14 @@ BAD_OUTPUTS = ("/proc/layerwatch-missing/out", "/dev/null/out")
 FILE_OUTPUTS = {"output", "json_out"}
 DIR_OUTPUTS = {"out", "outdir", "cache"}
 DIR_INPUTS = {"images"}
+# Options whose text is parsed by the command: malformed or non-finite specs.
+SPEC_OPTIONS = {
+    "--layers": ("abc", "5:1:0", "-99999", "1e3", "nan", "1:2:3:4"),
+    "--park": ("nan,nan", "inf,0", "1", "a,b", "1e999,5"),
+    "--volume": ("nan,nan,nan", "-1,-1,-1", "1,2", "inf,200,200"),
+    "--failure": ("spaghetti@x", "bogus@3", "spaghetti@-1", "spaghetti@3:nan", "spaghetti@3:inf", "@"),
+    "--board-size": ("0x0", "-3x4", "axb", "9x6x2", "99999x99999"),
+}
 CHOICE_OPTIONS = {"--profile", "--metric", "--backend", "--failure", "--printer", "--camera", "--scheduler"}
 
 
@@ -97,7 +105,7 @@ def make_fixtures(root: Path) -> dict[str, Path]:
     from layerwatch.geometry.topview import TopView
     from layerwatch.simulate import default_camera
 
-    root.mkdir(parents=True, exist_ok=True)
+    (root / "out").mkdir(parents=True, exist_ok=True)
     (root / "junk.bin").write_bytes(bytes(range(256)) * 40)
     (root / "empty.txt").write_bytes(b"")
     (root / "bad.toml").write_text("[topview]\npx_per_mm = 'many'\n[[[\n")
@@ -145,7 +153,8 @@ def _bad_paths(param, fx) -> tuple[str, ...]:
     if name in FILE_OUTPUTS:  # a file to write: where no file can be
         return BAD_OUTPUTS + ("/",)
     if name in DIR_OUTPUTS:  # a folder to write into: under a file, or an existing file
-        return BAD_OUTPUTS + (str(fx["png"]),)
+        # (not /proc/...: root passes the edge check there and a long run would only fail at its end)
+        return ("/dev/null/out", str(fx["png"] / "sub"), str(fx["png"]))
     if name in DIR_INPUTS:
         return ("/proc/layerwatch-missing/dir", str(fx["png"]))
     wrong = [k for k in WRONG_FILES if str(fx[k]) != _valid_value(param, fx)]
@@ -216,6 +225,8 @@ def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
             out += [base + [opt, v] for v in rng.sample(BAD_FLOATS, 6)]
         elif ann is int:
             out += [base + [opt, v] for v in rng.sample(BAD_INTS, 5)]
+        elif ann is not int and set(p.opts) & set(SPEC_OPTIONS):
+            out += [base + [opt, v] for v in SPEC_OPTIONS[next(o for o in p.opts if o in SPEC_OPTIONS)]]
         elif set(p.opts) & CHOICE_OPTIONS:
             out += [base + [opt, v] for v in BAD_CHOICES[:2]]
     return out

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from layerwatch.cli.params import WRITE_FILE, Finite
+from layerwatch.cli.params import WRITE_FILE, Finite, numbers
 
 __all__ = ["register"]
 
@@ -97,19 +97,16 @@ def prepare(
 
     if profile not in _PROFILES:
         raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
-    try:
-        park_xy = tuple(float(v) for v in park.split(",")) if park else None
-        vol = tuple(float(v) for v in volume.split(",")) if volume else None
-    except ValueError as exc:
-        raise ConfigError("--park/--volume take numbers like '200,200'.") from exc
-    if park_xy is not None and len(park_xy) != 2:
-        raise ConfigError("--park takes two numbers 'X,Y' in mm.")
+    park_xy = numbers(park, 2, "--park", Finite(unit="mm"), "200,200")
+    vol = numbers(volume, 3, "--volume", Finite(0, 10_000, lo_open=True, unit="mm"), "220,220,250")
     printer = PrinterProfile() if vol is None else PrinterProfile(volume_max_mm=vol)
     snap = SnapshotSettings(
         profile=profile, every_n_layers=every, lift_mm=lift, retract_mm=retract, park_xy_mm=park_xy
     )
     data, _name = load_bytes(file)
     out = insert_snapshots(data, snap, printer)
+    if b"; layerwatch snapshot block end" not in out:
+        raise GcodeError(f"{file}: no layer to put a snapshot after (--every {every}); pass the G-code your slicer exported.")
     try:
         output.write_bytes(out)
     except OSError as exc:

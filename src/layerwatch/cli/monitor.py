@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from layerwatch.cli.params import SEED, WRITE_FILE, Finite
+from layerwatch.cli.params import SEED, WRITE_DB, Finite
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
@@ -147,7 +147,7 @@ def monitor(
     gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: bundled example).")] = None,
     camera_model: Annotated[Path | None, typer.Option("--camera-model", exists=True, dir_okay=False, help="camera.toml with intrinsics and pose.")] = None,
     config: Annotated[Path | None, typer.Option("--config", exists=True, dir_okay=False, help="Job config TOML (policy, notify...).")] = None,
-    history: Annotated[Path | None, typer.Option("--history", parser=WRITE_FILE, help="SQLite history file to record the job in; settings saved there by the dashboard apply (under --config keys).")] = None,
+    history: Annotated[Path | None, typer.Option("--history", parser=WRITE_DB, help="SQLite history file to record the job in; settings saved there by the dashboard apply (under --config keys).")] = None,
     settle: Annotated[float, typer.Option("--settle", parser=Finite(0, 60, unit="s"), help="Seconds to wait after the trigger before the photo.")] = 0.0,
     wait_for_verdict: Annotated[bool, typer.Option("--wait-for-verdict", help="Hold the printer until the layer is analysed.")] = False,
     failure: Annotated[str | None, typer.Option("--failure", help="sim camera: inject this failure type.")] = None,

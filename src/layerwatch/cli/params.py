@@ -23,7 +23,7 @@ from pathlib import Path
 
 import typer
 
-__all__ = ["Finite", "SEED", "finite_of", "Writable", "WRITE_FILE", "WRITE_DIR", "scheduler_address"]
+__all__ = ["Finite", "SEED", "finite_of", "Writable", "WRITE_FILE", "WRITE_DIR", "WRITE_DB", "scheduler_address", "numbers"]
 
 _INT = re.compile(r"[+-]?\d+")
 
@@ -73,7 +73,9 @@ class Finite:
             parts.append(f"{'>' if self.lo_open else '>='} {_fmt(lo)}")
         if hi is not None:
             parts.append(f"{'<' if self.hi_open else '<='} {_fmt(hi)}")
-        return f"{kind}{' ' + ' and '.join(parts) if parts else ''}{unit}"
+        if not parts:
+            return f"{kind} in{unit}" if unit else kind
+        return f"{kind} {' and '.join(parts)}{unit}"
 
     @property
     def range_hint(self) -> str:
@@ -139,14 +141,16 @@ def finite_of(param) -> Finite | None:
 class Writable:
     """Parser of a path layerwatch will write: a file (``folder=False``) or a folder to fill.
 
-    The path must not be the other kind of thing already, and its nearest existing parent
-    must be a folder this user may write in (missing folders in between are created by the
-    command). What only the write itself can tell (a full disk, a read-only mount) is still
-    reported by :func:`layerwatch.cli.main` as one line.
+    The path must not be the other kind of thing already. A file's folder must exist unless
+    ``make_parents`` (the command creates it, as the history database does); a folder is
+    created by the command with its missing parents. The nearest existing folder must be one
+    this user may write in. What only the write itself can tell (a full disk, a read-only
+    mount, ``/proc`` for root) is still reported by :func:`layerwatch.cli.main` as one line.
     """
 
-    def __init__(self, folder: bool = False) -> None:
+    def __init__(self, folder: bool = False, make_parents: bool = False) -> None:
         self.folder = folder
+        self.make_parents = folder or make_parents
 
     def __call__(self, value: object) -> Path:
         """Return ``value`` as a :class:`~pathlib.Path`, or raise :class:`typer.BadParameter`."""
@@ -158,6 +162,8 @@ class Writable:
         if self.folder and path.exists() and not path.is_dir():
             raise typer.BadParameter(f"{str(path)!r} is a file, not a folder; give a folder to write into.")
         parent = path if self.folder else path.parent
+        if not self.make_parents and not parent.is_dir():
+            raise typer.BadParameter(f"the folder {str(parent)!r} does not exist; create it first or give another path.")
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent
         if not parent.is_dir():
@@ -173,6 +179,8 @@ WRITE_FILE = Writable(folder=False)
 """An output file (``-o out.gcode``, ``--json``, a database to create)."""
 WRITE_DIR = Writable(folder=True)
 """An output folder (``-o results``, ``--cache``)."""
+WRITE_DB = Writable(make_parents=True)
+"""A database file, created with its folder when missing (``--db``, ``--history``)."""
 
 
 _DASK_ADDRESS = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?[A-Za-z0-9_.-]+:\d{1,5}")
@@ -191,3 +199,26 @@ def scheduler_address(value: object) -> str:
         return text
     raise typer.BadParameter(f"{text!r} is not a Dask scheduler address; give 'local' or host:port "
                              "(e.g. tcp://10.0.0.5:8786).")
+
+
+def numbers(text: str, count: int, option: str, each: Finite, example: str) -> tuple[float, ...] | None:
+    """Parse ``"X,Y"``-like option text into ``count`` numbers, each checked by ``each``.
+
+    Returns ``None`` for empty text (the option was not given).
+
+    Raises
+    ------
+    ConfigError
+        Wrong count, not numbers, not finite or out of range; the message names the option.
+    """
+    from layerwatch.errors import ConfigError
+
+    if not text.strip():
+        return None
+    parts = text.split(",")
+    if len(parts) != count:
+        raise ConfigError(f"{option} takes {count} numbers separated by commas, e.g. {example}; got {text!r}.")
+    try:
+        return tuple(float(each(p)) for p in parts)
+    except typer.BadParameter as exc:
+        raise ConfigError(f"{option} {text!r}: {exc.message}") from None

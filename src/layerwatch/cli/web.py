@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from layerwatch.cli.params import WRITE_DIR, WRITE_FILE, Finite
+from layerwatch.cli.params import WRITE_DB, WRITE_DIR, Finite
 
 __all__ = ["register", "default_db"]
 
@@ -19,7 +19,7 @@ def default_db() -> Path:
     return Path(env) if env else Path.home() / ".local" / "share" / "layerwatch" / "history.db"
 
 
-DbOpt = Annotated[Path | None, typer.Option("--db", parser=WRITE_FILE, help="History database (default $LAYERWATCH_DB or ~/.local/share/layerwatch/history.db).")]
+DbOpt = Annotated[Path | None, typer.Option("--db", parser=WRITE_DB, help="History database (default $LAYERWATCH_DB or ~/.local/share/layerwatch/history.db).")]
 
 
 def _open(db: Path | None):
