@@ -136,9 +136,12 @@ def _valid_value(param, fx: dict[str, Path]) -> str:
     return str(fx["gcode"])
 
 
+BASE_EXTRAS = {("calibrate",): ("--board", "png")}  # reach past "nothing to do" (fixture names)
+
+
 def _base(path, cmd, fx) -> list[str]:
     """The command with every required parameter filled with a valid value."""
-    argv = list(path)
+    argv = list(path) + [str(fx.get(t, t)) for t in BASE_EXTRAS.get(tuple(path), ())]
     for p in cmd.params:
         if not p.required:
             continue
