@@ -15,10 +15,20 @@ traceback). Numeric options are validated by :class:`~layerwatch.cli.params.Fini
 
 from __future__ import annotations
 
+import functools
+import importlib
+import os
 import sys
+import tempfile
+import time
+import traceback
 
 import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.text import Text
 
+from layerwatch.cli.params import finite_of
 from layerwatch.errors import LayerwatchError
 
 __all__ = ["app", "main", "console", "err_console", "PROG"]
@@ -35,13 +45,7 @@ app = typer.Typer(
 )
 
 
-def _consoles():
-    from rich.console import Console
-
-    return Console(), Console(stderr=True)
-
-
-console, err_console = _consoles()
+console, err_console = Console(), Console(stderr=True)
 
 
 def _print_version(value: bool) -> None:
@@ -69,9 +73,7 @@ def _register_all() -> None:
 
 _register_all()
 
-_COMMAND = None
-
-
+@functools.cache
 def command():
     """The click command tree of :data:`app`, built once, with help texts made literal.
 
@@ -79,38 +81,31 @@ def command():
     command and parameter help is escaped so it prints as written, and each numeric
     option's help ends with its accepted range (from its :class:`~layerwatch.cli.params.Finite`).
     """
-    global _COMMAND
-    if _COMMAND is None:
-        from rich.markup import escape
+    group = typer.main.get_command(app)
+    _literal_help(group, getattr(group, "rich_markup_mode", None) == "rich")
+    return group
 
-        from layerwatch.cli.params import finite_of
 
-        def literal(text):
-            return escape(text) if isinstance(text, str) else text
+def _literal_help(cmd, rich: bool) -> None:
+    """Escape the help texts of ``cmd`` and its subcommands (``rich``) and add the numeric ranges."""
 
-        def walk(cmd, rich: bool) -> None:
-            if rich:
-                cmd.help, cmd.short_help, cmd.epilog = literal(cmd.help), literal(cmd.short_help), literal(cmd.epilog)
-            for p in cmd.params:
-                fin = finite_of(p)
-                text = getattr(p, "help", None)
-                if fin is not None:
-                    text = f"{text or ''} [{fin.range_hint}]".strip()
-                if text is not None and hasattr(p, "help"):
-                    p.help = literal(text) if rich else text
-            for sub in (getattr(cmd, "commands", None) or {}).values():
-                walk(sub, rich)
+    def literal(text):
+        return escape(text) if rich and isinstance(text, str) else text
 
-        group = typer.main.get_command(app)
-        walk(group, getattr(group, "rich_markup_mode", None) == "rich")
-        _COMMAND = group
-    return _COMMAND
+    cmd.help, cmd.short_help, cmd.epilog = literal(cmd.help), literal(cmd.short_help), literal(cmd.epilog)
+    for p in cmd.params:
+        fin = finite_of(p)
+        text = getattr(p, "help", None)
+        if fin is not None:
+            text = f"{text or ''} [{fin.range_hint}]".strip()
+        if text is not None and hasattr(p, "help"):
+            p.help = literal(text)
+    for sub in (getattr(cmd, "commands", None) or {}).values():
+        _literal_help(sub, rich)
 
 
 def _click_exceptions() -> tuple[tuple[type, ...], tuple[type, ...]]:
     """(ClickException classes, Abort classes) of typer's bundled click and, if installed, click."""
-    import importlib
-
     errors: list[type] = []
     aborts: list[type] = [typer.Abort]
     for name in ("typer._click.exceptions", "click.exceptions"):
@@ -130,14 +125,12 @@ def _one_line(text: str) -> str:
 
 def _error_line(label: str, text: str, style: str = "bold red") -> None:
     """Print ``label text`` as one line on stderr; ``text`` is never read as markup."""
-    from rich.text import Text
-
     err_console.print(Text.assemble((label, style), " ", _one_line(text)), soft_wrap=True, highlight=False)
 
 
 def _usage_error(exc) -> int:
     """One line for a parser error (unknown verb/option, missing or bad value); exit 2 (or its code)."""
-    if type(exc).__name__ == "NoArgsIsHelpError":  # a bare group: its help was printed, nothing was done
+    if type(exc).__name__ == "NoArgsIsHelpError":  # (either click's) a bare group: its help was printed
         help_text = exc.format_message()
         if help_text.strip():
             console.print(help_text, markup=False, highlight=False)
@@ -183,11 +176,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _internal_error(exc: BaseException) -> int:
     """A bug, not bad input: one line naming a file with the traceback (``LAYERWATCH_DEBUG=1`` re-raises)."""
-    import os
-    import tempfile
-    import time
-    import traceback
-
     if os.environ.get("LAYERWATCH_DEBUG"):
         raise exc
     where = "(not saved)"
