@@ -84,10 +84,10 @@ def test_calibrate_board_cli(tmp_path):
 @pytest.mark.parametrize("args, text", [
     (["calibrate"], "nothing to do"),
     (["calibrate", "--board"], "needs photos"),
-    (["calibrate", "--board", "nope.jpg"], "cannot read"),
+    (["calibrate", "--board", "nope.jpg"], "does not exist"),
     (["calibrate", "--markers", "BLANK"], "markers"),
-    (["warp", "nope.jpg"], "cannot read"),
-    (["warp", "BLANK", "--camera", "missing.toml"], "not found"),
+    (["warp", "nope.jpg"], "does not exist"),
+    (["warp", "BLANK", "--camera", "missing.toml"], "does not exist"),
 ])
 def test_cli_errors_are_one_red_line(tmp_path, capsys, args, text):
     blank = tmp_path / "blank.png"

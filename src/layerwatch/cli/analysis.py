@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import WRITE_FILE, Finite
+
 __all__ = ["register"]
 
 
@@ -28,17 +30,17 @@ def _read_image(path: Path, what: str, grey: bool = False):
 
 
 def compare(
-    photo_top: Annotated[Path, typer.Argument(help="Photo already warped to the top view (PNG/JPEG).")],
-    reference: Annotated[Path, typer.Argument(help="Reference image of the same top view (rendered layer).")],
-    mask: Annotated[Path | None, typer.Option("--mask", "-m", help="Footprint mask image (non-zero = printed); default: whole image.")] = None,
+    photo_top: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Photo already warped to the top view (PNG/JPEG).")],
+    reference: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Reference image of the same top view (rendered layer).")],
+    mask: Annotated[Path | None, typer.Option("--mask", "-m", exists=True, dir_okay=False, help="Footprint mask image (non-zero = printed); default: whole image.")] = None,
     metric: Annotated[str, typer.Option("--metric", help="Similarity measure (cosine, sqeuclidean, pearson, ...).")] = "cosine",
-    threshold: Annotated[float, typer.Option("--threshold", "-t", min=0.0, max=1.0, help="Block threshold T_S in [0, 1].")] = 0.7,
-    px_per_mm: Annotated[float, typer.Option("--px-per-mm", help="Top-view scale, pixels per millimetre.")] = 6.67,
-    cell_px: Annotated[int, typer.Option("--cell-px", help="HOG cell size in pixels.")] = 8,
-    margin_mm: Annotated[float, typer.Option("--margin-mm", help="Margin around the footprint that also counts, mm.")] = 5.0,
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="Overlay PNG to write (default: <photo>_overlay.png).")] = None,
+    threshold: Annotated[float, typer.Option("--threshold", "-t", parser=Finite(0, 1), help="Block threshold T_S in [0, 1].")] = 0.7,
+    px_per_mm: Annotated[float, typer.Option("--px-per-mm", parser=Finite(0, 100, lo_open=True, unit="px/mm"), help="Top-view scale, pixels per millimetre.")] = 6.67,
+    cell_px: Annotated[int, typer.Option("--cell-px", parser=Finite(2, 64, integer=True, unit="px"), help="HOG cell size in pixels.")] = 8,
+    margin_mm: Annotated[float, typer.Option("--margin-mm", parser=Finite(0, 100, unit="mm"), help="Margin around the footprint that also counts, mm.")] = 5.0,
+    output: Annotated[Path | None, typer.Option("-o", "--output", parser=WRITE_FILE, help="Overlay PNG to write (default: <photo>_overlay.png).")] = None,
     all_metrics: Annotated[bool, typer.Option("--all-metrics", help="Also print a% for all twelve measures.")] = False,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the LayerResult as JSON here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", parser=WRITE_FILE, help="Also write the LayerResult as JSON here.")] = None,
 ) -> None:
     """Compare a top-view photo with its reference: print a% and failing regions, write the overlay."""
     import numpy as np

@@ -7,18 +7,21 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import SEED, WRITE_DIR, Finite
+
 __all__ = ["register"]
 
 
 def demo(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Results folder.")] = Path("demo-out"),
-    layers: Annotated[int | None, typer.Option("--layers", "-n", min=1, help="Simulate only the first N layers.")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=WRITE_DIR, help="Results folder.")] = Path("demo-out"),
+    layers: Annotated[int | None, typer.Option("--layers", "-n", parser=Finite(1, 100_000, integer=True), help="Simulate only the first N layers.")] = None,
     failure: Annotated[str, typer.Option("--failure", help="Injected failure type (spaghetti, layer_shift, ...).")] = "spaghetti",
-    onset: Annotated[int, typer.Option("--onset", min=1, help="First failed layer (0-based).")] = 15,
-    seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 1,
+    onset: Annotated[int, typer.Option("--onset", parser=Finite(1, 100_000, integer=True), help="First failed layer (0-based).")] = 15,
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 1,
     keep_going: Annotated[bool, typer.Option("--keep-going", help="Do not stop at the pause; simulate every layer.")] = False,
 ) -> None:
     """Simulate the bundled example part with a failure part-way; stop where a printer would pause."""
+    from rich.markup import escape
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from layerwatch.cli import console
@@ -34,13 +37,13 @@ def demo(
         res = run_demo(out, layers=layers, failure=failure, onset=onset, seed=seed, stop_at_pause=not keep_going,
                        progress=lambda d, n, text: bar.update(task, completed=d, total=n, description=text))
     for note in res.notes:
-        console.print(f"[dim]{note}[/]")
+        console.print(f"[dim]{escape(note)}[/]")
     console.print(f"injected [bold]{res.failure}[/] from layer {res.onset}; decision rule: {res.policy}")
     if res.paused_at is None:
         console.print("[yellow]no pause: the print ran to the end without a pause decision.[/]")
     else:
         late = res.paused_at - res.onset
-        console.print(f"[bold red]PAUSE[/] at layer {res.paused_at} ({late} layer(s) after the onset): {res.reason}")
+        console.print(f"[bold red]PAUSE[/] at layer {res.paused_at} ({late} layer(s) after the onset): {escape(res.reason)}")
     console.print(f"results in {res.out} (summary.md, overlays/, stack.png) in {res.seconds:.1f} s")
     if res.report is not None:
         console.print(f"report: {res.report}  (history: {res.out / 'history.db'}; "

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import WRITE_FILE, Finite, numbers
+
 __all__ = ["register"]
 
 gcode_app = typer.Typer(
@@ -33,7 +35,7 @@ def _read_with_progress(path: Path):
 
 
 @gcode_app.command("info")
-def info(file: Annotated[Path, typer.Argument(help="A .gcode (or .bgcode) file.")]) -> None:
+def info(file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="A .gcode (or .bgcode) file.")]) -> None:
     """Print layers, Z range, detection method, extrusion length and bounds."""
     from rich.table import Table
 
@@ -77,12 +79,12 @@ def _has_moves(file: Path, limit: int = 1 << 20) -> bool:
 
 @gcode_app.command("prepare")
 def prepare(
-    file: Annotated[Path, typer.Argument(help="Input .gcode file.")],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Where to write the new G-code.")],
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Input .gcode file.")],
+    output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Where to write the new G-code.")],
     profile: Annotated[str, typer.Option("--profile", "-p", help="|".join(_PROFILES))] = "octoprint",
-    every: Annotated[int, typer.Option("--every", min=1, help="Snapshot after every Nth layer.")] = 1,
-    lift: Annotated[float, typer.Option("--lift", help="Z lift for the photo, mm.")] = 5.0,
-    retract: Annotated[float, typer.Option("--retract", help="Retraction before parking, mm.")] = 1.0,
+    every: Annotated[int, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer.")] = 1,
+    lift: Annotated[float, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm.")] = 5.0,
+    retract: Annotated[float, typer.Option("--retract", parser=Finite(0, 20, unit="mm"), help="Retraction before parking, mm.")] = 1.0,
     park: Annotated[str, typer.Option("--park", help="Park 'X,Y' in mm (default: back corner).")] = "",
     volume: Annotated[str, typer.Option("--volume", help="Printer volume 'X,Y,Z' max, mm.")] = "",
 ) -> None:
@@ -95,19 +97,16 @@ def prepare(
 
     if profile not in _PROFILES:
         raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
-    try:
-        park_xy = tuple(float(v) for v in park.split(",")) if park else None
-        vol = tuple(float(v) for v in volume.split(",")) if volume else None
-    except ValueError as exc:
-        raise ConfigError("--park/--volume take numbers like '200,200'.") from exc
-    if park_xy is not None and len(park_xy) != 2:
-        raise ConfigError("--park takes two numbers 'X,Y' in mm.")
+    park_xy = numbers(park, 2, "--park", Finite(unit="mm"), "200,200")
+    vol = numbers(volume, 3, "--volume", Finite(0, 10_000, lo_open=True, unit="mm"), "220,220,250")
     printer = PrinterProfile() if vol is None else PrinterProfile(volume_max_mm=vol)
     snap = SnapshotSettings(
         profile=profile, every_n_layers=every, lift_mm=lift, retract_mm=retract, park_xy_mm=park_xy
     )
     data, _name = load_bytes(file)
     out = insert_snapshots(data, snap, printer)
+    if b"; layerwatch snapshot block end" not in out:
+        raise GcodeError(f"{file}: no layer to put a snapshot after (--every {every}); pass the G-code your slicer exported.")
     try:
         output.write_bytes(out)
     except OSError as exc:

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import WRITE_FILE, Finite
+
 __all__ = ["register"]
 
 
@@ -42,16 +44,16 @@ def _draw_markers(photo, cam, topview):
 
 
 def calibrate(
-    photos: Annotated[list[Path] | None, typer.Argument(help="Board photos (with --board).")] = None,
+    photos: Annotated[list[Path] | None, typer.Argument(exists=True, dir_okay=False, help="Board photos (with --board).")] = None,
     board: Annotated[bool, typer.Option("--board", help="Estimate intrinsics from the board PHOTOS.")] = False,
     board_size: Annotated[str, typer.Option("--board-size", help="Chessboard inner corners (ChArUco: squares), COLSxROWS.")] = "9x6",
-    square_mm: Annotated[float, typer.Option("--square-mm", help="Board square side, mm.")] = 25.0,
+    square_mm: Annotated[float, typer.Option("--square-mm", parser=Finite(0, 1000, lo_open=True, unit="mm"), help="Board square side, mm.")] = 25.0,
     charuco: Annotated[bool, typer.Option("--charuco", help="The board is a ChArUco board.")] = False,
-    markers: Annotated[Path | None, typer.Option("--markers", help="Photo of the bed with its markers: solve the camera pose.")] = None,
-    camera: Annotated[Path | None, typer.Option("--camera", help="Existing camera model to start from (intrinsics).")] = None,
-    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config (TOML) with markers and topview sections.")] = None,
-    hfov: Annotated[float, typer.Option("--hfov", help="Horizontal field of view guess, degrees, when no board/camera is given.")] = 70.0,
-    output: Annotated[Path, typer.Option("-o", "--output", help="Camera model to write (.toml or .json).")] = Path("camera.toml"),
+    markers: Annotated[Path | None, typer.Option("--markers", exists=True, dir_okay=False, help="Photo of the bed with its markers: solve the camera pose.")] = None,
+    camera: Annotated[Path | None, typer.Option("--camera", exists=True, dir_okay=False, help="Existing camera model to start from (intrinsics).")] = None,
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config (TOML) with markers and topview sections.")] = None,
+    hfov: Annotated[float, typer.Option("--hfov", parser=Finite(10, 170, unit="degrees"), help="Horizontal field of view guess, degrees, when no board/camera is given.")] = 70.0,
+    output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Camera model to write (.toml or .json).")] = Path("camera.toml"),
 ) -> None:
     """Write a camera model: intrinsics from board photos and/or bed pose from a marker photo."""
     import cv2
@@ -105,10 +107,10 @@ def calibrate(
 
 def warp(
     photo: Annotated[Path, typer.Argument(help="Camera photo (PNG/JPEG).")],
-    camera: Annotated[Path, typer.Option("--camera", help="Camera model from `layerwatch calibrate`.")] = Path("camera.toml"),
-    z: Annotated[float, typer.Option("--z", help="Height of the layer's top surface, mm.")] = 0.0,
-    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config (TOML) with a topview section.")] = None,
-    output: Annotated[Path, typer.Option("-o", "--output", help="Top-view PNG to write.")] = Path("top.png"),
+    camera: Annotated[Path, typer.Option("--camera", exists=True, dir_okay=False, help="Camera model from `layerwatch calibrate`.")] = Path("camera.toml"),
+    z: Annotated[float, typer.Option("--z", parser=Finite(0, 2000, unit="mm"), help="Height of the layer's top surface, mm.")] = 0.0,
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config (TOML) with a topview section.")] = None,
+    output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Top-view PNG to write.")] = Path("top.png"),
 ) -> None:
     """Warp a photo into the top view of the plane at height Z."""
     import cv2

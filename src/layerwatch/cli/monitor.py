@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import SEED, WRITE_DB, Finite
+
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
 SOURCES = ("file", "dashboard", "recommended")  # highest precedence first; "default" = the section's built-in values
@@ -142,15 +144,15 @@ def open_printer(spec: str, gcode: bytes | None = None):
 def monitor(
     printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port?key=KEY | moonraker://host:port | virtual[:FILE]")] = "virtual",
     camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | sim")] = "sim",
-    gcode: Annotated[Path | None, typer.Option("--gcode", help="The job's G-code (default: bundled example).")] = None,
-    camera_model: Annotated[Path | None, typer.Option("--camera-model", help="camera.toml with intrinsics and pose.")] = None,
-    config: Annotated[Path | None, typer.Option("--config", help="Job config TOML (policy, notify...).")] = None,
-    history: Annotated[Path | None, typer.Option("--history", help="SQLite history file to record the job in; settings saved there by the dashboard apply (under --config keys).")] = None,
-    settle: Annotated[float, typer.Option("--settle", min=0, help="Seconds to wait after the trigger before the photo.")] = 0.0,
+    gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: bundled example).")] = None,
+    camera_model: Annotated[Path | None, typer.Option("--camera-model", exists=True, dir_okay=False, help="camera.toml with intrinsics and pose.")] = None,
+    config: Annotated[Path | None, typer.Option("--config", exists=True, dir_okay=False, help="Job config TOML (policy, notify...).")] = None,
+    history: Annotated[Path | None, typer.Option("--history", parser=WRITE_DB, help="SQLite history file to record the job in; settings saved there by the dashboard apply (under --config keys).")] = None,
+    settle: Annotated[float, typer.Option("--settle", parser=Finite(0, 60, unit="s"), help="Seconds to wait after the trigger before the photo.")] = 0.0,
     wait_for_verdict: Annotated[bool, typer.Option("--wait-for-verdict", help="Hold the printer until the layer is analysed.")] = False,
     failure: Annotated[str | None, typer.Option("--failure", help="sim camera: inject this failure type.")] = None,
-    onset: Annotated[int, typer.Option("--onset", min=1, help="sim camera: first failed layer.")] = 15,
-    seed: Annotated[int, typer.Option("--seed", help="sim camera: seed.")] = 1,
+    onset: Annotated[int, typer.Option("--onset", parser=Finite(1, 100_000, integer=True), help="sim camera: first failed layer.")] = 15,
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="sim camera: seed.")] = 1,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     import dataclasses

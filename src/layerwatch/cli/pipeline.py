@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import SEED, WRITE_DIR, Finite
+
 __all__ = ["register"]
 
 
@@ -20,6 +22,8 @@ def _progress():
 
 
 def _toolpath(gcode: Path | None):
+    from rich.markup import escape
+
     from layerwatch.cli import console
     from layerwatch.errors import GcodeError
     from layerwatch.evaluate.demo import load_job_toolpath
@@ -29,7 +33,9 @@ def _toolpath(gcode: Path | None):
     notes: list[str] = []
     tp, _ = load_job_toolpath(gcode, notes)
     for n in notes:
-        console.print(f"[yellow]{n}[/]")
+        console.print(f"[yellow]{escape(n)}[/]")
+    if tp.n_layers == 0:
+        raise GcodeError(f"{gcode} has no printed layers; pass the G-code your slicer exported.")
     return tp
 
 
@@ -51,17 +57,22 @@ def _config(config: Path | None, gcode: Path | None, tp, recommended: bool):
 
 
 def analyze(
-    photos: Annotated[list[Path], typer.Argument(help="Layer photos, named by layer (layer_0012.png) or in order.")],
-    gcode: Annotated[Path, typer.Option("--gcode", "-g", help="The job's G-code.")],
-    camera: Annotated[Path, typer.Option("--camera", help="camera.toml with intrinsics and bed pose (layerwatch calibrate).")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Results folder (re-running resumes).")] = Path("results"),
-    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
-    cache: Annotated[Path | None, typer.Option("--cache", help="Reference cache folder.")] = None,
+    photos: Annotated[list[Path], typer.Argument(exists=True, dir_okay=False, help="Layer photos, named by layer (layer_0012.png) or in order.")],
+    gcode: Annotated[Path, typer.Option("--gcode", "-g", exists=True, dir_okay=False, help="The job's G-code.")],
+    camera: Annotated[Path, typer.Option("--camera", exists=True, dir_okay=False, help="camera.toml with intrinsics and bed pose (layerwatch calibrate).")],
+    out: Annotated[Path, typer.Option("-o", "--out", parser=WRITE_DIR, help="Results folder (re-running resumes).")] = Path("results"),
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML.")] = None,
+    cache: Annotated[Path | None, typer.Option("--cache", parser=WRITE_DIR, help="Reference cache folder.")] = None,
     paper: Annotated[bool, typer.Option("--paper-settings", help="Leave out the evaluation's recommended settings: "
                                         "the config file over the paper's defaults (cosine, T_S 0.7, 5 mm margin).")] = False,
 ) -> None:
-    """Analyse photos of a print layer by layer: warp, reference, HOG comparison, pause decision."""
-    from layerwatch.cli import console
+    """Analyse photos of a print layer by layer: warp, reference, HOG comparison, pause decision.
+
+    Exits 1 when no photo could be analysed.
+    """
+    from rich.markup import escape
+
+    from layerwatch.cli import console, err_console
     from layerwatch.errors import CalibrationError
     from layerwatch.evaluate.offline import run_offline
     from layerwatch.geometry.camera import CameraModel
@@ -76,26 +87,29 @@ def analyze(
         run = run_offline(tp, cam, cfg, photos, out, cache_dir=cache,
                           progress=lambda d, n, text: bar.update(task, completed=d, total=n, description=text))
     for p in run.problems:
-        console.print(f"[yellow]warning:[/] {p}")
+        console.print(f"[yellow]warning:[/] {escape(p)}")
     if run.missing:
         console.print(f"[yellow]warning:[/] no photo for layer(s) {', '.join(map(str, run.missing))}")
     ok = sum(r.status == "ok" for r in run.results.values())
     console.print(f"{ok} of {len(run.results)} layers analysed ({run.reused} reused) -> {out}/summary.md")
+    if ok == 0:  # exit 1: the job failed, nothing was analysed (the warnings above say why)
+        err_console.print("[bold red]error:[/] no layer was analysed; see the warnings above.")
+        raise typer.Exit(1)
     if run.paused_at is not None:
-        console.print(f"[bold red]would have paused at layer {run.paused_at}[/]: {run.reason}")
+        console.print(f"[bold red]would have paused at layer {run.paused_at}[/]: {escape(run.reason)}")
     else:
         console.print("no layer would have paused the print")
 
 
 def simulate(
-    gcode: Annotated[Path | None, typer.Option("--gcode", "-g", help="G-code (default: the bundled example part).")] = None,
+    gcode: Annotated[Path | None, typer.Option("--gcode", "-g", exists=True, dir_okay=False, help="G-code (default: the bundled example part).")] = None,
     failure: Annotated[list[str] | None, typer.Option("--failure", "-f", help="TYPE@LAYER[:SIZE_MM], repeatable, "
                                                        "e.g. spaghetti@15 or layer_shift@10:3.")] = None,
-    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (photos, truth masks, camera.toml).")] = Path("sim"),
-    layers: Annotated[int | None, typer.Option("--layers", "-n", min=1, help="Only the first N layers.")] = None,
-    seed: Annotated[int, typer.Option("--seed")] = 0,
-    width: Annotated[int, typer.Option("--width", help="Photo width px (16:9).")] = 1280,
-    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML ([topview]).")] = None,
+    out: Annotated[Path, typer.Option("-o", "--out", parser=WRITE_DIR, help="Output folder (photos, truth masks, camera.toml).")] = Path("sim"),
+    layers: Annotated[int | None, typer.Option("--layers", "-n", parser=Finite(1, 100_000, integer=True), help="Only the first N layers.")] = None,
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 0,
+    width: Annotated[int, typer.Option("--width", parser=Finite(64, 8192, integer=True, unit="px"), help="Photo width px (16:9).")] = 1280,
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([topview]).")] = None,
 ) -> None:
     """Simulate camera photos of a print (with failures and ground-truth masks)."""
     from layerwatch.cli import console
@@ -126,15 +140,15 @@ def simulate(
 
 
 def evaluate(
-    gcode: Annotated[Path | None, typer.Option("--gcode", "-g", help="G-code (default: the bundled example part).")] = None,
-    layers: Annotated[int, typer.Option("--layers", "-n", min=14, help="Approximate number of simulated layer photos.")] = 200,
-    out: Annotated[Path, typer.Option("-o", "--out", help="Report folder.")] = Path("docs/evaluation"),
-    seed: Annotated[int, typer.Option("--seed")] = 0,
-    width: Annotated[int, typer.Option("--width", help="Photo width px (16:9).")] = 1280,
-    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
-    margin: Annotated[float | None, typer.Option("--margin-mm", help="Footprint margin of the considered blocks.")] = None,
+    gcode: Annotated[Path | None, typer.Option("--gcode", "-g", exists=True, dir_okay=False, help="G-code (default: the bundled example part).")] = None,
+    layers: Annotated[int, typer.Option("--layers", "-n", parser=Finite(14, 100_000, integer=True), help="Approximate number of simulated layer photos.")] = 200,
+    out: Annotated[Path, typer.Option("-o", "--out", parser=WRITE_DIR, help="Report folder.")] = Path("docs/evaluation"),
+    seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 0,
+    width: Annotated[int, typer.Option("--width", parser=Finite(64, 8192, integer=True, unit="px"), help="Photo width px (16:9).")] = 1280,
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML.")] = None,
+    margin: Annotated[float | None, typer.Option("--margin-mm", parser=Finite(0, 100, unit="mm"), help="Footprint margin of the considered blocks.")] = None,
     match_camera: Annotated[bool, typer.Option("--match-camera", help="Camera-matched references.")] = False,
-    clean_layers: Annotated[int, typer.Option("--clean-layers", min=0, help="Also simulate about N layers of whole "
+    clean_layers: Annotated[int, typer.Option("--clean-layers", parser=Finite(0, 100_000, integer=True), help="Also simulate about N layers of whole "
                                               "clean prints and count false alarms of the configured setting.")] = 0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import WRITE_DIR, Finite, scheduler_address
+
 __all__ = ["register", "parse_layers"]
 
 
@@ -56,15 +58,15 @@ def _part_bounds(toolpath) -> tuple[float, float, float, float]:
 
 
 def render(
-    file: Annotated[Path, typer.Argument(help="G-code file (.gcode/.bgcode).")],
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="G-code file (.gcode/.bgcode).")],
     layers: Annotated[str | None, typer.Option("--layers", "-l", help="Layers: 10:20 (end excluded), 5, 1,4,9, ::10 or all.")] = None,
-    outdir: Annotated[Path, typer.Option("-o", "--outdir", help="Folder for the PNGs.")] = Path("references"),
-    config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML ([topview], [render]).")] = None,
+    outdir: Annotated[Path, typer.Option("-o", "--outdir", parser=WRITE_DIR, help="Folder for the PNGs.")] = Path("references"),
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([topview], [render]).")] = None,
     backend: Annotated[str | None, typer.Option("--backend", help="fast (default) or blender.")] = None,
     mask: Annotated[bool, typer.Option("--mask", help="Also write the footprint mask of each layer.")] = False,
-    workers: Annotated[int, typer.Option("--workers", "-j", min=0, help="Worker processes (0 = all cores).")] = 1,
-    scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address, or 'local'.")] = None,
-    cache: Annotated[Path | None, typer.Option("--cache", help="Reference cache folder (render once, reuse).")] = None,
+    workers: Annotated[int, typer.Option("--workers", "-j", parser=Finite(0, 1024, integer=True), help="Worker processes (0 = all cores).")] = 1,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", parser=scheduler_address, help="Dask scheduler address, or 'local'.")] = None,
+    cache: Annotated[Path | None, typer.Option("--cache", parser=WRITE_DIR, help="Reference cache folder (render once, reuse).")] = None,
 ) -> None:
     """Render reference images (top view) of G-code layers to PNGs."""
     import cv2

@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import WRITE_DB, WRITE_DIR, Finite
+
 __all__ = ["register", "default_db"]
 
 
@@ -17,7 +19,7 @@ def default_db() -> Path:
     return Path(env) if env else Path.home() / ".local" / "share" / "layerwatch" / "history.db"
 
 
-DbOpt = Annotated[Path | None, typer.Option("--db", help="History database (default $LAYERWATCH_DB or ~/.local/share/layerwatch/history.db).")]
+DbOpt = Annotated[Path | None, typer.Option("--db", parser=WRITE_DB, help="History database (default $LAYERWATCH_DB or ~/.local/share/layerwatch/history.db).")]
 
 
 def _open(db: Path | None):
@@ -47,10 +49,10 @@ def history(db: DbOpt = None) -> None:
 
 
 def report(
-    job: Annotated[int, typer.Argument(help="Job id (see `layerwatch history`).")],
+    job: Annotated[int, typer.Argument(parser=Finite(1, 2**63 - 1, integer=True), help="Job id (see `layerwatch history`).")],
     db: DbOpt = None,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for report.html.")] = Path("report"),
-    images: Annotated[Path | None, typer.Option("--images", help="Folder the stored image paths are relative to (default: beside the database).")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=WRITE_DIR, help="Output folder for report.html.")] = Path("report"),
+    images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder the stored image paths are relative to (default: beside the database).")] = None,
 ) -> None:
     """Write a self-contained HTML report of one job."""
     from layerwatch.cli import console
@@ -64,8 +66,8 @@ def report(
 def serve(
     db: DbOpt = None,
     host: Annotated[str, typer.Option("--host", help="Interface to bind; anything but loopback requires the token.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option("--port", min=1, max=65535)] = 8765,
-    images: Annotated[Path | None, typer.Option("--images", help="Folder of stored pictures (default: beside the database).")] = None,
+    port: Annotated[int, typer.Option("--port", parser=Finite(1, 65535, integer=True), help="TCP port to listen on.")] = 8765,
+    images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder of stored pictures (default: beside the database).")] = None,
     virtual: Annotated[bool, typer.Option("--virtual", help="Attach a virtual printer (for trying the buttons).")] = False,
 ) -> None:
     """Serve the dashboard (FastAPI + uvicorn)."""

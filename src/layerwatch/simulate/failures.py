@@ -93,8 +93,8 @@ class Failure:
             raise ConfigError(
                 f"unknown failure type '{self.type}'; use one of {', '.join(FAILURE_TYPES)}."
             )
-        if self.onset < 0 or not self.size_mm > 0:
-            raise ConfigError("a failure needs onset >= 0 and size_mm > 0; fix the scenario.")
+        if self.onset < 0 or not (self.size_mm > 0 and np.isfinite(self.size_mm)):
+            raise ConfigError("a failure needs onset >= 0 and a finite size_mm > 0; fix the scenario.")
         if self.mode not in ("missing", "under"):
             raise ConfigError(f"failure mode must be 'missing' or 'under', got '{self.mode}'.")
 
