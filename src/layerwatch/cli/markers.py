@@ -26,7 +26,7 @@ def markers(
     tiles: Annotated[bool, typer.Option("--tiles", help="One page per mark (marks farther apart than a page).")] = False,
     dpi: Annotated[float, typer.Option("--dpi", help="PNG resolution, dots per inch.")] = 300.0,
     config_out: Annotated[Path | None, typer.Option("--config-out", help="Also write a job config (TOML) with the "
-                                                    "[topview] and [markers] sections of this layout (new file).")] = None,
+                                                    "topview and markers sections of this layout (new file).")] = None,
 ) -> None:
     """Write a printable marker sheet (1:1) for `layerwatch calibrate --markers`, with each mark's bed coordinates."""
     from layerwatch.cli import console
