@@ -41,7 +41,8 @@ def markers(
                          bed_min_mm=parse_pair(origin, "--origin"), size_mm=size, dictionary=dictionary)
     written = write_sheet(layout, output, paper=paper, tiles=tiles, dpi=dpi)
     files = sorted({str(p) for p, _ in written})
-    console.print(f"marker sheet ({len(written)} page{'s' if len(written) > 1 else ''}, {paper}, print at 100 %): "
+    scale = f"{dpi:g} dpi, print at {dpi:g} dpi" if output.suffix.lower() == ".png" else "print at 100 %"
+    console.print(f"marker sheet ({len(written)} page{'s' if len(written) > 1 else ''}, {paper}, {scale}): "
                   f"{', '.join(files)}", highlight=False, soft_wrap=True)
     for i in range(4):
         x, y = layout.positions_mm[i]
