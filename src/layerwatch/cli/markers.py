@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.params import Finite
+
 __all__ = ["register"]
 
 
@@ -14,17 +16,17 @@ def markers(
     bed: Annotated[str, typer.Option("--bed", help="Bed width x depth in mm, e.g. 220x220.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Sheet to write: .pdf, .svg or .png (printed at 1:1).")],
     kind: Annotated[str, typer.Option("--kind", help="dots (white dots on black squares) or aruco (ArUco tags).")] = "dots",
-    side: Annotated[float | None, typer.Option("--side", help="Side of the square the four marks span, mm "
+    side: Annotated[float | None, typer.Option("--side", parser=Finite(0, 2000, lo_open=True, unit="mm"), help="Side of the square the four marks span, mm "
                                                "(default: the 90 mm observed square).")] = None,
     center: Annotated[str | None, typer.Option("--center", help="Centre of that square in bed mm, X,Y "
                                                "(default: the bed's centre).")] = None,
     origin: Annotated[str, typer.Option("--origin", help="G-code coordinates of the bed's front-left corner, X,Y "
                                         "(e.g. -110,-110 when the origin is the bed centre).")] = "0,0",
-    size: Annotated[float | None, typer.Option("--size", help="Dot diameter (default 6) or tag side (default 25), mm.")] = None,
+    size: Annotated[float | None, typer.Option("--size", parser=Finite(0, 200, lo_open=True, unit="mm"), help="Dot diameter (default 6) or tag side (default 25), mm.")] = None,
     dictionary: Annotated[str, typer.Option("--dictionary", help="ArUco dictionary (--kind aruco).")] = "DICT_4X4_50",
     paper: Annotated[str, typer.Option("--paper", help="Paper size: a4 or letter.")] = "a4",
     tiles: Annotated[bool, typer.Option("--tiles", help="One page per mark (marks farther apart than a page).")] = False,
-    dpi: Annotated[float, typer.Option("--dpi", help="PNG resolution, dots per inch.")] = 300.0,
+    dpi: Annotated[float, typer.Option("--dpi", parser=Finite(72, 1200, unit="dpi"), help="PNG resolution, dots per inch.")] = 300.0,
     config_out: Annotated[Path | None, typer.Option("--config-out", help="Also write a job config (TOML) with the "
                                                     "topview and markers sections of this layout (new file).")] = None,
 ) -> None:
