@@ -136,12 +136,20 @@ def _valid_value(param, fx: dict[str, Path]) -> str:
     return str(fx["gcode"])
 
 
-BASE_EXTRAS = {("calibrate",): ("--board", "png")}  # reach past "nothing to do" (fixture names)
+# options that let a line reach past the command's first check (values: fixture names)
+BASE_EXTRAS = {("calibrate",): ("--board", "png"), ("warp",): ("--camera", "camera")}
+
+
+def _extras(path, fx, skip=()) -> list[str]:
+    extra = BASE_EXTRAS.get(tuple(path), ())
+    if set(extra) & set(skip):
+        return []
+    return [str(fx.get(t, t)) for t in extra]
 
 
 def _base(path, cmd, fx) -> list[str]:
     """The command with every required parameter filled with a valid value."""
-    argv = list(path) + [str(fx.get(t, t)) for t in BASE_EXTRAS.get(tuple(path), ())]
+    argv = list(path) + _extras(path, fx)
     for p in cmd.params:
         if not p.required:
             continue
@@ -168,7 +176,7 @@ def _bad_paths(param, fx) -> tuple[str, ...]:
 
 def _with(path, cmd, fx, param, value: str) -> list[str]:
     """The command with ``param`` set to ``value`` and the other required parameters valid."""
-    argv = list(path)
+    argv = list(path) + _extras(path, fx, skip=param.opts)
     for q in cmd.params:
         if q is param:
             argv += [value] if q.param_type_name == "argument" else [q.opts[0], value]
