@@ -136,17 +136,25 @@ def _valid_value(param, fx: dict[str, Path]) -> str:
     return str(fx["gcode"])
 
 
-BASE_EXTRAS = {("calibrate",): ("--board", "png")}  # reach past "nothing to do" (fixture names)
+# options that let a line reach past the command's first check (values: fixture names)
+BASE_EXTRAS = {("calibrate",): ("--board", "png"), ("warp",): ("--camera", "camera")}
 
 
-def _base(path, cmd, fx) -> list[str]:
-    """The command with every required parameter filled with a valid value."""
-    argv = list(path) + [str(fx.get(t, t)) for t in BASE_EXTRAS.get(tuple(path), ())]
-    for p in cmd.params:
-        if not p.required:
+def _extras(path, fx, skip=()) -> list[str]:
+    extra = BASE_EXTRAS.get(tuple(path), ())
+    if set(extra) & set(skip):
+        return []
+    return [str(fx.get(t, t)) for t in extra]
+
+
+def _argv(path, cmd, fx, param=None, value: str | None = None, drop=None) -> list[str]:
+    """The command with every required parameter valid, ``param`` set to ``value``, ``drop`` left out."""
+    argv = list(path) + _extras(path, fx, skip=param.opts if param is not None else ())
+    for q in cmd.params:
+        if q is drop or not (q.required or q is param):
             continue
-        v = _valid_value(p, fx)
-        argv += [v] if p.param_type_name == "argument" else [p.opts[0], v]
+        v = value if q is param else _valid_value(q, fx)
+        argv += [v] if q.param_type_name == "argument" else [q.opts[0], v]
     return argv
 
 
@@ -166,18 +174,6 @@ def _bad_paths(param, fx) -> tuple[str, ...]:
     return BAD_PATHS + tuple(str(fx[k]) for k in wrong)
 
 
-def _with(path, cmd, fx, param, value: str) -> list[str]:
-    """The command with ``param`` set to ``value`` and the other required parameters valid."""
-    argv = list(path)
-    for q in cmd.params:
-        if q is param:
-            argv += [value] if q.param_type_name == "argument" else [q.opts[0], value]
-        elif q.required:
-            v = _valid_value(q, fx)
-            argv += [v] if q.param_type_name == "argument" else [q.opts[0], v]
-    return argv
-
-
 def _typo(word: str, rng: random.Random) -> str:
     i = rng.randrange(len(word))
     kind = rng.choice(("double", "drop", "swap", "upper"))
@@ -191,7 +187,7 @@ def _typo(word: str, rng: random.Random) -> str:
 
 
 def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
-    base = _base(path, cmd, fx)
+    base = _argv(path, cmd, fx)
     n = len(path)
     out = [
         base + ["--bogus"],
@@ -204,20 +200,13 @@ def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
         bad[k] = _typo(path[k], rng)
         if bad[k] != path[k]:
             out.append(bad + base[n:])
-    for p in cmd.params:  # each required parameter left out
-        if p.required:
-            without = list(path)
-            for q in cmd.params:
-                if q.required and q is not p:
-                    v = _valid_value(q, fx)
-                    without += [v] if q.param_type_name == "argument" else [q.opts[0], v]
-            out.append(without)
+    out += [_argv(path, cmd, fx, drop=p) for p in cmd.params if p.required]  # each required one left out
     for p in cmd.params:  # every input path: missing, a folder, a device, empty, the wrong kind of file
         if _annotation(p) is not Path or _is_flag(p):
             continue
         values = _bad_paths(p, fx)
         for v in values:
-            out.append(_with(path, cmd, fx, p, v))
+            out.append(_argv(path, cmd, fx, p, v))
     for p in cmd.params:
         if p.param_type_name != "option" or _is_flag(p) or p.name == "help":
             continue

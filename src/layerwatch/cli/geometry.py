@@ -106,7 +106,7 @@ def calibrate(
 
 
 def warp(
-    photo: Annotated[Path, typer.Argument(help="Camera photo (PNG/JPEG).")],
+    photo: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Camera photo (PNG/JPEG).")],
     camera: Annotated[Path, typer.Option("--camera", exists=True, dir_okay=False, help="Camera model from `layerwatch calibrate`.")] = Path("camera.toml"),
     z: Annotated[float, typer.Option("--z", parser=Finite(0, 2000, unit="mm"), help="Height of the layer's top surface, mm.")] = 0.0,
     config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config (TOML) with a topview section.")] = None,
