@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.config import load_config
 from layerwatch.errors import ConfigError, WarpError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.config import load_config
 
 
 def test_topview_defaults_match_paper():

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from layerwatch.config import JobConfig
-from layerwatch.monitor.pipeline import LayerPipeline
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.render.fast import StackRenderer
 from layerwatch.simulate import Failure, default_camera, simulate_layer
 from layerwatch.simulate.parts import box_part
@@ -88,7 +88,7 @@ def test_all_metrics_and_match_camera(job):
     p = LayerPipeline(tp, cam, cfg, match_camera=True, all_metrics=True)
     res = p.process(_frame(job).photo, LAYER)
     assert res.status == "ok"
-    assert len(res.extra["per_metric"]) == 12
+    assert len(res.per_metric) == 12
     assert not np.array_equal(p.reference(LAYER).image, StackRenderer(tp, job[3], cfg.render).render(LAYER).image)
 
 

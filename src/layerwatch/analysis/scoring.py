@@ -50,12 +50,13 @@ import numpy as np
 
 from layerwatch.analysis.hog import hog_blocks
 from layerwatch.analysis.metrics import similarity, similarity_all
-from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.analysis.result import BlockGrid, LayerResult, MetricScore, Region
 from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "growth_reach", "near_footprint", "to_grey255"]
+__all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
+           "near_footprint", "to_grey255"]
 
 
 def block_geometry(cell_px: int = 8, block_cells: int = 2, px_per_mm: float = 6.67) -> dict[str, float]:
@@ -106,6 +107,41 @@ def to_grey255(image: np.ndarray, name: str = "image") -> np.ndarray:
     if not np.all(np.isfinite(grey)):
         raise AnalysisError(f"{name} contains NaN or infinite pixels; fix the image before the analysis.")
     return grey
+
+
+def grey_u8(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """Grey uint8 (H, W) image: :func:`to_grey255` truncated to whole grey levels.
+
+    The one grey conversion of a warped photo (the per-layer step, ``compare``,
+    overlays); grey uint8 input is returned unchanged.
+    """
+    grey = to_grey255(image, name)
+    return grey if grey.dtype == np.uint8 else np.clip(grey, 0, 255).astype(np.uint8)
+
+
+def anomaly_ratio(n_anomalous, tile_mm2: float, printed_mm2: float):
+    """a% of eq. (5): ``min(1, S_A / S_P)`` with ``S_A = n_anomalous * tile_mm2``; 0 when nothing is printed.
+
+    Parameters
+    ----------
+    n_anomalous : int or ndarray of int
+        Anomalous blocks (any shape: the evaluation passes counts per threshold).
+    tile_mm2 : float
+        Area one block stands for, mm^2 (module notes).
+    printed_mm2 : float
+        ``S_P``, printed area, mm^2.
+
+    Returns
+    -------
+    float or ndarray of float64, same shape as ``n_anomalous``, in [0, 1]
+
+    References
+    ----------
+    Petsiuk & Pearce (2022), eq. (5).
+    """
+    n = np.asarray(n_anomalous, np.float64)
+    out = np.minimum(1.0, n * tile_mm2 / printed_mm2) if printed_mm2 > 0 else np.zeros_like(n)
+    return float(out) if out.ndim == 0 else out
 
 
 def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -339,7 +375,6 @@ def analyze_layer(
     layer: int = 0,
     z: float = 0.0,
     all_metrics: bool = False,
-    hogs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LayerResult:
     """Compare the photo's top view with the reference of one layer.
 
@@ -360,21 +395,18 @@ def analyze_layer(
     layer, z : int, float
         Layer index and height (mm), copied into the result.
     all_metrics : bool
-        Also score every measure of Table 2 into ``result.extra["per_metric"]``
-        (``{name: {"anomaly_ratio", "n_anomalous", "mean_similarity"}}``, same
-        blocks and threshold, before the ``min_region_blocks`` filter).
-    hogs : (ndarray, ndarray), optional
-        ``block_hogs(top, reference, settings)`` when the caller already has
-        them (the evaluation harness scores every measure from the same
-        tensors); computed here otherwise.
+        Also score every measure of Table 2 into ``result.per_metric``
+        (``{name: MetricScore}``, same blocks and threshold, before the
+        ``min_region_blocks`` filter).
 
     Returns
     -------
     LayerResult
         ``heatmap`` (N, M) float32 similarities, ``mask`` (N, M) considered
         blocks, a% (eq. 5), areas in mm^2, regions in bed mm (largest first),
-        ``timings_ms`` (``hog``, ``metric``, ``regions``, ``total``) and
-        ``extra["grid"]`` (cell_px, block_cells, block_mm).
+        ``timings_ms`` (``hog``, ``metric``, ``regions``, ``total``),
+        ``grid``, ``similarity_mean``/``similarity_min`` and ``shown_blocks``
+        (when hysteresis grew the drawn regions).
         ``status`` is ``"skipped"`` when no printed pixel is visible.
 
     Raises
@@ -399,7 +431,7 @@ def analyze_layer(
     foot = _mask(footprint, shape, "footprint")
     seen = np.ones(shape, dtype=bool) if valid is None else _mask(valid, shape, "valid")
     c, b = st.cell_px, st.block_cells
-    h_top, h_ref = block_hogs(top_a, ref_a, st) if hogs is None else hogs
+    h_top, h_ref = block_hogs(top_a, ref_a, st)
     t1 = time.perf_counter()
     heat = similarity(h_top, h_ref, st.metric)
     t2 = time.perf_counter()
@@ -426,7 +458,7 @@ def analyze_layer(
     outside = float((1.0 - foot_frac[anom]).sum()) * tile_mm2
     res = LayerResult(
         layer=int(layer), z=float(z), metric=st.metric, threshold=float(st.threshold),
-        anomaly_ratio=min(1.0, anom_area / printed) if printed > 0 else 0.0,
+        anomaly_ratio=anomaly_ratio(int(anom.sum()), tile_mm2, printed),
         printed_area_mm2=printed, anomalous_area_mm2=anom_area, outside_area_mm2=outside,
         n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
         heatmap=heat, mask=considered,
@@ -435,27 +467,18 @@ def analyze_layer(
         res.status = "skipped"
         res.message = "no printed area of this layer is visible in the top view"
     vals = heat[considered]
-    res.extra = {
-        "grid": {
-            "cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks,
-            **block_geometry(c, b, topview.px_per_mm),
-        },
-        "similarity_mean": float(vals.mean()) if vals.size else 1.0,
-        "similarity_min": float(vals.min()) if vals.size else 1.0,
-    }
+    res.grid = BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,
+                         **block_geometry(c, b, topview.px_per_mm))
+    res.similarity_mean = float(vals.mean()) if vals.size else 1.0
+    res.similarity_min = float(vals.min()) if vals.size else 1.0
     if shown is not anom:
-        res.extra["region_blocks"] = int(shown.sum())
-        res.extra["shown_blocks"] = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
+        res.shown_blocks = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
     if all_metrics:
-        per = {}
         for name, s in similarity_all(h_top, h_ref, METRIC_NAMES).items():
             a = considered & (s < st.threshold)
-            per[name] = {
-                "anomaly_ratio": min(1.0, a.sum() * tile_mm2 / printed) if printed > 0 else 0.0,
-                "n_anomalous": int(a.sum()),
-                "mean_similarity": float(s[considered].mean()) if considered.any() else 1.0,
-            }
-        res.extra["per_metric"] = per
+            res.per_metric[name] = MetricScore(
+                anomaly_ratio=anomaly_ratio(int(a.sum()), tile_mm2, printed), n_anomalous=int(a.sum()),
+                mean_similarity=float(s[considered].mean()) if considered.any() else 1.0)
     t4 = time.perf_counter()
     res.timings_ms = {
         "hog": (t1 - t0) * 1e3, "metric": (t2 - t1) * 1e3, "regions": (t3 - t2) * 1e3,

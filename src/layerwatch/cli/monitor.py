@@ -9,14 +9,12 @@ import typer
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
-SOURCES = ("file", "dashboard", "recommended")  # highest precedence first; "default" = the section's built-in values
-
 
 def dashboard_settings(history) -> dict[str, dict]:
     """The settings the dashboard saved in ``history`` that differ from what it shows unsaved.
 
     The dashboard stores the whole job config it showed (``PUT``/``PATCH /api/settings``); unsaved, it shows
-    the recommended settings (:func:`~layerwatch.evaluate.recommended.recommended_config`), so a key it never
+    the recommended settings (:func:`~layerwatch.pipeline.config.recommended_config`), so a key it never
     changed holds the recommended value; only the changed keys form the "dashboard" layer. (A key
     deliberately set back to its recommended value is indistinguishable from an untouched one, and the
     result is the same.)
@@ -38,8 +36,8 @@ def dashboard_settings(history) -> dict[str, dict]:
     """
     from pydantic import ValidationError
 
-    from layerwatch.config import JobConfig
     from layerwatch.errors import ConfigError
+    from layerwatch.pipeline.config import JobConfig
     from layerwatch.web.app import SETTINGS_KEY
 
     saved = history.setting(SETTINGS_KEY)
@@ -53,7 +51,7 @@ def dashboard_settings(history) -> dict[str, dict]:
         msg = " ".join(str(err["msg"]).split())
         raise ConfigError(f"{history.path}: the dashboard's saved setting {where} is invalid ({msg}); save the "
                           "settings again in the dashboard (layerwatch serve --db ...) or drop --history.") from None
-    from layerwatch.evaluate.recommended import recommended_config
+    from layerwatch.pipeline.config import recommended_config
 
     base = recommended_config().model_dump(mode="json")
     out: dict[str, dict] = {}
@@ -68,7 +66,7 @@ def monitor_config(path: Path | None, history=None):
     """The monitor's job config and where each section's values came from.
 
     Precedence, per key: the job file's own keys > the dashboard's saved settings (:func:`dashboard_settings`)
-    > the evaluation's recommended settings (:data:`layerwatch.evaluate.recommended.RECOMMENDED`) > the
+    > the evaluation's recommended settings (:data:`layerwatch.pipeline.config.RECOMMENDED`) > the
     sections' built-in defaults.
 
     Parameters
@@ -90,30 +88,11 @@ def monitor_config(path: Path | None, history=None):
     ConfigError
         Unreadable or invalid file or saved settings (one line naming the fix).
     """
-    import tomllib
-
-    from layerwatch.config import JobConfig, load_config
-    from layerwatch.evaluate.recommended import RECOMMENDED
+    from layerwatch.pipeline.config import resolve_config
 
     dash = dashboard_settings(history) if history is not None else {}
-    defaults: dict[str, dict] = {k: dict(v) for k, v in RECOMMENDED.items()}
-    for section, values in dash.items():
-        defaults.setdefault(section, {}).update(values)
-    cfg = load_config(path, defaults=defaults)
-    file = tomllib.loads(Path(path).read_text(encoding="utf-8", errors="replace")) if path is not None else {}
-    layers = {"file": file, "dashboard": dash, "recommended": RECOMMENDED}
-    sources: dict[str, str] = {}
-    for section in JobConfig.model_fields:
-        seen: set[str] = set()
-        used = []
-        for name in SOURCES:
-            values = layers[name].get(section)
-            keys = set(values) if isinstance(values, dict) else set()
-            if keys - seen:
-                used.append(name)
-            seen |= keys
-        sources[section] = "+".join(used) or "default"
-    return cfg, sources
+    resolved = resolve_config(path, dashboard=dash)
+    return resolved.config, resolved.section_sources()
 
 
 def open_printer(spec: str, gcode: bytes | None = None):
@@ -164,10 +143,10 @@ def monitor(
     from layerwatch.geometry.camera import CameraModel
     from layerwatch.monitor.cameras import SimCamera, open_camera
     from layerwatch.monitor.notify import Notifier
-    from layerwatch.monitor.pipeline import LayerPipeline
-    from layerwatch.monitor.policy import PausePolicy
     from layerwatch.monitor.printers.base import parse_trigger
     from layerwatch.monitor.service import Monitor
+    from layerwatch.pipeline.policy import PausePolicy
+    from layerwatch.pipeline.step import LayerPipeline
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
     from layerwatch.examples import PART_CONFIG

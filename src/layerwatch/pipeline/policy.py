@@ -1,9 +1,12 @@
-"""When a stream of :class:`LayerResult` should pause the print.
+"""When a stream of :class:`LayerResult` should pause the print: the one pause policy.
+
+The monitor, ``analyze``, the demo and the evaluation's false-alarm count all
+feed :class:`PausePolicy`; :class:`Decision` is the one type of its answer.
 
 Rules (all thresholds in :class:`PolicySettings`):
 
-1. ``a%`` above ``pause_ratio`` (and at least ``min_area_mm2`` of anomalous
-   area) for ``consecutive_layers`` analysed layers
+1. ``a%`` of the anomaly not acknowledged above ``pause_ratio`` (and at least
+   ``min_area_mm2`` of it) for ``consecutive_layers`` analysed layers
    in a row, with a failing region in the same place on consecutive layers
    (noise spikes land at random places) -> ``settings.action``; a single layer above it -> ``notify``
    (when ``notify_single_layer``).
@@ -25,15 +28,95 @@ Petsiuk & Pearce (2022), eq. (5) for ``a%``.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Literal
 
-from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.monitor.settings import PolicySettings
+from pydantic import Field
 
-__all__ = ["Decision", "PausePolicy"]
+from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.settings_base import Section
+
+__all__ = ["Decision", "NotifySettings", "PausePolicy", "PolicySettings", "first_stop"]
 
 Action = Literal["none", "notify", "pause", "cancel"]
+
+
+class PolicySettings(Section):
+    """When the stream of layer results pauses the print (config section ``[policy]``).
+
+    The built-in values below are the paper-era defaults; the product runs the
+    evaluation's recommended values over them (``pause_ratio = 0.025``,
+    :data:`layerwatch.pipeline.config.RECOMMENDED`, shown with their source by
+    ``layerwatch config show``). :meth:`PausePolicy.update` applies them as
+    follows (errors and skipped layers never pause; the first
+    ``skip_first_layers`` layers are never judged):
+
+    * **ratio rule**: a layer *alarms* when the anomalous area the operator has
+      not acknowledged is above ``pause_ratio`` of the printed area (eq. 5)
+      *and* at least ``min_area_mm2``; ``consecutive_layers`` alarms in a row
+      whose failing regions overlap those of the previous layer -> ``action``;
+      a single alarm -> ``"notify"`` when ``notify_single_layer``;
+    * **growth rule**: a region of at least ``growth_min_area_mm2`` that
+      overlaps one of the previous layer and is ``growth_ratio`` times its area
+      (or outgrew its acknowledged area that much) -> ``action``;
+    * **strong event**: more than ``strong_outside_area_mm2`` of anomalous area
+      outside the footprint -> ``strong_action`` (0 disables it).
+
+    ``wait_for_verdict`` is read by the monitor: hold the printer until the
+    layer is judged.
+
+    Attributes
+    ----------
+    pause_ratio : float
+        a% limit as a fraction in [0, 1] (default 0.10; recommended 0.025).
+    min_area_mm2 : float
+        Fresh anomalous area the ratio rule also needs, mm^2 (a small footprint
+        crosses any ratio with two or three 1.44 mm^2 blocks).
+    consecutive_layers : int
+        Alarmed layers in a row before ``action``.
+    strong_outside_area_mm2 : float
+        Anomalous area outside the footprint for the strong event, mm^2.
+    growth_ratio : float
+        Area factor of the growth rule (also how much acknowledged anomaly must grow).
+    growth_min_area_mm2 : float
+        Smallest region the growth rule looks at, mm^2.
+    action, strong_action : {"notify", "pause", "cancel"}
+    skip_first_layers : int
+    notify_single_layer : bool
+    wait_for_verdict : bool
+    """
+
+    pause_ratio: float = Field(0.10, ge=0, le=1)
+    min_area_mm2: float = Field(5.0, ge=0)
+    consecutive_layers: int = Field(2, ge=1)
+    strong_outside_area_mm2: float = Field(150.0, ge=0)
+    growth_ratio: float = Field(1.5, ge=1)
+    action: Literal["notify", "pause", "cancel"] = "pause"
+    wait_for_verdict: bool = False
+    skip_first_layers: int = Field(1, ge=0)
+    growth_min_area_mm2: float = Field(25.0, ge=0)
+    strong_action: Literal["notify", "pause", "cancel"] = "pause"
+    notify_single_layer: bool = True
+
+
+class NotifySettings(Section):
+    """Where the policy's alerts go (config section ``[notify]``): Apprise URLs and/or a JSON webhook, rate-limited.
+
+    It sits beside :class:`PolicySettings` because it completes the policy's
+    ``"notify"`` action; the monitor's :mod:`~layerwatch.monitor.notify` sends.
+
+    Attributes
+    ----------
+    apprise_urls : list of str
+    webhook_url : str or None
+    min_interval_s : float
+        Smallest interval between two non-critical alerts, s.
+    """
+
+    apprise_urls: list[str] = Field(default_factory=list)
+    webhook_url: str | None = None
+    min_interval_s: float = Field(60.0, ge=0)
 
 
 @dataclass(frozen=True)
@@ -206,3 +289,17 @@ class PausePolicy:
         if action in ("pause", "cancel"):
             self._halted = True
         return Decision(action, reason, layer)
+
+
+def first_stop(results: Iterable[LayerResult], settings: PolicySettings | None = None) -> Decision | None:
+    """Feed ``results`` (in layer order) to a fresh :class:`PausePolicy`; the first pause/cancel, or ``None``.
+
+    What a printer would have done with a finished series (``analyze`` on a
+    folder of photos); the monitor and the demo feed the policy layer by layer.
+    """
+    policy = PausePolicy(settings)
+    for res in results:
+        decision = policy.update(res)
+        if decision.stops:
+            return decision
+    return None
