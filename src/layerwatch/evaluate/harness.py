@@ -40,7 +40,8 @@ from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.step import LayerPipeline, judge_layers
 from layerwatch.simulate import FAILURE_TYPES, PrintSimulator, Scenario, random_scenarios
 
-__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "surface_under", "tile_fraction"]
+__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "score_layer", "surface_under",
+           "tile_fraction"]
 
 #: block thresholds T_S scanned for every measure
 THRESHOLDS = np.round(np.arange(0.05, 0.901, 0.05), 2)
@@ -243,6 +244,25 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
     return a, iou, clean_high
 
 
+def score_layer(pipe: LayerPipeline, frame, index: int) -> tuple[LayerResult, tuple | None]:
+    """The evaluation's per-layer path: the monitor's step on ``frame.photo``, then the sweep.
+
+    Returns
+    -------
+    result : LayerResult
+        :meth:`LayerPipeline.process`'s record (the one the monitor stores for this photo).
+    scores : (a, iou, clean_high, region) or None
+        As :class:`LayerRecord` holds them; ``None`` when the photo could not
+        be analysed (``result.status == "error"``, ``result.message`` says why).
+    """
+    res = pipe.process(frame.photo, index)
+    if res.status == "error":
+        return res, None
+    regions: list = []
+    a, iou, clean_high = _score(res, pipe, frame, regions)
+    return res, (a, iou, clean_high, regions[0])
+
+
 def run_evaluation(
     toolpath: Toolpath,
     config: JobConfig,
@@ -294,17 +314,16 @@ def run_evaluation(
         size = scen.failures[0].size_mm if scen.failures else 0.0
         for i in layers:
             frame = sim.frame(i)
-            res = pipe.process(frame.photo, i)  # the monitor's per-layer step
-            if res.status == "error":  # reported, the run continues
+            res, scores = score_layer(pipe, frame, i)
+            if scores is None:  # reported, the run continues
                 data.errors.append(f"{scen.name} layer {i}: {res.message}")
                 continue
-            regs: list = []
-            a, iou, clean_high = _score(res, pipe, frame, regs)
+            a, iou, clean_high, region = scores
             kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
             since = int(i) - scen.failures[0].onset if kind != "clean" else -1
             surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high, regs[0], since, surface))
+                                            a, iou, clean_high, region, since, surface))
             done += 1
             if progress is not None:
                 progress(done, total)
