@@ -364,6 +364,28 @@ def _regions(anom, heat, foot_frac, grid, topview) -> tuple[np.ndarray, list[Reg
     return anom, regions
 
 
+def _check_images(top, reference, topview: TopView) -> tuple[np.ndarray, np.ndarray]:
+    """Both images as arrays of the same size and dtype, the size of ``topview`` (else AnalysisError)."""
+    top_a, ref_a = np.asarray(top), np.asarray(reference)
+    if top_a.shape[:2] != ref_a.shape[:2]:
+        raise AnalysisError(f"photo top view is {top_a.shape[:2]} px but the reference is {ref_a.shape[:2]}; render the reference for the same top view.")
+    if top_a.dtype != ref_a.dtype:
+        raise AnalysisError(f"photo ({top_a.dtype}) and reference ({ref_a.dtype}) differ in dtype; convert both to uint8.")
+    if tuple(topview.shape) != top_a.shape[:2]:
+        raise AnalysisError(f"images are {top_a.shape[:2]} px but the top view is {topview.shape}; use the TopView the images were made with.")
+    return top_a, ref_a
+
+
+def _all_metrics(h_top, h_ref, considered, threshold: float, tile_mm2: float, printed: float) -> dict[str, MetricScore]:
+    """Every measure of Table 2 on the considered blocks at ``threshold`` (before the region-size filter)."""
+    out = {}
+    for name, sim in similarity_all(h_top, h_ref, METRIC_NAMES).items():
+        a = considered & (sim < threshold)
+        out[name] = MetricScore(anomaly_ratio=anomaly_ratio(int(a.sum()), tile_mm2, printed), n_anomalous=int(a.sum()),
+                                mean_similarity=float(sim[considered].mean()) if considered.any() else 1.0)
+    return out
+
+
 def analyze_layer(
     top: np.ndarray,
     reference: np.ndarray,
@@ -420,68 +442,65 @@ def analyze_layer(
     """
     t0 = time.perf_counter()
     st = settings or AnalysisSettings()
-    top_a, ref_a = np.asarray(top), np.asarray(reference)
-    if top_a.shape[:2] != ref_a.shape[:2]:
-        raise AnalysisError(f"photo top view is {top_a.shape[:2]} px but the reference is {ref_a.shape[:2]}; render the reference for the same top view.")
-    if top_a.dtype != ref_a.dtype:
-        raise AnalysisError(f"photo ({top_a.dtype}) and reference ({ref_a.dtype}) differ in dtype; convert both to uint8.")
-    shape = top_a.shape[:2]
-    if tuple(topview.shape) != shape:
-        raise AnalysisError(f"images are {shape} px but the top view is {topview.shape}; use the TopView the images were made with.")
-    foot = _mask(footprint, shape, "footprint")
-    seen = np.ones(shape, dtype=bool) if valid is None else _mask(valid, shape, "valid")
-    c, b = st.cell_px, st.block_cells
+    top_a, ref_a = _check_images(top, reference, topview)
+    foot = _mask(footprint, top_a.shape[:2], "footprint")
+    seen = None if valid is None else _mask(valid, top_a.shape[:2], "valid")
     h_top, h_ref = block_hogs(top_a, ref_a, st)
     t1 = time.perf_counter()
     heat = similarity(h_top, h_ref, st.metric)
     t2 = time.perf_counter()
-
-    n, m = heat.shape
-    rows, cols = np.arange(n) * c, np.arange(m) * c
-    foot_int = _integral(foot)
-    considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm,
-                                None if valid is None else seen, foot_int)
-    off = (b - 1) * c // 2
-    foot_frac = _box_sums(foot_int, rows + off, cols + off, c) / float(c * c)
-    grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
-    anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
-    shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
-    if st.grow_threshold > 0 and anom.any():
-        reach = growth_reach(considered, foot, topview, st, None if valid is None else seen, foot_int)
-        shown = grow_regions(anom, reach & (heat < st.threshold + st.grow_threshold))
+    res = _layer_result(heat, foot, seen, topview, st)
+    res.layer, res.z = int(layer), float(z)
     t3 = time.perf_counter()
-
-    tile_mm2 = (c / topview.px_per_mm) ** 2
-    n_printed = int(foot_int[-1, -1]) if valid is None else int(np.count_nonzero(foot & seen))
-    printed = n_printed / topview.px_per_mm**2
-    anom_area = float(anom.sum()) * tile_mm2
-    outside = float((1.0 - foot_frac[anom]).sum()) * tile_mm2
-    res = LayerResult(
-        layer=int(layer), z=float(z), metric=st.metric, threshold=float(st.threshold),
-        anomaly_ratio=anomaly_ratio(int(anom.sum()), tile_mm2, printed),
-        printed_area_mm2=printed, anomalous_area_mm2=anom_area, outside_area_mm2=outside,
-        n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
-        heatmap=heat, mask=considered,
-    )
-    if printed == 0 or not considered.any():
-        res.status = "skipped"
-        res.message = "no printed area of this layer is visible in the top view"
-    vals = heat[considered]
-    res.grid = BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,
-                         **block_geometry(c, b, topview.px_per_mm))
-    res.similarity_mean = float(vals.mean()) if vals.size else 1.0
-    res.similarity_min = float(vals.min()) if vals.size else 1.0
-    if shown is not anom:
-        res.shown_blocks = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
     if all_metrics:
-        for name, s in similarity_all(h_top, h_ref, METRIC_NAMES).items():
-            a = considered & (s < st.threshold)
-            res.per_metric[name] = MetricScore(
-                anomaly_ratio=anomaly_ratio(int(a.sum()), tile_mm2, printed), n_anomalous=int(a.sum()),
-                mean_similarity=float(s[considered].mean()) if considered.any() else 1.0)
+        tile_mm2 = (st.cell_px / topview.px_per_mm) ** 2
+        res.per_metric = _all_metrics(h_top, h_ref, res.mask, st.threshold, tile_mm2, res.printed_area_mm2)
     t4 = time.perf_counter()
     res.timings_ms = {
         "hog": (t1 - t0) * 1e3, "metric": (t2 - t1) * 1e3, "regions": (t3 - t2) * 1e3,
         "total": (t4 - t0) * 1e3,
     }
+    return res
+
+
+def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, topview: TopView,
+                  st: AnalysisSettings) -> LayerResult:
+    """Considered blocks, anomalous blocks and regions, areas and a% (eq. 5) of one similarity map.
+
+    ``heat`` (N, M) similarities, ``foot`` (H, W) footprint, ``seen`` (H, W) pixels the camera saw
+    (``None``: all). The record's ``layer``/``z`` are left for the caller.
+    """
+    c, b = st.cell_px, st.block_cells
+    n, m = heat.shape
+    foot_int = _integral(foot)
+    considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm, seen, foot_int)
+    off = (b - 1) * c // 2
+    foot_frac = _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
+    grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
+    anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
+    shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
+    if st.grow_threshold > 0 and anom.any():
+        reach = growth_reach(considered, foot, topview, st, seen, foot_int)
+        shown = grow_regions(anom, reach & (heat < st.threshold + st.grow_threshold))
+    tile_mm2 = (c / topview.px_per_mm) ** 2
+    n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
+    printed = n_printed / topview.px_per_mm**2
+    res = LayerResult(
+        layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
+        anomaly_ratio=anomaly_ratio(int(anom.sum()), tile_mm2, printed),
+        printed_area_mm2=printed, anomalous_area_mm2=float(anom.sum()) * tile_mm2,
+        outside_area_mm2=float((1.0 - foot_frac[anom]).sum()) * tile_mm2,
+        n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
+        heatmap=heat, mask=considered,
+        grid=BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,
+                       **block_geometry(c, b, topview.px_per_mm)),
+    )
+    if printed == 0 or not considered.any():
+        res.status = "skipped"
+        res.message = "no printed area of this layer is visible in the top view"
+    vals = heat[considered]
+    res.similarity_mean = float(vals.mean()) if vals.size else 1.0
+    res.similarity_min = float(vals.min()) if vals.size else 1.0
+    if shown is not anom:
+        res.shown_blocks = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
     return res

@@ -100,10 +100,25 @@ def run_demo(
     first = sim.frame(0)
     camera = locate_bed(dataclasses.replace(truth_cam, rvec=None, tvec=None), first.photo, cfg.markers, tv)
     notes.append(f"camera pose from the bed markers: reprojection error {camera.errors.get('pose_px', float('nan')):.2f} px")
-    pipe = LayerPipeline(tp, camera, cfg)
     folder = ResultsFolder(out, tv)
-    results = {}
     res_demo = DemoResult(out, None, onset, failure, notes=notes)
+    results = _watch(LayerPipeline(tp, camera, cfg), PausePolicy(cfg.policy), sim, first, n, folder, res_demo,
+                     stop_at_pause, progress)
+    folder.stack()
+    _record_history(out, gpath, results, res_demo, cfg)
+    res_demo.seconds = time.perf_counter() - t0
+    folder.summary(results, res_demo.paused_at, res_demo.reason, extra={
+        "part": str(gpath), "injected failure": f"{failure} from layer {onset}",
+        "policy": res_demo.policy, "seconds": round(res_demo.seconds, 1),
+        "analysis": cfg.analysis.model_dump(), "pause_rule": cfg.policy.model_dump(),
+    })
+    return res_demo
+
+
+def _watch(pipe: LayerPipeline, policy: PausePolicy, sim: PrintSimulator, first, n: int, folder: ResultsFolder,
+           res_demo: DemoResult, stop_at_pause: bool, progress) -> dict:
+    """The simulated photos of layers ``0..n-1`` through :func:`judge_layers`, written to ``folder``; results by layer."""
+    results = {}
     failures: dict[int, list[str]] = {}
 
     def photos():
@@ -112,7 +127,7 @@ def run_demo(
             failures[i] = list(frame.meta.get("failures", []))
             yield i, frame.photo
 
-    for res, decision in judge_layers(pipe, PausePolicy(cfg.policy), photos()):
+    for res, decision in judge_layers(pipe, policy, photos()):
         i = res.layer
         res.simulated_failures = failures[i]
         ref = pipe.reference(i) if res.status != "error" else None
@@ -125,15 +140,7 @@ def run_demo(
             res_demo.paused_at, res_demo.reason = i, decision.reason
             if stop_at_pause:
                 break
-    folder.stack()
-    _record_history(out, gpath, results, res_demo, cfg)
-    res_demo.seconds = time.perf_counter() - t0
-    folder.summary(results, res_demo.paused_at, res_demo.reason, extra={
-        "part": str(gpath), "injected failure": f"{failure} from layer {onset}",
-        "policy": res_demo.policy, "seconds": round(res_demo.seconds, 1),
-        "analysis": cfg.analysis.model_dump(), "pause_rule": cfg.policy.model_dump(),
-    })
-    return res_demo
+    return results
 
 
 def _record_history(out: Path, gpath: Path, results: dict, res_demo: DemoResult, cfg=None) -> None:

@@ -165,6 +165,7 @@ class PausePolicy:
         self._halted = False
         self._last_ratio = 0.0
         self._acked_ratio = 0.0
+        self._fresh_area = 0.0
 
     @property
     def halted(self) -> bool:
@@ -217,32 +218,16 @@ class PausePolicy:
         if result.status != "ok" or layer < s.skip_first_layers:
             return Decision("none", f"layer {layer} not judged ({result.status})", layer)
         regions = self._fresh(list(result.regions))
-        self._last_regions = list(result.regions)
-        acked_area = sum(r.area_mm2 for r in result.regions if r not in regions)
-        printed = result.printed_area_mm2
-        fresh_area = max(result.anomalous_area_mm2 - acked_area, 0.0)  # anomaly the operator has not accepted
-        if printed and printed > 0:
-            ratio = fresh_area / printed
-        else:
-            ratio = float(result.anomaly_ratio) if not self._acked else 0.0
-        outside = result.outside_area_mm2
-        if self._acked and acked_area > 0:
-            fresh_outside = sum(r.area_mm2 * r.outside_fraction for r in regions)
-            outside = min(outside, fresh_outside)
+        ratio, outside = self._fresh_ratio(result, regions)
         prev, self._prev_regions = self._prev_regions, regions
-        if printed and printed > 0:  # anomaly not explained by regions (diffuse), for acknowledge()
-            self._last_ratio = max(result.anomalous_area_mm2 - sum(r.area_mm2 for r in result.regions), 0.0) / printed
-        else:
-            self._last_ratio = ratio
         # after a resume, anomaly the operator accepted must grow before it counts again
         limit = max(s.pause_ratio, self._acked_ratio * s.growth_ratio)
         # a% of a small footprint jumps by a whole block at a time (1.44 mm^2 for the paper's grid): the ratio
         # rule also needs min_area_mm2 of fresh anomalous area, so two or three edge blocks never pause
-        alarm = ratio > limit and fresh_area >= s.min_area_mm2
+        alarm = ratio > limit and self._fresh_area >= s.min_area_mm2
         self._streak = self._streak + 1 if alarm else 0
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
-
         if s.strong_outside_area_mm2 > 0 and outside > s.strong_outside_area_mm2:
             return self._stop(
                 s.strong_action,
@@ -256,34 +241,52 @@ class PausePolicy:
             _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in regions for p in prev
         )
         if self._streak >= s.consecutive_layers and persistent:
-            return self._stop(
-                s.action,
-                f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
-                f"for {self._streak} layers",
-                layer,
-            )
-        for r in regions:
-            if r.area_mm2 < s.growth_min_area_mm2:
-                continue
-            acked = self._acked_area(r)
-            if acked is not None:  # _fresh kept it, so it outgrew its acknowledged size
-                return self._stop(
-                    s.action,
-                    f"layer {layer}: acknowledged region at ({r.centroid_mm[0]:.0f}, {r.centroid_mm[1]:.0f}) mm "
-                    f"grew from {acked:.0f} to {r.area_mm2:.0f} mm^2",
-                    layer,
-                )
-            for p in prev:
-                if _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) and r.area_mm2 >= s.growth_ratio * max(p.area_mm2, 1e-9):
-                    return self._stop(
-                        s.action,
-                        f"layer {layer}: failing region at ({r.centroid_mm[0]:.0f}, {r.centroid_mm[1]:.0f}) mm "
-                        f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2",
-                        layer,
-                    )
+            return self._stop(s.action, f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
+                                        f"for {self._streak} layers", layer)
+        grown = self._growth(regions, prev, layer)
+        if grown is not None:
+            return grown
         if alarm and s.notify_single_layer:
             return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer)
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
+
+    def _fresh_ratio(self, result: LayerResult, regions: list[Region]) -> tuple[float, float]:
+        """a% and outside area of the anomaly the operator has not acknowledged (``regions`` are the fresh ones).
+
+        Also remembers the fresh anomalous area (``_fresh_area``, mm^2) and the diffuse
+        anomaly not explained by regions (``_last_ratio``, for :meth:`acknowledge`).
+        """
+        self._last_regions = list(result.regions)
+        acked_area = sum(r.area_mm2 for r in result.regions if r not in regions)
+        printed = result.printed_area_mm2
+        self._fresh_area = max(result.anomalous_area_mm2 - acked_area, 0.0)
+        if printed and printed > 0:
+            ratio = self._fresh_area / printed
+            self._last_ratio = max(result.anomalous_area_mm2 - sum(r.area_mm2 for r in result.regions), 0.0) / printed
+        else:
+            ratio = float(result.anomaly_ratio) if not self._acked else 0.0
+            self._last_ratio = ratio
+        outside = result.outside_area_mm2
+        if self._acked and acked_area > 0:
+            outside = min(outside, sum(r.area_mm2 * r.outside_fraction for r in regions))
+        return ratio, outside
+
+    def _growth(self, regions: list[Region], prev: list[Region], layer: int) -> Decision | None:
+        """The growth rule: a region that outgrew its acknowledged area or its overlapping predecessor."""
+        s = self.settings
+        for r in regions:
+            if r.area_mm2 < s.growth_min_area_mm2:
+                continue
+            where = f"({r.centroid_mm[0]:.0f}, {r.centroid_mm[1]:.0f}) mm"
+            acked = self._acked_area(r)
+            if acked is not None:  # _fresh kept it, so it outgrew its acknowledged size
+                return self._stop(s.action, f"layer {layer}: acknowledged region at {where} "
+                                            f"grew from {acked:.0f} to {r.area_mm2:.0f} mm^2", layer)
+            for p in prev:
+                if _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) and r.area_mm2 >= s.growth_ratio * max(p.area_mm2, 1e-9):
+                    return self._stop(s.action, f"layer {layer}: failing region at {where} "
+                                                f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2", layer)
+        return None
 
     def _stop(self, action: Action, reason: str, layer: int) -> Decision:
         if action in ("pause", "cancel"):
