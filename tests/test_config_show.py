@@ -84,3 +84,14 @@ def test_bad_values_are_one_line_naming_their_origin(capsys, job_file, tmp_path)
         resolve_config(bad)
     assert main(["config", "show", "--set", "threshold=0.3"]) == 2
     assert capsys.readouterr().err.strip().startswith("error:")
+
+
+def test_paper_settings_mean_the_same_for_the_monitor_and_analyze(job_file):
+    from layerwatch.cli.monitor import monitor_config
+    from layerwatch.cli.pipeline import job_settings
+
+    cfg, sources = monitor_config(job_file, paper=True)
+    offline = job_settings(job_file, None, paper=True)
+    assert cfg == offline.config and cfg.analysis.metric == "cosine" and cfg.policy.pause_ratio == 0.05
+    assert sources["analysis"] == "file" and sources["markers"] == "default"
+    assert monitor_config(job_file)[0] == job_settings(job_file, None).config  # and without the flag

@@ -66,7 +66,8 @@ def show(
     if as_json:
         console.print_json(json.dumps(rows))
         return
-    console.print(f"job file: {resolved.path or 'none'}" + ("  (--paper-settings: recommended left out)" if paper else ""))
+    console.print(f"job file: {resolved.path or 'none'}" + ("  (--paper-settings: recommended left out)" if paper else ""),
+                  highlight=False, markup=False, soft_wrap=True)
     width = max(len(k) for k in rows)
     for key, row in rows.items():
         text = json.dumps(row["value"])

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli.pipeline import PAPER_HELP
+
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
 
@@ -62,7 +64,7 @@ def dashboard_settings(history) -> dict[str, dict]:
     return out
 
 
-def monitor_config(path: Path | None, history=None):
+def monitor_config(path: Path | None, history=None, *, paper: bool = False):
     """The monitor's job config and where each section's values came from.
 
     Precedence, per key: the job file's own keys > the dashboard's saved settings (:func:`dashboard_settings`)
@@ -75,6 +77,8 @@ def monitor_config(path: Path | None, history=None):
         Job config TOML (``--config``, or the bundled example's job file).
     history : History or None
         Database whose dashboard settings apply (``--history``).
+    paper : bool
+        Leave out the recommended settings (``--paper-settings``).
 
     Returns
     -------
@@ -91,7 +95,7 @@ def monitor_config(path: Path | None, history=None):
     from layerwatch.pipeline.config import resolve_config
 
     dash = dashboard_settings(history) if history is not None else {}
-    resolved = resolve_config(path, dashboard=dash)
+    resolved = resolve_config(path, recommended=not paper, dashboard=dash)
     return resolved.config, resolved.section_sources()
 
 
@@ -130,6 +134,7 @@ def monitor(
     failure: Annotated[str | None, typer.Option("--failure", help="sim camera: inject this failure type.")] = None,
     onset: Annotated[int, typer.Option("--onset", min=1, help="sim camera: first failed layer.")] = 15,
     seed: Annotated[int, typer.Option("--seed", help="sim camera: seed.")] = 1,
+    paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     import dataclasses
@@ -158,9 +163,9 @@ def monitor(
     job_file = config if config else (PART_CONFIG if gcode is None else None)
     if history is not None:
         with History(history) as saved:
-            cfg, sources = monitor_config(job_file, saved)
+            cfg, sources = monitor_config(job_file, saved, paper=paper)
     else:
-        cfg, sources = monitor_config(job_file)
+        cfg, sources = monitor_config(job_file, paper=paper)
     logging.getLogger("layerwatch.monitor").info(
         "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
         job_file or "none", history or "none")
