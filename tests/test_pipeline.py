@@ -98,3 +98,22 @@ def test_disk_cache_reused(job, tmp_path):
     assert any(tmp_path.rglob("*"))
     b = LayerPipeline(tp, cam, cfg, cache_dir=tmp_path).reference(3)
     assert np.array_equal(a.image, b.image) and np.array_equal(a.footprint, b.footprint)
+
+
+def test_frame_gate_hook_rejects_before_the_warp_and_sees_the_previous_frame(job):
+    tp, cam, cfg, _ = job
+    seen = []
+
+    def gate(photo, previous, settings):
+        seen.append((photo, previous, settings))
+        return "too dark" if photo.mean() < 1 else None
+
+    p = LayerPipeline(tp, cam, cfg, frame_gate=gate)
+    good = _frame(job).photo
+    assert p.process(good, LAYER).status == "ok"
+    dark = np.zeros_like(good)
+    res = p.process(dark, LAYER)
+    assert res.status == "error" and res.message == "frame rejected: too dark" and "warp" not in res.timings_ms
+    assert p.process(good, LAYER).status == "ok"
+    assert seen[0][1] is None and seen[1][1] is good and seen[2][1] is good  # a rejected frame is not `previous`
+    assert seen[0][2] is cfg.analysis
