@@ -4,7 +4,7 @@ Run: ``python benchmarks/bench_dashboard.py`` or ``pytest benchmarks/bench_dashb
 (``make bench``). Target (issue 10): dashboard pages render in < 300 ms from
 the local server with 1,000 layers of history.
 
-A history is seeded with :func:`layerwatch.web.seed.seed_job` (a live job of
+A history is seeded with :func:`seed_history.seed_job` (``tests/web/seed_history.py``) (a live job of
 300 and one of 1,000 layers, images every 10th layer and for the failing
 ones, plus two finished jobs), ``layerwatch serve --virtual`` serves it on
 127.0.0.1 in its own process, and chromium (``/usr/bin/chromium`` through Playwright, headless,
@@ -48,7 +48,9 @@ from typing import Any
 
 from layerwatch.analysis.result import LayerResult
 from layerwatch.storage.history import History
-from layerwatch.web.seed import seed_job
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "web"))  # test-only history seeder
+from seed_history import seed_job  # noqa: E402
 
 CHROMIUM = Path("/usr/bin/chromium")
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",

@@ -2,7 +2,7 @@
 
 Run: ``python benchmarks/bench_pipeline.py`` or ``pytest benchmarks/bench_pipeline.py -s``.
 
-* ours: :meth:`layerwatch.monitor.pipeline.LayerPipeline.process` (cached
+* ours: :meth:`layerwatch.pipeline.step.LayerPipeline.process` (cached
   per-Z warp tables, incremental reference renderer, Numba HOG, vectorised
   similarity over all blocks), a new layer (new Z) every call. Measured twice:
   with references rendered ahead (``prepare``, as the monitor does while the
@@ -21,9 +21,9 @@ import time
 
 import numpy as np
 
-from layerwatch.config import JobConfig
 from layerwatch.geometry.homography import top_from_image
-from layerwatch.monitor.pipeline import LayerPipeline
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import default_camera, simulate_print
 from layerwatch.simulate.parts import box_part
 

@@ -26,7 +26,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 
 import shutil  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -35,7 +37,9 @@ from layerwatch.gcode.toolpath import Toolpath  # noqa: E402
 from layerwatch.geometry.topview import TopView  # noqa: E402
 from layerwatch.render.fast import StackRenderer, render_stack  # noqa: E402
 from layerwatch.render.settings import RenderSettings  # noqa: E402
-from layerwatch.render.synthetic import dense_layer  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "render"))  # test-only part generators
+from render_parts import dense_layer  # noqa: E402
 
 cv2.setNumThreads(1)
 TV = TopView(6.67, 90.0, 90.0, (0.0, 0.0))

@@ -18,7 +18,7 @@ at 45 deg elevation, 45 deg horizontal field of view, so the top of a
 100 mm part stays in view); the camera pose is recovered from the bed
 markers of the first photo (``locate_bed``), and :class:`Monitor` runs the
 :class:`LayerPipeline` and the :class:`PausePolicy` with the recommended
-settings (:func:`layerwatch.evaluate.recommended.recommended_config`),
+settings (:func:`layerwatch.pipeline.config.recommended_config`),
 waiting for each verdict before the printer goes on.
 
 Printed: layers analysed, single-layer alarms (a% above the pause ratio on
@@ -47,7 +47,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from layerwatch.monitor.policy import PausePolicy  # noqa: E402
+from layerwatch.pipeline.policy import PausePolicy  # noqa: E402
 
 CENTER = (110.0, 100.0)
 HEIGHT_MM = 100.0
@@ -96,11 +96,11 @@ def _camera(tv, size):
 
 def job(layers: int = 500, size: tuple[int, int] = (1920, 1080), solid_layers: int = 4):
     """Config, toolpath, prepared G-code, true camera and the pipeline (pose recovered from the markers)."""
-    from layerwatch.evaluate.recommended import recommended_config
     from layerwatch.gcode import read_toolpath
     from layerwatch.gcode.postprocess import insert_snapshots
     from layerwatch.geometry.pose import locate_bed
-    from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.pipeline.config import recommended_config
+    from layerwatch.pipeline.step import LayerPipeline
     from layerwatch.simulate import PrintSimulator
     from layerwatch.simulate.parts import toolpath_gcode, tower_part
 

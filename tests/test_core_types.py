@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.config import load_config
+from layerwatch.analysis.result import BlockGrid, LayerResult, MetricScore, Region
 from layerwatch.errors import ConfigError, WarpError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.config import load_config
 
 
 def test_topview_defaults_match_paper():
@@ -95,6 +95,21 @@ def test_layer_result_json_roundtrip_without_nan():
     back = LayerResult.from_json(text)
     assert back.layer == 3 and back.regions[0].area_mm2 == 12.5
     assert back.heatmap.shape == (1, 2)
+
+
+def test_layer_result_typed_fields_roundtrip_and_old_rows_with_extra():
+    res = LayerResult(layer=3, z=0.9, grid=BlockGrid(cell_px=4, block_mm=1.2), shown_blocks=[1, 5],
+                      per_metric={"cosine": MetricScore(0.1, 3, 0.8)}, decision="pause", decision_reason="why",
+                      trigger_to_pause_ms=12.5, simulated_failures=["spaghetti"])
+    back = LayerResult.from_json(res.to_json())
+    assert back == res and back.region_blocks == 2
+    old = {"layer": 2, "z": 0.6, "n_anomalous": 4, "extra": {  # a history row written before the typed fields
+        "grid": {"cell_px": 8, "block_cells": 2, "min_region_blocks": 1, "block_mm": 2.4},
+        "per_metric": {"l1": {"anomaly_ratio": 0.2, "n_anomalous": 7, "mean_similarity": 0.5}},
+        "decision": "notify", "trigger_to_pause_ms": 40.0, "region_blocks": 9}}
+    r = LayerResult.from_dict(old)
+    assert r.grid == BlockGrid(block_mm=2.4) and r.per_metric == {"l1": MetricScore(0.2, 7, 0.5)}
+    assert r.decision == "notify" and r.trigger_to_pause_ms == 40.0 and r.region_blocks == 4
 
 
 def test_toolpath_from_segments_groups_layers():

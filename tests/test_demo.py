@@ -29,13 +29,13 @@ def test_demo_pauses_soon_after_onset(tmp_path, failure, onset):
         assert len(history.layers(job["id"])) == res.paused_at + 1
         assert any(e["kind"] == "pause" for e in history.events(job["id"]))
         # the job keeps the settings it ran with, so the report draws the real pause threshold
-        from layerwatch.evaluate.recommended import RECOMMENDED
+        from layerwatch.pipeline.config import RECOMMENDED
 
         stored = history.job(job["id"])["config"]
         assert stored["policy"]["pause_ratio"] == RECOMMENDED["policy"]["pause_ratio"]
+        assert job["id"] == res.job_id
+        assert [r.decision for r in history.layers(job["id"])][-1] == "pause"  # the policy's, kept per layer
     assert (tmp_path / "out" / "refs" / f"layer_{res.paused_at:04d}.png").is_file()
-    assert res.report is not None and "<img" in res.report.read_text()
-    assert f"{100 * RECOMMENDED['policy']['pause_ratio']:.1f} %" in res.report.read_text()
 
 
 def test_demo_cli_reports_pause(tmp_path, capsys):
@@ -44,6 +44,11 @@ def test_demo_cli_reports_pause(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "o"), "--layers", "18", "--onset", "15"]) == 0
     text = capsys.readouterr().out
     assert "PAUSE at layer" in text
+    # the HTML report of the job in the demo's history, with the pause threshold it ran with
+    from layerwatch.pipeline.config import RECOMMENDED
+
+    report = (tmp_path / "o" / "report" / "report.html").read_text()
+    assert "<img" in report and f"{100 * RECOMMENDED['policy']['pause_ratio']:.1f} %" in report
 
 
 def test_demo_cli_bad_failure_is_one_line(capsys):

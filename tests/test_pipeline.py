@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from layerwatch.config import JobConfig
-from layerwatch.monitor.pipeline import LayerPipeline
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.render.fast import StackRenderer
 from layerwatch.simulate import Failure, default_camera, simulate_layer
 from layerwatch.simulate.parts import box_part
@@ -88,7 +88,7 @@ def test_all_metrics_and_match_camera(job):
     p = LayerPipeline(tp, cam, cfg, match_camera=True, all_metrics=True)
     res = p.process(_frame(job).photo, LAYER)
     assert res.status == "ok"
-    assert len(res.extra["per_metric"]) == 12
+    assert len(res.per_metric) == 12
     assert not np.array_equal(p.reference(LAYER).image, StackRenderer(tp, job[3], cfg.render).render(LAYER).image)
 
 
@@ -98,3 +98,22 @@ def test_disk_cache_reused(job, tmp_path):
     assert any(tmp_path.rglob("*"))
     b = LayerPipeline(tp, cam, cfg, cache_dir=tmp_path).reference(3)
     assert np.array_equal(a.image, b.image) and np.array_equal(a.footprint, b.footprint)
+
+
+def test_frame_gate_hook_rejects_before_the_warp_and_sees_the_previous_frame(job):
+    tp, cam, cfg, _ = job
+    seen = []
+
+    def gate(photo, previous, settings):
+        seen.append((photo, previous, settings))
+        return "too dark" if photo.mean() < 1 else None
+
+    p = LayerPipeline(tp, cam, cfg, frame_gate=gate)
+    good = _frame(job).photo
+    assert p.process(good, LAYER).status == "ok"
+    dark = np.zeros_like(good)
+    res = p.process(dark, LAYER)
+    assert res.status == "error" and res.message == "frame rejected: too dark" and "warp" not in res.timings_ms
+    assert p.process(good, LAYER).status == "ok"
+    assert seen[0][1] is None and seen[1][1] is good and seen[2][1] is good  # a rejected frame is not `previous`
+    assert seen[0][2] is cfg.analysis

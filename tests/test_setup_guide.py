@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 import pytest
 import typer.main
+from layerwatch.config import load_config
 
 from layerwatch.cli import app
-from layerwatch.config import load_config
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.marker_sheet import plan_layout, write_sheet
 from layerwatch.geometry.synthetic import chessboard_texture, render_plane

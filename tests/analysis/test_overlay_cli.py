@@ -69,6 +69,7 @@ def test_compare_cli_writes_overlay_and_json(spaghetti, tmp_path, capsys):
     rc = main([
         "compare", str(tmp_path / "photo.png"), str(tmp_path / "ref.png"), "--mask", str(tmp_path / "mask.png"),
         "--px-per-mm", "6.67", "-o", str(out), "--all-metrics", "--json", str(tmp_path / "r.json"),
+        "--paper-settings",  # the fixture is scored with the paper's settings
     ])
     text = capsys.readouterr().out
     assert rc == 0 and out.is_file()

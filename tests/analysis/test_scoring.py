@@ -85,7 +85,7 @@ def test_block_geometry_and_smaller_cells():
     ref, photo, foot = part_scene(0, "blob")
     r8 = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(cell_px=8))
     r4 = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(cell_px=4))
-    assert r4.extra["grid"]["block_mm"] == pytest.approx(r8.extra["grid"]["block_mm"] / 2)
+    assert r4.grid.block_mm == pytest.approx(r8.grid.block_mm / 2)
     assert r4.heatmap.shape[0] == TOPVIEW.shape[0] // 4 - 1
     assert r4.regions and r4.regions[0].centroid_mm == pytest.approx((104.0, 103.0), abs=1.5)
 
@@ -160,7 +160,7 @@ def test_real_photo_pair_smoke(shared_data):
     tv = TopView(px_per_mm=6.67, width_mm=600 / 6.67, height_mm=600 / 6.67)
     r = analyze_layer(a, b, np.ones((600, 600), bool), tv, all_metrics=True)
     assert r.ok and np.isfinite(r.heatmap).all() and 0.0 < r.anomaly_ratio < 0.6
-    assert r.regions and set(r.extra["per_metric"]) == set(METRIC_NAMES)
+    assert r.regions and set(r.per_metric) == set(METRIC_NAMES)
     same = analyze_layer(a, a, np.ones((600, 600), bool), tv)
     assert same.anomaly_ratio == 0.0 and np.all(same.heatmap == 1.0)
 
@@ -188,9 +188,9 @@ def test_grown_regions_extend_what_is_shown_not_the_ratio():
     grown = analyze_layer(photo, ref, foot, TOPVIEW, AnalysisSettings(threshold=0.5, grow_threshold=0.3))
     assert grown.anomaly_ratio == plain.anomaly_ratio  # a% counts blocks below T_S only
     assert grown.regions == plain.regions  # so do the regions the pause policy reads
-    assert grown.extra["region_blocks"] > grown.n_anomalous
+    assert grown.region_blocks > grown.n_anomalous
     drawn = anomalous_blocks(grown)
-    assert drawn.sum() == grown.extra["region_blocks"]
+    assert drawn.sum() == grown.region_blocks
     assert (drawn >= anomalous_blocks(plain)).all()
 
 
@@ -200,7 +200,7 @@ def test_presmooth_removes_pixel_noise_before_the_hog():
     noisy = np.clip(photo.astype(np.float32) + rng.normal(0, 10, photo.shape), 0, 255).astype(np.uint8)
     raw = analyze_layer(noisy, ref, foot, TOPVIEW, AnalysisSettings(footprint_margin_mm=0))
     smooth = analyze_layer(noisy, ref, foot, TOPVIEW, AnalysisSettings(footprint_margin_mm=0, presmooth_px=1.25))
-    assert smooth.extra["similarity_mean"] > raw.extra["similarity_mean"] + 0.02
+    assert smooth.similarity_mean > raw.similarity_mean + 0.02
     assert smooth.anomaly_ratio < raw.anomaly_ratio
 
 

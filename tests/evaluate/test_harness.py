@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from layerwatch.analysis.overlay import block_tiles
-from layerwatch.config import JobConfig
 from layerwatch.evaluate.harness import THRESHOLDS, _score, run_evaluation, tile_fraction
 from layerwatch.evaluate.stats import iou
 from layerwatch.evaluate.summary import summarize
-from layerwatch.monitor.pipeline import LayerPipeline
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, default_camera, simulate_layer
 from layerwatch.simulate.parts import box_part
 
@@ -40,10 +40,8 @@ def test_score_iou_and_a_match_pixel_computation(job):
     tp, cam, cfg, tv = job
     pipe = LayerPipeline(tp, cam, cfg)
     frame = simulate_layer(tp, 6, cam, tv, (Failure("spaghetti", onset=4, size_mm=14.0, seed=3),), seed=2)
-    ref = pipe.reference(6)
     res = pipe.process(frame.photo, 6)
-    top, valid = pipe.last_top, pipe.last_valid
-    a, ious, _ = _score(top, ref, valid, pipe, cfg.analysis, frame)
+    a, ious, _ = _score(res, pipe, frame)
     assert ious is not None and a.shape == ious.shape == (12, len(THRESHOLDS))
     st = cfg.analysis
     k = 0  # cosine, which the pipeline's own result uses
@@ -104,7 +102,7 @@ def test_run_evaluation_small(job, tmp_path):
 
 def test_clean_false_alarms_counts(job):
     from layerwatch.evaluate.harness import clean_false_alarms
-    from layerwatch.evaluate.recommended import recommended_config
+    from layerwatch.pipeline.config import recommended_config
 
     tp, cam, _, _ = job
     cfg = recommended_config()  # the monitor's policy with the recommended analysis: no pause on a clean print
@@ -128,7 +126,7 @@ def test_grown_iou_scores_what_the_overlay_draws(job):
     pipe = LayerPipeline(tp, cam, grown)
     frame = simulate_layer(tp, 6, cam, tv, (Failure("spaghetti", onset=4, size_mm=14.0, seed=3),), seed=2)
     res = pipe.process(frame.photo, 6)
-    a, ious, _ = _score(pipe.last_top, pipe.reference(6), pipe.last_valid, pipe, grown.analysis, frame)
+    a, ious, _ = _score(res, pipe, frame)
     drawn = anomalous_blocks(res)
     assert drawn.sum() > res.n_anomalous  # it did grow
     assert (drawn & ~res.mask).any()  # and beyond the considered blocks, towards the strands beside the part

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from layerwatch.config import JobConfig
 from layerwatch.evaluate.offline import assign_layers, run_offline
+from layerwatch.pipeline.config import JobConfig
 from layerwatch.simulate import Failure, default_camera, save_frame, simulate_print
 from layerwatch.simulate.parts import box_part
 

@@ -1,7 +1,6 @@
 """Recommended settings sit under the job file: the file's own keys win, overrides win over both."""
 
-from layerwatch.config import JobConfig
-from layerwatch.evaluate.recommended import RECOMMENDED, recommended_config
+from layerwatch.pipeline.config import RECOMMENDED, JobConfig, recommended_config
 
 
 def test_file_keys_win_over_recommended_and_overrides_win_over_the_file(tmp_path):

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 from geometry_scenes import posed_camera, rotation_error_deg
+from layerwatch.config import load_config
 
 from layerwatch.cli import main
-from layerwatch.config import load_config
 from layerwatch.errors import ConfigError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.marker_sheet import SCALE_BAR_MM, plan_layout, write_sheet

@@ -13,9 +13,8 @@ from typer.testing import CliRunner
 
 from layerwatch.cli import app
 from layerwatch.cli.monitor import monitor_config
-from layerwatch.config import JobConfig
 from layerwatch.errors import ConfigError
-from layerwatch.evaluate.recommended import RECOMMENDED, recommended_config
+from layerwatch.pipeline.config import RECOMMENDED, JobConfig, recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import SETTINGS_KEY
 

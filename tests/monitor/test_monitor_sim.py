@@ -6,19 +6,19 @@ import logging
 import pytest
 
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.virtual import VirtualPrinter
 from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.policy import PausePolicy
 
 
 @pytest.fixture(scope="module")
 def job():
-    from layerwatch.evaluate.recommended import recommended_config
     from layerwatch.examples import PART_CONFIG, PART_GCODE
     from layerwatch.gcode import read_toolpath
     from layerwatch.gcode.postprocess import insert_snapshots
     from layerwatch.geometry.pose import locate_bed
-    from layerwatch.monitor.pipeline import LayerPipeline
+    from layerwatch.pipeline.config import recommended_config
+    from layerwatch.pipeline.step import LayerPipeline
     from layerwatch.simulate import Failure, PrintSimulator, default_camera
 
     logging.getLogger("layerwatch.render").setLevel(logging.ERROR)

@@ -15,9 +15,9 @@ from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, un
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.errors import PrinterError
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.policy import PausePolicy
 
 pytestmark = pytest.mark.moonraker
 
@@ -156,9 +156,9 @@ def test_monitor_pauses_a_real_moonraker_print_and_acknowledges_the_operator_res
         until(lambda: stack.query("print_stats")["print_stats"]["state"] == "paused", 20,
               "Klippy paused by the monitor")
         assert mon.report.pauses == 1 and mon.policy.halted
-        paused_on = next(r for r in mon.report.results if r.extra.get("decision") == "pause")
+        paused_on = next(r for r in mon.report.results if r.decision == "pause")
         assert 3 <= paused_on.layer <= 4  # k=2 consecutive layers from the onset at layer 3
-        print(f"\nMoonraker: trigger -> pause request {paused_on.extra['trigger_to_pause_ms']} ms (stand-in analysis)")
+        print(f"\nMoonraker: trigger -> pause request {paused_on.trigger_to_pause_ms} ms (stand-in analysis)")
         # the operator resumes on the printer's own UI (not through layerwatch)
         httpx.post(stack.url + "/printer/print/resume", timeout=10).raise_for_status()
         until(lambda: not mon.policy.halted, 15, "the monitor to acknowledge the operator's resume")

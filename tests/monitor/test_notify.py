@@ -6,7 +6,7 @@ from http.server import BaseHTTPRequestHandler, HTTPServer
 import pytest
 
 from layerwatch.monitor.notify import Notifier
-from layerwatch.monitor.settings import NotifySettings
+from layerwatch.pipeline.policy import NotifySettings
 
 
 def _post_server(record):

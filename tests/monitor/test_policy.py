@@ -2,8 +2,7 @@ import numpy as np
 import pytest
 
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.monitor.policy import PausePolicy
-from layerwatch.monitor.settings import PolicySettings
+from layerwatch.pipeline.policy import PausePolicy, PolicySettings
 
 PRINTED = 1000.0
 

@@ -18,10 +18,10 @@ from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, un
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import PrinterError
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.policy import PausePolicy
 
 
 class CleanPipeline:

@@ -3,10 +3,9 @@ import numpy as np
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.errors import CameraError
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.virtual import VirtualPrinter
 from layerwatch.monitor.service import Monitor
-from layerwatch.monitor.settings import PolicySettings
+from layerwatch.pipeline.policy import PausePolicy, PolicySettings
 
 
 def _gcode(n):

@@ -10,9 +10,9 @@ import numpy as np
 
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger
 from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.policy import PausePolicy
 
 
 class ScriptedPrinter(Printer):
@@ -77,7 +77,7 @@ def test_pausing_then_printing_is_not_an_operator_resume():
     printer, mon, rep = _run(FAILING + [("pausing", None), ("pausing", None), ("printing", None),
                                            ("printing", 3), ("cancelled", None)])
     assert printer.calls == ["pause"] and rep.pauses == 1
-    assert [r.layer for r in rep.results if r.extra["decision"] == "pause"] == [2]
+    assert [r.layer for r in rep.results if r.decision == "pause"] == [2]
     assert mon.policy.halted  # no acknowledge: the pause never completed, nobody resumed
     assert rep.outcome == "cancelled"
 

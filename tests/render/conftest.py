@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from render_parts import square_part, thin_wall_part
 
 from layerwatch.geometry.topview import TopView
-from layerwatch.render.synthetic import square_part, thin_wall_part
 
 
 @pytest.fixture(scope="module")

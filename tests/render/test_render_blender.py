@@ -6,13 +6,13 @@ import shutil
 
 import numpy as np
 import pytest
+from render_parts import square_part
 
 from layerwatch.errors import RenderError
 from layerwatch.geometry.topview import TopView
 from layerwatch.render.blender import MissingBlenderError, bead_mesh, render_layer_blender
 from layerwatch.render.cache import ReferenceCache
 from layerwatch.render.settings import RenderSettings
-from layerwatch.render.synthetic import square_part
 
 HAS_BLENDER = shutil.which("blender") is not None
 TV = TopView(6.67, 22.5, 22.5, (0.0, 0.0))  # 150 x 150 px

@@ -6,6 +6,7 @@ import importlib.util
 
 import numpy as np
 import pytest
+from render_parts import square_part
 
 from layerwatch.errors import MissingExtraError, RenderError
 from layerwatch.render import backend
@@ -13,7 +14,6 @@ from layerwatch.render.backend import render_layers
 from layerwatch.render.cache import ReferenceCache, file_hash, toolpath_hash
 from layerwatch.render.fast import StackRenderer
 from layerwatch.render.settings import RenderSettings
-from layerwatch.render.synthetic import square_part
 
 
 def _files(d):
@@ -30,9 +30,9 @@ def test_identical_parts_render_once(tmp_path, small_view, monkeypatch):
 
     monkeypatch.setattr(backend, "render_reference", counting)
     cache = ReferenceCache(tmp_path)
-    first = [cache.render_layer(square_part(3, center=(5, -3)), i, small_view) for i in range(3)]
+    first = [backend.render_cached(cache, square_part(3, center=(5, -3)), i, small_view) for i in range(3)]
     # a second, separately built but identical part: no rendering at all
-    again = [cache.render_layer(square_part(3, center=(5, -3)), i, small_view) for i in range(3)]
+    again = [backend.render_cached(cache, square_part(3, center=(5, -3)), i, small_view) for i in range(3)]
     assert calls == [0, 1, 2]
     assert cache.hits == 3 and cache.misses == 3
     for a, b in zip(first, again, strict=True):
@@ -67,11 +67,11 @@ def test_failed_render_leaves_no_entry(tmp_path):
 
 def test_corrupt_entry_is_rendered_again(tmp_path, part, small_view):
     cache = ReferenceCache(tmp_path)
-    r = cache.render_layer(part, 0, small_view)
+    r = backend.render_cached(cache, part, 0, small_view)
     (entry,) = _files(tmp_path)
     entry.write_bytes(b"garbage")
     cache2 = ReferenceCache(tmp_path)
-    r2 = cache2.render_layer(part, 0, small_view)
+    r2 = backend.render_cached(cache2, part, 0, small_view)
     assert cache2.misses == 1 and np.array_equal(r.image, r2.image)
 
 

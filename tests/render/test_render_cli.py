@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import cv2
 import pytest
+from render_parts import square_part
 
 import layerwatch.gcode as gcode_pkg
 from layerwatch.cli import main
 from layerwatch.cli.render import parse_layers
 from layerwatch.errors import RenderError
-from layerwatch.render.synthetic import square_part
 
 
 def test_parse_layers():

@@ -8,6 +8,7 @@ import logging
 import cv2
 import numpy as np
 import pytest
+from render_parts import square_part
 from render_refs import brute_capsules
 
 from layerwatch.errors import RenderError
@@ -16,7 +17,6 @@ from layerwatch.geometry.topview import TopView
 from layerwatch.render.fast import StackRenderer, render_layer, render_stack
 from layerwatch.render.mask import gcode_mask
 from layerwatch.render.settings import RenderSettings
-from layerwatch.render.synthetic import square_part
 
 
 def _mismatch(a, b):

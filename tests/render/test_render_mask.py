@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from render_parts import square_part
 
 from layerwatch.errors import RenderError
 from layerwatch.geometry.topview import TopView
 from layerwatch.render.mask import fill_polygons, gcode_mask, load_mesh, stl_mask
-from layerwatch.render.synthetic import square_part
 
 TV = TopView(6.67, 40.0, 40.0, (110.0, 100.0))
 

@@ -192,7 +192,7 @@ def test_version_1_database_migrates_and_keeps_jobs(tmp_path):
 
 
 def test_settings_round_trip_and_replace(tmp_path):
-    from layerwatch.config import JobConfig
+    from layerwatch.pipeline.config import JobConfig
 
     p = tmp_path / "h.db"
     h = History(p)

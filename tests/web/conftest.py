@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from seed_history import seed_job
 
 from layerwatch.storage.history import History
-from layerwatch.web.seed import seed_job
 from layerwatch.web.virtual import virtual_printer
 
 

@@ -11,9 +11,9 @@ import pytest
 
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger
 from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.storage.history import History
 from layerwatch.web.app import create_app
 

@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 
-from layerwatch.evaluate.recommended import RECOMMENDED
+from layerwatch.pipeline.config import RECOMMENDED
 from layerwatch.web.app import MAX_BODY, create_app
 
 pytest.importorskip("fastapi")

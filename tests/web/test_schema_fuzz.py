@@ -10,10 +10,10 @@ import pytest
 
 schemathesis = pytest.importorskip("schemathesis")
 from hypothesis import HealthCheck, settings  # noqa: E402
+from seed_history import seed_job  # noqa: E402
 
 from layerwatch.storage.history import History  # noqa: E402
 from layerwatch.web.app import create_app  # noqa: E402
-from layerwatch.web.seed import seed_job  # noqa: E402
 from layerwatch.web.virtual import virtual_printer  # noqa: E402
 
 pytestmark = [

@@ -6,8 +6,7 @@ import warnings
 
 import pytest
 
-from layerwatch.config import JobConfig
-from layerwatch.evaluate.recommended import recommended_config
+from layerwatch.pipeline.config import JobConfig, recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import SETTINGS_KEY, create_app
 

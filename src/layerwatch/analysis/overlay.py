@@ -21,8 +21,8 @@ import numpy as np
 from matplotlib import colormaps
 from scipy import ndimage
 
-from layerwatch.analysis.result import LayerResult
-from layerwatch.analysis.scoring import to_grey255
+from layerwatch.analysis.result import BlockGrid, LayerResult
+from layerwatch.analysis.scoring import grey_u8
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
@@ -40,19 +40,19 @@ def _colormap(values: np.ndarray) -> np.ndarray:
 
 
 def _grid(result: LayerResult) -> tuple[int, int, int]:
-    grid = result.extra.get("grid", {}) if result.extra else {}
-    return int(grid.get("cell_px", 8)), int(grid.get("block_cells", 2)), int(grid.get("min_region_blocks", 1))
+    grid = result.grid or BlockGrid()
+    return int(grid.cell_px), int(grid.block_cells), int(grid.min_region_blocks)
 
 
 def anomalous_blocks(result: LayerResult) -> np.ndarray:
     """Blocks of the failing regions in ``result``, (N, M) bool.
 
-    The blocks the analysis drew (``extra["shown_blocks"]``: grown by
+    The blocks the analysis drew (``result.shown_blocks``: grown by
     hysteresis when it used ``grow_threshold``), else the considered blocks
     below T_S in groups of at least ``min_region_blocks``.
     """
     heat = np.asarray(result.heatmap, dtype=np.float32)
-    shown = (result.extra or {}).get("shown_blocks")
+    shown = result.shown_blocks
     if shown is not None:  # grown by the analysis (hysteresis, possibly beyond the considered blocks)
         out = np.zeros(heat.size, bool)
         out[np.asarray(shown, dtype=np.int64)] = True
@@ -93,7 +93,7 @@ def block_tiles(values: np.ndarray, shape: tuple[int, int], cell_px: int, block_
 
 
 def _to_rgb(top: np.ndarray) -> np.ndarray:
-    grey = np.clip(to_grey255(top, "top view"), 0, 255).astype(np.uint8)
+    grey = grey_u8(top, "top view")
     return np.repeat(grey[..., None], 3, axis=2)
 
 

@@ -1,4 +1,9 @@
-"""The result of analysing one layer, as passed to policy, storage and UI.
+"""The typed per-layer record: one :class:`LayerResult` shared by the pipeline, policy, storage, web and reports.
+
+The comparison (:func:`~layerwatch.analysis.scoring.analyze_layer`) fills it
+first, so it is defined here, below :mod:`layerwatch.pipeline`, which
+re-exports it; the per-layer step adds timings, the policy its decision, the
+monitor its latencies. Every value has a typed field (no free-form dict).
 
 References
 ----------
@@ -15,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Region", "LayerResult"]
+__all__ = ["BlockGrid", "LayerResult", "MetricScore", "Region"]
 
 
 @dataclass
@@ -48,6 +53,50 @@ class Region:
     mean_similarity: float
     min_similarity: float = 0.0
     outside_fraction: float = 0.0
+
+
+@dataclass
+class BlockGrid:
+    """The analysis grid a result was computed on (see :func:`~layerwatch.analysis.scoring.block_geometry`).
+
+    Attributes
+    ----------
+    cell_px, block_cells, min_region_blocks : int
+        HOG cell side (px), block side (cells), smallest kept region (blocks).
+    cell_mm, block_mm, stride_mm : float
+        Cell side, block side (the analysis window) and block stride, mm.
+    tile_area_mm2 : float
+        Area one block stands for, mm^2.
+    paper_block_mm : float
+        The paper's block-size figure (twice ``block_mm``).
+    """
+
+    cell_px: int = 8
+    block_cells: int = 2
+    min_region_blocks: int = 1
+    cell_mm: float = 0.0
+    block_mm: float = 0.0
+    stride_mm: float = 0.0
+    tile_area_mm2: float = 0.0
+    paper_block_mm: float = 0.0
+
+
+@dataclass
+class MetricScore:
+    """One measure of Table 2 on a layer's blocks (``LayerResult.per_metric``), at the result's threshold.
+
+    Attributes
+    ----------
+    anomaly_ratio : float
+        a% (eq. 5) in [0, 1], before the ``min_region_blocks`` filter.
+    n_anomalous : int
+    mean_similarity : float
+        Over the considered blocks, in [0, 1].
+    """
+
+    anomaly_ratio: float
+    n_anomalous: int
+    mean_similarity: float
 
 
 def _clean(value: Any) -> Any:
@@ -107,8 +156,25 @@ class LayerResult:
         ``"overlay"``) relative to the results folder.
     message : str
         Human-readable note (error reason for ``status == "error"``).
-    extra : dict
-        Free-form additional values (per-metric scores, pose drift...).
+    grid : BlockGrid or None
+        The block grid of the comparison.
+    similarity_mean, similarity_min : float
+        Mean and lowest similarity of the considered blocks (1 when none).
+    shown_blocks : list of int or None
+        Flat (N, M) indices of the blocks the overlay draws when hysteresis
+        grew the failing regions (``grow_threshold > 0``); ``None`` otherwise
+        (the anomalous blocks are drawn).
+    per_metric : dict of str to MetricScore
+        All twelve measures (only when asked: ``all_metrics``).
+    decision, decision_reason : str
+        The pause policy's action after this layer (``"none"``, ``"notify"``,
+        ``"pause"``, ``"cancel"``) and why; ``""`` before it was judged.
+    photo_ms : float or None
+        Monitor: printer trigger to photo, ms.
+    trigger_to_pause_ms : float or None
+        Monitor: printer trigger to the pause request, ms (layers that paused).
+    simulated_failures : list of str
+        Simulator: failure types injected in the photo (the demo).
     """
 
     layer: int
@@ -128,11 +194,25 @@ class LayerResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     images: dict[str, str] = field(default_factory=dict)
     message: str = ""
-    extra: dict[str, Any] = field(default_factory=dict)
+    grid: BlockGrid | None = None
+    similarity_mean: float = 1.0
+    similarity_min: float = 1.0
+    shown_blocks: list[int] | None = None
+    per_metric: dict[str, MetricScore] = field(default_factory=dict)
+    decision: str = ""
+    decision_reason: str = ""
+    photo_ms: float | None = None
+    trigger_to_pause_ms: float | None = None
+    simulated_failures: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+    @property
+    def region_blocks(self) -> int:
+        """Blocks the overlay draws: ``shown_blocks`` when grown, else the anomalous blocks."""
+        return self.n_anomalous if self.shown_blocks is None else len(self.shown_blocks)
 
     def to_dict(self, include_heatmap: bool = False) -> dict[str, Any]:
         d = asdict(self)
@@ -164,6 +244,12 @@ class LayerResult:
         ]
         heat = d.pop("heatmap", None)
         mask = d.pop("mask", None)
+        for key, value in (d.pop("extra", None) or {}).items():  # rows written before the typed fields
+            d.setdefault(key, value)
+        if isinstance(d.get("grid"), dict):
+            d["grid"] = BlockGrid(**{k: v for k, v in d["grid"].items() if k in BlockGrid.__dataclass_fields__})
+        if isinstance(d.get("per_metric"), dict):
+            d["per_metric"] = {name: MetricScore(**v) for name, v in d["per_metric"].items()}
         known = {f for f in cls.__dataclass_fields__}
         kwargs = {k: v for k, v in d.items() if k in known}
         for key in ("anomaly_ratio", "printed_area_mm2", "anomalous_area_mm2", "outside_area_mm2"):

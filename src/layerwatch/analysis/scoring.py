@@ -50,12 +50,13 @@ import numpy as np
 
 from layerwatch.analysis.hog import hog_blocks
 from layerwatch.analysis.metrics import similarity, similarity_all
-from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.analysis.result import BlockGrid, LayerResult, MetricScore, Region
 from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["analyze_layer", "block_geometry", "block_hogs", "grow_regions", "growth_reach", "near_footprint", "to_grey255"]
+__all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
+           "near_footprint", "to_grey255"]
 
 
 def block_geometry(cell_px: int = 8, block_cells: int = 2, px_per_mm: float = 6.67) -> dict[str, float]:
@@ -106,6 +107,41 @@ def to_grey255(image: np.ndarray, name: str = "image") -> np.ndarray:
     if not np.all(np.isfinite(grey)):
         raise AnalysisError(f"{name} contains NaN or infinite pixels; fix the image before the analysis.")
     return grey
+
+
+def grey_u8(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """Grey uint8 (H, W) image: :func:`to_grey255` truncated to whole grey levels.
+
+    The one grey conversion of a warped photo (the per-layer step, ``compare``,
+    overlays); grey uint8 input is returned unchanged.
+    """
+    grey = to_grey255(image, name)
+    return grey if grey.dtype == np.uint8 else np.clip(grey, 0, 255).astype(np.uint8)
+
+
+def anomaly_ratio(n_anomalous, tile_mm2: float, printed_mm2: float):
+    """a% of eq. (5): ``min(1, S_A / S_P)`` with ``S_A = n_anomalous * tile_mm2``; 0 when nothing is printed.
+
+    Parameters
+    ----------
+    n_anomalous : int or ndarray of int
+        Anomalous blocks (any shape: the evaluation passes counts per threshold).
+    tile_mm2 : float
+        Area one block stands for, mm^2 (module notes).
+    printed_mm2 : float
+        ``S_P``, printed area, mm^2.
+
+    Returns
+    -------
+    float or ndarray of float64, same shape as ``n_anomalous``, in [0, 1]
+
+    References
+    ----------
+    Petsiuk & Pearce (2022), eq. (5).
+    """
+    n = np.asarray(n_anomalous, np.float64)
+    out = np.minimum(1.0, n * tile_mm2 / printed_mm2) if printed_mm2 > 0 else np.zeros_like(n)
+    return float(out) if out.ndim == 0 else out
 
 
 def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -328,6 +364,28 @@ def _regions(anom, heat, foot_frac, grid, topview) -> tuple[np.ndarray, list[Reg
     return anom, regions
 
 
+def _check_images(top, reference, topview: TopView) -> tuple[np.ndarray, np.ndarray]:
+    """Both images as arrays of the same size and dtype, the size of ``topview`` (else AnalysisError)."""
+    top_a, ref_a = np.asarray(top), np.asarray(reference)
+    if top_a.shape[:2] != ref_a.shape[:2]:
+        raise AnalysisError(f"photo top view is {top_a.shape[:2]} px but the reference is {ref_a.shape[:2]}; render the reference for the same top view.")
+    if top_a.dtype != ref_a.dtype:
+        raise AnalysisError(f"photo ({top_a.dtype}) and reference ({ref_a.dtype}) differ in dtype; convert both to uint8.")
+    if tuple(topview.shape) != top_a.shape[:2]:
+        raise AnalysisError(f"images are {top_a.shape[:2]} px but the top view is {topview.shape}; use the TopView the images were made with.")
+    return top_a, ref_a
+
+
+def _all_metrics(h_top, h_ref, considered, threshold: float, tile_mm2: float, printed: float) -> dict[str, MetricScore]:
+    """Every measure of Table 2 on the considered blocks at ``threshold`` (before the region-size filter)."""
+    out = {}
+    for name, sim in similarity_all(h_top, h_ref, METRIC_NAMES).items():
+        a = considered & (sim < threshold)
+        out[name] = MetricScore(anomaly_ratio=anomaly_ratio(int(a.sum()), tile_mm2, printed), n_anomalous=int(a.sum()),
+                                mean_similarity=float(sim[considered].mean()) if considered.any() else 1.0)
+    return out
+
+
 def analyze_layer(
     top: np.ndarray,
     reference: np.ndarray,
@@ -339,7 +397,6 @@ def analyze_layer(
     layer: int = 0,
     z: float = 0.0,
     all_metrics: bool = False,
-    hogs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> LayerResult:
     """Compare the photo's top view with the reference of one layer.
 
@@ -360,21 +417,18 @@ def analyze_layer(
     layer, z : int, float
         Layer index and height (mm), copied into the result.
     all_metrics : bool
-        Also score every measure of Table 2 into ``result.extra["per_metric"]``
-        (``{name: {"anomaly_ratio", "n_anomalous", "mean_similarity"}}``, same
-        blocks and threshold, before the ``min_region_blocks`` filter).
-    hogs : (ndarray, ndarray), optional
-        ``block_hogs(top, reference, settings)`` when the caller already has
-        them (the evaluation harness scores every measure from the same
-        tensors); computed here otherwise.
+        Also score every measure of Table 2 into ``result.per_metric``
+        (``{name: MetricScore}``, same blocks and threshold, before the
+        ``min_region_blocks`` filter).
 
     Returns
     -------
     LayerResult
         ``heatmap`` (N, M) float32 similarities, ``mask`` (N, M) considered
         blocks, a% (eq. 5), areas in mm^2, regions in bed mm (largest first),
-        ``timings_ms`` (``hog``, ``metric``, ``regions``, ``total``) and
-        ``extra["grid"]`` (cell_px, block_cells, block_mm).
+        ``timings_ms`` (``hog``, ``metric``, ``regions``, ``total``),
+        ``grid``, ``similarity_mean``/``similarity_min`` and ``shown_blocks``
+        (when hysteresis grew the drawn regions).
         ``status`` is ``"skipped"`` when no printed pixel is visible.
 
     Raises
@@ -388,77 +442,65 @@ def analyze_layer(
     """
     t0 = time.perf_counter()
     st = settings or AnalysisSettings()
-    top_a, ref_a = np.asarray(top), np.asarray(reference)
-    if top_a.shape[:2] != ref_a.shape[:2]:
-        raise AnalysisError(f"photo top view is {top_a.shape[:2]} px but the reference is {ref_a.shape[:2]}; render the reference for the same top view.")
-    if top_a.dtype != ref_a.dtype:
-        raise AnalysisError(f"photo ({top_a.dtype}) and reference ({ref_a.dtype}) differ in dtype; convert both to uint8.")
-    shape = top_a.shape[:2]
-    if tuple(topview.shape) != shape:
-        raise AnalysisError(f"images are {shape} px but the top view is {topview.shape}; use the TopView the images were made with.")
-    foot = _mask(footprint, shape, "footprint")
-    seen = np.ones(shape, dtype=bool) if valid is None else _mask(valid, shape, "valid")
-    c, b = st.cell_px, st.block_cells
-    h_top, h_ref = block_hogs(top_a, ref_a, st) if hogs is None else hogs
+    top_a, ref_a = _check_images(top, reference, topview)
+    foot = _mask(footprint, top_a.shape[:2], "footprint")
+    seen = None if valid is None else _mask(valid, top_a.shape[:2], "valid")
+    h_top, h_ref = block_hogs(top_a, ref_a, st)
     t1 = time.perf_counter()
     heat = similarity(h_top, h_ref, st.metric)
     t2 = time.perf_counter()
-
-    n, m = heat.shape
-    rows, cols = np.arange(n) * c, np.arange(m) * c
-    foot_int = _integral(foot)
-    considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm,
-                                None if valid is None else seen, foot_int)
-    off = (b - 1) * c // 2
-    foot_frac = _box_sums(foot_int, rows + off, cols + off, c) / float(c * c)
-    grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
-    anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
-    shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
-    if st.grow_threshold > 0 and anom.any():
-        reach = growth_reach(considered, foot, topview, st, None if valid is None else seen, foot_int)
-        shown = grow_regions(anom, reach & (heat < st.threshold + st.grow_threshold))
+    res = _layer_result(heat, foot, seen, topview, st)
+    res.layer, res.z = int(layer), float(z)
     t3 = time.perf_counter()
-
-    tile_mm2 = (c / topview.px_per_mm) ** 2
-    n_printed = int(foot_int[-1, -1]) if valid is None else int(np.count_nonzero(foot & seen))
-    printed = n_printed / topview.px_per_mm**2
-    anom_area = float(anom.sum()) * tile_mm2
-    outside = float((1.0 - foot_frac[anom]).sum()) * tile_mm2
-    res = LayerResult(
-        layer=int(layer), z=float(z), metric=st.metric, threshold=float(st.threshold),
-        anomaly_ratio=min(1.0, anom_area / printed) if printed > 0 else 0.0,
-        printed_area_mm2=printed, anomalous_area_mm2=anom_area, outside_area_mm2=outside,
-        n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
-        heatmap=heat, mask=considered,
-    )
-    if printed == 0 or not considered.any():
-        res.status = "skipped"
-        res.message = "no printed area of this layer is visible in the top view"
-    vals = heat[considered]
-    res.extra = {
-        "grid": {
-            "cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks,
-            **block_geometry(c, b, topview.px_per_mm),
-        },
-        "similarity_mean": float(vals.mean()) if vals.size else 1.0,
-        "similarity_min": float(vals.min()) if vals.size else 1.0,
-    }
-    if shown is not anom:
-        res.extra["region_blocks"] = int(shown.sum())
-        res.extra["shown_blocks"] = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
     if all_metrics:
-        per = {}
-        for name, s in similarity_all(h_top, h_ref, METRIC_NAMES).items():
-            a = considered & (s < st.threshold)
-            per[name] = {
-                "anomaly_ratio": min(1.0, a.sum() * tile_mm2 / printed) if printed > 0 else 0.0,
-                "n_anomalous": int(a.sum()),
-                "mean_similarity": float(s[considered].mean()) if considered.any() else 1.0,
-            }
-        res.extra["per_metric"] = per
+        tile_mm2 = (st.cell_px / topview.px_per_mm) ** 2
+        res.per_metric = _all_metrics(h_top, h_ref, res.mask, st.threshold, tile_mm2, res.printed_area_mm2)
     t4 = time.perf_counter()
     res.timings_ms = {
         "hog": (t1 - t0) * 1e3, "metric": (t2 - t1) * 1e3, "regions": (t3 - t2) * 1e3,
         "total": (t4 - t0) * 1e3,
     }
+    return res
+
+
+def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, topview: TopView,
+                  st: AnalysisSettings) -> LayerResult:
+    """Considered blocks, anomalous blocks and regions, areas and a% (eq. 5) of one similarity map.
+
+    ``heat`` (N, M) similarities, ``foot`` (H, W) footprint, ``seen`` (H, W) pixels the camera saw
+    (``None``: all). The record's ``layer``/``z`` are left for the caller.
+    """
+    c, b = st.cell_px, st.block_cells
+    n, m = heat.shape
+    foot_int = _integral(foot)
+    considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm, seen, foot_int)
+    off = (b - 1) * c // 2
+    foot_frac = _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
+    grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
+    anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
+    shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
+    if st.grow_threshold > 0 and anom.any():
+        reach = growth_reach(considered, foot, topview, st, seen, foot_int)
+        shown = grow_regions(anom, reach & (heat < st.threshold + st.grow_threshold))
+    tile_mm2 = (c / topview.px_per_mm) ** 2
+    n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
+    printed = n_printed / topview.px_per_mm**2
+    res = LayerResult(
+        layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
+        anomaly_ratio=anomaly_ratio(int(anom.sum()), tile_mm2, printed),
+        printed_area_mm2=printed, anomalous_area_mm2=float(anom.sum()) * tile_mm2,
+        outside_area_mm2=float((1.0 - foot_frac[anom]).sum()) * tile_mm2,
+        n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
+        heatmap=heat, mask=considered,
+        grid=BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,
+                       **block_geometry(c, b, topview.px_per_mm)),
+    )
+    if printed == 0 or not considered.any():
+        res.status = "skipped"
+        res.message = "no printed area of this layer is visible in the top view"
+    vals = heat[considered]
+    res.similarity_mean = float(vals.mean()) if vals.size else 1.0
+    res.similarity_min = float(vals.min()) if vals.size else 1.0
+    if shown is not anom:
+        res.shown_blocks = np.flatnonzero(shown).tolist()  # flat (N, M) indices, for the overlay
     return res

@@ -27,7 +27,36 @@ METRIC_NAMES = (
 
 
 class AnalysisSettings(Section):
-    """HOG parameters, similarity measure and block threshold (paper: 8 px, 2x2, 9 bins, 70%)."""
+    """HOG parameters, similarity measure, block threshold and the blocks that count (section ``[analysis]``).
+
+    The built-in values are the paper's (cosine, T_S 0.7, 8-px cells in 2x2
+    blocks, 9 bins, 5 mm footprint margin, no pre-filter). Every verb runs
+    the evaluation's recommended values over them unless ``--paper-settings``
+    is given: jaccard, T_S 0.20, margin 0 mm, ``presmooth_px`` 1.25,
+    ``flat_tolerance`` 1.5, ``grow_threshold`` 0.2, ``grow_margin_mm`` 5
+    (:data:`layerwatch.pipeline.config.RECOMMENDED`; ``layerwatch config show``
+    prints the values in force and their sources).
+
+    Attributes
+    ----------
+    metric : str
+        Similarity measure of Table 2 (:data:`METRIC_NAMES`); default ``"cosine"``.
+    threshold : float
+        Block threshold T_S in [0, 1]: a block below it is anomalous; default 0.7.
+    cell_px, block_cells, bins, block_norm, gamma
+        HOG cell side (px), block side (cells), orientation bins, block
+        normalisation, square-root gamma (skimage's parameters).
+    footprint_margin_mm : float
+        Blocks within this distance of the layer's footprint count, mm; default 5.
+    min_region_blocks : int
+        Smallest group of anomalous blocks kept.
+    min_gradient, flat_tolerance, presmooth_px, grow_threshold, grow_margin_mm
+        See the comments at each field below.
+
+    References
+    ----------
+    Petsiuk & Pearce (2022), Section 2.4 (8 px, 2x2, 9 bins, 70 %).
+    """
 
     metric: Literal[METRIC_NAMES] = "cosine"  # type: ignore[valid-type]
     threshold: float = Field(0.7, ge=0, le=1)

@@ -67,6 +67,7 @@ def _root(
 def _register_all() -> None:
     from layerwatch.cli import (
         analysis,
+        config,
         demo,
         gcode,
         geometry,
@@ -77,7 +78,7 @@ def _register_all() -> None:
         web,
     )
 
-    for module in (gcode, geometry, markers, render, analysis, pipeline, monitor, web, demo):
+    for module in (gcode, geometry, markers, render, analysis, pipeline, monitor, web, demo, config):
         module.register(app)
 
 

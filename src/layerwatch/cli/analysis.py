@@ -8,83 +8,114 @@ from typing import Annotated
 import typer
 
 from layerwatch.cli.params import WRITE_FILE, Finite
+from layerwatch.cli.pipeline import PAPER_HELP
 
 __all__ = ["register"]
 
 
-def _read_image(path: Path, what: str, grey: bool = False):
+def _read_image(path: Path, what: str, mask: bool = False):
+    """The image at ``path``, grey as the per-layer step reads a top view; ``mask``: non-zero pixels, bool."""
     import cv2
     import numpy as np
 
+    from layerwatch.analysis.scoring import grey_u8
     from layerwatch.errors import AnalysisError
 
     if not path.is_file():
         raise AnalysisError(f"{what} {path} does not exist; pass an image file (PNG/JPEG).")
-    flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_UNCHANGED
-    img = cv2.imread(str(path), flag)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise AnalysisError(f"{what} {path} is not a readable image; pass a PNG or JPEG file.")
-    if img.ndim == 3:
-        img = img[..., :3][..., ::-1]  # BGR(A) -> RGB
-    return np.ascontiguousarray(img)
+    if mask:
+        return (img.reshape(img.shape[0], img.shape[1], -1) > 0).any(axis=2)
+    return np.ascontiguousarray(grey_u8(img, what))
+
+
+def _flags(**options) -> dict[str, dict]:
+    """The options the user gave, as the ``flag`` layer of the settings (``section.key`` -> value)."""
+    out: dict[str, dict] = {}
+    for name, value in options.items():
+        if value is not None:
+            section, key = name.split("__")
+            out.setdefault(section, {})[key] = value
+    return out
 
 
 def compare(
     photo_top: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Photo already warped to the top view (PNG/JPEG).")],
     reference: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Reference image of the same top view (rendered layer).")],
     mask: Annotated[Path | None, typer.Option("--mask", "-m", exists=True, dir_okay=False, help="Footprint mask image (non-zero = printed); default: whole image.")] = None,
-    metric: Annotated[str, typer.Option("--metric", help="Similarity measure (cosine, sqeuclidean, pearson, ...).")] = "cosine",
-    threshold: Annotated[float, typer.Option("--threshold", "-t", parser=Finite(0, 1), help="Block threshold T_S in [0, 1].")] = 0.7,
-    px_per_mm: Annotated[float, typer.Option("--px-per-mm", parser=Finite(0, 100, lo_open=True, unit="px/mm"), help="Top-view scale, pixels per millimetre.")] = 6.67,
-    cell_px: Annotated[int, typer.Option("--cell-px", parser=Finite(2, 64, integer=True, unit="px"), help="HOG cell size in pixels.")] = 8,
-    margin_mm: Annotated[float, typer.Option("--margin-mm", parser=Finite(0, 100, unit="mm"), help="Margin around the footprint that also counts, mm.")] = 5.0,
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([analysis], [topview]).")] = None,
+    paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
+    metric: Annotated[str | None, typer.Option("--metric", help="Similarity measure (cosine, jaccard, pearson, ...); default: the settings'.")] = None,
+    threshold: Annotated[float | None, typer.Option("--threshold", "-t", parser=Finite(0, 1), help="Block threshold T_S in [0, 1].")] = None,
+    px_per_mm: Annotated[float | None, typer.Option("--px-per-mm", parser=Finite(0, 100, lo_open=True, unit="px/mm"), help="Top-view scale, pixels per millimetre.")] = None,
+    cell_px: Annotated[int | None, typer.Option("--cell-px", parser=Finite(2, 64, integer=True, unit="px"), help="HOG cell size in pixels.")] = None,
+    margin_mm: Annotated[float | None, typer.Option("--margin-mm", parser=Finite(0, 100, unit="mm"), help="Margin around the footprint that also counts, mm.")] = None,
+    presmooth_px: Annotated[float | None, typer.Option("--presmooth-px", parser=Finite(0, 5, unit="px"), help="Gaussian pre-filter sigma of both images, px (0 = none).")] = None,
+    flat_tolerance: Annotated[float | None, typer.Option("--flat-tolerance", parser=Finite(1, 10), help="Featureless tolerance of the reference's blocks (>= 1).")] = None,
+    grow_threshold: Annotated[float | None, typer.Option("--grow-threshold", parser=Finite(0, 1), help="Hysteresis of the drawn failing area above T_S.")] = None,
+    grow_margin_mm: Annotated[float | None, typer.Option("--grow-margin-mm", parser=Finite(0, 100, unit="mm"), help="How far beside the footprint a drawn region may grow, mm.")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", parser=WRITE_FILE, help="Overlay PNG to write (default: <photo>_overlay.png).")] = None,
     all_metrics: Annotated[bool, typer.Option("--all-metrics", help="Also print a% for all twelve measures.")] = False,
     json_out: Annotated[Path | None, typer.Option("--json", parser=WRITE_FILE, help="Also write the LayerResult as JSON here.")] = None,
 ) -> None:
-    """Compare a top-view photo with its reference: print a% and failing regions, write the overlay."""
+    """Compare a top-view photo with its reference: print a% and failing regions, write the overlay.
+
+    Settings come from the same resolver as ``analyze`` (defaults, the recommended settings unless
+    ``--paper-settings``, ``-c job.toml``, then these options), so a pair ``analyze`` wrote reports the same a%.
+    """
     import numpy as np
-    from rich.table import Table
 
     from layerwatch.analysis.overlay import write_overlay
     from layerwatch.analysis.scoring import analyze_layer
-    from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
-    from layerwatch.cli import console
     from layerwatch.errors import AnalysisError
     from layerwatch.geometry.topview import TopView
+    from layerwatch.pipeline.config import resolve_config
 
-    if metric not in METRIC_NAMES:
-        raise AnalysisError(f"unknown measure {metric!r}; use one of {', '.join(METRIC_NAMES)}.")
+    cfg = resolve_config(config, recommended=not paper, flags=_flags(
+        analysis__metric=metric, analysis__threshold=threshold, analysis__cell_px=cell_px,
+        analysis__footprint_margin_mm=margin_mm, analysis__presmooth_px=presmooth_px,
+        analysis__flat_tolerance=flat_tolerance, analysis__grow_threshold=grow_threshold,
+        analysis__grow_margin_mm=grow_margin_mm, topview__px_per_mm=px_per_mm)).config
     top = _read_image(photo_top, "photo")
     ref = _read_image(reference, "reference")
-    if top.shape[:2] != ref.shape[:2]:
+    if top.shape != ref.shape:
         raise AnalysisError(f"photo is {top.shape[1]}x{top.shape[0]} px but the reference is {ref.shape[1]}x{ref.shape[0]}; warp/render both for the same top view.")
-    if mask is not None:
-        foot = _read_image(mask, "mask", grey=True) > 0
-    else:
-        foot = np.ones(top.shape[:2], dtype=bool)
-    h, w = top.shape[:2]
-    topview = TopView(px_per_mm=px_per_mm, width_mm=w / px_per_mm, height_mm=h / px_per_mm)
+    foot = _read_image(mask, "mask", mask=True) if mask is not None else np.ones(top.shape, dtype=bool)
+    h, w = top.shape
+    ppm = cfg.topview.px_per_mm
+    topview = TopView(px_per_mm=ppm, width_mm=w / ppm, height_mm=h / ppm, center_mm=tuple(cfg.topview.center_mm))
     if topview.shape != (h, w):  # pragma: no cover - rounding guard
-        raise AnalysisError(f"cannot build a {w}x{h} px top view at {px_per_mm} px/mm; adjust --px-per-mm.")
-    try:
-        settings = AnalysisSettings(metric=metric, threshold=threshold, cell_px=cell_px, footprint_margin_mm=margin_mm)
-    except ValueError as exc:
-        raise AnalysisError(f"invalid analysis option: {str(exc).splitlines()[-1].strip()}") from None
-    res = analyze_layer(top, ref, foot, topview, settings, all_metrics=all_metrics)
+        raise AnalysisError(f"cannot build a {w}x{h} px top view at {ppm} px/mm; adjust --px-per-mm.")
+    res = analyze_layer(top, ref, foot, topview, cfg.analysis, all_metrics=all_metrics)
     out = output or photo_top.with_name(photo_top.stem + "_overlay.png")
     write_overlay(out, top, res, topview, foot if mask is not None else None)
     res.images["overlay"] = str(out)
+    _print_result(res, mask is not None)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(res.to_json(indent=1))
+    from layerwatch.cli import console
+
+    console.print(f"overlay written to {out}  ({res.timings_ms['total']:.0f} ms)")
+
+
+def _print_result(res, has_mask: bool) -> None:
+    """a%, the failing regions and (when scored) all twelve measures, as tables."""
+    from rich.table import Table
+
+    from layerwatch.cli import console
 
     console.print(
         f"[bold]a% = {100 * res.anomaly_ratio:.1f}%[/]  ({res.metric} < {res.threshold:.2f}; "
         f"{res.n_anomalous}/{res.n_blocks} blocks; S_A = {res.anomalous_area_mm2:.1f} mm², "
         f"S_P = {res.printed_area_mm2:.1f} mm², outside footprint {res.outside_area_mm2:.1f} mm²)"
     )
-    if mask is None:
+    if not has_mask:
         console.print("[dim]no --mask given: the whole image counts as printed area[/]")
     if res.regions:
-        table = Table(title="failing regions (image-centred mm; +y up)")
+        table = Table(title="failing regions (bed mm, centre from [topview]; +y up)")
         for col in ("#", "area mm²", "centroid x, y", "bbox x0, y0, x1, y1", "blocks", "mean s", "min s", "outside"):
             table.add_column(col, justify="right")
         for k, r in enumerate(res.regions[:20], start=1):
@@ -98,17 +129,13 @@ def compare(
             console.print(f"[dim]... and {len(res.regions) - 20} smaller regions[/]")
     else:
         console.print("no failing regions")
-    if all_metrics:
-        table = Table(title=f"all measures at T_S = {threshold:.2f}")
+    if res.per_metric:
+        table = Table(title=f"all measures at T_S = {res.threshold:.2f}")
         for col in ("measure", "a%", "anomalous blocks", "mean similarity"):
             table.add_column(col, justify="right")
-        for name, v in res.extra["per_metric"].items():
-            table.add_row(name, f"{100 * v['anomaly_ratio']:.1f}", str(v["n_anomalous"]), f"{v['mean_similarity']:.3f}")
+        for name, v in res.per_metric.items():
+            table.add_row(name, f"{100 * v.anomaly_ratio:.1f}", str(v.n_anomalous), f"{v.mean_similarity:.3f}")
         console.print(table)
-    if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(res.to_json(indent=1))
-    console.print(f"overlay written to {out}  ({res.timings_ms['total']:.0f} ms)")
 
 
 def register(app: typer.Typer) -> None:

@@ -28,6 +28,8 @@ def demo(
     from layerwatch.errors import ConfigError
     from layerwatch.evaluate.demo import run_demo
     from layerwatch.simulate import FAILURE_TYPES
+    from layerwatch.storage import History
+    from layerwatch.web.report import build_report
 
     if failure not in FAILURE_TYPES:
         raise ConfigError(f"unknown --failure {failure!r}; use one of {', '.join(FAILURE_TYPES)}.")
@@ -45,7 +47,9 @@ def demo(
         late = res.paused_at - res.onset
         console.print(f"[bold red]PAUSE[/] at layer {res.paused_at} ({late} layer(s) after the onset): {escape(res.reason)}")
     console.print(f"results in {res.out} (summary.md, overlays/, stack.png) in {res.seconds:.1f} s")
-    if res.report is not None:
+    if res.job_id is not None:
+        with History(res.out / "history.db") as history:
+            res.report = build_report(history, res.job_id, res.out / "report", image_root=res.out)
         console.print(f"report: {res.report}  (history: {res.out / 'history.db'}; "
                       f"`layerwatch history --db {res.out / 'history.db'}`)")
 

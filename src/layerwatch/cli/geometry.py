@@ -59,7 +59,6 @@ def calibrate(
     import cv2
 
     from layerwatch.cli import console
-    from layerwatch.config import load_config
     from layerwatch.errors import CalibrationError
     from layerwatch.geometry.calibration import (
         BoardSpec,
@@ -68,6 +67,7 @@ def calibrate(
         read_photo,
     )
     from layerwatch.geometry.camera import CameraModel
+    from layerwatch.pipeline.config import load_config
 
     if not board and markers is None:
         raise CalibrationError("nothing to do: pass --board PHOTOS... and/or --markers BED_PHOTO.")
@@ -116,10 +116,10 @@ def warp(
     import cv2
 
     from layerwatch.cli import console
-    from layerwatch.config import load_config
     from layerwatch.errors import WarpError
     from layerwatch.geometry.camera import CameraModel
     from layerwatch.geometry.warp import TopViewWarper
+    from layerwatch.pipeline.config import load_config
 
     img = cv2.imread(str(photo), cv2.IMREAD_COLOR) if photo.is_file() else None
     if img is None:

@@ -8,17 +8,16 @@ from typing import Annotated
 import typer
 
 from layerwatch.cli.params import SEED, WRITE_DB, Finite
+from layerwatch.cli.pipeline import PAPER_HELP
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
-
-SOURCES = ("file", "dashboard", "recommended")  # highest precedence first; "default" = the section's built-in values
 
 
 def dashboard_settings(history) -> dict[str, dict]:
     """The settings the dashboard saved in ``history`` that differ from what it shows unsaved.
 
     The dashboard stores the whole job config it showed (``PUT``/``PATCH /api/settings``); unsaved, it shows
-    the recommended settings (:func:`~layerwatch.evaluate.recommended.recommended_config`), so a key it never
+    the recommended settings (:func:`~layerwatch.pipeline.config.recommended_config`), so a key it never
     changed holds the recommended value; only the changed keys form the "dashboard" layer. (A key
     deliberately set back to its recommended value is indistinguishable from an untouched one, and the
     result is the same.)
@@ -40,8 +39,8 @@ def dashboard_settings(history) -> dict[str, dict]:
     """
     from pydantic import ValidationError
 
-    from layerwatch.config import JobConfig
     from layerwatch.errors import ConfigError
+    from layerwatch.pipeline.config import JobConfig
     from layerwatch.web.app import SETTINGS_KEY
 
     saved = history.setting(SETTINGS_KEY)
@@ -55,7 +54,7 @@ def dashboard_settings(history) -> dict[str, dict]:
         msg = " ".join(str(err["msg"]).split())
         raise ConfigError(f"{history.path}: the dashboard's saved setting {where} is invalid ({msg}); save the "
                           "settings again in the dashboard (layerwatch serve --db ...) or drop --history.") from None
-    from layerwatch.evaluate.recommended import recommended_config
+    from layerwatch.pipeline.config import recommended_config
 
     base = recommended_config().model_dump(mode="json")
     out: dict[str, dict] = {}
@@ -66,11 +65,11 @@ def dashboard_settings(history) -> dict[str, dict]:
     return out
 
 
-def monitor_config(path: Path | None, history=None):
+def monitor_config(path: Path | None, history=None, *, paper: bool = False):
     """The monitor's job config and where each section's values came from.
 
     Precedence, per key: the job file's own keys > the dashboard's saved settings (:func:`dashboard_settings`)
-    > the evaluation's recommended settings (:data:`layerwatch.evaluate.recommended.RECOMMENDED`) > the
+    > the evaluation's recommended settings (:data:`layerwatch.pipeline.config.RECOMMENDED`) > the
     sections' built-in defaults.
 
     Parameters
@@ -79,6 +78,8 @@ def monitor_config(path: Path | None, history=None):
         Job config TOML (``--config``, or the bundled example's job file).
     history : History or None
         Database whose dashboard settings apply (``--history``).
+    paper : bool
+        Leave out the recommended settings (``--paper-settings``).
 
     Returns
     -------
@@ -92,30 +93,11 @@ def monitor_config(path: Path | None, history=None):
     ConfigError
         Unreadable or invalid file or saved settings (one line naming the fix).
     """
-    import tomllib
-
-    from layerwatch.config import JobConfig, load_config
-    from layerwatch.evaluate.recommended import RECOMMENDED
+    from layerwatch.pipeline.config import resolve_config
 
     dash = dashboard_settings(history) if history is not None else {}
-    defaults: dict[str, dict] = {k: dict(v) for k, v in RECOMMENDED.items()}
-    for section, values in dash.items():
-        defaults.setdefault(section, {}).update(values)
-    cfg = load_config(path, defaults=defaults)
-    file = tomllib.loads(Path(path).read_text(encoding="utf-8", errors="replace")) if path is not None else {}
-    layers = {"file": file, "dashboard": dash, "recommended": RECOMMENDED}
-    sources: dict[str, str] = {}
-    for section in JobConfig.model_fields:
-        seen: set[str] = set()
-        used = []
-        for name in SOURCES:
-            values = layers[name].get(section)
-            keys = set(values) if isinstance(values, dict) else set()
-            if keys - seen:
-                used.append(name)
-            seen |= keys
-        sources[section] = "+".join(used) or "default"
-    return cfg, sources
+    resolved = resolve_config(path, recommended=not paper, dashboard=dash)
+    return resolved.config, resolved.section_sources()
 
 
 def open_printer(spec: str, gcode: bytes | None = None):
@@ -153,6 +135,7 @@ def monitor(
     failure: Annotated[str | None, typer.Option("--failure", help="sim camera: inject this failure type.")] = None,
     onset: Annotated[int, typer.Option("--onset", parser=Finite(1, 100_000, integer=True), help="sim camera: first failed layer.")] = 15,
     seed: Annotated[int, typer.Option("--seed", parser=SEED, help="sim camera: seed.")] = 1,
+    paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     import dataclasses
@@ -166,10 +149,10 @@ def monitor(
     from layerwatch.geometry.camera import CameraModel
     from layerwatch.monitor.cameras import SimCamera, open_camera
     from layerwatch.monitor.notify import Notifier
-    from layerwatch.monitor.pipeline import LayerPipeline
-    from layerwatch.monitor.policy import PausePolicy
     from layerwatch.monitor.printers.base import parse_trigger
     from layerwatch.monitor.service import Monitor
+    from layerwatch.pipeline.policy import PausePolicy
+    from layerwatch.pipeline.step import LayerPipeline
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
     from layerwatch.examples import PART_CONFIG
@@ -181,9 +164,9 @@ def monitor(
     job_file = config if config else (PART_CONFIG if gcode is None else None)
     if history is not None:
         with History(history) as saved:
-            cfg, sources = monitor_config(job_file, saved)
+            cfg, sources = monitor_config(job_file, saved, paper=paper)
     else:
-        cfg, sources = monitor_config(job_file)
+        cfg, sources = monitor_config(job_file, paper=paper)
     logging.getLogger("layerwatch.monitor").info(
         "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
         job_file or "none", history or "none")

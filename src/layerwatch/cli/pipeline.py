@@ -22,38 +22,43 @@ def _progress():
 
 
 def _toolpath(gcode: Path | None):
-    from rich.markup import escape
-
-    from layerwatch.cli import console
+    """The job's toolpath (default: the bundled example part)."""
     from layerwatch.errors import GcodeError
-    from layerwatch.evaluate.demo import load_job_toolpath
+    from layerwatch.examples import PART_GCODE
+    from layerwatch.gcode import read_toolpath
 
     if gcode is not None and not gcode.is_file():
         raise GcodeError(f"G-code file {gcode} not found; check the path.")
-    notes: list[str] = []
-    tp, _ = load_job_toolpath(gcode, notes)
-    for n in notes:
-        console.print(f"[yellow]{escape(n)}[/]")
+    tp = read_toolpath(gcode or PART_GCODE)
     if tp.n_layers == 0:
         raise GcodeError(f"{gcode} has no printed layers; pass the G-code your slicer exported.")
     return tp
 
 
-def _config(config: Path | None, gcode: Path | None, tp, recommended: bool):
-    """Job config; without a file, the observed square is centred on the part."""
-    from layerwatch.config import load_config
-    from layerwatch.evaluate.recommended import recommended_config
+def job_settings(config: Path | None, gcode: Path | None, tp=None, *, paper: bool = False,
+                 flags: dict[str, dict] | None = None):
+    """The verbs' settings through :func:`~layerwatch.pipeline.config.resolve_config`.
+
+    The job file is ``config``, else the bundled example's job file when no
+    G-code is given either; with no job file the observed square is centred on
+    the part (source ``gcode``). ``paper`` leaves out the recommended settings
+    (``--paper-settings``). Returns the :class:`~layerwatch.pipeline.config.ResolvedConfig`.
+    """
     from layerwatch.examples import PART_CONFIG
+    from layerwatch.pipeline.config import resolve_config
 
     path = config if config is not None else (PART_CONFIG if gcode is None else None)
-    cfg = recommended_config(path) if recommended else load_config(path)
-    if path is None:
+    derived = None
+    if path is None and tp is not None:
         x0, y0, x1, y1 = tp.bounds
-        span = max(x1 - x0, y1 - y0) + 30.0
-        side = max(90.0, span)
-        cfg = cfg.model_copy(update={"topview": cfg.topview.model_copy(update={
-            "center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side})})
-    return cfg
+        side = max(90.0, max(x1 - x0, y1 - y0) + 30.0)
+        derived = {"topview": {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side}}
+    return resolve_config(path, recommended=not paper, gcode=derived, flags=flags)
+
+
+#: the help of ``--paper-settings``, the same on every verb
+PAPER_HELP = ("Leave out the evaluation's recommended settings: the job file over the paper's defaults "
+              "(cosine, T_S 0.7, 5 mm margin, pause a% > 10 %).")
 
 
 def analyze(
@@ -63,8 +68,7 @@ def analyze(
     out: Annotated[Path, typer.Option("-o", "--out", parser=WRITE_DIR, help="Results folder (re-running resumes).")] = Path("results"),
     config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML.")] = None,
     cache: Annotated[Path | None, typer.Option("--cache", parser=WRITE_DIR, help="Reference cache folder.")] = None,
-    paper: Annotated[bool, typer.Option("--paper-settings", help="Leave out the evaluation's recommended settings: "
-                                        "the config file over the paper's defaults (cosine, T_S 0.7, 5 mm margin).")] = False,
+    paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
 ) -> None:
     """Analyse photos of a print layer by layer: warp, reference, HOG comparison, pause decision.
 
@@ -80,7 +84,7 @@ def analyze(
     if not camera.is_file():
         raise CalibrationError(f"camera file {camera} not found; run `layerwatch calibrate` first.")
     tp = _toolpath(gcode)
-    cfg = _config(config, gcode, tp, not paper)
+    cfg = job_settings(config, gcode, tp, paper=paper).config
     cam = CameraModel.load(camera)
     with _progress() as bar:
         task = bar.add_task("analysing", total=len(photos))
@@ -125,7 +129,7 @@ def simulate(
         except ValueError:
             raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM]; e.g. spaghetti@15.") from None
     tp = _toolpath(gcode)
-    cfg = _config(config, gcode, tp, False)
+    cfg = job_settings(config, gcode, tp).config
     tv = cfg.topview.topview()
     cam = default_camera(tv, image_size=(width, int(round(width * 9 / 16))))
     out.mkdir(parents=True, exist_ok=True)
@@ -150,6 +154,7 @@ def evaluate(
     match_camera: Annotated[bool, typer.Option("--match-camera", help="Camera-matched references.")] = False,
     clean_layers: Annotated[int, typer.Option("--clean-layers", parser=Finite(0, 100_000, integer=True), help="Also simulate about N layers of whole "
                                               "clean prints and count false alarms of the configured setting.")] = 0,
+    paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
     from layerwatch.cli import console
@@ -159,9 +164,8 @@ def evaluate(
     from layerwatch.simulate import default_camera
 
     tp = _toolpath(gcode)
-    cfg = _config(config, gcode, tp, True)
-    if margin is not None:
-        cfg = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={"footprint_margin_mm": margin})})
+    flags = {"analysis": {"footprint_margin_mm": margin}} if margin is not None else None
+    cfg = job_settings(config, gcode, tp, paper=paper, flags=flags).config
     cam = default_camera(cfg.topview.topview(), image_size=(width, int(round(width * 9 / 16))))
     with _progress() as bar:
         task = bar.add_task("simulating + scoring", total=layers)

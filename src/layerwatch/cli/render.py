@@ -79,8 +79,8 @@ def render(
     )
 
     from layerwatch.cli import console
-    from layerwatch.config import load_config
     from layerwatch.errors import ConfigError, GcodeError, RenderError
+    from layerwatch.pipeline.config import load_config
     from layerwatch.render.backend import render_layers
     from layerwatch.render.cache import ReferenceCache, file_hash
     from layerwatch.render.mask import gcode_mask

@@ -1,9 +1,10 @@
 """Run simulated prints through the pipeline and score every measure at every block threshold.
 
-For each simulated layer photo the harness warps it, renders the reference
-(the same :class:`~layerwatch.monitor.pipeline.LayerPipeline` the monitor
-uses), computes HOG blocks of both images once and then, for each of the
-twelve measures and each block threshold ``T_S`` of :data:`THRESHOLDS`:
+Every simulated layer photo goes through the per-layer step the monitor runs
+(:meth:`~layerwatch.pipeline.step.LayerPipeline.process`: warp, reference,
+comparison with the configured measure); the sweep then scores, from the
+HOG blocks of the same top view and reference, each of the twelve measures
+at each block threshold ``T_S`` of :data:`THRESHOLDS`:
 
 * the anomaly ratio a% (eq. 5) over the considered blocks;
 * for layers with a failure, the pixel IoU between the anomalous blocks'
@@ -26,13 +27,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
-from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
-from layerwatch.config import JobConfig
-from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.analysis.metrics import similarity_all
+from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scoring import anomaly_ratio, block_hogs, grow_regions, growth_reach
+from layerwatch.analysis.settings import METRIC_NAMES
+from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.step import LayerPipeline, judge_layers
+from layerwatch.simulate import FAILURE_TYPES, PrintSimulator, Scenario, random_scenarios
 
-__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "surface_under", "tile_fraction"]
+__all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "score_layer", "surface_under",
+           "tile_fraction"]
 
 #: block thresholds T_S scanned for every measure
 THRESHOLDS = np.round(np.arange(0.05, 0.901, 0.05), 2)
@@ -93,8 +102,6 @@ def surface_under(tp: Toolpath, index: int, mask: np.ndarray, topview) -> str:
     pattern one layer lower, a hole in a solid layer shows the layer below, so
     detection differs by class (the report splits AUROC by it).
     """
-    from layerwatch.gcode.toolpath import FEATURES
-
     sl = tp.layer_slice(index)
     mid = 0.5 * (tp.start[sl] + tp.end[sl])
     uv = np.round(topview.to_px(mid)).astype(int)
@@ -142,8 +149,6 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
     -------
     list of (Scenario, list of int)
     """
-    from layerwatch.simulate import FAILURE_TYPES, Scenario, random_scenarios
-
     per_fail = frames_after + 1
     n_clean_frames = int(round(n_layers * clean_share))
     n_fail = max(len(FAILURE_TYPES), int(round((n_layers - n_clean_frames) / per_fail)))
@@ -168,19 +173,22 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
 
 
 def _largest(anom: np.ndarray) -> int:
-    from scipy import ndimage
-
     lab, n = ndimage.label(anom, structure=np.ones((3, 3), bool))
     return int(np.bincount(lab.ravel())[1:].max()) if n else 0
 
 
-def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: list | None = None):
-    """``(a (12, T), iou (12, T) or None, clean_high)``; fills ``regions`` with the (12, T) largest-region areas."""
-    from layerwatch.analysis.metrics import similarity_all
-    from layerwatch.analysis.scoring import analyze_layer, block_hogs, grow_regions, growth_reach
+def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = None):
+    """Sweep the twelve measures and :data:`THRESHOLDS` over the layer the step just analysed.
 
-    h_t, h_r = block_hogs(top, ref.image, settings)  # once, for analyze_layer and all twelve measures
-    res = analyze_layer(top, ref.image, ref.footprint, pipe.topview, settings, valid=valid, hogs=(h_t, h_r))
+    ``res`` is :meth:`LayerPipeline.process`'s result for ``frame.photo`` (its
+    considered blocks and printed area); the HOG blocks are those of the same
+    top view (``pipe.last_top``) and reference. Returns ``(a (12, T), iou (12, T)
+    or None, clean_high)``; fills ``regions`` with the (12, T) largest-region areas.
+    """
+    settings = pipe.config.analysis
+    ref = pipe.reference(res.layer)
+    valid = pipe.last_valid
+    h_t, h_r = block_hogs(pipe.last_top, ref.image, settings)
     considered = res.mask
     c, b = settings.cell_px, settings.block_cells
     sims = similarity_all(h_t, h_r, METRIC_NAMES)
@@ -210,7 +218,7 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
         s = sims[name][considered]
         below = s[:, None] < T[None, :]  # (blocks, T)
         cnt = below.sum(axis=0)
-        a[k] = np.minimum(1.0, cnt * tile_mm2 / printed) if printed > 0 else 0.0
+        a[k] = anomaly_ratio(cnt, tile_mm2, printed)
         if iou is not None:
             if grow > 0:  # the regions the operator sees (hysteresis), as analyze_layer draws them
                 full = sims[name]
@@ -234,6 +242,25 @@ def _score(top, ref, valid, pipe, settings: AnalysisSettings, frame, regions: li
     if regions is not None:
         regions.append(reg)
     return a, iou, clean_high
+
+
+def score_layer(pipe: LayerPipeline, frame, index: int) -> tuple[LayerResult, tuple | None]:
+    """The evaluation's per-layer path: the monitor's step on ``frame.photo``, then the sweep.
+
+    Returns
+    -------
+    result : LayerResult
+        :meth:`LayerPipeline.process`'s record (the one the monitor stores for this photo).
+    scores : (a, iou, clean_high, region) or None
+        As :class:`LayerRecord` holds them; ``None`` when the photo could not
+        be analysed (``result.status == "error"``, ``result.message`` says why).
+    """
+    res = pipe.process(frame.photo, index)
+    if res.status == "error":
+        return res, None
+    regions: list = []
+    a, iou, clean_high = _score(res, pipe, frame, regions)
+    return res, (a, iou, clean_high, regions[0])
 
 
 def run_evaluation(
@@ -260,15 +287,12 @@ def run_evaluation(
     progress : callable, optional
         ``progress(done, total)``.
     match_camera : bool
-        Camera-matched references (see :class:`~layerwatch.monitor.pipeline.LayerPipeline`).
+        Camera-matched references (see :class:`~layerwatch.pipeline.step.LayerPipeline`).
 
     Returns
     -------
     EvalData
     """
-    from layerwatch.monitor.pipeline import LayerPipeline
-    from layerwatch.simulate import FAILURE_TYPES, PrintSimulator
-
     t0 = time.perf_counter()
     tv = config.topview.topview()
     plan = plan_frames(toolpath, n_layers, seed=seed)
@@ -290,20 +314,16 @@ def run_evaluation(
         size = scen.failures[0].size_mm if scen.failures else 0.0
         for i in layers:
             frame = sim.frame(i)
-            ref = pipe.reference(i)
-            try:
-                top, valid = pipe.warper.warp(frame.photo, ref.z)
-                top = top.mean(axis=2).astype(np.uint8) if top.ndim == 3 else top
-                regs: list = []
-                a, iou, clean_high = _score(top, ref, valid, pipe, config.analysis, frame, regs)
-            except Exception as exc:  # noqa: BLE001 - reported, run continues
-                data.errors.append(f"{scen.name} layer {i}: {type(exc).__name__}: {exc}")
+            res, scores = score_layer(pipe, frame, i)
+            if scores is None:  # reported, the run continues
+                data.errors.append(f"{scen.name} layer {i}: {res.message}")
                 continue
+            a, iou, clean_high, region = scores
             kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
             since = int(i) - scen.failures[0].onset if kind != "clean" else -1
             surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high, regs[0], since, surface))
+                                            a, iou, clean_high, region, since, surface))
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -325,7 +345,7 @@ def clean_false_alarms(
 
     Uses ``config.analysis`` as is (measure, T_S, margin). A *layer* alarm is
     a% > ``pause_ratio``; a *pause* is what the monitor's own
-    :class:`~layerwatch.monitor.policy.PausePolicy` decides with
+    :class:`~layerwatch.pipeline.policy.PausePolicy` decides with
     ``config.policy`` and that pause ratio and ``consecutive`` layers (a%
     above the ratio on consecutive layers with overlapping regions, or a
     strong event of material outside the part), counted once per print.
@@ -336,10 +356,6 @@ def clean_false_alarms(
         ``layers``, ``prints``, ``layer_alarms`` (a% above the ratio), ``policy_alarms``
         (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list).
     """
-    from layerwatch.monitor.pipeline import LayerPipeline
-    from layerwatch.monitor.policy import PausePolicy
-    from layerwatch.simulate import PrintSimulator
-
     tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
     policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),
@@ -349,20 +365,18 @@ def clean_false_alarms(
     done = 0
     for k in range(prints):
         sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
-        policy = PausePolicy(policy_settings)
         paused = False
-        for i in range(toolpath.n_layers):
-            res = pipe.process(sim.frame(i).photo, i)
+        photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
+        for res, decision in judge_layers(pipe, PausePolicy(policy_settings), photos):
             done += 1
             if progress is not None:
                 progress(done, prints * toolpath.n_layers)
-            decision = policy.update(res)
             if res.status != "ok":
                 continue
             out["layers"] += 1
             out["a"].append(float(res.anomaly_ratio))
             out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
-            if i >= policy_settings.skip_first_layers:
+            if res.layer >= policy_settings.skip_first_layers:
                 out["layer_alarms"] += int(res.anomaly_ratio > pause_ratio)
             if not paused:  # after a pause the policy waits for the operator: nothing more to count
                 out["policy_alarms"] += int(decision.action != "none")

@@ -14,11 +14,16 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
+
 from layerwatch.analysis.result import LayerResult
-from layerwatch.config import JobConfig
 from layerwatch.errors import ConfigError
+from layerwatch.evaluate.results import ResultsFolder
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.policy import first_stop
+from layerwatch.pipeline.step import LayerPipeline
 
 __all__ = ["OfflineRun", "assign_layers", "run_offline"]
 
@@ -85,12 +90,6 @@ def run_offline(
         Results by layer (reused ones included), missing layers, per-photo
         problems, and the first layer where the pause rule fires.
     """
-    import cv2
-
-    from layerwatch.evaluate.decision import decision_action, pause_policy
-    from layerwatch.evaluate.results import ResultsFolder
-    from layerwatch.monitor.pipeline import LayerPipeline
-
     if not photos:
         raise ConfigError("no photos given; pass the layer photos (e.g. photos/*.png).")
     mapping, problems = assign_layers(photos, toolpath.n_layers)
@@ -124,15 +123,12 @@ def run_offline(
                 run.problems.append(f"layer {i} ({mapping[i].name}): {res.message}")
         if progress is not None:
             progress(k + 1, len(todo), f"layer {i}")
-    policy = pause_policy(config.policy)
-    for i in sorted(run.results):
-        d = policy.update(run.results[i])
-        if decision_action(d) in ("pause", "cancel"):
-            run.paused_at, run.reason = i, str(getattr(d, "reason", ""))
-            break
+    stop = first_stop((run.results[i] for i in sorted(run.results)), config.policy)
+    if stop is not None:
+        run.paused_at, run.reason = stop.layer, stop.reason
     folder.stack()
     folder.summary(run.results, run.paused_at, run.reason, extra={
         "photos": len(mapping), "missing layers": run.missing or "none", "reused": run.reused,
-        "policy": getattr(policy, "source", type(policy).__name__),
+        "policy": "pipeline.policy.PausePolicy",
     })
     return run

@@ -48,7 +48,7 @@ class ResultsFolder:
     def __init__(self, root: str | Path, topview: TopView) -> None:
         self.root = Path(root)
         self.topview = topview
-        for sub in ("layers", "overlays", "tops", "refs"):
+        for sub in ("layers", "overlays", "tops", "refs", "masks"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
 
     def _name(self, layer: int) -> str:
@@ -67,7 +67,11 @@ class ResultsFolder:
 
     def write(self, result: LayerResult, top: np.ndarray | None = None,
               footprint: np.ndarray | None = None, reference: np.ndarray | None = None) -> LayerResult:
-        """Write one layer (overlay and top view only when ``top`` is given, the reference when given)."""
+        """Write one layer (overlay and top view only when ``top`` is given, the reference and footprint when given).
+
+        ``tops/``, ``refs/`` and ``masks/`` hold what the comparison read, so
+        ``layerwatch compare tops/X.png refs/X.png --mask masks/X.png`` re-runs one layer.
+        """
         import cv2
 
         from layerwatch.analysis.overlay import overlay_image
@@ -89,6 +93,11 @@ class ResultsFolder:
             if ok:
                 _atomic_write(self.root / "refs" / f"{name}.png", buf.tobytes())
                 result.images["reference"] = f"refs/{name}.png"
+        if footprint is not None:
+            ok, buf = cv2.imencode(".png", np.asarray(footprint, np.uint8) * 255)
+            if ok:
+                _atomic_write(self.root / "masks" / f"{name}.png", buf.tobytes())
+                result.images["footprint"] = f"masks/{name}.png"
         _atomic_write(self.root / "layers" / f"{name}.json",
                       result.to_json(include_heatmap=True).encode())
         return result

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from layerwatch.monitor.settings import NotifySettings
+from layerwatch.pipeline.policy import NotifySettings
 
 __all__ = ["Notifier", "APPRISE_TYPES"]
 

@@ -25,8 +25,8 @@ import numpy as np
 
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import CameraError, LayerwatchError, PrinterError
-from layerwatch.monitor.policy import Decision, PausePolicy
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
+from layerwatch.pipeline.policy import Decision, PausePolicy
 
 __all__ = ["Monitor", "MonitorReport"]
 
@@ -50,7 +50,7 @@ class MonitorReport:
     @property
     def latencies_ms(self) -> list[float]:
         """Trigger -> pause-request latencies, ms."""
-        return [r.extra["trigger_to_pause_ms"] for r in self.results if "trigger_to_pause_ms" in r.extra]
+        return [r.trigger_to_pause_ms for r in self.results if r.trigger_to_pause_ms is not None]
 
 
 def _log(event: str, **kv: Any) -> None:
@@ -121,7 +121,7 @@ class Monitor:
         except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
             log.exception("pipeline failed on layer %d", trigger.layer)
             res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
-        res.extra["photo_ms"] = round((t_photo - trigger.time) * 1000, 1)
+        res.photo_ms = round((t_photo - trigger.time) * 1000, 1)
         top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None  # one analysis thread
         return self._finish(trigger, res, top)
 
@@ -131,16 +131,15 @@ class Monitor:
             if decision.stops:
                 try:
                     (self.printer.pause if decision.action == "pause" else self.printer.cancel)()
-                    res.extra["trigger_to_pause_ms"] = round((time.monotonic() - trigger.time) * 1000, 1)
+                    res.trigger_to_pause_ms = round((time.monotonic() - trigger.time) * 1000, 1)
                     self.report.pauses += 1
                 except LayerwatchError as exc:
                     self._alert(f"could not {decision.action} the printer: {exc}", res)
-            res.extra["decision"] = decision.action
-            res.extra["decision_reason"] = decision.reason
+            res.decision, res.decision_reason = decision.action, decision.reason
             self.report.results.append(res)
             self.report.decisions.append(decision)
             _log("layer", layer=res.layer, status=res.status, ratio=round(float(res.anomaly_ratio), 4),
-                 action=decision.action, latency_ms=res.extra.get("trigger_to_pause_ms"))
+                 action=decision.action, latency_ms=res.trigger_to_pause_ms)
             self._record(res, decision)
             if decision.action != "none":
                 self._alert(decision.reason, res, level="critical" if decision.stops else "warning",

@@ -11,5 +11,4 @@ Modules (import what you need; nothing heavy is imported here):
 * :mod:`~layerwatch.render.backend` — ``render_reference`` (fast or Blender) and
   ``render_layers`` (process pool or Dask).
 * :mod:`~layerwatch.render.blender` — Blender Cycles through the ``blender`` executable.
-* :mod:`~layerwatch.render.synthetic` — synthetic toolpaths for tests and benchmarks.
 """

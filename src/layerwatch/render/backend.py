@@ -15,10 +15,11 @@ from collections.abc import Callable, Iterable, Iterator
 from layerwatch.errors import require
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.cache import ReferenceCache, toolpath_hash
 from layerwatch.render.fast import Rendered, StackRenderer
 from layerwatch.render.settings import RenderSettings
 
-__all__ = ["render_reference", "render_layers"]
+__all__ = ["render_cached", "render_reference", "render_layers"]
 
 
 def render_reference(
@@ -47,6 +48,21 @@ def _render_chunk(toolpath: Toolpath, topview: TopView, settings: RenderSettings
 
 def _chunks(layers: list[int], size: int) -> list[list[int]]:
     return [layers[i : i + size] for i in range(0, len(layers), size)]
+
+
+def render_cached(
+    cache: ReferenceCache,
+    toolpath: Toolpath,
+    index: int,
+    topview: TopView,
+    settings: RenderSettings | None = None,
+    gcode_hash: str | None = None,
+) -> Rendered:
+    """:func:`render_reference` of one layer through ``cache`` (rendered once per identical part and settings)."""
+    settings = settings or RenderSettings()
+    gh = gcode_hash or toolpath_hash(toolpath)
+    key = cache.key(gh, settings, topview, index % max(toolpath.n_layers, 1))
+    return cache.get_or_render(key, lambda: render_reference(toolpath, index, topview, settings))
 
 
 def render_layers(
@@ -97,8 +113,6 @@ def render_layers(
     total, done = len(todo), 0
     keys: dict[int, str] = {}
     if cache is not None:
-        from layerwatch.render.cache import toolpath_hash
-
         gh = gcode_hash or toolpath_hash(toolpath)
         missing = []
         for i in todo:

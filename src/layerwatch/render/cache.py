@@ -137,19 +137,3 @@ class ReferenceCache:
         out = render()
         self.put(key, out)
         return out
-
-    def render_layer(
-        self,
-        toolpath: Toolpath,
-        index: int,
-        topview: TopView,
-        settings: RenderSettings | None = None,
-        gcode_hash: str | None = None,
-    ) -> Rendered:
-        """Cached :func:`layerwatch.render.backend.render_reference` of one layer."""
-        from layerwatch.render.backend import render_reference
-
-        settings = settings or RenderSettings()
-        gh = gcode_hash or toolpath_hash(toolpath)
-        key = self.key(gh, settings, topview, index % max(toolpath.n_layers, 1))
-        return self.get_or_render(key, lambda: render_reference(toolpath, index, topview, settings))

@@ -23,8 +23,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from layerwatch.config import JobConfig
 from layerwatch.errors import LayerwatchError, StorageError, require
+from layerwatch.pipeline.config import JobConfig
 from layerwatch.storage.history import History
 
 __all__ = ["create_app", "MAX_BODY", "COOKIE", "ACTIONS", "SETTINGS_KEY"]
@@ -140,7 +140,7 @@ def create_app(
     printers = dict(printers or {})
     root = Path(image_root).resolve() if image_root is not None else None
     if settings is None:  # what the monitor would run with: the evaluation's recommended settings
-        from layerwatch.evaluate.recommended import recommended_config
+        from layerwatch.pipeline.config import recommended_config
 
         settings = recommended_config()
     fallback = settings

@@ -15,6 +15,20 @@ G-code (toolpath), camera pose and config are known:
 3. **analyse**: HOG of both images, similarity heatmap, anomaly ratio a%
    (eq. 5) and regions (:func:`~layerwatch.analysis.scoring.analyze_layer`).
 
+This is the one per-layer step: the monitor, ``analyze``, the demo and the
+evaluation harness (which sweeps other measures and thresholds over the
+same step's HOG blocks) all call :meth:`LayerPipeline.process`; the pause
+decision after it is :class:`~layerwatch.pipeline.policy.PausePolicy`'s.
+
+Frame-quality gate (hook). Between the photo's arrival and the warp,
+:meth:`LayerPipeline.process` calls ``frame_gate(photo, previous, settings)``
+when one is given (``previous``: the last photo that passed, ``settings``:
+``config.analysis``). It returns ``None`` for a usable frame or a one-line
+reason; a rejected frame gives ``status="error"`` with ``"frame rejected:
+<reason>"`` (the policy alerts on it and never pauses) and does not become
+``previous``. ``layerwatch.analysis.frame_quality.assess_frame`` is meant to
+be wired here (an adapter turning its verdict into ``None``/reason).
+
 The pipeline never raises for a bad photo or a failed warp: the result has
 ``status="error"`` and a one-line ``message``; a caller (monitor, CLI,
 evaluation) logs it and goes on with the next layer. Configuration mistakes
@@ -29,18 +43,28 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from layerwatch.analysis.result import LayerResult
-from layerwatch.config import JobConfig
+from layerwatch.analysis.scoring import analyze_layer, grey_u8
+from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.warp import TopViewWarper
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.policy import Decision, PausePolicy
+from layerwatch.render.cache import ReferenceCache, toolpath_hash
+from layerwatch.render.camera_match import match_camera as camera_matched
+from layerwatch.render.fast import StackRenderer
 
-__all__ = ["LayerPipeline", "Reference"]
+__all__ = ["FrameGate", "LayerPipeline", "Reference", "judge_layers"]
+
+#: ``gate(photo, previous_photo_or_None, settings) -> None | reason``: the frame-quality hook (module notes)
+FrameGate = Callable[[np.ndarray, "np.ndarray | None", AnalysisSettings], "str | None"]
 
 
 class Reference:
@@ -82,9 +106,11 @@ class LayerPipeline:
         photos it did not raise the share of clean blocks above cosine 0.7
         (75.5 % vs 75.7 %) and lowered detection (``docs/evaluation/README.md``).
     all_metrics : bool
-        Score all twelve measures per layer into ``result.extra["per_metric"]``.
+        Score all twelve measures per layer into ``result.per_metric``.
     memo : int
         References kept in memory (least recently used dropped).
+    frame_gate : callable, optional
+        Frame-quality check run before the warp (see the module notes).
 
     Raises
     ------
@@ -102,10 +128,8 @@ class LayerPipeline:
         match_camera: bool = False,
         all_metrics: bool = False,
         memo: int = 8,
+        frame_gate: FrameGate | None = None,
     ) -> None:
-        from layerwatch.geometry.warp import TopViewWarper
-        from layerwatch.render.fast import StackRenderer
-
         if toolpath.n_layers == 0:
             raise RenderError(f"{toolpath.source} has no layers; check the G-code has extrusion moves.")
         self.toolpath = toolpath
@@ -116,6 +140,9 @@ class LayerPipeline:
         self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
         self.match_camera = bool(match_camera)
         self.all_metrics = bool(all_metrics)
+        self.frame_gate = frame_gate
+        #: last photo the frame gate passed (its ``previous`` argument)
+        self.previous_photo: np.ndarray | None = None
         #: grey top view and valid mask of the last successfully warped photo (for overlays)
         self.last_top: np.ndarray | None = None
         self.last_valid: np.ndarray | None = None
@@ -124,8 +151,6 @@ class LayerPipeline:
         self._cache = None
         self._hash = None
         if cache_dir is not None:
-            from layerwatch.render.cache import ReferenceCache, toolpath_hash
-
             self._cache = ReferenceCache(cache_dir)
             self._hash = toolpath_hash(toolpath)
 
@@ -164,9 +189,7 @@ class LayerPipeline:
         z = self.toolpath.layers[index].z
         image = r.image
         if self.match_camera:
-            from layerwatch.render.camera_match import match_camera
-
-            image = match_camera(image, self.camera, self.topview, z)
+            image = camera_matched(image, self.camera, self.topview, z)
         ref = Reference(image, r.mask, z)
         self._memo[index] = ref
         while len(self._memo) > self._memo_size:
@@ -182,8 +205,28 @@ class LayerPipeline:
             self.reference(int(i))
 
     # ------------------------------------------------------------ analysis
+    def top_view(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+        """The photo warped to the top view of the plane ``Z = z`` as the analysis reads it.
+
+        Returns
+        -------
+        top : ndarray, shape (H, W), uint8
+            Grey top view (:func:`~layerwatch.analysis.scoring.grey_u8`).
+        valid : ndarray, shape (H, W), bool
+            Pixels the camera saw.
+
+        Raises
+        ------
+        LayerwatchError
+            The photo cannot be warped or shows nothing of the observed area.
+        """
+        top, valid = self.warper.warp(photo, z)
+        if not valid.any():
+            raise LayerwatchError("the photo does not show the observed area; check the camera pose.")
+        return grey_u8(top), valid
+
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
-        """Analyse the photo taken after layer ``layer_index``.
+        """Analyse the photo taken after layer ``layer_index``: the per-layer step.
 
         Parameters
         ----------
@@ -196,37 +239,31 @@ class LayerPipeline:
         -------
         LayerResult
             ``status`` ``"ok"``/``"skipped"``, or ``"error"`` with ``message``
-            when the photo cannot be used (wrong type/shape, failed warp,
-            nothing visible); ``timings_ms`` has ``warp``, ``reference``,
-            ``analysis`` (and the analysis' own ``hog``, ``metric``,
-            ``regions``) and ``total``.
+            when the photo cannot be used (wrong type/shape, rejected by the
+            frame gate, failed warp, nothing visible); ``timings_ms`` has
+            ``reference``, ``warp``, ``analysis`` (and the analysis' own ``hog``,
+            ``metric``, ``regions``) and ``total``. :attr:`last_top` and
+            :attr:`last_valid` hold the top view of an analysed photo.
         """
         t0 = time.perf_counter()
         st = self.config.analysis
-        try:
-            z = float(self.toolpath.layers[int(layer_index)].z) if 0 <= int(layer_index) < self.toolpath.n_layers else 0.0
-        except (TypeError, ValueError):
-            z = 0.0
-        base = {"layer": int(layer_index) if isinstance(layer_index, (int, np.integer)) else -1, "z": z,
-                "metric": st.metric, "threshold": float(st.threshold)}
+        index = int(layer_index) if isinstance(layer_index, (int, np.integer)) else -1
+        z = float(self.toolpath.layers[index].z) if 0 <= index < self.toolpath.n_layers else 0.0
+        base = {"layer": index, "z": z, "metric": st.metric, "threshold": float(st.threshold)}
         timings: dict[str, float] = {}
         self.last_top = self.last_valid = None
-        t2 = t0
         try:
+            reason = self._frame_rejected(photo)
+            if reason is not None:
+                return self._error(base, f"frame rejected: {reason}", timings, t0)
             ref = self.reference(int(layer_index))
             t1 = time.perf_counter()
             timings["reference"] = (t1 - t0) * 1e3
-            top, valid = self.warper.warp(photo, ref.z)
+            top, valid = self.top_view(photo, ref.z)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
-            if top.ndim == 3:
-                top = top[..., :3].mean(axis=2).astype(np.uint8) if top.shape[2] > 1 else top[..., 0]
-            if top.dtype != np.uint8:
-                top = np.clip(top.astype(np.float32) / 257.0 if top.dtype == np.uint16 else top * 255.0,
-                              0, 255).astype(np.uint8)
-            if not valid.any():
-                raise LayerwatchError("the photo does not show the observed area; check the camera pose.")
-            res = _analyze(top, ref, valid, self, int(layer_index))
+            res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
+                                z=ref.z, all_metrics=self.all_metrics)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
@@ -238,6 +275,15 @@ class LayerPipeline:
         self.last_top, self.last_valid = top, valid
         return res
 
+    def _frame_rejected(self, photo: np.ndarray) -> str | None:
+        """The frame-quality hook (module notes): ``None`` when the frame may be analysed, else the reason."""
+        if self.frame_gate is None:
+            return None
+        reason = self.frame_gate(photo, self.previous_photo, self.config.analysis)
+        if reason is None:
+            self.previous_photo = photo
+        return reason
+
     @staticmethod
     def _error(base: dict, message: str, timings: dict, t0: float) -> LayerResult:
         res = LayerResult(status="error", message=message, **base)
@@ -245,10 +291,30 @@ class LayerPipeline:
         return res
 
 
-def _analyze(top: np.ndarray, ref: Reference, valid: np.ndarray, pipe: LayerPipeline,
-                       layer: int) -> LayerResult:
-    """Analyse one warped photo against its reference (raises LayerwatchError on bad input)."""
-    from layerwatch.analysis.scoring import analyze_layer
+def judge_layers(
+    pipe: LayerPipeline,
+    policy: PausePolicy,
+    frames: Iterable[tuple[int, np.ndarray | LayerResult]],
+) -> Iterator[tuple[LayerResult, Decision]]:
+    """The process-and-policy loop: each layer's photo through :meth:`LayerPipeline.process`, then the policy.
 
-    return analyze_layer(top, ref.image, ref.footprint, pipe.topview, pipe.config.analysis,
-                         valid=valid, layer=layer, z=ref.z, all_metrics=pipe.all_metrics)
+    Parameters
+    ----------
+    pipe : LayerPipeline
+    policy : PausePolicy
+        Fed every result in the order of ``frames``.
+    frames : iterable of (int, ndarray or LayerResult)
+        ``(layer index, photo)``; a :class:`LayerResult` instead of a photo
+        (one kept from an earlier run, or an unreadable photo's error) is
+        judged as it is.
+
+    Yields
+    ------
+    (LayerResult, Decision)
+        The result (its ``decision`` and ``decision_reason`` filled in) and the policy's decision.
+    """
+    for index, frame in frames:
+        res = frame if isinstance(frame, LayerResult) else pipe.process(frame, index)
+        decision = policy.update(res)
+        res.decision, res.decision_reason = decision.action, decision.reason
+        yield res, decision

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.evaluate.recommended import RECOMMENDED
+from layerwatch.pipeline.config import RECOMMENDED
 from layerwatch.storage.history import History
 
 __all__ = ["seed_job"]
@@ -63,7 +63,7 @@ def seed_job(
     """Write one job of ``n_layers`` synthetic layers (+ images under ``image_root``) and return its id."""
     import cv2
 
-    from layerwatch.config import JobConfig
+    from layerwatch.pipeline.config import JobConfig
 
     rng = np.random.default_rng(seed)
     root = Path(image_root)

@@ -1,0 +1,187 @@
+"""Job configuration and the one settings resolver.
+
+Every verb gets its settings from :func:`resolve_config`, which merges, per
+key, lowest precedence first:
+
+1. ``default``: the sections' built-in values (the paper's: cosine, T_S 0.7,
+   5 mm footprint margin, pause a% > 10 %);
+2. ``recommended``: :data:`RECOMMENDED`, the values the evaluation on
+   simulated prints chose (``docs/evaluation/README.md``: jaccard, T_S 0.20,
+   pause a% > 2.5 %...); left out by ``--paper-settings``;
+3. ``dashboard``: keys saved in the dashboard (``monitor --history``);
+4. ``gcode``: values derived from the job's G-code when no job file is given
+   (the observed square centred on the part);
+5. ``file``: the job config file (``-c job.toml``);
+6. ``flag``: command-line options.
+
+It records where each value came from (:attr:`ResolvedConfig.sources`);
+``layerwatch config show`` prints both.
+
+Example ``layerwatch.toml``::
+
+    [topview]
+    px_per_mm = 6.67
+    width_mm = 90
+    center_mm = [110, 100]
+
+    [analysis]
+    metric = "cosine"
+    threshold = 0.7
+
+Each section is a pydantic model that lives next to the code that uses it.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, ValidationError
+
+from layerwatch.analysis.settings import AnalysisSettings
+from layerwatch.errors import ConfigError
+from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
+from layerwatch.geometry.settings import MarkerSettings, TopViewSettings
+from layerwatch.pipeline.policy import NotifySettings, PolicySettings
+from layerwatch.render.settings import RenderSettings
+from layerwatch.settings_base import Section
+
+__all__ = ["JobConfig", "RECOMMENDED", "SOURCES", "ResolvedConfig", "load_config", "recommended_config",
+           "resolve_config"]
+
+#: value sources, lowest precedence first
+SOURCES = ("default", "recommended", "dashboard", "gcode", "file", "flag")
+
+#: per-section values the evaluation on simulated prints recommends (``docs/evaluation/report.md``)
+RECOMMENDED: dict[str, dict] = {
+    "analysis": {"metric": "jaccard", "threshold": 0.20, "footprint_margin_mm": 0.0,
+                 "presmooth_px": 1.25, "flat_tolerance": 1.5, "grow_threshold": 0.2, "grow_margin_mm": 5.0},
+    "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1},
+}
+
+
+class JobConfig(Section):
+    """All settings of a monitored job."""
+
+    printer: PrinterProfile = Field(default_factory=PrinterProfile)
+    snapshot: SnapshotSettings = Field(default_factory=SnapshotSettings)
+    topview: TopViewSettings = Field(default_factory=TopViewSettings)
+    markers: MarkerSettings = Field(default_factory=MarkerSettings)
+    render: RenderSettings = Field(default_factory=RenderSettings)
+    analysis: AnalysisSettings = Field(default_factory=AnalysisSettings)
+    policy: PolicySettings = Field(default_factory=PolicySettings)
+    notify: NotifySettings = Field(default_factory=NotifySettings)
+
+
+def _format_validation(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err["loc"])
+    return f"{where}: {err['msg']}"
+
+
+@dataclass(frozen=True)
+class ResolvedConfig:
+    """The effective job config and where each value came from.
+
+    Attributes
+    ----------
+    config : JobConfig
+    sources : dict of str to str
+        ``"section.key"`` -> one of :data:`SOURCES`, for every key of every section.
+    path : Path or None
+        The job config file, when one was read.
+    """
+
+    config: JobConfig
+    sources: dict[str, str] = field(default_factory=dict)
+    path: Path | None = None
+
+    def section_sources(self) -> dict[str, str]:
+        """Per section, the sources of its values other than ``default``, highest first, joined by ``+``
+        (``"file+recommended"``), or ``"default"``."""
+        out: dict[str, str] = {}
+        for section in JobConfig.model_fields:
+            used = {v for k, v in self.sources.items() if k.split(".", 1)[0] == section and v != "default"}
+            out[section] = "+".join(s for s in reversed(SOURCES) if s in used) or "default"
+        return out
+
+
+def _read_toml(path: str | Path) -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {p} not found; create it or drop --config.")
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8", errors="replace"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML ({exc}); fix the file.") from None
+
+
+def resolve_config(
+    path: str | Path | None = None,
+    *,
+    recommended: bool = True,
+    dashboard: Mapping[str, Mapping[str, Any]] | None = None,
+    gcode: Mapping[str, Mapping[str, Any]] | None = None,
+    flags: Mapping[str, Mapping[str, Any]] | None = None,
+) -> ResolvedConfig:
+    """Merge the settings layers (module notes) into one validated :class:`JobConfig`.
+
+    Parameters
+    ----------
+    path : str or Path or None
+        Job config TOML; ``None``: no file layer.
+    recommended : bool
+        Apply :data:`RECOMMENDED` over the built-in defaults (``False`` is ``--paper-settings``).
+    dashboard, gcode, flags : dict of dict, optional
+        Per-section values of those layers, e.g. ``flags={"analysis": {"threshold": 0.3}}``;
+        a flag left at ``None`` by the caller must be left out.
+
+    Returns
+    -------
+    ResolvedConfig
+
+    Raises
+    ------
+    ConfigError
+        Unreadable TOML or an invalid value, naming its key and where it came from.
+    """
+    file = _read_toml(path) if path is not None else {}
+    layers = {"recommended": RECOMMENDED if recommended else {}, "dashboard": dashboard or {},
+              "gcode": gcode or {}, "file": file, "flag": flags or {}}
+    data: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    for name in SOURCES[1:]:
+        for section, values in layers[name].items():
+            if isinstance(values, Mapping) and isinstance(data.get(section, {}), dict):
+                data.setdefault(section, {}).update(values)
+                sources.update({f"{section}.{k}": name for k in values})
+            else:  # not a table: JobConfig's validation names it
+                data[section] = values
+                sources[section] = name
+    try:
+        cfg = JobConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"][:2])
+        origin = sources.get(key, sources.get(key.split(".", 1)[0], "file"))
+        if origin == "file":
+            raise ConfigError(f"{path}: invalid setting {_format_validation(exc)}.") from None
+        kind = {"flag": "command-line", "gcode": "G-code derived"}.get(origin, origin)
+        raise ConfigError(f"invalid {kind} setting {_format_validation(exc)}.") from None
+    for section, model in JobConfig.model_fields.items():
+        for key in model.annotation.model_fields:
+            sources.setdefault(f"{section}.{key}", "default")
+    return ResolvedConfig(cfg, sources, None if path is None else Path(path))
+
+
+def load_config(path: str | Path | None = None, **flags: dict) -> JobConfig:
+    """The job file over the built-in (paper) defaults: ``resolve_config(path, recommended=False, flags=flags)``."""
+    return resolve_config(path, recommended=False, flags=flags).config
+
+
+def recommended_config(path: str | Path | None = None, **flags: dict) -> JobConfig:
+    """The job file over :data:`RECOMMENDED` over the defaults: ``resolve_config(path, flags=flags)``."""
+    return resolve_config(path, flags=flags).config
