@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 import typer.main
-from layerwatch.config import load_config
+from layerwatch.pipeline.config import load_config
 
 from layerwatch.cli import app
 from layerwatch.geometry.camera import CameraModel

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from geometry_scenes import posed_camera, rotation_error_deg
-from layerwatch.config import load_config
+from layerwatch.pipeline.config import load_config
 
 from layerwatch.cli import main
 from layerwatch.errors import ConfigError
