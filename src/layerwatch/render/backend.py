@@ -127,10 +127,8 @@ def render_layers(
                 progress(done, total)
             yield hit
         todo = missing
-
-    def finish(results):
-        nonlocal done
-        for r in results:
+    for batch in _render_batches(toolpath, topview, settings, todo, workers, scheduler, chunk):
+        for r in batch:
             if cache is not None:
                 cache.misses += 1
                 cache.put(keys[r.layer], r)
@@ -139,28 +137,26 @@ def render_layers(
                 progress(done, total)
             yield r
 
+
+def _render_batches(toolpath: Toolpath, topview: TopView, settings: RenderSettings, todo: list[int],
+                    workers: int | None, scheduler: str | None, chunk: int) -> Iterator[list[Rendered]]:
+    """Render the layers ``todo``: on a Dask cluster, in worker processes, or here; lists in completion order."""
     if not todo:
         return
     if scheduler is not None:
-        yield from _finish_all(_dask_map(toolpath, topview, settings, _chunks(todo, chunk), scheduler), finish)
+        yield from _dask_map(toolpath, topview, settings, _chunks(todo, chunk), scheduler)
         return
     nw = (os.cpu_count() or 1) if workers is None else max(1, int(workers))
     if nw == 1 or len(todo) <= chunk:
         sr = StackRenderer(toolpath, topview, settings) if settings.backend == "fast" else None
         for i in todo:
-            r = sr.render(i) if sr is not None else render_reference(toolpath, i, topview, settings)
-            yield from finish([r])
+            yield [sr.render(i) if sr is not None else render_reference(toolpath, i, topview, settings)]
         return
     size = max(1, min(chunk, -(-len(todo) // nw)))
     with ProcessPoolExecutor(max_workers=nw) as ex:
         futs = [ex.submit(_render_chunk, toolpath, topview, settings, c) for c in _chunks(todo, size)]
         for f in as_completed(futs):
-            yield from finish(f.result())
-
-
-def _finish_all(batches, finish):
-    for batch in batches:
-        yield from finish(batch)
+            yield f.result()
 
 
 def _dask_map(toolpath, topview, settings, chunks, scheduler: str):
