@@ -18,7 +18,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from matplotlib import colormaps
 from scipy import ndimage
 
 from layerwatch.analysis.result import BlockGrid, LayerResult
@@ -35,6 +34,8 @@ _REGION_RGB = (255, 0, 255)
 
 def _colormap(values: np.ndarray) -> np.ndarray:
     """Map values in [0, 1] to RGB uint8 with matplotlib's colormap (no pyplot)."""
+    from matplotlib import colormaps  # matplotlib takes ~0.3 s to import; only heatmaps need it
+
     rgba = colormaps[_CMAP](np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0), bytes=True)
     return rgba[..., :3]
 

@@ -46,7 +46,9 @@ from __future__ import annotations
 
 import time
 
+import cv2
 import numpy as np
+from scipy import ndimage
 
 from layerwatch.analysis.hog import hog_blocks
 from layerwatch.analysis.metrics import similarity, similarity_all
@@ -159,8 +161,6 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
     h_top, h_ref : ndarray, shape (N, M, k), float32
         ``k = block_cells**2 * bins`` (36 for the paper's parameters).
     """
-    import cv2
-
     g_top, g_ref = to_grey255(top, "photo top view"), to_grey255(reference, "reference")
     if settings.presmooth_px > 0:
         sig = float(settings.presmooth_px)
@@ -259,8 +259,6 @@ def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
     -------
     ndarray, shape (N, M), bool
     """
-    from scipy import ndimage
-
     allowed = loose | seeds
     labels, n = ndimage.label(allowed, structure=np.ones((3, 3), dtype=bool))
     if n == 0:
@@ -280,8 +278,6 @@ def _mask(arr, shape, name) -> np.ndarray:
 
 def _integral(mask: np.ndarray) -> np.ndarray:
     """Summed-area table of a bool mask, shape (H+1, W+1), int32 (TopView caps H*W at 64e6)."""
-    import cv2
-
     return cv2.integral(mask.view(np.uint8))
 
 
@@ -294,8 +290,6 @@ def _box_sums(integ: np.ndarray, r0: np.ndarray, c0: np.ndarray, size: int) -> n
 
 def _near_blocks(cell_counts: np.ndarray, block_cells: int, margin_cells: float) -> np.ndarray:
     """Blocks with a cell whose centre is within ``margin_cells`` of a footprint cell."""
-    from scipy import ndimage
-
     occ = cell_counts > 0
     if not occ.any():
         return np.zeros((occ.shape[0] - block_cells + 1, occ.shape[1] - block_cells + 1), bool)
@@ -311,8 +305,6 @@ def _near_blocks(cell_counts: np.ndarray, block_cells: int, margin_cells: float)
 
 def _regions(anom, heat, foot_frac, grid, topview) -> tuple[np.ndarray, list[Region]]:
     """Label anomalous blocks; drop small groups; describe the rest in bed mm."""
-    from scipy import ndimage
-
     c, b, min_blocks = grid["cell_px"], grid["block_cells"], grid["min_region_blocks"]
     labels, n = ndimage.label(anom, structure=np.ones((3, 3), dtype=bool))
     if n == 0:

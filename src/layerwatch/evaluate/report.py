@@ -118,19 +118,41 @@ def _rate_row(target: str, count: int, n: int, detail: str, bound_digits: int = 
     return f"| {target} | <= 1 | {rate:.1f} ({detail}; 95 % upper bound {up:.{bound_digits}f}) | {met} |"
 
 
-def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes: list[str] | None = None,
-                 clean_run: dict | None = None, configured: dict | None = None) -> Path:
-    """Write ``report.md`` and the charts into ``out``; returns the report path.
+#: the report's fixed sections: definitions of the figures and what limits them
+_DEFINITIONS_AND_LIMITS = ["", "## Definitions", "",
+      "- **a%** (eq. 5): anomalous block area over the printed area of the layer, blocks below T_S counted "
+      "(considered blocks: footprint plus `footprint_margin_mm`, seen by the camera).",
+      "- **AUROC**: Mann-Whitney U / (P N) of a% between layers with the failure present and clean layers "
+      "(clean prints and the layer before each onset); own rank implementation, tested against brute-force "
+      "pair counting.",
+      "- **Discriminative power (DP)**, our reading of the paper's Fig. 14: mean a% on failed layers minus "
+      "mean a% on clean layers, percentage points (higher = better separated).",
+      "- **IoU**: pixels of the anomalous blocks' tiles vs the simulator's failed region (`truth_area`), "
+      "on failed layers with a failure of size >= 5 mm, averaged per type.",
+      "- **False alarms**: clean layers whose a% exceeds the pause ratio, per 1000 clean layers "
+      "(Clopper-Pearson one-sided 95 % bound given too).", "",
+      "## What limits the figures", "",
+      "- **a% dilutes local defects.** An infill patch of 5-12 mm or a thin-wall gap covers a few % of a "
+      "large layer, about as much as the clean-layer noise; its blocks are found (see the overlays) but the "
+      "layer score barely moves. The largest-region AUROC table above measures a score without that dilution.",
+      "- **Clean layers are not clean in HOG space.** Only the reported share of printed-area blocks of clean "
+      "layers reaches cosine > 0.7 (target 95 %): the camera sees the part at 45 deg, so walls below the top "
+      "layer and lower surfaces seen through holes are misregistered in the top view of the top layer's plane "
+      "(parallax), the simulated bead noise/lighting differs from the reference renderer by design, and bead-scale "
+      "texture is at the resolution limit of a 1280x720 camera. The operating points therefore use low T_S "
+      "(only strongly dissimilar blocks count), which costs localisation (IoU) because a failed region's "
+      "weaker blocks are not counted.",
+      "- **False alarms**: the pause ratio is set above every clean layer of the scored sample, whose ~300 clean "
+      "layers can only bound the rate at ~9 per 1000 (95 %); `--clean-layers N` adds whole clean prints and "
+      "counts single layers above the ratio, the policy's notices and its pauses separately. Showing <= 1 per "
+      "1000 at 95 % needs about 3000 clean layers with no event of that kind.",
+      "- **Layer shifts** are drawn 1.5-5 mm, so few reach the 5 mm IoU class (n/a = none in the sample).",
+      "- The simulator is ours, so these are figures on simulated photos only; no labelled real photos exist.",
+      ""]
 
-    ``clean_run`` is the output of :func:`~layerwatch.evaluate.harness.clean_false_alarms`
-    (whole clean prints under the configured setting, named by its ``"setting"`` key),
-    reported with the targets;
-    ``configured`` that of :func:`~layerwatch.evaluate.summary.at_setting` for the
-    setting the job would run with (its own section).
-    """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = _charts(s, out)
+
+def _header(s: Summary, setup: dict, seconds: float) -> list[str]:
+    """Title, set-up line, layer counts and the recommendation."""
     r, j = s.rec_metric, s.rec_t
     names = s.metrics
     L = ["# Evaluation of the twelve HOG similarity measures on simulated prints", ""]
@@ -144,7 +166,13 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
           "- chosen as the (measure, T_S) pair with the highest mean detection rate over the failure types at a "
           "pause ratio of 1.1 x the highest a% seen on any clean layer (so the sample has no false alarm); "
           "ties broken by worst-type AUROC.", ""]
-    L += ["## Targets", "", "| target | goal | measured (recommended setting) | met |", "|---|---|---|---|"]
+    return L
+
+
+def _targets(s: Summary, clean_run: dict | None) -> list[str]:
+    """The targets table (recommended setting, and the whole clean prints when run)."""
+    r, j = s.rec_metric, s.rec_t
+    L = ["## Targets", "", "| target | goal | measured (recommended setting) | met |", "|---|---|---|---|"]
     aucs = s.auc[r, :, j]
     ious = s.iou[r]
     L.append(f"| AUROC per type | >= 0.95 | min {np.nanmin(aucs):.3f} ({', '.join(f'{t} {a:.2f}' for t, a in zip(s.types, aucs, strict=True))}) "
@@ -175,6 +203,12 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
              f"| {'yes' if s.clean_block_share >= 0.95 else 'no'} |")
     L += ["", "Detection at the recommended pause ratio (share of failed layers above it): "
           + ", ".join(f"{t} {100 * v:.0f} %" for t, v in zip(s.types, s.tpr[r], strict=True)) + ".", ""]
+    return L
+
+
+def _configured(configured: dict | None) -> list[str]:
+    """The configured setting's own section (empty without it)."""
+    L: list[str] = []
     if configured:
         c = configured
         L += ["## The configured setting on this sample", "",
@@ -186,7 +220,13 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
         for t, (n, auc_t, det_t, iou_t) in c["types"].items():
             L.append(f"| {t} | {n} | {_fmt(auc_t)} | {100 * det_t:.0f} % | {_fmt(iou_t)} |")
         L.append("")
-    L += ["## Per measure (each at its own best T_S)", "",
+    return L
+
+
+def _per_measure(s: Summary) -> list[str]:
+    """The per-measure tables: AUROC, by depth and surface, largest region, a% and DP, IoU, pause ratios."""
+    names = s.metrics
+    L = ["## Per measure (each at its own best T_S)", "",
           "| measure | T_S | mean a% clean | " + " | ".join(f"AUROC {t}" for t in s.types) + " | min AUROC |",
           "|---|---:|---:|" + "---:|" * (len(s.types) + 1)]
     for m, n in enumerate(names):
@@ -232,36 +272,24 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     for m, n in enumerate(names):
         L.append(f"| {n} | {100 * s.pause_ratio[m]:.1f} | "
                  f"{s.fa_rate[m]:.1f} | " + " | ".join(_fmt(v) for v in s.tpr[m]) + " |")
-    L += ["", "## Definitions", "",
-          "- **a%** (eq. 5): anomalous block area over the printed area of the layer, blocks below T_S counted "
-          "(considered blocks: footprint plus `footprint_margin_mm`, seen by the camera).",
-          "- **AUROC**: Mann-Whitney U / (P N) of a% between layers with the failure present and clean layers "
-          "(clean prints and the layer before each onset); own rank implementation, tested against brute-force "
-          "pair counting.",
-          "- **Discriminative power (DP)**, our reading of the paper's Fig. 14: mean a% on failed layers minus "
-          "mean a% on clean layers, percentage points (higher = better separated).",
-          "- **IoU**: pixels of the anomalous blocks' tiles vs the simulator's failed region (`truth_area`), "
-          "on failed layers with a failure of size >= 5 mm, averaged per type.",
-          "- **False alarms**: clean layers whose a% exceeds the pause ratio, per 1000 clean layers "
-          "(Clopper-Pearson one-sided 95 % bound given too).", ""]
-    L += ["## What limits the figures", "",
-          "- **a% dilutes local defects.** An infill patch of 5-12 mm or a thin-wall gap covers a few % of a "
-          "large layer, about as much as the clean-layer noise; its blocks are found (see the overlays) but the "
-          "layer score barely moves. The largest-region AUROC table above measures a score without that dilution.",
-          "- **Clean layers are not clean in HOG space.** Only the reported share of printed-area blocks of clean "
-          "layers reaches cosine > 0.7 (target 95 %): the camera sees the part at 45 deg, so walls below the top "
-          "layer and lower surfaces seen through holes are misregistered in the top view of the top layer's plane "
-          "(parallax), the simulated bead noise/lighting differs from the reference renderer by design, and bead-scale "
-          "texture is at the resolution limit of a 1280x720 camera. The operating points therefore use low T_S "
-          "(only strongly dissimilar blocks count), which costs localisation (IoU) because a failed region's "
-          "weaker blocks are not counted.",
-          "- **False alarms**: the pause ratio is set above every clean layer of the scored sample, whose ~300 clean "
-          "layers can only bound the rate at ~9 per 1000 (95 %); `--clean-layers N` adds whole clean prints and "
-          "counts single layers above the ratio, the policy's notices and its pauses separately. Showing <= 1 per "
-          "1000 at 95 % needs about 3000 clean layers with no event of that kind.",
-          "- **Layer shifts** are drawn 1.5-5 mm, so few reach the 5 mm IoU class (n/a = none in the sample).",
-          "- The simulator is ours, so these are figures on simulated photos only; no labelled real photos exist.",
-          ""]
+    return L
+
+
+def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes: list[str] | None = None,
+                 clean_run: dict | None = None, configured: dict | None = None) -> Path:
+    """Write ``report.md`` and the charts into ``out``; returns the report path.
+
+    ``clean_run`` is the output of :func:`~layerwatch.evaluate.harness.clean_false_alarms`
+    (whole clean prints under the configured setting, named by its ``"setting"`` key),
+    reported with the targets;
+    ``configured`` that of :func:`~layerwatch.evaluate.summary.at_setting` for the
+    setting the job would run with (its own section).
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = _charts(s, out)
+    L = _header(s, setup, seconds) + _targets(s, clean_run) + _configured(configured) + _per_measure(s)
+    L += _DEFINITIONS_AND_LIMITS
     L += ["## Charts", ""] + [f"![{f}]({f})" for f in files] + [""]
     L += ["## Set-up", "", "```", *(f"{k}: {v}" for k, v in setup.items()), "```", ""]
     if notes:

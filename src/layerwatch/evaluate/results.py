@@ -20,9 +20,12 @@ import json
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
+from layerwatch.geometry.stack import layer_stack
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["ResultsFolder"]
@@ -72,10 +75,6 @@ class ResultsFolder:
         ``tops/``, ``refs/`` and ``masks/`` hold what the comparison read, so
         ``layerwatch compare tops/X.png refs/X.png --mask masks/X.png`` re-runs one layer.
         """
-        import cv2
-
-        from layerwatch.analysis.overlay import overlay_image
-
         name = self._name(result.layer)
         if top is not None:
             ok, buf = cv2.imencode(".png", top)
@@ -104,10 +103,6 @@ class ResultsFolder:
 
     def stack(self, size: int = 220) -> Path | None:
         """Draw ``stack.png`` from the stored top views (None when there are none)."""
-        import cv2
-
-        from layerwatch.geometry.stack import layer_stack
-
         tops = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((self.root / "tops").glob("layer_*.png"))]
         tops = [t for t in tops if t is not None]
         if not tops:

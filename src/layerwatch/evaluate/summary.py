@@ -60,6 +60,40 @@ class Summary:
     auc_surface: dict = field(default_factory=dict)  # recommended setting: {type: [(surface under the failure, n layers, AUROC), ...]}
 
 
+def _auc_region(recs: list, kinds: np.ndarray, types: tuple[str, ...], best_t: np.ndarray) -> np.ndarray:
+    """(M, K) AUROC with the largest anomalous region (mm^2) as the layer score, each measure at its best T_S."""
+    auc_region = np.full((len(best_t), len(types)), np.nan)
+    if recs and all(r.region is not None for r in recs):
+        G = np.stack([r.region for r in recs])
+        clean = kinds == "clean"
+        for m in range(len(best_t)):
+            for k, t in enumerate(types):
+                auc_region[m, k] = roc_auc(G[kinds == t, m, best_t[m]], G[clean, m, best_t[m]])
+    return auc_region
+
+
+def _auc_breakdowns(recs: list, a: np.ndarray, kinds: np.ndarray, types: tuple[str, ...]) -> tuple[dict, dict]:
+    """AUROC of one setting's a% (``a``, one per record) by layers since the onset and by the surface under the failure.
+
+    Returns ``({type: [(depth, n, auroc)]}, {type: [(surface, n, auroc)]})`` against all clean layers.
+    """
+    clean = kinds == "clean"
+    since = np.array([r.since_onset for r in recs])
+    auc_since: dict = {}
+    for t in types:
+        rows = []
+        for d in sorted(set(since[kinds == t].tolist())):
+            sel = (kinds == t) & (since == d)
+            rows.append((int(d), int(sel.sum()), roc_auc(a[sel], a[clean])))
+        auc_since[t] = rows
+    surf = np.array([r.surface for r in recs])
+    auc_surface: dict = {}
+    for t in types:
+        auc_surface[t] = [(c, int(((kinds == t) & (surf == c)).sum()), roc_auc(a[(kinds == t) & (surf == c)], a[clean]))
+                          for c in ("solid", "sparse", "walls", "none") if ((kinds == t) & (surf == c)).any()]
+    return auc_since, auc_surface
+
+
 def summarize(data: EvalData) -> Summary:
     """Compute every figure of the report from the records."""
     from layerwatch.simulate import FAILURE_TYPES
@@ -117,12 +151,7 @@ def summarize(data: EvalData) -> Summary:
     order = np.lexsort((-np.array([worst[m, best_t[m]] for m in range(M)]),
                         -np.array([det[m, best_t[m]] for m in range(M)])))
     rec = int(order[0]) if M else 0
-    auc_region = np.full((M, K), np.nan)
-    if recs and all(r.region is not None for r in recs):
-        G = np.stack([r.region for r in recs])
-        for m in range(M):
-            for k, t in enumerate(types):
-                auc_region[m, k] = roc_auc(G[kinds == t, m, best_t[m]], G[clean, m, best_t[m]])
+    auc_region = _auc_region(recs, kinds, types, best_t)
     n_clean = int(clean.sum())
     fa_upper = false_alarm_rate(0, n_clean)[1] if n_clean else float("nan")
     hi = sum(r.clean_high[0] for r in recs if r.kind == "clean")
@@ -132,20 +161,7 @@ def summarize(data: EvalData) -> Summary:
     scores = {"clean": A[clean, rec, jr]}
     for t in types:
         scores[t] = A[kinds == t, rec, jr]
-    since = np.array([r.since_onset for r in recs])
-    auc_since: dict = {}
-    for t in types:
-        rows = []
-        for d in sorted(set(since[kinds == t].tolist())):
-            sel = (kinds == t) & (since == d)
-            rows.append((int(d), int(sel.sum()), roc_auc(A[sel, rec, jr], A[clean, rec, jr])))
-        auc_since[t] = rows
-    surf = np.array([r.surface for r in recs])
-    auc_surface: dict = {}
-    for t in types:
-        auc_surface[t] = [(c, int(((kinds == t) & (surf == c)).sum()),
-                           roc_auc(A[(kinds == t) & (surf == c), rec, jr], A[clean, rec, jr]))
-                          for c in ("solid", "sparse", "walls", "none") if ((kinds == t) & (surf == c)).any()]
+    auc_since, auc_surface = _auc_breakdowns(recs, A[:, rec, jr], kinds, types)
     return Summary(
         metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
         n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,

@@ -10,13 +10,15 @@ already rendered.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from layerwatch.errors import require
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
-from layerwatch.render.fast import Rendered, StackRenderer
+from layerwatch.render.fast import Rendered, StackRenderer, render_layer
 from layerwatch.render.settings import RenderSettings
 
 __all__ = ["render_cached", "render_reference", "render_layers"]
@@ -28,17 +30,17 @@ def render_reference(
     """Reference of layer ``index`` with the backend named in ``settings.backend``."""
     settings = settings or RenderSettings()
     if settings.backend == "blender":
+        # optional backend (drives the blender executable): loaded only when asked for
         from layerwatch.render.blender import render_layer_blender
 
         return render_layer_blender(toolpath, index, topview, settings)
-    from layerwatch.render.fast import render_layer
-
     return render_layer(toolpath, index, topview, settings)
 
 
 def _render_chunk(toolpath: Toolpath, topview: TopView, settings: RenderSettings, layers: list[int]):
     """Worker: render consecutive layers, one height map for the chunk."""
     if settings.backend == "blender":
+        # optional backend (drives the blender executable): loaded only when asked for
         from layerwatch.render.blender import render_layer_blender
 
         return [render_layer_blender(toolpath, i, topview, settings) for i in layers]
@@ -105,8 +107,6 @@ def render_layers(
     Rendered
         One per layer, in completion order (``.layer`` says which).
     """
-    import os
-
     settings = settings or RenderSettings()
     n = toolpath.n_layers
     todo = sorted({int(i) % n for i in (range(n) if layers is None else layers)}) if n else []
@@ -127,10 +127,8 @@ def render_layers(
                 progress(done, total)
             yield hit
         todo = missing
-
-    def finish(results):
-        nonlocal done
-        for r in results:
+    for batch in _render_batches(toolpath, topview, settings, todo, workers, scheduler, chunk):
+        for r in batch:
             if cache is not None:
                 cache.misses += 1
                 cache.put(keys[r.layer], r)
@@ -139,30 +137,26 @@ def render_layers(
                 progress(done, total)
             yield r
 
+
+def _render_batches(toolpath: Toolpath, topview: TopView, settings: RenderSettings, todo: list[int],
+                    workers: int | None, scheduler: str | None, chunk: int) -> Iterator[list[Rendered]]:
+    """Render the layers ``todo``: on a Dask cluster, in worker processes, or here; lists in completion order."""
     if not todo:
         return
     if scheduler is not None:
-        yield from _finish_all(_dask_map(toolpath, topview, settings, _chunks(todo, chunk), scheduler), finish)
+        yield from _dask_map(toolpath, topview, settings, _chunks(todo, chunk), scheduler)
         return
     nw = (os.cpu_count() or 1) if workers is None else max(1, int(workers))
     if nw == 1 or len(todo) <= chunk:
         sr = StackRenderer(toolpath, topview, settings) if settings.backend == "fast" else None
         for i in todo:
-            r = sr.render(i) if sr is not None else render_reference(toolpath, i, topview, settings)
-            yield from finish([r])
+            yield [sr.render(i) if sr is not None else render_reference(toolpath, i, topview, settings)]
         return
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
     size = max(1, min(chunk, -(-len(todo) // nw)))
     with ProcessPoolExecutor(max_workers=nw) as ex:
         futs = [ex.submit(_render_chunk, toolpath, topview, settings, c) for c in _chunks(todo, size)]
         for f in as_completed(futs):
-            yield from finish(f.result())
-
-
-def _finish_all(batches, finish):
-    for batch in batches:
-        yield from finish(batch)
+            yield f.result()
 
 
 def _dask_map(toolpath, topview, settings, chunks, scheduler: str):
