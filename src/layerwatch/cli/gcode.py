@@ -81,39 +81,41 @@ def _has_moves(file: Path, limit: int = 1 << 20) -> bool:
 def prepare(
     file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Input .gcode file.")],
     output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Where to write the new G-code.")],
-    profile: Annotated[str, typer.Option("--profile", "-p", help="|".join(_PROFILES))] = "octoprint",
-    every: Annotated[int, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer.")] = 1,
-    lift: Annotated[float, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm.")] = 5.0,
-    retract: Annotated[float, typer.Option("--retract", parser=Finite(0, 20, unit="mm"), help="Retraction before parking, mm.")] = 1.0,
+    profile: Annotated[str | None, typer.Option("--profile", "-p", help="|".join(_PROFILES) + " (default octoprint).")] = None,
+    every: Annotated[int | None, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer (default 1).")] = None,
+    lift: Annotated[float | None, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm (default 5).")] = None,
+    retract: Annotated[float | None, typer.Option("--retract", parser=Finite(0, 20, unit="mm"), help="Retraction before parking, mm (default 1).")] = None,
     park: Annotated[str, typer.Option("--park", help="Park 'X,Y' in mm (default: back corner).")] = "",
     volume: Annotated[str, typer.Option("--volume", help="Printer volume 'X,Y,Z' max, mm.")] = "",
+    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([snapshot], [printer]); the options above win over it.")] = None,
 ) -> None:
     """Insert a snapshot block (paper Table 1) after every (Nth) layer."""
     from layerwatch.cli import console
     from layerwatch.errors import ConfigError, GcodeError
     from layerwatch.gcode.postprocess import insert_snapshots
     from layerwatch.gcode.reader import load_bytes
-    from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
+    from layerwatch.pipeline.config import resolve_config
 
-    if profile not in _PROFILES:
+    if profile is not None and profile not in _PROFILES:
         raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
     park_xy = numbers(park, 2, "--park", Finite(unit="mm"), "200,200")
     vol = numbers(volume, 3, "--volume", Finite(0, 10_000, lo_open=True, unit="mm"), "220,220,250")
-    printer = PrinterProfile() if vol is None else PrinterProfile(volume_max_mm=vol)
-    snap = SnapshotSettings(
-        profile=profile, every_n_layers=every, lift_mm=lift, retract_mm=retract, park_xy_mm=park_xy
-    )
+    given = {"profile": profile, "every_n_layers": every, "lift_mm": lift, "retract_mm": retract, "park_xy_mm": park_xy}
+    flags = {"snapshot": {k: v for k, v in given.items() if v is not None}}
+    if vol is not None:
+        flags["printer"] = {"volume_max_mm": vol}
+    cfg = resolve_config(config, flags=flags).config
     data, _name = load_bytes(file)
-    out = insert_snapshots(data, snap, printer)
+    out = insert_snapshots(data, cfg.snapshot, cfg.printer)
     if b"; layerwatch snapshot block end" not in out:
-        raise GcodeError(f"{file}: no layer to put a snapshot after (--every {every}); pass the G-code your slicer exported.")
+        raise GcodeError(f"{file}: no layer to put a snapshot after (--every {cfg.snapshot.every_n_layers}); pass the G-code your slicer exported.")
     try:
         output.write_bytes(out)
     except OSError as exc:
         raise GcodeError(f"{output}: cannot write ({exc.strerror}); choose another -o path.") from exc
     n = out.count(b"; layerwatch snapshot block end")
-    console.print(f"wrote {output} with {n} snapshot block(s), profile {profile}")
-    if profile == "klipper":
+    console.print(f"wrote {output} with {n} snapshot block(s), profile {cfg.snapshot.profile}")
+    if cfg.snapshot.profile == "klipper":
         console.print("Klipper: add the LAYERWATCH_SNAPSHOT macro (layerwatch.gcode.postprocess.KLIPPER_MACRO).")
 
 

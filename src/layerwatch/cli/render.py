@@ -80,7 +80,7 @@ def render(
 
     from layerwatch.cli import console
     from layerwatch.errors import ConfigError, GcodeError, RenderError
-    from layerwatch.pipeline.config import load_config
+    from layerwatch.pipeline.config import resolve_config
     from layerwatch.render.backend import render_layers
     from layerwatch.render.cache import ReferenceCache, file_hash
     from layerwatch.render.mask import gcode_mask
@@ -89,8 +89,8 @@ def render(
         raise GcodeError(f"G-code file {file} not found; check the path.")
     if backend not in (None, "fast", "blender"):
         raise ConfigError(f"unknown --backend {backend!r}; use fast or blender.")
-    cfg = load_config(config)
-    settings = cfg.render if backend is None else cfg.render.model_copy(update={"backend": backend})
+    cfg = resolve_config(config, flags={"render": {"backend": backend}} if backend else None).config
+    settings = cfg.render
     if settings.backend == "blender":
         from layerwatch.render.blender import find_blender
 
