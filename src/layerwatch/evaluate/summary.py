@@ -20,6 +20,7 @@ import numpy as np
 
 from layerwatch.evaluate.harness import EvalData
 from layerwatch.evaluate.stats import discriminative_power, false_alarm_rate, roc_auc
+from layerwatch.simulate import FAILURE_TYPES
 
 __all__ = ["IOU_MIN_SIZE_MM", "Summary", "at_setting", "summarize"]
 
@@ -96,8 +97,6 @@ def _auc_breakdowns(recs: list, a: np.ndarray, kinds: np.ndarray, types: tuple[s
 
 def summarize(data: EvalData) -> Summary:
     """Compute every figure of the report from the records."""
-    from layerwatch.simulate import FAILURE_TYPES
-
     recs = data.records
     metrics, T = data.metrics, data.thresholds
     A = np.stack([r.a for r in recs]) if recs else np.zeros((0, len(metrics), len(T)))
@@ -199,8 +198,6 @@ def at_setting(data: EvalData, metric: str, threshold: float, pause_ratio: float
         AUROC, share above the pause ratio, mean IoU of failures >= 5 mm or nan)}`` under ``types``;
         None when the measure or T_S was not scored.
     """
-    from layerwatch.simulate import FAILURE_TYPES
-
     if metric not in data.metrics or not data.records:
         return None
     hit = np.flatnonzero(np.isclose(data.thresholds, threshold))
