@@ -15,6 +15,7 @@ Clopper-Pearson bound on the false-alarm rate the sample size allows.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -141,12 +142,12 @@ def summarize(data: EvalData) -> Summary:
             tpr[m, k] = (f > pause[m]).mean()
             sel = (kinds == t) & big
             if sel.any():
-                per_t = np.mean([recs[i].iou[m] for i in np.flatnonzero(sel)], axis=0)
+                per_t = np.mean([cast(np.ndarray, recs[i].iou)[m] for i in np.flatnonzero(sel)], axis=0)
                 iou[m, k] = float(per_t[j])
                 iou_best[m, k] = float(per_t.max())
             sel = (kinds == t) & np.array([r.iou is not None for r in recs])
             if sel.any():
-                iou_all[m, k] = float(np.mean([recs[i].iou[m, j] for i in np.flatnonzero(sel)]))
+                iou_all[m, k] = float(np.mean([cast(np.ndarray, recs[i].iou)[m, j] for i in np.flatnonzero(sel)]))
     order = np.lexsort((-np.array([worst[m, best_t[m]] for m in range(M)]),
                         -np.array([det[m, best_t[m]] for m in range(M)])))
     rec = int(order[0]) if M else 0

@@ -164,7 +164,7 @@ class LayerPipeline:
 
     def _render(self, index: int):
         c = self.view_center_mm
-        if self._cache is None:
+        if self._cache is None or self._hash is None:
             return self.renderer.render(index, c)
         kind = "ref" if c is None else "cam:" + ",".join(f"{v:.3f}" for v in c)
         key = self._cache.key(self._hash, self.config.render, self.topview, index, kind=kind)
