@@ -285,7 +285,7 @@ def _load(browser, url: str, job: int, n_layers: int, layers_route: str | None) 
         page = ctx.new_page()
         t0 = time.perf_counter()
         page.goto(f"{url}/#job={job}")
-        page.wait_for_function("window.__lw && window.__lw.drawn", polling="raf", timeout=60_000)
+        page.wait_for_function("() => window.__lw && window.__lw.drawn", polling="raf", timeout=60_000)  # a function: the CSP forbids eval
         wall = 1e3 * (time.perf_counter() - t0)
         got = page.evaluate("window.__lw")
         api = page.evaluate("performance.getEntriesByType('resource').filter(e => /\\/layers/.test(e.name))"

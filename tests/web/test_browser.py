@@ -76,7 +76,8 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             page.wait_for_selector("#threshold-line", state="attached")
             assert "first failing layer" in page.inner_text("#job-meta")
             for sel in ("#img-top", "#img-reference", "#img-overlay", "#img-stack"):
-                page.wait_for_function(f"document.querySelector('{sel}').naturalWidth > 0")
+                # a function, not an expression string: Playwright evals strings, which the page's CSP forbids
+                page.wait_for_function(f"() => document.querySelector('{sel}').naturalWidth > 0")
             state = page.locator(".printer .state")
             assert state.inner_text() == "printing"
 
@@ -99,7 +100,7 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             phone = browser.new_page(viewport={"width": 390, "height": 844}, device_scale_factor=2, is_mobile=True)
             phone.goto(url + "/")
             phone.wait_for_selector("body[data-ready='1']")
-            phone.wait_for_function("document.querySelector('#img-overlay').naturalWidth > 0")
+            phone.wait_for_function("() => document.querySelector('#img-overlay').naturalWidth > 0")
             width = phone.evaluate("document.documentElement.scrollWidth")
             assert width <= 390, "the page must not scroll sideways on a phone"
             phone.screenshot(path=str(shots / "dashboard-phone.png"), full_page=True)
