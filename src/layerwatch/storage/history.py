@@ -17,6 +17,7 @@ transaction. The schema version lives in ``PRAGMA user_version`` and the
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sqlite3
 import threading
@@ -30,6 +31,8 @@ from layerwatch.errors import StorageError
 from layerwatch.storage.owner import is_gone, this_process
 
 __all__ = ["History", "MIGRATIONS", "SCHEMA_VERSION"]
+
+log = logging.getLogger("layerwatch.storage")
 
 MIGRATIONS: list[str] = [
     # version 1
@@ -111,24 +114,30 @@ PRIVATE = 0o600  # mode of the database, its WAL/SHM files and the dashboard tok
 
 
 def _make_private(path: Path) -> None:
-    """Create ``path`` (and its folder, 0700) if missing and set it to mode 0600 whatever the umask.
+    """Create ``path`` (and its folder, 0700) with mode 0600 whatever the umask; tighten our wider files.
 
     SQLite gives the ``-wal``, ``-shm`` and ``-journal`` files it creates the
     database file's mode, so making the database 0600 before SQLite opens it
-    makes them 0600 as well; existing ones (from an older layerwatch) are
-    tightened too.
+    makes them 0600 as well; existing ones (from an older layerwatch) that
+    others could read are set to 0600 too.
     """
     if not path.parent.exists():
         path.parent.mkdir(parents=True, mode=0o700)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, PRIVATE)
-    try:
-        if os.fstat(fd).st_uid == os.getuid():
+    if not path.exists():
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, PRIVATE)
+        except FileExistsError:  # another process created it just now
+            pass
+        else:
             os.fchmod(fd, PRIVATE)
-    finally:
-        os.close(fd)
-    for suffix in ("-wal", "-shm", "-journal"):
-        side = path.with_name(path.name + suffix)
-        if side.exists() and side.stat().st_uid == os.getuid():
+            os.close(fd)
+    for name in ("", "-wal", "-shm", "-journal"):
+        side = path.with_name(path.name + name)
+        try:
+            st = side.stat()
+        except FileNotFoundError:
+            continue
+        if st.st_uid == os.getuid() and st.st_mode & 0o077:
             os.chmod(side, PRIVATE)
 
 
@@ -182,7 +191,11 @@ class History:
         except OSError as exc:
             raise StorageError(f"cannot create history database {where}: {exc.strerror}; "
                                "check the folder exists and is writable.") from None
-        self.interrupted = self.mark_interrupted()
+        try:
+            self.interrupted = self.mark_interrupted()
+        except StorageError as exc:  # e.g. a read-only copy: reading still works
+            log.warning("could not mark interrupted jobs: %s", exc)
+            self.interrupted = []
 
     # -- plumbing -----------------------------------------------------------------
     def _migrate(self) -> None:
