@@ -295,6 +295,7 @@ def test_no_response_of_any_route_carries_a_secret(seeded, tmp_path):
                "printer": {"api_key": "SECRET3"}, "printer_url": "octoprint://10.0.0.2:5000?key=SECRET4"}
     job = h.start_job("octo", "part.gcode", config=planted)
     h.add_event(job, "notification", "sent", {"url": "ntfy://SECRET5", "token": "SECRET6"})
+    h.add_event(job, "error", "webhook https://hooks.example/SECRET10?k=1 failed (timeout)")
     h.set_setting(SETTINGS_KEY, {"notify": {"apprise_urls": ["mailto://u:SECRET7@x"]}})
 
     class Keyed:

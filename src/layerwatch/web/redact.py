@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from typing import Any
 
 from fastapi.responses import JSONResponse
@@ -19,6 +20,7 @@ __all__ = ["redact", "keep_secrets", "jsonable", "RedactedJSON", "HIDDEN"]
 HIDDEN = "***"
 _SECRET_KEYS = ("key", "token", "password", "passwd", "secret", "credential", "auth")
 _URL_KEYS = ("_url", "_urls", "url", "urls")
+_URL = re.compile(r"\b([a-zA-Z][a-zA-Z0-9+.-]*)://[^\s\"'<>]+")  # a URL in free text (event messages)
 
 
 def _hide_url(url: Any) -> Any:
@@ -35,9 +37,10 @@ def redact(value: Any) -> Any:
 
     Values of keys that name a secret (``api_key``, ``token``, ``password``,
     ...) become ``"***"``; values of URL keys (``webhook_url``,
-    ``apprise_urls``) keep only their scheme (``"tgram://***"``); strings
-    that hold an ``octoprint://`` or ``moonraker://`` URL with a ``key=``
-    query lose the query. Lists and dicts are walked recursively.
+    ``apprise_urls``) keep only their scheme (``"tgram://***"``), and so do
+    URLs inside any other string (an event message naming a webhook, an
+    ``octoprint://host?key=...`` printer spec). Lists and dicts are walked
+    recursively.
     """
     if isinstance(value, dict):
         out = {}
@@ -52,8 +55,8 @@ def redact(value: Any) -> Any:
         return out
     if isinstance(value, list):
         return [redact(v) for v in value]
-    if isinstance(value, str) and "key=" in value and "://" in value:
-        return value.split("?", 1)[0] + f"?{HIDDEN}"
+    if isinstance(value, str) and "://" in value:
+        return _URL.sub(lambda m: f"{m.group(1)}://{HIDDEN}", value)
     return value
 
 
