@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from layerwatch.config import JobConfig
-from layerwatch.errors import LayerwatchError, StorageError, require
+from layerwatch.errors import require
 from layerwatch.storage.history import History
 from layerwatch.web.settings import MAX_BODY, SETTINGS_KEY
 from layerwatch.web.token import LOOPBACK_NAMES
@@ -49,20 +49,6 @@ def _allowed(token: str | None, allowed_hosts: Iterable[str] | None) -> frozense
         return None if token is not None else loopback
     names = {_host_name(h) for h in allowed_hosts}
     return None if "*" in names and token is not None else loopback | (names - {"*"})
-
-
-def _add_error_handlers(app: Any) -> None:
-    from fastapi import Request  # the web extra (see create_app)
-
-    from layerwatch.web.redact import RedactedJSON
-
-    @app.exception_handler(StorageError)
-    async def storage_failed(request: Request, exc: StorageError):
-        return RedactedJSON({"detail": str(exc)}, status_code=503)
-
-    @app.exception_handler(LayerwatchError)
-    async def lw_failed(request: Request, exc: LayerwatchError):
-        return RedactedJSON({"detail": str(exc)}, status_code=400)
 
 
 def create_app(
@@ -112,7 +98,7 @@ def create_app(
     from fastapi import FastAPI
     from fastapi.staticfiles import StaticFiles
 
-    from layerwatch.web.context import Dashboard
+    from layerwatch.web.context import Dashboard, add_error_handlers
     from layerwatch.web.guard import Door, Guard
     from layerwatch.web.redact import RedactedJSON
     from layerwatch.web.routes import files, jobs, pages
@@ -132,7 +118,7 @@ def create_app(
         history=history, printers=dict(printers or {}), fallback=settings,
         image_root=None if image_root is None else Path(image_root).resolve(),
         private=_private_files(history, token_file), door=door, poll_s=float(poll_s))
-    _add_error_handlers(app)
+    add_error_handlers(app)
     for module in (pages, jobs, printer_routes, settings_routes, files):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=pages.STATIC), name="static")

@@ -7,16 +7,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Request
+from fastapi import Depends, FastAPI, HTTPException, Request
 from pydantic import ValidationError
 
 from layerwatch.config import JobConfig
+from layerwatch.errors import LayerwatchError, StorageError
 from layerwatch.storage.history import History
 from layerwatch.web.guard import Door, client_of
-from layerwatch.web.redact import redact
+from layerwatch.web.redact import RedactedJSON, redact
 from layerwatch.web.settings import SETTINGS_KEY, validation_line
 
-__all__ = ["Dashboard", "Ctx", "audit", "SETTINGS_KEY"]
+__all__ = ["Dashboard", "Ctx", "audit", "add_error_handlers", "SETTINGS_KEY"]
 
 log = logging.getLogger("layerwatch.web")
 
@@ -91,3 +92,15 @@ def audit(ctx: Dashboard, request: Request, action: str, target: str | None = No
     """Record a state-changing dashboard action (redacted detail) in the history's audit log."""
     return ctx.history.add_audit(action, client_of(request.scope), actor(request), target,
                                  None if detail is None else redact(detail))
+
+
+def add_error_handlers(app: FastAPI) -> None:
+    """Storage failures answer 503, other :class:`LayerwatchError` 400, each with its one-line message."""
+
+    @app.exception_handler(StorageError)
+    async def storage_failed(request: Request, exc: StorageError) -> RedactedJSON:
+        return RedactedJSON({"detail": str(exc)}, status_code=503)
+
+    @app.exception_handler(LayerwatchError)
+    async def lw_failed(request: Request, exc: LayerwatchError) -> RedactedJSON:
+        return RedactedJSON({"detail": str(exc)}, status_code=400)
