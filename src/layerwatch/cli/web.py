@@ -67,10 +67,13 @@ def serve(
     db: DbOpt = None,
     host: Annotated[str, typer.Option("--host", help="Interface to bind; anything but loopback requires the token.")] = "127.0.0.1",
     port: Annotated[int, typer.Option("--port", parser=Finite(1, 65535, integer=True), help="TCP port to listen on.")] = 8765,
-    images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder of stored pictures (default: beside the database).")] = None,
+    images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Artifacts folder: the layers' recorded pictures under it are served, nothing else (default: beside the database).")] = None,
     virtual: Annotated[bool, typer.Option("--virtual", help="Attach a virtual printer (for trying the buttons).")] = False,
+    allowed_host: Annotated[list[str] | None, typer.Option("--allowed-host", help="Host name the dashboard answers to besides loopback names (repeatable), e.g. printer.local.")] = None,
+    ssl_certfile: Annotated[Path | None, typer.Option("--ssl-certfile", exists=True, dir_okay=False, help="Serve HTTPS with this certificate (PEM); session cookies become Secure.")] = None,
+    ssl_keyfile: Annotated[Path | None, typer.Option("--ssl-keyfile", exists=True, dir_okay=False, help="Private key of --ssl-certfile (PEM).")] = None,
 ) -> None:
-    """Serve the dashboard (FastAPI + uvicorn)."""
+    """Serve the dashboard (FastAPI + uvicorn); see docs/security.md for running it on a network."""
     from layerwatch.cli import console
     from layerwatch.errors import require
     from layerwatch.web.app import create_app
@@ -80,19 +83,24 @@ def serve(
     dbp = db or default_db()
     h = _open(dbp)
     token = None
+    token_file = dbp.with_suffix(".token")
+    scheme = "https" if ssl_certfile else "http"
     if not is_loopback(host):
-        token, created = load_or_create_token(dbp.with_suffix(".token"))
+        token, created = load_or_create_token(token_file)
         if created:
-            console.print(f"[bold yellow]access token (shown once, stored in {dbp.with_suffix('.token')}):[/] {token}")
-        console.print(f"open http://{host}:{port}/login?token=<token>")
+            console.print(f"[bold yellow]access token (shown once, stored in {token_file}):[/] {token}")
+        console.print(f"log in at {scheme}://{host}:{port}/login with the token")
     printers = {}
     if virtual:
         from layerwatch.web.virtual import virtual_printer
 
         printers["virtual"] = virtual_printer()
-    app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent)
-    console.print(f"dashboard on http://{host}:{port}/")
-    uvicorn.run(app, host=host, port=port, log_level="warning")
+    app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent,
+                     allowed_hosts=allowed_host or None, token_file=token_file)
+    console.print(f"dashboard on {scheme}://{host}:{port}/")
+    uvicorn.run(app, host=host, port=port, log_level="warning",
+                ssl_certfile=str(ssl_certfile) if ssl_certfile else None,
+                ssl_keyfile=str(ssl_keyfile) if ssl_keyfile else None)
 
 
 def register(app: typer.Typer) -> None:
