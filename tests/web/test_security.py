@@ -12,9 +12,8 @@ import warnings
 
 import pytest
 from dashclient import BASE, dashboard_client
-from layerwatch.evaluate.recommended import recommended_config
 
-from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.config import JobConfig, recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import SETTINGS_KEY, create_app
 from layerwatch.web.settings import RANGES

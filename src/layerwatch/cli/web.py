@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import os
+import ssl
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from layerwatch.cli.params import WRITE_DB, WRITE_DIR, Finite
+from layerwatch.errors import ConfigError
 
 __all__ = ["register", "default_db"]
 
@@ -63,6 +65,20 @@ def report(
     console.print(f"report written to [bold]{path}[/]")
 
 
+def _check_tls(certfile: Path | None, keyfile: Path | None) -> None:
+    """Refuse a certificate/key pair that will not load, before the server starts (one line, exit 2)."""
+    if certfile is None and keyfile is None:
+        return
+    if certfile is None:
+        raise ConfigError("--ssl-keyfile needs --ssl-certfile (the certificate it belongs to).")
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(
+            str(certfile), str(keyfile) if keyfile is not None else None)
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        raise ConfigError(f"--ssl-certfile {certfile} / --ssl-keyfile {keyfile} do not load as a PEM certificate "
+                          f"and its private key ({exc}); give the files your TLS tool wrote.") from None
+
+
 def serve(
     db: DbOpt = None,
     host: Annotated[str, typer.Option("--host", help="Interface to bind; anything but loopback requires the token.")] = "127.0.0.1",
@@ -80,6 +96,7 @@ def serve(
     from layerwatch.web.token import is_loopback, load_or_create_token
 
     uvicorn = require("uvicorn", "web", "The dashboard server")
+    _check_tls(ssl_certfile, ssl_keyfile)
     dbp = db or default_db()
     h = _open(dbp)
     token = None
