@@ -52,7 +52,7 @@ from layerwatch.gcode.bed import Bed
 
 __all__ = [
     "MARLIN", "KLIPPER", "REPRAP", "FIRMWARES", "Machine", "Violation", "check_prepared",
-    "firmware_from_gcode", "BLOCK_START", "BLOCK_END",
+    "firmware_from_gcode", "slicer_trace", "BLOCK_START", "BLOCK_END",
 ]
 
 MARLIN, KLIPPER, REPRAP = "marlin", "klipper", "reprap"
@@ -253,8 +253,8 @@ def _lines(data: bytes) -> Iterator[str]:
         yield raw.decode("latin-1").rstrip("\r")
 
 
-def _slicer_trace(data: bytes, firmware: str) -> list[tuple]:
-    """(pos, filament) after every slicer move of ``data`` outside layerwatch blocks."""
+def slicer_trace(data: bytes, firmware: str) -> list[tuple]:
+    """(x, y, z, filament) after every slicer move of ``data`` outside layerwatch blocks (machine mm)."""
     m, out, inside = Machine(firmware), [], False
     for text in _lines(data):
         st = text.strip()
@@ -281,7 +281,7 @@ class _Block:
 
 
 def check_prepared(  # noqa: C901 - one pass over the file, one rule per branch
-    prepared: bytes, firmware: str, bed: Bed, *, original: bytes | None = None,
+    prepared: bytes, firmware: str, bed: Bed, *, original: bytes | list | None = None,
     allow_tools: bool = False, allow_pins: bool = False,
 ) -> list[Violation]:
     """Every violation of the printer-safety rules in ``prepared`` under ``firmware``.
@@ -295,9 +295,9 @@ def check_prepared(  # noqa: C901 - one pass over the file, one rule per branch
         The bed every emitted move must stay on (XY inside the outline, Z up to
         ``bed.max_z_mm`` when known). The slicer's own moves are not checked
         against it: a purge line may lie outside the printable area on purpose.
-    original : bytes, optional
-        The file before preparation: its slicer moves (machine position and
-        filament drive position after each) must be exactly those of ``prepared``.
+    original : bytes or list, optional
+        The file before preparation (or its :func:`slicer_trace`): its slicer moves
+        (machine position and filament drive position after each) must be exactly those of ``prepared``.
     allow_tools, allow_pins : bool
         Whether ``T<n>`` / ``M42`` inside a block were asked for by the user.
 
@@ -306,14 +306,18 @@ def check_prepared(  # noqa: C901 - one pass over the file, one rule per branch
     list of Violation
         Empty when the file is safe.
     """
-    m, out, blk = Machine(firmware), [], None
+    m, out, blk, trace = Machine(firmware), [], None, []
     for n, text in enumerate(_lines(prepared), start=1):
         st = text.strip()
         if st.startswith(BLOCK_START):
             blk = _Block(m.snapshot(), n)
             continue
         if blk is None:
-            m.execute(parse(text))
+            cmd = parse(text)
+            if cmd.code:
+                m.execute(cmd)
+                if cmd.code in ("G0", "G1", "G2", "G3") and cmd.words.keys() & set("XYZE"):
+                    trace.append((*m.s.pos, m.s.filament))
             continue
         if st.startswith(BLOCK_END):
             out += _restored(blk.start, m, n)
@@ -362,7 +366,7 @@ def check_prepared(  # noqa: C901 - one pass over the file, one rule per branch
     if blk is not None:
         out.append(Violation("unclosed_block", blk.line, "block never closed"))
     if original is not None:
-        out += _same_trace(original, prepared, firmware)
+        out += _same_trace(original if isinstance(original, list) else slicer_trace(original, firmware), trace)
     return out
 
 
@@ -386,8 +390,7 @@ def _restored(before: State, m: Machine, line: int) -> list[Violation]:
     return out
 
 
-def _same_trace(original: bytes, prepared: bytes, firmware: str) -> list[Violation]:
-    a, b = _slicer_trace(original, firmware), _slicer_trace(prepared, firmware)
+def _same_trace(a: list[tuple], b: list[tuple]) -> list[Violation]:
     if len(a) != len(b):
         return [Violation("slicer_moves_changed", 0, f"{len(a)} slicer moves before, {len(b)} after")]
     for k, (p, q) in enumerate(zip(a, b, strict=True)):

@@ -65,7 +65,7 @@ from layerwatch.gcode.firmware_model import (
 from layerwatch.gcode.reader import guess_relative_e, read_toolpath
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
 
-__all__ = ["PROFILES", "Prepared", "prepare_gcode", "insert_snapshots", "trigger_lines", "hold_steps"]
+__all__ = ["PROFILES", "Prepared", "Plan", "prepare_gcode", "plan_snapshots", "render", "insert_snapshots", "trigger_lines", "hold_steps"]
 
 PROFILES = ("paper", "octoprint", "klipper", "timelapse", "m240")
 #: M-codes the scan for the slicer's retraction may step over (fan, acceleration, flow, progress, labels)
@@ -210,8 +210,8 @@ def _block(st: State, firmware: str, site: _Site, snap: SnapshotSettings, park: 
         out.append(f"G4 P{snap.settle_ms}")
     if snap.light_tool is not None:
         out.append(f"T{st.tool} ; back to the print tool")
-    out.append(f"G1 X{_f(mx - ox)} Y{_f(my - oy)} F{tf}")
-    out += [f"G1 Z{_f(mz - oz)} F{zf}"] if lifted else []
+    out.append(f"G1 X{_f(mx - ox, 6)} Y{_f(my - oy, 6)} F{tf}")  # back exactly where the slicer left it
+    out += [f"G1 Z{_f(mz - oz, 6)} F{zf}"] if lifted else []
     if fw_retract and not st.fw_retracted:
         out.append("G11")
     out += [f"G1 E{_f(extra)} F{rf}"] if extra > 0 else []
@@ -222,7 +222,7 @@ def _block(st: State, firmware: str, site: _Site, snap: SnapshotSettings, park: 
     out += ["G91" if st.axis_rel else "G90", "M83" if st.e_flag_rel else "M82"]
     out += ["M101"] if st.tool_on else []
     if st.feed > 0:
-        out.append(f"G1 F{_f(st.feed / 25.4 if st.inch else st.feed)}")
+        out.append(f"G1 F{_f(st.feed / 25.4 if st.inch else st.feed, 6)}")
     out.append(BLOCK_END)
     return out
 
@@ -289,6 +289,18 @@ def prepare_gcode(data: bytes, snapshot: SnapshotSettings, printer: PrinterProfi
                   bed: Bed | None = None, firmware: str | None = None) -> Prepared:
     """Insert a snapshot block after every ``snapshot.every_n_layers``-th layer (and the last).
 
+    :func:`plan_snapshots` then :func:`render`; see :func:`plan_snapshots` for the parameters.
+    """
+    plan = plan_snapshots(data, snapshot, printer, bed=bed, firmware=firmware)
+    if isinstance(plan, Prepared):
+        return plan
+    return render(plan, snapshot)
+
+
+def plan_snapshots(data: bytes, snapshot: SnapshotSettings, printer: PrinterProfile | None = None, *,
+                   bed: Bed | None = None, firmware: str | None = None) -> Plan | Prepared:
+    """Where the snapshot blocks go: the bed, the park spot, the firmware, the state at each block.
+
     Parameters
     ----------
     data : bytes
@@ -304,7 +316,8 @@ def prepare_gcode(data: bytes, snapshot: SnapshotSettings, printer: PrinterProfi
 
     Returns
     -------
-    Prepared
+    Plan
+        Or, for a file without printed layers, the unchanged file as :class:`Prepared`.
 
     Raises
     ------
@@ -335,26 +348,46 @@ def prepare_gcode(data: bytes, snapshot: SnapshotSettings, printer: PrinterProfi
     notes.append(f"firmware rules: {fw}" + (" (all three agree)" if len(fws) > 1 else ""))
     fw_retract = any(parse(ln.decode("latin-1")).code == "G10" and not parse(ln.decode("latin-1")).words
                      for ln in lines if ln.lstrip()[:3].upper() == b"G10")
-    retract = _retract_length(data, snapshot)
+    return Plan(bytes(data), lines, sites, fw, the_bed, park, _retract_length(data, snapshot), fw_retract, notes)
+
+
+@dataclass
+class Plan:
+    """Where the blocks go and the state at each: everything but the profile (see :func:`render`)."""
+
+    data: bytes
+    lines: list[bytes]
+    sites: list[_Site]
+    firmware: str
+    bed: Bed
+    park: tuple[float, float]
+    retract_mm: float
+    fw_retract: bool
+    notes: list[str]
+
+
+def render(plan: Plan, snapshot: SnapshotSettings) -> Prepared:
+    """The prepared file for ``plan`` with ``snapshot``'s profile, lift, feeds and hold."""
+    lines, fw, z_top = plan.lines, plan.firmware, plan.bed.max_z_mm
     cr = b"\r" if lines and lines[0].endswith(b"\r") else b""
-    z_top, capped = the_bed.max_z_mm, 0
+    capped, prev = 0, 0
     out: list[bytes] = []
-    prev = 0
-    for site in sites:
+    for site in plan.sites:
         st = site.states[fw]
         if z_top is not None and st.pos[2] + snapshot.lift_mm > z_top + 1e-9:
             capped += 1
         out += lines[prev:site.at]
-        out += [s.encode() + cr for s in _block(st, fw, site, snapshot, park, z_top, retract, fw_retract)]
+        block = _block(st, fw, site, snapshot, plan.park, z_top, plan.retract_mm, plan.fw_retract)
+        out += [s.encode() + cr for s in block]
         prev = site.at
     out += lines[prev:]
     new = b"\n".join(out)
-    if guess_relative_e(data):  # make the assumed relative-E mode explicit for the firmware and re-parsing
+    if guess_relative_e(plan.data):  # make the assumed relative-E mode explicit for the firmware and re-parsing
         new = b"M83 ; layerwatch: this file's E values are relative" + cr + b"\n" + new
+    notes = list(plan.notes)
     if capped:
-        notes.append(f"{capped} block(s) lift less than {snapshot.lift_mm:g} mm: the bed's height is "
-                     f"{z_top:g} mm")
-    return Prepared(new, the_bed, park, fw, len(sites), notes)
+        notes.append(f"{capped} block(s) lift less than {snapshot.lift_mm:g} mm: the bed's height is {z_top:g} mm")
+    return Prepared(new, plan.bed, plan.park, fw, len(plan.sites), notes)
 
 
 def _agreed_firmware(sites: list[_Site]) -> str:
