@@ -48,9 +48,19 @@ def _root(
 
 
 def _register_all() -> None:
-    from layerwatch.cli import analysis, demo, gcode, geometry, monitor, pipeline, render, web
+    from layerwatch.cli import (
+        analysis,
+        demo,
+        gcode,
+        geometry,
+        klipper,
+        monitor,
+        pipeline,
+        render,
+        web,
+    )
 
-    for module in (gcode, geometry, render, analysis, pipeline, monitor, web, demo):
+    for module in (gcode, geometry, render, analysis, pipeline, monitor, web, demo, klipper):
         module.register(app)
 
 
