@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -113,7 +113,7 @@ def prepare(
         raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
     if firmware and firmware not in ("marlin", "klipper", "reprap"):
         raise ConfigError(f"--firmware {firmware!r}: use marlin, klipper or reprap.")
-    values = {"profile": profile, "every_n_layers": every, "lift_mm": lift, "settle_ms": dwell_ms, "hold_s": hold,
+    values: dict[str, Any] = {"profile": profile, "every_n_layers": every, "lift_mm": lift, "settle_ms": dwell_ms, "hold_s": hold,
               "park_xy_mm": parse_xy(park, "--park") if park else None}
     if retract is not None:
         values["retract_mm"] = retract

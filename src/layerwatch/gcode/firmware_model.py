@@ -235,8 +235,8 @@ class Machine:
 
     def logical(self) -> tuple[float, float, float]:
         """The current logical (G-code) position X, Y, Z, mm."""
-        s = self.s
-        return tuple(p - o for p, o in zip(s.pos, s.offset, strict=True))
+        (x, y, z), (ox, oy, oz) = self.s.pos, self.s.offset
+        return x - ox, y - oy, z - oz
 
 
 @dataclass(frozen=True)

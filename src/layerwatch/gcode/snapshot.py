@@ -145,7 +145,7 @@ def _find_sites(lines: list[bytes], targets: list[tuple[int, int, float]], firmw
                 m.execute(cmd)
         if pend is not None:
             budget -= 1
-            verdict = "pass" if not cmd.code else _classify(cmd, pre, machines[0].s)
+            verdict = "pass" if pre is None else _classify(cmd, pre, machines[0].s)
             if verdict == "retract":
                 pend.at, pend.states = i + 1, {m.firmware: m.snapshot() for m in machines}
             if verdict == "stop" or budget <= 0:
