@@ -280,7 +280,7 @@ class _Block:
     held: bool = False
 
 
-def check_prepared(  # noqa: C901 - one pass over the file, one rule per branch
+def check_prepared(
     prepared: bytes, firmware: str, bed: Bed, *, original: bytes | list | None = None,
     allow_tools: bool = False, allow_pins: bool = False,
 ) -> list[Violation]:
@@ -329,44 +329,65 @@ def check_prepared(  # noqa: C901 - one pass over the file, one rule per branch
             continue
         cmd = parse(text)
         if _TRIGGER.match(st) and not blk.triggered:
-            blk.triggered = True
-            if not m.s.synced:
-                out.append(Violation("not_still", n, "trigger before the moves finished (no M400)"))
-            if blk.park is None or any(abs(a - b) > TOL for a, b in zip(m.s.pos[:2], blk.park, strict=True)):
-                out.append(Violation("not_parked", n, f"trigger with the head at {m.s.pos[:2]}, not parked"))
-            if m.s.pos[2] < blk.start.pos[2] - TOL:
-                out.append(Violation("not_parked", n, "trigger with the nozzle below the layer"))
+            out += _at_trigger(blk, m, n)
         if cmd.code in ("G0", "G1", "G2", "G3"):
-            if m.s.tool_on and cmd.words.keys() & set("XYZ"):
-                out.append(Violation("extrudes", n, "move with the extruder switched on (M101)"))
-            if blk.triggered and not blk.held and cmd.words.keys() & set("XYZE"):
-                out.append(Violation("not_still", n, "the head moves right after the trigger, before any hold"))
-            m.execute(cmd)
-            x, y, z = m.s.pos
-            if not bed.contains(x, y):
-                out.append(Violation("off_bed", n, f"move to X{x:g} Y{y:g} outside {bed.describe()}"))
-            if bed.max_z_mm is not None and z > bed.max_z_mm + TOL:
-                out.append(Violation("off_bed", n, f"Z{z:g} above the bed's height {bed.max_z_mm:g}"))
-            if z < blk.start.pos[2] - TOL:
-                out.append(Violation("below_layer", n, f"Z{z:g} below the layer's Z {blk.start.pos[2]:g}"))
-            if not blk.triggered and "X" in cmd.words and "Y" in cmd.words:
-                blk.park = (x, y)
+            out += _emitted_move(blk, m, cmd, n, bed)
             continue
-        if cmd.code == "G4" or cmd.code == _HOLD_MACRO:
-            on_part = any(abs(a - b) <= TOL for a, b in zip(m.s.pos[:2], blk.start.pos[:2], strict=True))
-            if on_part or blk.park is None:
-                out.append(Violation("dwell_on_part", n, "dwell with the nozzle where it printed"))
-            if blk.triggered:
-                blk.held = True
-        if cmd.code.startswith("T") and cmd.code[1:].isdigit() and not allow_tools:
-            out.append(Violation("tool_change", n, f"{cmd.code} emitted, not asked for"))
-        if cmd.code == "M42" and not allow_pins:
-            out.append(Violation("pin_write", n, "M42 emitted, not asked for"))
+        out += _emitted_other(blk, m, cmd, n, allow_tools, allow_pins)
         m.execute(cmd)
     if blk is not None:
         out.append(Violation("unclosed_block", blk.line, "block never closed"))
     if original is not None:
         out += _same_trace(original if isinstance(original, list) else slicer_trace(original, firmware), trace)
+    return out
+
+
+def _at_trigger(blk: _Block, m: Machine, n: int) -> list[Violation]:
+    """The photo trigger: every move finished, the head at the block's park spot, not below the layer."""
+    blk.triggered, out = True, []
+    if not m.s.synced:
+        out.append(Violation("not_still", n, "trigger before the moves finished (no M400)"))
+    if blk.park is None or any(abs(a - b) > TOL for a, b in zip(m.s.pos[:2], blk.park, strict=True)):
+        out.append(Violation("not_parked", n, f"trigger with the head at {m.s.pos[:2]}, not parked"))
+    if m.s.pos[2] < blk.start.pos[2] - TOL:
+        out.append(Violation("not_parked", n, "trigger with the nozzle below the layer"))
+    return out
+
+
+def _emitted_move(blk: _Block, m: Machine, cmd: Command, n: int, bed: Bed) -> list[Violation]:
+    """A move layerwatch emitted: no extrusion, not between trigger and hold, on the bed, not below the layer."""
+    out = []
+    if m.s.tool_on and cmd.words.keys() & set("XYZ"):
+        out.append(Violation("extrudes", n, "move with the extruder switched on (M101)"))
+    if blk.triggered and not blk.held and cmd.words.keys() & set("XYZE"):
+        out.append(Violation("not_still", n, "the head moves right after the trigger, before any hold"))
+    m.execute(cmd)
+    x, y, z = m.s.pos
+    if not bed.contains(x, y):
+        out.append(Violation("off_bed", n, f"move to X{x:g} Y{y:g} outside {bed.describe()}"))
+    if bed.max_z_mm is not None and z > bed.max_z_mm + TOL:
+        out.append(Violation("off_bed", n, f"Z{z:g} above the bed's height {bed.max_z_mm:g}"))
+    if z < blk.start.pos[2] - TOL:
+        out.append(Violation("below_layer", n, f"Z{z:g} below the layer's Z {blk.start.pos[2]:g}"))
+    if not blk.triggered and "X" in cmd.words and "Y" in cmd.words:
+        blk.park = (x, y)
+    return out
+
+
+def _emitted_other(blk: _Block, m: Machine, cmd: Command, n: int, allow_tools: bool,
+                   allow_pins: bool) -> list[Violation]:
+    """Any other emitted line: dwells only at the park spot, no unasked tool change or pin write."""
+    out = []
+    if cmd.code == "G4" or cmd.code == _HOLD_MACRO:
+        on_part = any(abs(a - b) <= TOL for a, b in zip(m.s.pos[:2], blk.start.pos[:2], strict=True))
+        if on_part or blk.park is None:
+            out.append(Violation("dwell_on_part", n, "dwell with the nozzle where it printed"))
+        if blk.triggered:
+            blk.held = True
+    if cmd.code.startswith("T") and cmd.code[1:].isdigit() and not allow_tools:
+        out.append(Violation("tool_change", n, f"{cmd.code} emitted, not asked for"))
+    if cmd.code == "M42" and not allow_pins:
+        out.append(Violation("pin_write", n, "M42 emitted, not asked for"))
     return out
 
 
