@@ -279,3 +279,12 @@ def test_crlf_kept_and_layers_equal():
     a, b = read_toolpath(data), read_toolpath(out)
     assert [lay.extrusion_mm for lay in a.layers] == [lay.extrusion_mm for lay in b.layers]
     np.testing.assert_allclose([lay.z for lay in a.layers], [lay.z for lay in b.layers])
+
+
+def test_words_without_spaces_are_followed():
+    """MeatPack-decoded .bgcode writes `G1X10Y5E.2`: the block must return to where the layer really ended."""
+    data = part(3).replace(b"G1 X", b"G1X").replace(b" Y", b"Y").replace(b" E", b"E").replace(b" F", b"F")
+    block = blocks(insert_snapshots(data, SnapshotSettings(), firmware=MARLIN))[0]
+    assert "G1 X100 Y100 F9000" in block and "G1 Z0.2 F600" in block
+    assert check_prepared(insert_snapshots(data, SnapshotSettings(), firmware=MARLIN), MARLIN,
+                          parse_bed("5,0;215,0;215,220;5,220"), original=data) == []

@@ -42,3 +42,11 @@ def test_prepare_parks_on_the_files_bed(tmp_path, capsys):
     assert "bed X 5..215, Y 0..220 mm (bed_shape), park X210 Y215" in capsys.readouterr().err
     text = out.read_text()
     assert "G1 X210 Y215 F9000" in text and "X250" not in text and "nan" not in text.lower()
+
+
+def test_prepare_refuses_to_guess_the_bed(tmp_path, capsys):
+    cura = next(p for p in shared_gcode_files() if p.name == "cura-2.3.1_reprap.gcode")
+    out = tmp_path / "o.gcode"
+    assert main(["gcode", "prepare", str(cura), "-o", str(out)]) == 2
+    assert "does not say which bed" in capsys.readouterr().err and not out.exists()
+    assert main(["gcode", "prepare", str(cura), "-o", str(out), "--bed", "220x220x250"]) == 0

@@ -104,7 +104,7 @@ def prepare(
 
     from layerwatch.cli import console, err_console
     from layerwatch.errors import ConfigError, GcodeError
-    from layerwatch.gcode.bed import parse_bed, parse_xy
+    from layerwatch.gcode.bed import bed_from_gcode, parse_bed, parse_xy
     from layerwatch.gcode.reader import load_bytes
     from layerwatch.gcode.settings import SnapshotSettings
     from layerwatch.gcode.snapshot import prepare_gcode
@@ -124,6 +124,9 @@ def prepare(
         key = str(err["loc"][0]) if err["loc"] else ""
         raise ConfigError(f"{_OPTION_OF.get(key, key)}: {err['msg']}.") from None
     data, _name = load_bytes(file)
+    if not bed and bed_from_gcode(data) is None:
+        raise ConfigError(f"{file.name} does not say which bed it was sliced for; pass --bed WxH (e.g. 220x220) "
+                          "or a polygon 'x,y;x,y;...' in the file's coordinates.")
     result = prepare_gcode(data, snap, bed=parse_bed(bed) if bed else None, firmware=firmware or None)
     try:
         output.write_bytes(result.data)

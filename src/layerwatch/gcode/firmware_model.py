@@ -67,6 +67,8 @@ _TRIGGER = re.compile(r"^(?:@layerwatch|M118\b.*layerwatch snapshot|LAYERWATCH_S
 _HOLD_MACRO = "LAYERWATCH_WAIT"
 _WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))?")
 _PAREN = re.compile(r"\([^)]*\)")
+_LINE_NO = re.compile(r"[Nn]\d+\s*")
+_CODE = re.compile(r"([GgMmTt])(\d+(?:\.\d+)?)(?![\d_])")
 _FLAVOR = re.compile(rb"(?m)^;\s*(?:gcode_flavor\s*=\s*|FLAVOR:)\s*([A-Za-z0-9_]+)")
 _FLAVORS = {b"marlin": MARLIN, b"marlin2": MARLIN, b"marlinlegacy": MARLIN, b"klipper": KLIPPER,
             b"reprapfirmware": REPRAP}
@@ -117,7 +119,11 @@ class Command:
 
 
 def parse(line: str) -> Command:
-    """Parse one G-code line (comments, line numbers and checksums dropped)."""
+    """Parse one G-code line (comments, line numbers and checksums dropped).
+
+    Words may be written without spaces (``G1X10Y5E.2``, as MeatPack-decoded
+    ``.bgcode`` and many firmwares' own files are).
+    """
     raw = line.strip()
     if raw.startswith("@"):
         return Command("@", {}, raw)
@@ -125,21 +131,19 @@ def parse(line: str) -> Command:
     if "(" in code_part:
         code_part = _PAREN.sub(" ", code_part)
     code_part = code_part.split("*", 1)[0].strip()
+    m = _LINE_NO.match(code_part)
+    if m:
+        code_part = code_part[m.end():]
     if not code_part:
         return Command("", {}, raw)
-    head = code_part.split(None, 1)[0].upper()
-    if head.startswith("N") and head[1:].isdigit():
-        code_part = code_part[len(head):].strip()
-        if not code_part:
-            return Command("", {}, raw)
-        head = code_part.split(None, 1)[0].upper()
-    if len(head) > 1 and head[0] in "GMT" and head[1:].replace(".", "", 1).isdigit():
-        num = head[1:].split(".")[0].lstrip("0") or "0"
-        words = {k: float(v) for k, v in _WORD.findall(code_part[len(head):].upper()) if v}
+    m = _CODE.match(code_part)
+    if m:
+        num = m.group(2).split(".")[0].lstrip("0") or "0"
+        words = {k: float(v) for k, v in _WORD.findall(code_part[m.end():].upper()) if v}
         if "A" in words and "E" not in words:  # Miracle-Grue (MakerBot) extrudes on the A axis
             words["E"] = words.pop("A")
-        return Command(head[0] + num, words, raw)
-    return Command(head, {}, raw)  # a macro / extended command (Klipper) or unknown text
+        return Command(m.group(1).upper() + num, words, raw)
+    return Command(code_part.split(None, 1)[0].upper(), {}, raw)  # a macro / extended command (Klipper)
 
 
 class Machine:

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from layerwatch.errors import ConfigError
+from layerwatch.errors import ConfigError, GcodeError
 from layerwatch.gcode.bed import Bed, bed_from_gcode, choose_park
 from layerwatch.gcode.firmware_model import (
     BLOCK_END,
@@ -126,9 +126,14 @@ class Prepared:
     notes: list[str] = field(default_factory=list)
 
 
-def _find_sites(lines: list[bytes], targets: list[tuple[int, int, float]], firmwares: tuple[str, ...],
+def _find_sites(lines: list[bytes], targets: list[tuple], firmwares: tuple[str, ...],
                 e_rel_guess: bool) -> list[_Site]:
-    """Run the machine model(s) over ``lines``; one :class:`_Site` per ``(last_line0, layer, z)`` target."""
+    """Run the machine model(s) over ``lines``; one :class:`_Site` per ``(last_line0, layer, z, xyz)`` target.
+
+    ``xyz`` is where the G-code reader ends the layer's last extruding segment: the model must
+    agree (two independent parsers), else the file is refused rather than a block written from
+    a position layerwatch did not follow.
+    """
     machines = [Machine(f) for f in firmwares]
     if e_rel_guess:
         for m in machines:
@@ -154,12 +159,25 @@ def _find_sites(lines: list[bytes], targets: list[tuple[int, int, float]], firmw
         if i in want:
             if pend is not None:
                 sites.append(pend)
-            _, layer, z = want[i]
+            _, layer, z, xyz = want[i]
+            _agree(machines[0], xyz, i, raw)
             pend = _Site(i + 1, layer, z, {m.firmware: m.snapshot() for m in machines})
             budget = _SCAN_LINES
     if pend is not None:
         sites.append(pend)
     return sites
+
+
+def _agree(m: Machine, xyz: tuple[float, float, float], i: int, raw: bytes) -> None:
+    """Refuse when the machine model and the reader disagree on where a layer's last extrusion ends."""
+    got = m.s.pos
+    if any(abs(a - b) > 1e-3 for a, b in zip(got, xyz, strict=True)):
+        text = raw.decode("latin-1").strip()[:60]
+        raise GcodeError(
+            f"line {i + 1} ({text!r}): layerwatch cannot follow this file's position here (reader at "
+            f"{tuple(round(v, 3) for v in xyz)}, machine model at {tuple(round(v, 3) for v in got)}); "
+            "no snapshot block was written. Please report the file."
+        )
 
 
 def _classify(cmd, pre: State, post: State) -> str:
@@ -342,7 +360,9 @@ def plan_snapshots(data: bytes, snapshot: SnapshotSettings, printer: PrinterProf
     chosen = [lay for lay in tp.layers if (lay.index + 1) % n == 0 or lay.index == tp.n_layers - 1]
     notes = [f"bed {the_bed.describe()}, park X{park[0]:g} Y{park[1]:g}"]
     lines = data.split(b"\n")
-    targets = [(int(tp.line[lay.seg_stop - 1]) - 1, lay.index, float(lay.z)) for lay in chosen]
+    targets = [(int(tp.line[lay.seg_stop - 1]) - 1, lay.index, float(lay.z),
+                (float(tp.end[lay.seg_stop - 1, 0]), float(tp.end[lay.seg_stop - 1, 1]), float(tp.z[lay.seg_stop - 1])))
+               for lay in chosen]
     sites = _find_sites(lines, targets, fws, guess_relative_e(data))
     fw = fws[0] if len(fws) == 1 else _agreed_firmware(sites)
     notes.append(f"firmware rules: {fw}" + (" (all three agree)" if len(fws) > 1 else ""))
