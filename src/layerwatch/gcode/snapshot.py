@@ -14,9 +14,9 @@ Marlin, Klipper or RepRapFirmware (their rules: :mod:`layerwatch.gcode.firmware_
    back to the saved logical E when the file's E is absolute, then the file's
    ``G90``/``G91``, then its ``M82``/``M83`` (this order reproduces every
    combination under all three firmwares), ``G20`` if the file was in inches,
-   the feed rate. The saved state is tracked with the firmware the file was
-   sliced for (``gcode_flavor``), or with all three when it is not stated, in
-   which case they must agree.
+   the feed rate. The saved state is tracked with ``--firmware``, else Klipper
+   for the ``klipper``/``timelapse`` profiles, else the firmware the file was
+   sliced for (``gcode_flavor``), else with all three, which must then agree.
 3. **Retraction.** Firmware retraction (``G10``/``G11``) when the file uses
    it and has not retracted yet; otherwise ``G1 E-r`` / ``G1 E+r`` for what is
    missing to the wanted length (the file's ``retract_length`` when stated).
@@ -246,17 +246,19 @@ def _block(st: State, firmware: str, site: _Site, snap: SnapshotSettings, park: 
 
 
 def _pick_firmware(data: bytes, firmware: str | None, snap: SnapshotSettings, printer: PrinterProfile) -> tuple:
+    """Whose rules: ``--firmware``; Klipper for the profiles that only run on Klipper; the file's flavor;
+    the configured ``[printer] firmware``; else all three (which must then agree)."""
     if firmware is not None:
         if firmware not in FIRMWARES:
             raise ConfigError(f"unknown firmware {firmware!r}; use one of {', '.join(FIRMWARES)}.")
         return (firmware,)
+    if snap.profile in ("klipper", "timelapse"):
+        return (KLIPPER,)
     stated = firmware_from_gcode(data)
     if stated is not None:
         return (stated,)
     if "firmware" in printer.model_fields_set and printer.firmware in FIRMWARES:
         return (printer.firmware,)
-    if snap.profile == "klipper":
-        return (KLIPPER,)
     return FIRMWARES
 
 
@@ -330,7 +332,8 @@ def plan_snapshots(data: bytes, snapshot: SnapshotSettings, printer: PrinterProf
     bed : Bed, optional
         The bed to park on (``--bed``); default: the one the file states.
     firmware : {"marlin", "klipper", "reprap"}, optional
-        Whose rules the saved state follows; default: the file's ``gcode_flavor``.
+        Whose rules the saved state follows; default: Klipper for the ``klipper`` and
+        ``timelapse`` profiles, else the file's ``gcode_flavor``, else all three.
 
     Returns
     -------
