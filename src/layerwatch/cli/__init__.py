@@ -48,19 +48,10 @@ def _root(
 
 
 def _register_all() -> None:
-    from layerwatch.cli import (
-        analysis,
-        demo,
-        gcode,
-        geometry,
-        klipper,
-        monitor,
-        pipeline,
-        render,
-        web,
-    )
+    from layerwatch.cli import analysis, demo, gcode, geometry, monitor, pipeline, render, web
+    from layerwatch.cli import klipper as klipper_verb
 
-    for module in (gcode, geometry, render, analysis, pipeline, monitor, web, demo, klipper):
+    for module in (gcode, geometry, render, analysis, pipeline, monitor, web, demo, klipper_verb):
         module.register(app)
 
 
