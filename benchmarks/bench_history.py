@@ -107,7 +107,7 @@ def run(n_layers: int = N_LAYERS) -> dict[str, float]:
 
                 from layerwatch.web.app import create_app
 
-            with TestClient(create_app(hist)) as client:
+            with TestClient(create_app(hist), base_url="http://127.0.0.1") as client:  # a loopback Host
                 out["api_layers_ms_history"] = 1e3 * _best(lambda: client.get(f"/api/jobs/{job}/layers").raise_for_status())
         except ImportError:
             pass

@@ -96,18 +96,3 @@ def test_paper_settings_mean_the_same_for_the_monitor_and_analyze(job_file):
     assert sources["analysis"] == "file" and sources["markers"] == "default"
     assert monitor_config(job_file)[0] == job_settings(job_file, None).config  # and without the flag
 
-
-def test_gcode_prepare_reads_the_job_file_under_its_options(tmp_path):
-    from layerwatch.examples import PART_GCODE
-
-    job = tmp_path / "job.toml"
-    job.write_text('[snapshot]\nevery_n_layers = 3\nprofile = "klipper"\n')
-    counts = {}
-    for name, extra in (("plain", []), ("file", ["-c", str(job)]), ("flag", ["-c", str(job), "--every", "2"])):
-        out = tmp_path / f"{name}.gcode"
-        assert main(["gcode", "prepare", str(PART_GCODE), "-o", str(out), *extra]) == 0
-        text = out.read_text()
-        counts[name] = (text.count("; layerwatch snapshot block end"), "LAYERWATCH_SNAPSHOT" in text)
-    n = counts["plain"][0]
-    assert counts["plain"][1] is False and counts["file"][1] is True  # the file's profile applies
-    assert counts["file"][0] == pytest.approx(n / 3, abs=1) and counts["flag"][0] == pytest.approx(n / 2, abs=1)

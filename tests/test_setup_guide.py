@@ -21,13 +21,13 @@ import cv2
 import numpy as np
 import pytest
 import typer.main
-from layerwatch.pipeline.config import load_config
 
 from layerwatch.cli import app
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.marker_sheet import plan_layout, write_sheet
 from layerwatch.geometry.synthetic import chessboard_texture, render_plane
 from layerwatch.monitor.printers.base import parse_trigger
+from layerwatch.pipeline.config import load_config
 from layerwatch.simulate.scene import look_at
 
 REPO = Path(__file__).resolve().parents[1]

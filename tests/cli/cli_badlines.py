@@ -194,6 +194,7 @@ def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
         base + ["--bogus=1"],
         [*path, "--no-such-option", "x"],
         base + ["extra-argument"] * 4,
+        base + ["-Z"],  # unknown short option
     ]
     for k in range(n):  # typo in each level of the verb
         bad = list(path)

@@ -31,7 +31,7 @@ USAGE_MISTAKES = [
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--every", "0"], "'--every': '0' is out of range"),
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--lift", "nan"], "'--lift': 'nan' is not finite"),
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--retract", "-1"], "'--retract': '-1' is out of range"),
-    (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--park", "nan,nan"], "--park 'nan,nan': 'nan' is not finite"),
+    (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--park", "nan,nan"], "--park 'nan,nan': the coordinates must be finite"),
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--volume", "220,inf,250"], "--volume"),
     (["gcode", "prepare", EX, "-o", "/dev/null/p.gcode"], "'/dev/null' does not exist"),
     (["compare", "PNG"], "Missing argument 'reference'"),

@@ -10,6 +10,7 @@ import pytest
 from gcode_refs import reference_extrusion, shared_gcode_files
 
 from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.bed import bed_from_gcode, parse_bed
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.gcode.reader import load_bytes
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
@@ -74,7 +75,11 @@ def test_postprocess_round_trip(path):
     data = path.read_bytes()
     before = read_toolpath(data)
     profile = ["klipper", "octoprint", "paper", "m240", "timelapse"][len(path.name) % 5]
-    out = insert_snapshots(data, SnapshotSettings(profile=profile), PrinterProfile())
+    bed = None
+    if bed_from_gcode(data) is None and before.n_layers:  # no bed stated: one around the print (prepare won't guess)
+        x0, y0, x1, y1 = before.bounds
+        bed = parse_bed(f"{x0 - 20},{y0 - 20};{x1 + 20},{y0 - 20};{x1 + 20},{y1 + 20};{x0 - 20},{y1 + 20}")
+    out = insert_snapshots(data, SnapshotSettings(profile=profile), PrinterProfile(), bed=bed)
     after = read_toolpath(out)
     assert after.n_layers == before.n_layers
     np.testing.assert_allclose([lay.z for lay in after.layers], [lay.z for lay in before.layers])

@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 from geometry_scenes import posed_camera, rotation_error_deg
-from layerwatch.pipeline.config import load_config
 
 from layerwatch.cli import main
 from layerwatch.errors import ConfigError
@@ -18,6 +17,7 @@ from layerwatch.geometry.marker_sheet import SCALE_BAR_MM, plan_layout, write_sh
 from layerwatch.geometry.markers import detect_aruco, detect_dots
 from layerwatch.geometry.pose import locate_bed, marker_layout
 from layerwatch.geometry.synthetic import render_plane
+from layerwatch.pipeline.config import load_config
 
 DPI = 254.0  # 10 px per mm
 PPM = DPI / 25.4

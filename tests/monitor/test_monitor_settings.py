@@ -32,7 +32,8 @@ def _save_in_dashboard(db, patch):
     from layerwatch.web.app import create_app
 
     with History(db) as h:
-        r = TestClient(create_app(h)).patch("/api/settings", json=patch)
+        c = TestClient(create_app(h), base_url="http://127.0.0.1")  # loopback Host, with the page's CSRF token
+        r = c.patch("/api/settings", json=patch, headers={"X-CSRF-Token": c.get("/api/session").json()["csrf"]})
         assert r.status_code == 200, r.text
 
 

@@ -152,7 +152,16 @@ def test_sigkill_writer_loses_at_most_inflight_layer(tmp_path):
     # every acknowledged (committed) layer survives; at most the in-flight one beyond it
     assert len(idx) >= acknowledged + 1
     assert all(r.anomaly_ratio == pytest.approx(0.001 * r.layer) for r in got)
+    # the killed writer's job is no longer "running": interrupted, with its last stored layer
+    assert h.interrupted == [job["id"]]
+    j = h.job(job["id"])
+    assert j["outcome"] == "interrupted" and j["last_layer"] == idx[-1] and j["ended"] >= j["started"]
+    ev = h.events(job["id"])[-1]
+    assert ev["kind"] == "interrupted" and ev["data"] == {"last_layer": idx[-1]}
+    assert f"last stored layer is {idx[-1]}" in ev["message"]
     h.add_layer(job["id"], LayerResult(layer=len(idx), z=1.0))
+    h.close()
+    assert History(p).interrupted == []  # marked once
 
 
 def test_huge_ids_match_nothing(tmp_path):
@@ -204,3 +213,84 @@ def test_settings_round_trip_and_replace(tmp_path):
     assert h.setting("job_config") == {"policy": {"pause_ratio": 0.3}} and h.setting("other") == {"x": [1, 2]}
     assert h._db.execute("SELECT COUNT(*) FROM settings").fetchone()[0] == 2
     h.close()
+
+
+def test_running_writer_is_not_marked_interrupted(tmp_path):
+    """A job written by a live process (this one, or a monitor beside the dashboard) stays running."""
+    p = tmp_path / "h.db"
+    with History(p) as writer:
+        job = writer.start_job("live")
+        writer.add_layer(job, _result(0))
+        with History(p) as dashboard:  # a second connection opened while the writer runs
+            assert dashboard.interrupted == [] and dashboard.job(job)["outcome"] is None
+
+
+def test_recycled_pid_counts_as_gone(tmp_path):
+    from layerwatch.storage.owner import is_gone, this_process
+
+    me = this_process()
+    assert not is_gone(me) and not is_gone(None) and not is_gone({**me, "host": "elsewhere"})
+    if me["start"] is not None:
+        assert is_gone({**me, "start": me["start"] + 1})  # same pid, another process start time
+
+
+PERMS = textwrap.dedent(
+    """
+    import os, stat, sys
+    os.umask(int(sys.argv[2], 8))
+    from layerwatch.storage.history import History
+    from layerwatch.web.token import load_or_create_token
+    h = History(sys.argv[1] + "/sub/history.db")
+    h.add_event(h.start_job("p"), "x", "y")  # writes: the WAL and SHM exist now
+    load_or_create_token(sys.argv[1] + "/sub/history.token")
+    for name in ("history.db", "history.db-wal", "history.db-shm", "history.token", ""):
+        print(name or "folder", oct(stat.S_IMODE(os.stat(sys.argv[1] + "/sub/" + name).st_mode)))
+    """
+)
+
+
+@pytest.mark.parametrize("umask", ["000", "022", "277"])
+def test_database_wal_shm_and_token_are_0600_whatever_the_umask(tmp_path, umask):
+    out = subprocess.run([sys.executable, "-c", PERMS, str(tmp_path), umask], capture_output=True, text=True, check=True)
+    modes = dict(line.split() for line in out.stdout.splitlines())
+    assert modes == {"history.db": "0o600", "history.db-wal": "0o600", "history.db-shm": "0o600",
+                     "history.token": "0o600", "folder": oct(0o700 & ~int(umask, 8))}, modes
+
+
+def test_existing_world_readable_database_is_tightened(tmp_path):
+    p = tmp_path / "h.db"
+    History(p).close()
+    os.chmod(p, 0o644)
+    History(p).close()
+    assert (p.stat().st_mode & 0o777) == 0o600
+
+
+def test_audit_log_round_trip(tmp_path):
+    p = tmp_path / "h.db"
+    with History(p) as h:
+        a = h.add_audit("pause", "127.0.0.1", "local (no token)", "printer mk4", {"job_id": 3})
+        b = h.add_audit("settings", "10.0.0.2", "token session 1a2b", None, {"policy.pause_ratio": 0.2})
+    with History(p) as h:
+        rows = h.audit()
+        assert [r["id"] for r in rows] == [b, a]  # newest first
+        assert rows[1] | {"time": 0} == {"id": a, "time": 0, "action": "pause", "target": "printer mk4",
+                                         "client": "127.0.0.1", "actor": "local (no token)", "detail": {"job_id": 3}}
+        assert [r["id"] for r in h.audit(after=a)] == [b] and len(h.audit(limit=1)) == 1
+
+
+def test_artifacts_are_the_layers_image_paths(tmp_path):
+    from layerwatch.storage.history import MIGRATIONS
+
+    p = tmp_path / "v2.db"
+    with sqlite3.connect(p) as db:  # schema 2 with a stored layer: the migration backfills its images
+        db.executescript(MIGRATIONS[0] + MIGRATIONS[1])
+        db.execute("INSERT INTO printers(name, created) VALUES ('mk4', 0)")
+        db.execute("INSERT INTO jobs(printer_id, started) VALUES (1, 0)")
+        db.execute("INSERT INTO layers VALUES (1, 0, 0.2, 0.0, 'ok', 'jaccard', 0.2, ?, 0)", (_result(0).to_json(),))
+        db.execute("PRAGMA user_version = 2")
+    with History(p) as h:
+        assert h.is_artifact("layer_0000_overlay.png")
+        h.add_layer(1, _result(1))
+        assert h.is_artifact("layer_0001_overlay.png")
+        assert not h.is_artifact("history.db") and not h.is_artifact("../layer_0001_overlay.png")
+        assert h.job(1)["outcome"] is None  # no owner recorded before version 3: never judged

@@ -1,8 +1,9 @@
-"""Shared fixtures for the dashboard tests: a seeded history with images."""
+"""Shared fixtures for the dashboard tests: a seeded history with images, and a same-origin client."""
 
 from __future__ import annotations
 
 import pytest
+from dashclient import dashboard_client
 from seed_history import seed_job
 
 from layerwatch.storage.history import History
@@ -21,3 +22,8 @@ def seeded(tmp_path):
 @pytest.fixture
 def printer():
     return virtual_printer()
+
+
+@pytest.fixture
+def make_client():
+    return dashboard_client

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import threading
 import time
-import warnings
 
 import numpy as np
-import pytest
+from dashclient import dashboard_client
 
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.monitor.cameras import SimCamera
@@ -16,11 +15,6 @@ from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.storage.history import History
 from layerwatch.web.app import create_app
-
-pytest.importorskip("fastapi")
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")
-    from fastapi.testclient import TestClient  # noqa: E402
 
 BOX = (100.0, 90.0, 112.0, 102.0)  # the failing region, bed mm
 
@@ -85,7 +79,7 @@ def test_dashboard_acknowledge_reaches_running_monitor_policy(tmp_path):
                   wait_for_verdict=True)
     runner = threading.Thread(target=mon.run, kwargs={"poll_s": 0.01}, daemon=True)
     web_hist = History(db)
-    client = TestClient(create_app(web_hist))
+    client = dashboard_client(create_app(web_hist))
     runner.start()
     try:
         def layer(i, area):
@@ -142,7 +136,7 @@ def test_without_acknowledge_the_region_stays_halted(tmp_path):
 
 def test_acknowledge_routes_bad_input(seeded, printer):
     h, root, ids = seeded
-    c = TestClient(create_app(h, printers={"virtual": printer}, image_root=root))
+    c = dashboard_client(create_app(h, printers={"virtual": printer}, image_root=root))
     assert c.post("/api/jobs/999/acknowledge").status_code == 404
     r = c.post(f"/api/jobs/{ids['done']}/acknowledge")
     assert r.status_code == 409 and "has ended" in r.json()["detail"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 
 import pytest
+from dashclient import dashboard_client
 
 from layerwatch.pipeline.config import RECOMMENDED
 from layerwatch.web.app import MAX_BODY, create_app
@@ -17,7 +18,7 @@ with warnings.catch_warnings():  # starlette asks for httpx2, which is not insta
 
 def client(seeded, printer, token=None):
     h, root, _ = seeded
-    return TestClient(create_app(h, printers={"virtual": printer}, token=token, image_root=root))
+    return dashboard_client(create_app(h, printers={"virtual": printer}, token=token, image_root=root), token)
 
 
 def test_jobs_layers_events(seeded, printer):
@@ -91,15 +92,19 @@ def test_actions_change_printer_state_and_log(seeded, printer):
 
 def test_token_required_everywhere(seeded, printer):
     tok = "t" * 43
-    c = client(seeded, printer, token=tok)
-    for path in ("/", "/api/jobs", "/static/app.js", "/openapi.json", "/docs", "/api/image/x.png"):
+    h, root, _ = seeded
+    c = dashboard_client(create_app(h, printers={"virtual": printer}, token=tok, image_root=root), csrf=False)
+    for path in ("/api/jobs", "/static/app.js", "/openapi.json", "/docs", "/api/image/x.png", "/api/session"):
         assert c.get(path).status_code == 401, path
+    r = c.get("/", follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == "/login"
     assert c.get("/api/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 401
     assert c.get("/api/jobs", headers={"Authorization": f"Bearer {tok}"}).status_code == 200
     assert c.get("/login?token=wrong", follow_redirects=False).status_code == 401
     r = c.get(f"/login?token={tok}", follow_redirects=False)
-    assert r.status_code == 303
-    assert c.get("/api/jobs").status_code == 200  # cookie now set
+    assert r.status_code == 303 and r.headers["location"] == "/"  # the token leaves the address bar
+    assert c.get("/api/jobs").status_code == 200  # the session cookie now (not the token)
+    assert tok not in r.headers["set-cookie"] and tok not in c.get("/").text
 
 
 def test_secrets_not_exposed(seeded):
@@ -108,7 +113,7 @@ def test_secrets_not_exposed(seeded):
             return {"state": "printing", "api_key": "SECRET123", "host": {"token": "SECRET456"}}
 
     h, root, _ = seeded
-    c = TestClient(create_app(h, printers={"octo": Keyed()}, image_root=root))
+    c = dashboard_client(create_app(h, printers={"octo": Keyed()}, image_root=root))
     text = c.get("/api/printers").text
     assert "SECRET" not in text and "printing" in text
 
@@ -121,7 +126,8 @@ def test_corrupt_db_gives_503(tmp_path, printer):
     h.close()
     (tmp_path / "h.db-wal").unlink(missing_ok=True)
     h = History(tmp_path / "h.db")
-    c = TestClient(create_app(h, printers={"virtual": printer}), raise_server_exceptions=False)
+    c = TestClient(create_app(h, printers={"virtual": printer}), base_url="http://127.0.0.1",
+                   raise_server_exceptions=False)
     assert c.get("/api/jobs").status_code == 200
     h._db.close()  # the connection dies under the app (as after a disk failure)
     r = c.get("/api/jobs")
@@ -192,6 +198,6 @@ def test_index_names_the_newest_job(seeded, printer, tmp_path):
 
     empty = History(tmp_path / "empty.db")
     assert empty.last_job_id() is None
-    r = TestClient(create_app(empty)).get("/")
+    r = dashboard_client(create_app(empty), csrf=False).get("/")
     assert r.status_code == 200 and "<body>" in r.text and "data-newest" not in r.text
     empty.close()

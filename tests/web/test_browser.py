@@ -76,7 +76,8 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             page.wait_for_selector("#threshold-line", state="attached")
             assert "first failing layer" in page.inner_text("#job-meta")
             for sel in ("#img-top", "#img-reference", "#img-overlay", "#img-stack"):
-                page.wait_for_function(f"document.querySelector('{sel}').naturalWidth > 0")
+                # a function, not an expression string: Playwright evals strings, which the page's CSP forbids
+                page.wait_for_function(f"() => document.querySelector('{sel}').naturalWidth > 0")
             state = page.locator(".printer .state")
             assert state.inner_text() == "printing"
 
@@ -99,7 +100,7 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             phone = browser.new_page(viewport={"width": 390, "height": 844}, device_scale_factor=2, is_mobile=True)
             phone.goto(url + "/")
             phone.wait_for_selector("body[data-ready='1']")
-            phone.wait_for_function("document.querySelector('#img-overlay').naturalWidth > 0")
+            phone.wait_for_function("() => document.querySelector('#img-overlay').naturalWidth > 0")
             width = phone.evaluate("document.documentElement.scrollWidth")
             assert width <= 390, "the page must not scroll sideways on a phone"
             phone.screenshot(path=str(shots / "dashboard-phone.png"), full_page=True)
@@ -148,5 +149,63 @@ def test_report_renders_in_browser(seeded, shots, tmp_path):
             n = page.evaluate("[...document.images].filter(i => i.complete && i.naturalWidth > 0).length")
             assert n == page.evaluate("document.images.length") >= 5
             page.screenshot(path=str(shots / "report.png"), full_page=True)
+        finally:
+            browser.close()
+
+
+ATTACK = """<!doctype html><html><body>
+<form id="f" method="post" action="{url}/api/printers/virtual/pause"></form>
+<script>
+  fetch("{url}/api/printers/virtual/cancel", {{method: "POST", mode: "no-cors", credentials: "include"}});
+  fetch("{url}/api/settings", {{method: "PATCH", mode: "no-cors", credentials: "include",
+        headers: {{"content-type": "text/plain"}}, body: '{{"policy": {{"pause_ratio": 0.5}}}}'}});
+  setTimeout(() => document.getElementById("f").submit(), 300);
+</script></body></html>"""
+
+
+def test_cross_site_page_cannot_press_the_buttons(server, printer):
+    """A page on another site, open in the same browser as the dashboard, posts to it: nothing changes."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    url, ids, h = server
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        try:
+            ctx = browser.new_context()
+            dash = ctx.new_page()
+            dash.goto(url + "/")  # the victim has the dashboard open: its session cookie is in the browser
+            dash.wait_for_selector("body[data-ready='1']")
+            evil = ctx.new_page()
+            evil.route("http://attacker.test/**", lambda route: route.fulfill(
+                status=200, content_type="text/html", body=ATTACK.format(url=url)))
+            with evil.expect_navigation(url=f"{url}/api/printers/virtual/pause"):
+                evil.goto("http://attacker.test/")
+            assert "refused" in evil.content()
+            assert printer.status().state == "printing"
+            assert h.audit() == [] and h.setting("job_config") is None
+        finally:
+            browser.close()
+
+
+def test_pause_switch_and_audit_log_in_browser(server, printer):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    sync_api.expect.set_options(timeout=20_000)
+    url, _, h = server
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        try:
+            page = browser.new_page()
+            page.on("dialog", lambda d: d.accept())
+            page.goto(url + "/")
+            page.wait_for_selector("body[data-ready='1']")
+            assert page.is_checked("#pausing") and page.locator("#pausing-off").is_hidden()
+            page.click("#pausing")
+            sync_api.expect(page.locator("#pausing-off")).to_be_visible()
+            assert h.setting("job_config")["policy"]["action"] == "notify"
+            page.click("button[data-action='pause']")
+            sync_api.expect(page.locator("#audit")).to_contain_text("pause printer virtual")
+            sync_api.expect(page.locator("#audit")).to_contain_text("pausing off")
+            assert [a["action"] for a in h.audit()] == ["pause", "pausing off"]
+            page.click("#pausing")
+            sync_api.expect(page.locator("#pausing-off")).to_be_hidden()
         finally:
             browser.close()

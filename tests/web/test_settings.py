@@ -2,23 +2,17 @@
 
 from __future__ import annotations
 
-import warnings
-
 import pytest
+from dashclient import dashboard_client
 
 from layerwatch.pipeline.config import JobConfig, recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import SETTINGS_KEY, create_app
 
-pytest.importorskip("fastapi")
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")
-    from fastapi.testclient import TestClient  # noqa: E402
-
 
 def _serve(db, **kw):
     h = History(db)
-    return h, TestClient(create_app(h, **kw))
+    return h, dashboard_client(create_app(h, **kw))
 
 
 def test_settings_survive_a_server_restart(tmp_path):
@@ -27,7 +21,7 @@ def test_settings_survive_a_server_restart(tmp_path):
     s = c.get("/api/settings").json()
     assert s == recommended_config().model_dump(mode="json")  # what the monitor runs with
     s["analysis"]["metric"], s["analysis"]["threshold"] = "pearson", 0.45
-    s["policy"]["pause_ratio"], s["policy"]["action"] = 0.037, "notify"
+    s["policy"]["pause_ratio"], s["policy"]["action"] = 0.037, "cancel"
     assert c.put("/api/settings", json=s).status_code == 200
     c.close()
     h.close()
@@ -35,7 +29,7 @@ def test_settings_survive_a_server_restart(tmp_path):
     h, c = _serve(db)  # a new server process on the same file
     got = c.get("/api/settings").json()
     assert (got["analysis"]["metric"], got["analysis"]["threshold"]) == ("pearson", 0.45)
-    assert (got["policy"]["pause_ratio"], got["policy"]["action"]) == (0.037, "notify")
+    assert (got["policy"]["pause_ratio"], got["policy"]["action"]) == (0.037, "cancel")
     assert JobConfig.model_validate(h.setting(SETTINGS_KEY)).policy.pause_ratio == 0.037
     h.close()
 
@@ -146,9 +140,11 @@ def test_settings_survive_restarting_layerwatch_serve(tmp_path):
 
     proc, url = serve()
     try:
-        r = httpx.patch(url + "/api/settings", json={"policy": {"pause_ratio": 0.042}, "analysis": {"metric": "dice"}})
-        assert r.status_code == 200
-        bad = httpx.patch(url + "/api/settings", json={"policy": {"nonsense": 1}})
+        with httpx.Client(base_url=url) as c:  # as a local script does: a session, then its CSRF token
+            c.headers["X-CSRF-Token"] = c.get("/api/session").json()["csrf"]
+            r = c.patch("/api/settings", json={"policy": {"pause_ratio": 0.042}, "analysis": {"metric": "dice"}})
+            assert r.status_code == 200
+            bad = c.patch("/api/settings", json={"policy": {"nonsense": 1}})
         assert bad.status_code == 422 and bad.json()["detail"].startswith("invalid setting policy.nonsense:")
     finally:
         proc.terminate()

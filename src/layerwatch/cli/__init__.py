@@ -77,8 +77,9 @@ def _register_all() -> None:
         render,
         web,
     )
+    from layerwatch.cli import klipper as klipper_verb
 
-    for module in (gcode, geometry, markers, render, analysis, pipeline, monitor, web, demo, config):
+    for module in (gcode, geometry, markers, render, analysis, pipeline, monitor, web, demo, config, klipper_verb):
         module.register(app)
 
 

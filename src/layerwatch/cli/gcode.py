@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
-from layerwatch.cli.params import WRITE_FILE, Finite, numbers
+from layerwatch.cli.params import WRITE_FILE, Finite
 
 __all__ = ["register"]
 
@@ -77,46 +77,71 @@ def _has_moves(file: Path, limit: int = 1 << 20) -> bool:
     return head.startswith(b"GCDE") or re.search(rb"(?m)^[ \t]*[Gg]0*[0-3](?![0-9.])", head) is not None
 
 
+_OPTION_OF = {"every_n_layers": "--every", "lift_mm": "--lift", "retract_mm": "--retract", "park_xy_mm": "--park",
+              "settle_ms": "--dwell-ms", "hold_s": "--hold"}
+
+
 @gcode_app.command("prepare")
 def prepare(
-    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Input .gcode file.")],
-    output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Where to write the new G-code.")],
-    profile: Annotated[str | None, typer.Option("--profile", "-p", help="|".join(_PROFILES) + " (default octoprint).")] = None,
-    every: Annotated[int | None, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer (default 1).")] = None,
-    lift: Annotated[float | None, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm (default 5).")] = None,
-    retract: Annotated[float | None, typer.Option("--retract", parser=Finite(0, 20, unit="mm"), help="Retraction before parking, mm (default 1).")] = None,
-    park: Annotated[str, typer.Option("--park", help="Park 'X,Y' in mm (default: back corner).")] = "",
-    volume: Annotated[str, typer.Option("--volume", help="Printer volume 'X,Y,Z' max, mm.")] = "",
-    config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([snapshot], [printer]); the options above win over it.")] = None,
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="Input .gcode (or .bgcode) file.")],
+    output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Where to write the new (ASCII) G-code.")],
+    profile: Annotated[str, typer.Option("--profile", "-p", help="|".join(_PROFILES))] = "octoprint",
+    every: Annotated[int, typer.Option("--every", parser=Finite(1, 100_000, integer=True), help="Snapshot after every Nth layer.")] = 1,
+    lift: Annotated[float, typer.Option("--lift", parser=Finite(0, 100, unit="mm"), help="Z lift for the photo, mm.")] = 5.0,
+    retract: Annotated[float | None, typer.Option(
+        "--retract", parser=Finite(0, 20, unit="mm"), help="Retraction held during the photo, mm (default: the file's retract_length, else 1)."
+    )] = None,
+    park: Annotated[str, typer.Option(
+        "--park", help="Park 'X,Y' in the file's bed mm (default: a bed corner away from the print).")] = "",
+    bed: Annotated[str, typer.Option(
+        "--bed", help="Bed 'WxH', 'WxHxZ' or polygon 'x,y;x,y;...' mm (default: the bed the file states).")] = "",
+    firmware: Annotated[str, typer.Option(
+        "--firmware", help="marlin|klipper|reprap (default: the file's gcode_flavor).")] = "",
+    dwell_ms: Annotated[int, typer.Option("--dwell-ms", parser=Finite(100, 60_000, integer=True, unit="ms"), help="Dwell at the park spot after the trigger, ms.")] = 1000,
+    hold: Annotated[float, typer.Option(
+        "--hold", parser=Finite(0.5, 120, unit="s"), help="klipper profile: longest wait for the host's frame, s.")] = 10.0,
 ) -> None:
-    """Insert a snapshot block (paper Table 1) after every (Nth) layer."""
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError, GcodeError
-    from layerwatch.gcode.postprocess import insert_snapshots
-    from layerwatch.gcode.reader import load_bytes
-    from layerwatch.pipeline.config import resolve_config
+    """Insert a snapshot block (paper Table 1) after every (Nth) layer, parked on the file's bed."""
+    import pydantic
 
-    if profile is not None and profile not in _PROFILES:
+    from layerwatch.cli import console, err_console
+    from layerwatch.errors import ConfigError, GcodeError
+    from layerwatch.gcode.bed import bed_from_gcode, parse_bed, parse_xy
+    from layerwatch.gcode.reader import load_bytes
+    from layerwatch.gcode.settings import SnapshotSettings
+    from layerwatch.gcode.snapshot import prepare_gcode
+
+    if profile not in _PROFILES:
         raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
-    park_xy = numbers(park, 2, "--park", Finite(unit="mm"), "200,200")
-    vol = numbers(volume, 3, "--volume", Finite(0, 10_000, lo_open=True, unit="mm"), "220,220,250")
-    given = {"profile": profile, "every_n_layers": every, "lift_mm": lift, "retract_mm": retract, "park_xy_mm": park_xy}
-    flags = {"snapshot": {k: v for k, v in given.items() if v is not None}}
-    if vol is not None:
-        flags["printer"] = {"volume_max_mm": vol}
-    cfg = resolve_config(config, flags=flags).config
-    data, _name = load_bytes(file)
-    out = insert_snapshots(data, cfg.snapshot, cfg.printer)
-    if b"; layerwatch snapshot block end" not in out:
-        raise GcodeError(f"{file}: no layer to put a snapshot after (--every {cfg.snapshot.every_n_layers}); pass the G-code your slicer exported.")
+    if firmware and firmware not in ("marlin", "klipper", "reprap"):
+        raise ConfigError(f"--firmware {firmware!r}: use marlin, klipper or reprap.")
+    values: dict[str, Any] = {"profile": profile, "every_n_layers": every, "lift_mm": lift, "settle_ms": dwell_ms, "hold_s": hold,
+              "park_xy_mm": parse_xy(park, "--park") if park else None}
+    if retract is not None:
+        values["retract_mm"] = retract
     try:
-        output.write_bytes(out)
+        snap = SnapshotSettings(**values)
+    except pydantic.ValidationError as exc:
+        err = exc.errors()[0]
+        key = str(err["loc"][0]) if err["loc"] else ""
+        raise ConfigError(f"{_OPTION_OF.get(key, key)}: {err['msg']}.") from None
+    data, _name = load_bytes(file)
+    if not bed and bed_from_gcode(data) is None:
+        raise ConfigError(f"{file.name} does not say which bed it was sliced for; pass --bed WxH (e.g. 220x220) "
+                          "or a polygon 'x,y;x,y;...' in the file's coordinates.")
+    result = prepare_gcode(data, snap, bed=parse_bed(bed) if bed else None, firmware=firmware or None)
+    if result.blocks == 0:
+        raise GcodeError(f"{file}: no layer to put a snapshot after (--every {every}); pass the G-code your slicer exported.")
+    try:
+        output.write_bytes(result.data)
     except OSError as exc:
         raise GcodeError(f"{output}: cannot write ({exc.strerror}); choose another -o path.") from exc
-    n = out.count(b"; layerwatch snapshot block end")
-    console.print(f"wrote {output} with {n} snapshot block(s), profile {cfg.snapshot.profile}")
-    if cfg.snapshot.profile == "klipper":
-        console.print("Klipper: add the LAYERWATCH_SNAPSHOT macro (layerwatch.gcode.postprocess.KLIPPER_MACRO).")
+    console.print(f"wrote {output} with {result.blocks} snapshot block(s), profile {profile}", highlight=False)
+    for note in result.notes:
+        err_console.print(f"  {note}", highlight=False, markup=False)
+    if profile == "klipper":
+        console.print("Klipper: run `layerwatch klipper-config > layerwatch.cfg` and add [include layerwatch.cfg] "
+                      "to printer.cfg.", highlight=False, markup=False)
 
 
 def register(app: typer.Typer) -> None:

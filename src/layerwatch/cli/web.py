@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import os
+import ssl
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from layerwatch.cli.params import WRITE_DB, WRITE_DIR, Finite
+from layerwatch.errors import ConfigError
 
 __all__ = ["register", "default_db"]
 
@@ -63,36 +65,59 @@ def report(
     console.print(f"report written to [bold]{path}[/]")
 
 
+def _check_tls(certfile: Path | None, keyfile: Path | None) -> None:
+    """Refuse a certificate/key pair that will not load, before the server starts (one line, exit 2)."""
+    if certfile is None and keyfile is None:
+        return
+    if certfile is None:
+        raise ConfigError("--ssl-keyfile needs --ssl-certfile (the certificate it belongs to).")
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(
+            str(certfile), str(keyfile) if keyfile is not None else None)
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        raise ConfigError(f"--ssl-certfile {certfile} / --ssl-keyfile {keyfile} do not load as a PEM certificate "
+                          f"and its private key ({exc}); give the files your TLS tool wrote.") from None
+
+
 def serve(
     db: DbOpt = None,
     host: Annotated[str, typer.Option("--host", help="Interface to bind; anything but loopback requires the token.")] = "127.0.0.1",
     port: Annotated[int, typer.Option("--port", parser=Finite(1, 65535, integer=True), help="TCP port to listen on.")] = 8765,
-    images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder of stored pictures (default: beside the database).")] = None,
+    images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Artifacts folder: the layers' recorded pictures under it are served, nothing else (default: beside the database).")] = None,
     virtual: Annotated[bool, typer.Option("--virtual", help="Attach a virtual printer (for trying the buttons).")] = False,
+    allowed_host: Annotated[list[str] | None, typer.Option("--allowed-host", help="Host name the dashboard answers to besides loopback names (repeatable), e.g. printer.local.")] = None,
+    ssl_certfile: Annotated[Path | None, typer.Option("--ssl-certfile", exists=True, dir_okay=False, help="Serve HTTPS with this certificate (PEM); session cookies become Secure.")] = None,
+    ssl_keyfile: Annotated[Path | None, typer.Option("--ssl-keyfile", exists=True, dir_okay=False, help="Private key of --ssl-certfile (PEM).")] = None,
 ) -> None:
-    """Serve the dashboard (FastAPI + uvicorn)."""
+    """Serve the dashboard (FastAPI + uvicorn); see docs/security.md for running it on a network."""
     from layerwatch.cli import console
     from layerwatch.errors import require
     from layerwatch.web.app import create_app
     from layerwatch.web.token import is_loopback, load_or_create_token
 
     uvicorn = require("uvicorn", "web", "The dashboard server")
+    _check_tls(ssl_certfile, ssl_keyfile)
     dbp = db or default_db()
     h = _open(dbp)
     token = None
+    token_file = dbp.with_suffix(".token")
+    scheme = "https" if ssl_certfile else "http"
     if not is_loopback(host):
-        token, created = load_or_create_token(dbp.with_suffix(".token"))
+        token, created = load_or_create_token(token_file)
         if created:
-            console.print(f"[bold yellow]access token (shown once, stored in {dbp.with_suffix('.token')}):[/] {token}")
-        console.print(f"open http://{host}:{port}/login?token=<token>")
+            console.print(f"[bold yellow]access token (shown once, stored in {token_file}):[/] {token}")
+        console.print(f"log in at {scheme}://{host}:{port}/login with the token")
     printers = {}
     if virtual:
         from layerwatch.web.virtual import virtual_printer
 
         printers["virtual"] = virtual_printer()
-    app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent)
-    console.print(f"dashboard on http://{host}:{port}/")
-    uvicorn.run(app, host=host, port=port, log_level="warning")
+    app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent,
+                     allowed_hosts=allowed_host or None, token_file=token_file)
+    console.print(f"dashboard on {scheme}://{host}:{port}/")
+    uvicorn.run(app, host=host, port=port, log_level="warning",
+                ssl_certfile=str(ssl_certfile) if ssl_certfile else None,
+                ssl_keyfile=str(ssl_keyfile) if ssl_keyfile else None)
 
 
 def register(app: typer.Typer) -> None:

@@ -1,7 +1,13 @@
-"""Print history in SQLite: printers, jobs, per-layer results and events.
+"""Print history in SQLite: printers, jobs, per-layer results, events and the audit log.
 
-One database file holds every job, and the settings edited in the dashboard
-(table ``settings``). It is opened in WAL mode with
+One database file holds every job, the settings edited in the dashboard
+(table ``settings``) and the dashboard's audit log (table ``audit``: who
+paused, resumed, cancelled, acknowledged or changed settings, from which
+client, when). The file, its WAL and shared-memory files are created with
+mode 0600 whatever the umask (they hold printer keys and notification URLs).
+Each job records the process writing it; a job whose process died without
+ending it is marked ``interrupted`` (with its last layer) the next time the
+database is opened. It is opened in WAL mode with
 ``synchronous=NORMAL`` so that a crash (even SIGKILL of the writer) loses at
 most the layer being written; each :meth:`History.add_layer` is one
 transaction. The schema version lives in ``PRAGMA user_version`` and the
@@ -11,6 +17,8 @@ transaction. The schema version lives in ``PRAGMA user_version`` and the
 from __future__ import annotations
 
 import json
+import logging
+import os
 import sqlite3
 import threading
 import time
@@ -20,8 +28,11 @@ from typing import Any
 
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import StorageError
+from layerwatch.storage.owner import is_gone, this_process
 
 __all__ = ["History", "MIGRATIONS", "SCHEMA_VERSION"]
+
+log = logging.getLogger("layerwatch.storage")
 
 MIGRATIONS: list[str] = [
     # version 1
@@ -72,10 +83,62 @@ MIGRATIONS: list[str] = [
         updated REAL NOT NULL
     );
     """,
+    # version 3: the writing process of each job (to find interrupted jobs), the dashboard's audit
+    # log, and the artifacts (image files) the layers refer to: the only files the dashboard serves
+    """
+    ALTER TABLE jobs ADD COLUMN owner TEXT;
+    CREATE TABLE audit (
+        id INTEGER PRIMARY KEY,
+        time REAL NOT NULL,
+        action TEXT NOT NULL,
+        target TEXT,
+        client TEXT NOT NULL,
+        actor TEXT NOT NULL,
+        detail TEXT
+    );
+    CREATE TABLE artifacts (
+        path TEXT PRIMARY KEY,
+        job_id INTEGER NOT NULL REFERENCES jobs(id)
+    );
+    INSERT OR IGNORE INTO artifacts(path, job_id)
+        SELECT je.value, l.job_id FROM layers l, json_each(l.result, '$.images') je
+        WHERE je.type = 'text';
+    """,
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 _JOB_COLS = "j.id, p.name, j.gcode_path, j.gcode_hash, j.part, j.config, j.started, j.ended, j.outcome"
+_JOB_KEYS = ("id", "printer", "gcode_path", "gcode_hash", "part", "config", "started", "ended", "outcome")
+_AUDIT_KEYS = ("id", "time", "action", "target", "client", "actor", "detail")
+PRIVATE = 0o600  # mode of the database, its WAL/SHM files and the dashboard token
+
+
+def _make_private(path: Path) -> None:
+    """Create ``path`` (and its folder, 0700) with mode 0600 whatever the umask; tighten our wider files.
+
+    SQLite gives the ``-wal``, ``-shm`` and ``-journal`` files it creates the
+    database file's mode, so making the database 0600 before SQLite opens it
+    makes them 0600 as well; existing ones (from an older layerwatch) that
+    others could read are set to 0600 too.
+    """
+    if not path.parent.exists():
+        path.parent.mkdir(parents=True, mode=0o700)
+    if not path.exists():
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, PRIVATE)
+        except FileExistsError:  # another process created it just now
+            pass
+        else:
+            os.fchmod(fd, PRIVATE)
+            os.close(fd)
+    for name in ("", "-wal", "-shm", "-journal"):
+        side = path.with_name(path.name + name)
+        try:
+            st = side.stat()
+        except FileNotFoundError:
+            continue
+        if st.st_uid == os.getuid() and st.st_mode & 0o077:
+            os.chmod(side, PRIVATE)
 
 
 def _int(value: Any) -> int:
@@ -114,7 +177,7 @@ class History:
         where = str(path)
         try:
             if self.path is not None:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
+                _make_private(self.path)
             self._db = sqlite3.connect(where, timeout=timeout, check_same_thread=False, isolation_level=None)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
@@ -125,6 +188,14 @@ class History:
                 f"cannot open history database {where}: {exc}; "
                 "close other layerwatch processes or move the file aside and start a new one."
             ) from None
+        except OSError as exc:
+            raise StorageError(f"cannot create history database {where}: {exc.strerror}; "
+                               "check the folder exists and is writable.") from None
+        try:
+            self.interrupted = self.mark_interrupted()
+        except StorageError as exc:  # e.g. a read-only copy: reading still works
+            log.warning("could not mark interrupted jobs: %s", exc)
+            self.interrupted = []
 
     # -- plumbing -----------------------------------------------------------------
     def _migrate(self) -> None:
@@ -200,9 +271,10 @@ class History:
             db.execute("INSERT OR IGNORE INTO printers(name, created) VALUES (?, ?)", (printer, now))
             pid = db.execute("SELECT id FROM printers WHERE name = ?", (printer,)).fetchone()[0]
             cur = db.execute(
-                "INSERT INTO jobs(printer_id, gcode_path, gcode_hash, part, config, started) "
-                "VALUES (?, ?, ?, ?, ?, ?)",
-                (pid, None if gcode_path is None else str(gcode_path), gcode_hash, part, cfg, now),
+                "INSERT INTO jobs(printer_id, gcode_path, gcode_hash, part, config, started, owner) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (pid, None if gcode_path is None else str(gcode_path), gcode_hash, part, cfg, now,
+                 json.dumps(this_process())),
             )
             return int(cur.lastrowid)
 
@@ -229,6 +301,8 @@ class History:
                 (_int(job_id), _int(result.layer), float(result.z), ratio, result.status,
                  result.metric, float(result.threshold), text, time.time()),
             )
+            db.executemany("INSERT OR IGNORE INTO artifacts(path, job_id) VALUES (?, ?)",
+                           [(str(p), _int(job_id)) for p in result.images.values() if isinstance(p, str)])
 
         self._run(fn, write=True)
 
@@ -247,13 +321,86 @@ class History:
         return self._run(fn, write=True)
 
     def end_job(self, job_id: int, outcome: str) -> None:
-        """Mark a job finished with ``outcome`` (``"done"``, ``"paused"``, ``"cancelled"``, ``"failed"``)."""
+        """Mark a job finished with ``outcome`` (``"done"``, ``"paused"``, ``"cancelled"``, ``"failed"``).
+
+        ``"interrupted"`` is set by :meth:`mark_interrupted` for jobs nobody ended.
+        """
 
         def fn(db: sqlite3.Connection) -> None:
             self._check_job(db, job_id)
             db.execute("UPDATE jobs SET ended = ?, outcome = ? WHERE id = ?", (time.time(), outcome, _int(job_id)))
 
         self._run(fn, write=True)
+
+    def mark_interrupted(self) -> list[int]:
+        """Mark jobs whose writing process is gone (killed, crashed) as ``interrupted``; return their ids.
+
+        Each gets ``ended`` = the time of its last stored layer (or its start)
+        and an ``interrupted`` event naming that layer. Jobs written by a
+        running process, by another host, or before owners were recorded are
+        left alone. Called on open.
+        """
+
+        def fn(db: sqlite3.Connection) -> list[int]:
+            rows = db.execute("SELECT id, owner, started FROM jobs WHERE outcome IS NULL AND owner IS NOT NULL").fetchall()
+            done = []
+            for job_id, owner, started in rows:
+                if not is_gone(json.loads(owner)):
+                    continue
+                last, at = db.execute("SELECT MAX(layer), MAX(created) FROM layers WHERE job_id = ?", (job_id,)).fetchone()
+                db.execute("UPDATE jobs SET ended = ?, outcome = 'interrupted' WHERE id = ?", (at or started, job_id))
+                said = "no layer was stored" if last is None else f"its last stored layer is {last}"
+                db.execute(
+                    "INSERT INTO events(job_id, time, kind, message, data) VALUES (?, ?, 'interrupted', ?, ?)",
+                    (job_id, time.time(), f"the monitoring process stopped without ending the job; {said}",
+                     json.dumps({"last_layer": last})),
+                )
+                done.append(int(job_id))
+            return done
+
+        return self._run(fn, write=True)
+
+    def add_audit(self, action: str, client: str, actor: str, target: str | None = None, detail: Any = None) -> int:
+        """Append a dashboard action to the audit log; returns its id.
+
+        Parameters
+        ----------
+        action : str
+            ``"pause"``, ``"resume"``, ``"cancel"``, ``"acknowledge"``, ``"settings"``, ``"pausing off"``, ...
+        client : str
+            Network address of the requesting client.
+        actor : str
+            Who: ``"token session 1a2b3c4d"``, ``"local (no token)"``.
+        target : str, optional
+            What it acted on (``"printer virtual"``, ``"job 3"``).
+        detail : JSON-able, optional
+            E.g. the changed settings (redacted by the caller).
+        """
+        payload = None if detail is None else json.dumps(detail, default=str)
+
+        def fn(db: sqlite3.Connection) -> int:
+            cur = db.execute(
+                "INSERT INTO audit(time, action, target, client, actor, detail) VALUES (?, ?, ?, ?, ?, ?)",
+                (time.time(), str(action), target, str(client), str(actor), payload),
+            )
+            return int(cur.lastrowid)
+
+        return self._run(fn, write=True)
+
+    def audit(self, after: int = 0, limit: int = 200) -> list[dict[str, Any]]:
+        """Audit entries with id greater than ``after``, newest first, at most ``limit``."""
+        rows = self._run(lambda db: db.execute(
+            "SELECT id, time, action, target, client, actor, detail FROM audit WHERE id > ? ORDER BY id DESC LIMIT ?",
+            (_int(after), max(0, _int(limit))),
+        ).fetchall())
+        out = [dict(zip(_AUDIT_KEYS, r, strict=True)) for r in rows]
+        for d in out:
+            d["detail"] = None if d["detail"] is None else json.loads(d["detail"])
+        return out
+
+    def is_artifact(self, path: str) -> bool:
+        """True when ``path`` is an image path some stored layer result refers to."""
+        return self._run(lambda db: db.execute("SELECT 1 FROM artifacts WHERE path = ?", (str(path),)).fetchone()) is not None
 
     def set_setting(self, name: str, value: Any) -> None:
         """Store (or replace) the JSON-able ``value`` under ``name`` (e.g. ``"job_config"``); one transaction."""
@@ -276,8 +423,7 @@ class History:
     # -- reading ------------------------------------------------------------------
     @staticmethod
     def _job_row(row: tuple) -> dict[str, Any]:
-        keys = ("id", "printer", "gcode_path", "gcode_hash", "part", "config", "started", "ended", "outcome")
-        d = dict(zip(keys, row, strict=True))
+        d = dict(zip(_JOB_KEYS, row, strict=True))
         d["config"] = None if d["config"] is None else json.loads(d["config"])
         return d
 
@@ -305,14 +451,19 @@ class History:
         return self._run(lambda db: db.execute("SELECT MAX(id) FROM jobs").fetchone()[0])
 
     def job(self, job_id: int) -> dict[str, Any] | None:
-        """One job as a dict (config included), or ``None`` if unknown."""
+        """One job as a dict (config and ``last_layer`` included), or ``None`` if unknown."""
 
         def fn(db: sqlite3.Connection) -> dict[str, Any] | None:
             r = db.execute(
-                f"SELECT {_JOB_COLS} FROM jobs j JOIN printers p ON p.id = j.printer_id WHERE j.id = ?",
+                f"SELECT {_JOB_COLS}, (SELECT MAX(layer) FROM layers WHERE job_id = j.id) "
+                "FROM jobs j JOIN printers p ON p.id = j.printer_id WHERE j.id = ?",
                 (_int(job_id),),
             ).fetchone()
-            return None if r is None else self._job_row(r)
+            if r is None:
+                return None
+            d = self._job_row(r[:9])
+            d["last_layer"] = r[9]
+            return d
 
         return self._run(fn)
 

@@ -3,9 +3,19 @@
 const $ = (id) => document.getElementById(id);
 let jobId = null;
 let jobCount = -1;
+// the session's CSRF token: the server puts it in the page; every POST/PUT/PATCH sends it back
+let csrf = document.querySelector('meta[name="csrf-token"]').content;
 
-async function api(path, opts) {
-  const r = await fetch(path, Object.assign({ credentials: "same-origin" }, opts || {}));
+async function api(path, opts, retried) {
+  opts = Object.assign({ credentials: "same-origin" }, opts || {});
+  if (opts.method && opts.method !== "GET") {
+    opts.headers = Object.assign({}, opts.headers || {}, { "X-CSRF-Token": csrf });
+  }
+  const r = await fetch(path, opts);
+  if (r.status === 403 && !retried) {  // the session expired or the server restarted: take a new one, once
+    const s = await fetch("/api/session", { credentials: "same-origin" });
+    if (s.ok) { csrf = (await s.json()).csrf; return api(path, opts, true); }
+  }
   if (!r.ok) {
     const text = await r.text();
     let detail = text;
@@ -84,7 +94,7 @@ async function loadJob(job, early) {
   img($("img-stack"), im.stack); $("stack-none").style.display = im.stack ? "none" : "block";
   $("ack-job").hidden = !(job && job.outcome == null);
   drawCurve(rows, pause);
-  $("curve-legend").innerHTML = `<span style="color:#2563eb">━</span> a% per layer &nbsp; <span style="color:#dc2626">╌</span> pause threshold ${pct(pause)}`;
+  $("curve-legend").innerHTML = `<span class="key-curve">━</span> a% per layer &nbsp; <span class="key-threshold">╌</span> pause threshold ${pct(pause)}`;
   $("events").innerHTML = events.slice(-50).reverse().map((e) =>
     `<li><span class="meta">${new Date(e.time * 1000).toLocaleTimeString()}</span> <span class="kind">${esc(e.kind)}</span> ${esc(e.message)}</li>`).join("");
 }
@@ -123,15 +133,47 @@ $("ack-job").addEventListener("click", async () => {
   await refresh();
 });
 
+async function loadAudit() {
+  const rows = await api("/api/audit?limit=30");
+  $("audit").innerHTML = rows.map((a) =>
+    `<li><span class="meta">${new Date(a.time * 1000).toLocaleString()}</span> <span class="kind">${esc(a.action)}</span>` +
+    `${a.target ? " " + esc(a.target) : ""} <span class="meta">by ${esc(a.actor)} from ${esc(a.client)}</span></li>`).join("") ||
+    "<li class=\"meta\">nothing changed from the dashboard yet</li>";
+}
+
+function showPausing() {
+  const on = settings.policy.action !== "notify" || settings.policy.strong_action !== "notify";
+  $("pausing").checked = on;
+  $("pausing-off").hidden = on;
+}
+$("pausing").addEventListener("change", async (ev) => {
+  const enabled = ev.target.checked;
+  if (!enabled && !confirm("Switch pausing off? Failures will only be notified, never pause the print.")) {
+    ev.target.checked = true; return;
+  }
+  try {
+    await api("/api/pausing", { method: "PUT", headers: { "content-type": "application/json" }, body: JSON.stringify({ enabled }) });
+  } catch (e) { alert(e.message); }
+  await loadSettings();
+  await refresh();
+});
+
 let settings = null;
 let settingsReady = null;
 async function loadSettings() {
-  const [st, metrics] = await Promise.all([api("/api/settings"), api("/api/metrics")]);
+  const [st, metrics, ranges] = await Promise.all([api("/api/settings"), api("/api/metrics"), api("/api/settings/ranges")]);
   settings = st;
+  for (const [id, key] of [["set-threshold", "analysis.threshold"], ["set-pause", "policy.pause_ratio"]]) {
+    $(id).min = ranges[key].min; $(id).max = ranges[key].max;
+  }
+  showPausing();
   $("set-metric").innerHTML = metrics.map((m) => `<option>${m}</option>`).join("");
   $("set-metric").value = settings.analysis.metric;
   $("set-threshold").value = settings.analysis.threshold;
   $("set-pause").value = settings.policy.pause_ratio;
+  // "notify" (never pause) is the pause switch's to set, not this list's
+  const acts = settings.policy.action === "notify" ? ["notify", "pause", "cancel"] : ["pause", "cancel"];
+  $("set-action").innerHTML = acts.map((a) => `<option>${a}</option>`).join("");
   $("set-action").value = settings.policy.action;
 }
 $("settings").addEventListener("submit", async (ev) => {
@@ -162,7 +204,7 @@ async function refresh() {
     // the job's rows are fetched alongside the job list, not after it (one round trip less)
     const early = jobId != null ? { id: jobId, data: fetchJob(jobId) } : null;
     if (early) { early.data.catch(() => {}); }  // unused when the job vanished; loadJob fetches again
-    await Promise.all([Promise.all([loadJobs(), settingsReady]).then(([job]) => loadJob(job, early)), loadPrinters()]);
+    await Promise.all([Promise.all([loadJobs(), settingsReady]).then(([job]) => loadJob(job, early)), loadPrinters(), loadAudit()]);
   }
   catch (e) { $("live").textContent = "error"; }
   finally { busy = false; }
