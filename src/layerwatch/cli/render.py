@@ -57,6 +57,16 @@ def _part_bounds(toolpath) -> tuple[float, float, float, float]:
     return (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
 
 
+def _observed_square(topview, toolpath, centred: bool):
+    """``topview``, or (no job file) the same square centred on the part's extrusions."""
+    if not centred:
+        return topview
+    from layerwatch.geometry.topview import TopView
+
+    x0, y0, x1, y1 = _part_bounds(toolpath)
+    return TopView(topview.px_per_mm, topview.width_mm, topview.height_mm, ((x0 + x1) / 2, (y0 + y1) / 2))
+
+
 def render(
     file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="G-code file (.gcode/.bgcode).")],
     layers: Annotated[str | None, typer.Option("--layers", "-l", help="Layers: 10:20 (end excluded), 5, 1,4,9, ::10 or all.")] = None,
@@ -107,12 +117,7 @@ def render(
     if toolpath.n_layers == 0:
         raise RenderError(f"{file} has no extruding moves to render; check it is sliced G-code.")
     idx = parse_layers(layers, toolpath.n_layers)
-    topview = cfg.topview.topview()
-    if config is None:  # centre the observed square on the part
-        from layerwatch.geometry.topview import TopView
-
-        x0, y0, x1, y1 = _part_bounds(toolpath)
-        topview = TopView(topview.px_per_mm, topview.width_mm, topview.height_mm, ((x0 + x1) / 2, (y0 + y1) / 2))
+    topview = _observed_square(cfg.topview.topview(), toolpath, centred=config is None)
     try:
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
