@@ -12,7 +12,7 @@ park spot, the frame is rejected with a :class:`FrameNotParked` error whose
 message the monitor records as that layer's result (and never as a pause).
 
 A host that cannot report the position (OctoPrint has no position API) leaves
-the frame unchecked; the layer's result says so (``extra["parked"]``).
+the frame unchecked (logged; :attr:`ParkedCamera.verdicts` says ``"unknown"``).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ class FrameNotParked(CameraError):
     """The head was not at the park spot while the frame was taken."""
 
 
-def park_spots(data: bytes) -> dict[int, tuple[float, float]]:
+def park_spots(data: bytes) -> dict[int, Position]:
     """Where the head stands at each layer's snapshot trigger.
 
     Parameters
@@ -50,9 +50,9 @@ def park_spots(data: bytes) -> dict[int, tuple[float, float]]:
 
     Returns
     -------
-    dict of int to (float, float)
-        Layer index -> commanded (X, Y) at its first trigger line, G-code coordinates, mm.
-        Layers whose position is not known (no XY move before the trigger) are left out.
+    dict of int to (float, float, float)
+        Layer index -> commanded (X, Y, Z) at its first trigger line, G-code coordinates, mm.
+        Layers whose position is not known (no move before the trigger) are left out.
     """
     found = find_triggers(data)
     if not found:
@@ -62,8 +62,8 @@ def park_spots(data: bytes) -> dict[int, tuple[float, float]]:
         first.setdefault(layer, line)
     layers = sorted(first, key=first.get)
     probe = run(data, np.array([first[k] for k in layers], np.int64))[5]
-    return {k: (float(row[0]), float(row[1])) for k, row in zip(layers, probe, strict=True)
-            if np.isfinite(row[0]) and np.isfinite(row[1])}
+    return {k: (float(row[0]), float(row[1]), float(row[2])) for k, row in zip(layers, probe, strict=True)
+            if np.isfinite(row[:3]).all()}
 
 
 @dataclass
@@ -72,31 +72,42 @@ class ParkCheck:
 
     Attributes
     ----------
-    spots : dict of int to (float, float)
-        Park XY per layer (:func:`park_spots`), mm.
+    spots : dict of int to (float, float, float)
+        Park XYZ per layer (:func:`park_spots`), mm.
     tolerance_mm : float
         Largest XY distance from the park spot still counted as parked, mm.
+    z_tolerance_mm : float
+        Largest Z difference, mm. The park spot is usually the same XY for every layer, but
+        its Z (layer top + lift) is not: a stale trigger of an earlier layer, seen while the
+        head is parked for a later one, is told apart by Z. Keep it below the layer height.
     """
 
-    spots: dict[int, tuple[float, float]]
+    spots: dict[int, Position]
     tolerance_mm: float = 1.0
+    z_tolerance_mm: float = 0.05
 
     def __post_init__(self) -> None:
-        if not (0 < self.tolerance_mm < 1000) or not math.isfinite(self.tolerance_mm):
-            raise ConfigError(f"--park-tolerance {self.tolerance_mm}: give a distance in mm above 0 (e.g. 1).")
+        for name, v in (("--park-tolerance", self.tolerance_mm), ("Z tolerance", self.z_tolerance_mm)):
+            if not (math.isfinite(v) and 0 < v < 1000):
+                raise ConfigError(f"{name} {v}: give a distance in mm above 0 (e.g. 1).")
 
     def reason(self, layer: int, position: Position) -> str | None:
-        """Why a frame of ``layer`` taken at ``position`` (X, Y, Z, mm) is rejected, or ``None`` when parked."""
+        """Why a frame of ``layer`` taken at ``position`` (X, Y, Z, mm) is rejected, or ``None`` when parked.
+
+        A layer without a known park spot is not checked (``None``).
+        """
         spot = self.spots.get(layer)
         if spot is None:
             return None
         d = math.hypot(position[0] - spot[0], position[1] - spot[1])
-        if d <= self.tolerance_mm:
+        dz = abs(position[2] - spot[2])
+        if d <= self.tolerance_mm and dz <= self.z_tolerance_mm:
             return None
-        return (f"frame rejected: the head was at X{position[0]:.2f} Y{position[1]:.2f}, {d:.1f} mm from the park spot "
-                f"X{spot[0]:.2f} Y{spot[1]:.2f} (tolerance {self.tolerance_mm:g} mm) when layer {layer}'s photo was "
-                "taken; the printer did not hold at the park spot: print a file prepared by this layerwatch "
-                "(`layerwatch gcode prepare`), whose block dwells there after the trigger")
+        return (f"frame rejected: the head was at X{position[0]:.2f} Y{position[1]:.2f} Z{position[2]:.2f}, not at "
+                f"layer {layer}'s park spot X{spot[0]:.2f} Y{spot[1]:.2f} Z{spot[2]:.2f} (off by {d:.2f} mm in XY, "
+                f"{dz:.2f} mm in Z; tolerance {self.tolerance_mm:g} / {self.z_tolerance_mm:g} mm) when the photo was "
+                "taken: the printer did not hold at the park spot for the photo (a late trigger, or a block "
+                "without a dwell after the trigger: prepare the file again with `layerwatch gcode prepare`)")
 
 
 class ParkedCamera:
