@@ -1,0 +1,257 @@
+"""Jobs pick themselves up on a REAL OctoPrint (virtual printer) and a REAL Moonraker + Klippy.
+
+The bundled example part, prepared with the host's profile, is uploaded through the host's own
+file API and started there; the service (JobWatcher + JobService, as ``layerwatch monitor
+--follow`` runs it) must notice the job, download that file, analyse its layers with images
+stored, then wait for and pick up the next job. The camera is the simulator (no camera at a
+virtual printer); everything between the host and the history database is the real code.
+
+Klippy runs without hardware (see moonraker_stack.py) and, in that mode, without an extruder
+or real time: the test's printer.cfg turns ``G1`` into ``G1`` without ``E`` (no extruder to
+move) and lets ``LAYERWATCH_SNAPSHOT`` hold for 2.5 s after its ``RESPOND``, as a printer
+holding at the park spot for the photo would. The monitor downloads the unchanged file.
+"""
+
+import hashlib
+import threading
+
+import httpx
+import pytest
+from moonraker_stack import MoonrakerStack, printer_cfg, require_installed, until
+from test_jobs import PARK, prepared
+from test_octoprint_real import octoprint  # noqa: F401 - the session fixture (real OctoPrint server)
+
+from layerwatch.evaluate.recommended import recommended_config
+from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.gcode.postprocess import KLIPPER_MACRO
+from layerwatch.monitor.artifacts import ArtifactStore
+from layerwatch.monitor.follow import CameraSpec, JobService
+from layerwatch.monitor.jobs import job_host
+from layerwatch.monitor.parked import FrameNotParked, ParkCheck, ParkedCamera
+from layerwatch.monitor.printers.base import SnapshotTrigger
+from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+from layerwatch.monitor.service import Monitor
+from layerwatch.storage.history import History
+
+CAMERA = CameraSpec(image_size=(640, 360))
+
+#: test Klippy: the trigger holds 2.5 s (the park dwell), G1 drops E (no extruder in debug-output mode)
+TEST_MACROS = """\
+[respond]
+
+[gcode_macro LAYERWATCH_SNAPSHOT]
+gcode:
+  RESPOND MSG="layerwatch snapshot layer={params.LAYER|int} z={'%.3f' % (params.Z|float)}"
+  LAYERWATCH_TEST_LAYER_TIME SECONDS=2.5
+
+[gcode_macro G1]
+rename_existing: G99001
+gcode:
+  G99001 {% for a in ('X', 'Y', 'Z', 'F') %}{% if a in params %} {a}{params[a]}{% endif %}{% endfor %}
+"""
+
+
+class _Service:
+    """JobService + JobWatcher in a thread, as ``monitor --follow`` runs them."""
+
+    def __init__(self, printer, tmp_path, **store_kw):
+        self.history = History(tmp_path / "history.db")
+        self.store = ArtifactStore(tmp_path, **store_kw)
+        self.service = JobService(printer, job_host(printer), recommended_config(PART_CONFIG), CAMERA,
+                                  history=self.history, store=self.store)
+        self.watcher = self.service.watcher(poll_s=0.3, end_grace_s=3.0)
+        self.thread = threading.Thread(target=self.watcher.run, daemon=True)
+        self.thread.start()
+
+    def job(self, n):
+        """The n-th history job (1-based, oldest first) once it exists."""
+        jobs = sorted(self.history.jobs(), key=lambda j: j["id"])
+        return jobs[n - 1] if len(jobs) >= n else None
+
+    def analysed(self, n, k):
+        """The n-th job once it has k layers analysed with status ok."""
+        job = self.job(n)
+        return job if job and sum(r.status == "ok" for r in self.history.layers(job["id"])) >= k else None
+
+    def stop(self):
+        self.watcher.stop_event.set()
+        self.thread.join(30)
+        self.history.close()
+
+
+def _check_images(svc, job, tmp_path):
+    ok = [r for r in svc.history.layers(job["id"]) if r.status == "ok"]
+    for r in ok:
+        assert set(r.images) >= {"top", "reference", "overlay"}, r.images
+        for rel in r.images.values():
+            assert rel.startswith(svc.store.rel(job["id"]) + "/") and (tmp_path / rel).stat().st_size > 500
+    return ok
+
+
+# ------------------------------------------------------------------------------------------ OctoPrint
+def _octo_upload(url, key, name, data, start=True):
+    r = httpx.post(url + "/api/files/local", headers={"X-Api-Key": key}, timeout=30,
+                   files={"file": (name, data, "application/octet-stream")},
+                   data={"select": "true", "print": "true" if start else "false"})
+    r.raise_for_status()
+
+
+def _octo_state(url, key):
+    return httpx.get(url + "/api/job", headers={"X-Api-Key": key}, timeout=5).json()["state"]
+
+
+def _octo_cancel(url, key):
+    httpx.post(url + "/api/job", headers={"X-Api-Key": key}, json={"command": "cancel"}, timeout=10).raise_for_status()
+    until(lambda: _octo_state(url, key) == "Operational", 30, "OctoPrint idle after cancel")
+
+
+@pytest.mark.octoprint
+@pytest.mark.slow
+def test_octoprint_jobs_are_picked_up_analysed_with_images_and_the_next_waited_for(octoprint, tmp_path):  # noqa: F811
+    url, key = octoprint
+    h = {"X-Api-Key": key}
+    httpx.post(url + "/api/connection", headers=h, json={"command": "connect", "port": "VIRTUAL", "baudrate": 115200,
+                                                          "autoconnect": False}, timeout=10).raise_for_status()
+    until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
+          30, "virtual printer connection")
+    printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
+    svc = _Service(printer, tmp_path)
+    try:
+        assert printer.wait_connected(15)
+        job_gcode = prepared("octoprint")
+        for n, name in ((1, "lw_job1.gcode"), (2, "folder/lw_job 2.gcode")):
+            _octo_upload(url, key, name, job_gcode)
+            job = until(lambda n=n: svc.analysed(n, 3), 120, f"job {n} picked up and 3 layers analysed")
+            assert job["gcode_path"] == name and job["printer"].startswith("octoprint:")
+            assert _check_images(svc, job, tmp_path)
+            _octo_cancel(url, key)
+            until(lambda n=n: len(svc.watcher.handled) == n, 30, f"job {n} handled")
+            assert svc.thread.is_alive()  # waits for the next job
+        assert [j.path for j, _ in svc.watcher.handled] == ["lw_job1.gcode", "folder/lw_job 2.gcode"]
+        # the downloaded file is the job's own: its hash is the uploaded prepared file's
+        assert svc.job(2)["gcode_hash"] == hashlib.sha256(job_gcode).hexdigest()
+
+        # a job without the trigger: reported with the prepare command, not analysed
+        _octo_upload(url, key, "plain.gcode", PART_GCODE.read_bytes())
+        until(lambda: len(svc.watcher.handled) == 3, 60, "the unprepared job handled")
+        assert svc.watcher.handled[-1][1] == "not prepared"
+        job = svc.job(3)
+        assert job["outcome"] == "not analysed" and svc.history.layers(job["id"]) == []
+        (event,) = svc.history.events(job["id"])
+        assert "layerwatch gcode prepare plain.gcode --profile octoprint -o plain.gcode" in event["message"]
+        _octo_cancel(url, key)
+    finally:
+        svc.stop()
+        printer.close()
+
+
+# ------------------------------------------------------------------------------------------ Moonraker
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    require_installed()
+    s = MoonrakerStack(tmp_path_factory.mktemp("moonraker_jobs"))
+    assert KLIPPER_MACRO in printer_cfg(s.gcodes)
+    (s.data / "config" / "printer.cfg").write_text(printer_cfg(s.gcodes).replace(KLIPPER_MACRO, TEST_MACROS))
+    try:
+        s.start()
+        yield s
+    except BaseException:
+        print(s.log_tail())
+        raise
+    finally:
+        s.stop()
+
+
+def _moon_state(stack):
+    return stack.query("print_stats")["print_stats"]["state"]
+
+
+def _moon_cancel(stack):
+    httpx.post(stack.url + "/printer/print/cancel", timeout=10).raise_for_status()
+    until(lambda: _moon_state(stack) == "cancelled", 30, "Klippy cancelled")
+
+
+@pytest.mark.moonraker
+@pytest.mark.slow
+def test_moonraker_jobs_are_picked_up_analysed_parked_and_old_images_pruned(stack, tmp_path):
+    printer = MoonrakerPrinter(stack.url)
+    svc = _Service(printer, tmp_path, max_jobs=1)
+    try:
+        assert printer.wait_connected(15)
+        job_gcode = prepared("klipper").decode()
+        for n in (1, 2):
+            stack.upload_and_print(f"lw_job{n}.gcode", job_gcode)
+            job = until(lambda n=n: svc.analysed(n, 3), 120, f"job {n} picked up and 3 layers analysed")
+            assert job["gcode_path"] == f"lw_job{n}.gcode"
+            ok = _check_images(svc, job, tmp_path)
+            # every frame was checked against the position Klippy reported while it held at the park spot;
+            # one grabbed after the hold (a loaded machine) is rejected with its reason, never analysed
+            rows = svc.history.layers(job["id"])
+            late = [r for r in rows if r.status != "ok"]
+            assert all("frame rejected: the head was at" in r.message for r in late), [r.message for r in late]
+            print(f"\nMoonraker job {n}: {len(ok)} layers analysed, {len(late)} frames rejected as not parked")
+            _moon_cancel(stack)
+            until(lambda n=n: len(svc.watcher.handled) == n, 30, f"job {n} handled")
+            assert svc.thread.is_alive()
+        assert [o for _, o in svc.watcher.handled] == ["cancelled", "cancelled"]
+        # retention (1 job): the first job's images are gone, its history rows stay; the second's are kept
+        first, second = svc.job(1), svc.job(2)
+        until(lambda: [j for j, _ in svc.store.job_folders()] == [second["id"]], 10, "job 1's images pruned")
+        assert not (tmp_path / svc.store.rel(first["id"])).exists()
+        assert any(r.images for r in svc.history.layers(first["id"]))
+        assert (tmp_path / svc.store.rel(second["id"]) / "stack.png").is_file()
+        assert svc.history.latest_layer(second["id"]).images["stack"].endswith("stack.png")
+
+        # (debug-output Klippy would run it in milliseconds: the test wait keeps it printing for a poll)
+        stack.upload_and_print("plain.gcode", "LAYERWATCH_TEST_LAYER_TIME SECONDS=3\n" + PART_GCODE.read_text())
+        until(lambda: len(svc.watcher.handled) == 3, 60, "the unprepared job handled")
+        assert svc.watcher.handled[-1][1] == "not prepared"
+        assert "--profile klipper" in svc.history.events(svc.job(3)["id"])[0]["message"]
+        _moon_cancel(stack)
+    finally:
+        svc.stop()
+        printer.close()
+
+
+class _Frames:
+    def set_layer(self, layer):
+        self.layer = layer
+
+    def grab(self):
+        import numpy as np
+
+        return np.full((48, 64, 3), 80, np.uint8)
+
+
+class _Pipe:
+    def process(self, photo, layer):
+        pytest.fail("a frame taken off the park spot must not be analysed")
+
+
+@pytest.mark.moonraker
+def test_frames_taken_off_the_park_spot_are_rejected_and_recorded(stack, tmp_path):
+    printer = MoonrakerPrinter(stack.url, push=False)
+    host = job_host(printer)
+    spot = (PARK[0], PARK[1], 5.3)
+    cam = ParkedCamera(_Frames(), ParkCheck({0: spot}, tolerance_mm=1.0), host.position)
+    with History(tmp_path / "h.db") as hist:
+        job = hist.start_job("moonraker", "x.gcode")
+        mon = Monitor(printer, cam, _Pipe(), history=hist, job_id=job, wait_for_verdict=True)
+        try:
+            printer.send_gcode("G90\nG1 X20 Y30 Z1.5 F6000\nM400")
+            until(lambda: host.position()[:2] == (20.0, 30.0), 10, "the head at X20 Y30")
+            res = mon.handle_trigger(SnapshotTrigger(0, 0.3, "moonraker"))
+            assert res.status == "error" and "head was at X20.00 Y30.00 Z1.50, not at layer 0's park spot" in res.message
+            (row,) = hist.layers(job)
+            assert row.message == res.message  # the reason is in the history
+            printer.send_gcode(f"G1 X{spot[0]} Y{spot[1]} Z{spot[2]} F6000\nM400")
+            until(lambda: host.position() == spot, 10, "the head at the park spot")
+            cam.set_layer(0)
+            assert cam.grab().shape == (48, 64, 3) and cam.verdicts[0] == "parked"
+            cam.check.spots[0] = (PARK[0], PARK[1], 5.6)  # parked, but at another layer's height
+            with pytest.raises(FrameNotParked, match="0.30 mm in Z"):
+                cam.grab()
+        finally:
+            mon.close()
+            printer.close()
