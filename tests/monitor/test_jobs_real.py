@@ -14,6 +14,7 @@ holding at the park spot for the photo would. The monitor downloads the unchange
 
 import hashlib
 import threading
+import time
 
 import httpx
 import pytest
@@ -168,8 +169,10 @@ def _moon_state(stack):
 
 
 def _moon_cancel(stack):
-    httpx.post(stack.url + "/printer/print/cancel", timeout=10).raise_for_status()
-    until(lambda: _moon_state(stack) == "cancelled", 30, "Klippy cancelled")
+    """Cancel the print (a plain test job may have finished already)."""
+    if _moon_state(stack) in ("printing", "paused"):
+        httpx.post(stack.url + "/printer/print/cancel", timeout=10).raise_for_status()
+    until(lambda: _moon_state(stack) in ("cancelled", "complete"), 30, "Klippy cancelled")
 
 
 @pytest.mark.moonraker
@@ -255,3 +258,29 @@ def test_frames_taken_off_the_park_spot_are_rejected_and_recorded(stack, tmp_pat
         finally:
             mon.close()
             printer.close()
+
+
+@pytest.mark.moonraker
+@pytest.mark.slow
+def test_cli_without_gcode_analyses_the_hosts_job_never_the_bundled_example(stack, tmp_path):
+    """``monitor --printer moonraker://...`` without ``--gcode`` takes the job the host prints (here unprepared)."""
+    from typer.testing import CliRunner
+
+    from layerwatch.cli import app
+
+    def start_job():
+        time.sleep(2.0)
+        stack.upload_and_print("plain_cli.gcode", "LAYERWATCH_TEST_LAYER_TIME SECONDS=3\n" + PART_GCODE.read_text())
+
+    t = threading.Thread(target=start_job, daemon=True)
+    t.start()
+    db = tmp_path / "history.db"
+    r = CliRunner().invoke(app, ["monitor", "--printer", f"moonraker://127.0.0.1:{stack.port}", "--history", str(db)])
+    t.join(10)
+    assert r.exit_code == 1, r.output  # nothing analysed
+    assert "plain_cli.gcode: not prepared" in r.output
+    with History(db) as h:
+        (job,) = h.jobs()
+        assert job["gcode_path"] == "plain_cli.gcode" and job["n_layers"] == 0
+        assert "layerwatch gcode prepare plain_cli.gcode --profile klipper" in h.events(job["id"])[0]["message"]
+    _moon_cancel(stack)
