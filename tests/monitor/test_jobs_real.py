@@ -28,7 +28,13 @@ from layerwatch.gcode.postprocess import KLIPPER_MACRO
 from layerwatch.monitor.artifacts import ArtifactStore
 from layerwatch.monitor.follow import CameraSpec, JobService
 from layerwatch.monitor.jobs import job_host
-from layerwatch.monitor.parked import FrameNotParked, ParkCheck, ParkedCamera
+from layerwatch.monitor.parked import (
+    FrameNotParked,
+    M114Position,
+    ParkCheck,
+    ParkedCamera,
+    park_spots,
+)
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
@@ -56,11 +62,11 @@ gcode:
 class _Service:
     """JobService + JobWatcher in a thread, as ``monitor --follow`` runs them."""
 
-    def __init__(self, printer, tmp_path, **store_kw):
+    def __init__(self, printer, tmp_path, park_tolerance_mm=1.0, **store_kw):
         self.history = History(tmp_path / "history.db")
         self.store = ArtifactStore(tmp_path, **store_kw)
         self.service = JobService(printer, job_host(printer), recommended_config(PART_CONFIG), CAMERA,
-                                  history=self.history, store=self.store)
+                                  history=self.history, store=self.store, park_tolerance_mm=park_tolerance_mm)
         self.watcher = self.service.watcher(poll_s=0.3, end_grace_s=3.0)
         self.thread = threading.Thread(target=self.watcher.run, daemon=True)
         self.thread.start()
@@ -117,7 +123,9 @@ def test_octoprint_jobs_are_picked_up_analysed_with_images_and_the_next_waited_f
     until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
           30, "virtual printer connection")
     printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
-    svc = _Service(printer, tmp_path)
+    # the park check on OctoPrint is tested below (test_octoprint_frames_...): the snapshot block of
+    # this layerwatch's `gcode prepare` may not dwell at the park spot yet (the snap part of issue 22)
+    svc = _Service(printer, tmp_path, park_tolerance_mm=None)
     try:
         assert printer.wait_connected(15)
         job_gcode = prepared("octoprint")
@@ -144,6 +152,66 @@ def test_octoprint_jobs_are_picked_up_analysed_with_images_and_the_next_waited_f
         _octo_cancel(url, key)
     finally:
         svc.stop()
+        printer.close()
+
+
+def _block_file(dwell_at_park: bool, n_layers: int = 4) -> bytes:
+    """A small print whose snapshot block dwells 1.5 s at the park spot after its M118 trigger, or after the move back."""
+    lines = ["G28", "G90", "M83"]
+    for i in range(n_layers):
+        z = 0.3 * (i + 1)
+        lines += [f"G1 Z{z:.2f} F600"] + [f"G1 X{60 + 10 * (k % 2)} Y{60 + k} E0.1 F1200" for k in range(10)]
+        lines += [f"G1 Z{z + 5:.2f} F600", f"G1 X{PARK[0]:g} Y{PARK[1]:g} F9000", "M400",
+                  f"M118 E1 layerwatch snapshot layer={i} z={z:.3f}"]
+        back = ["G1 X60 Y60 F9000", f"G1 Z{z:.2f} F600"]
+        lines += ["G4 P1500"] + back if dwell_at_park else back + ["G4 P1500"]
+    return ("\n".join(lines) + "\n").encode()
+
+
+class _Layers:
+    """Stand-in analysis: every frame that reaches it is an analysed layer."""
+
+    def __init__(self):
+        self.seen = []
+
+    def process(self, photo, layer):
+        from layerwatch.analysis.result import LayerResult
+
+        self.seen.append(layer)
+        return LayerResult(layer=layer, z=0.3 * (layer + 1))
+
+
+@pytest.mark.octoprint
+@pytest.mark.slow
+def test_octoprint_frames_are_taken_only_while_the_printer_holds_at_the_park_spot(octoprint):  # noqa: F811
+    """M114 through OctoPrint: a block that dwells at the park spot gives accepted frames; one that dwells after
+    moving back gets every frame rejected with the reason."""
+    url, key = octoprint
+    h = {"X-Api-Key": key}
+    httpx.post(url + "/api/connection", headers=h, json={"command": "connect", "port": "VIRTUAL", "baudrate": 115200,
+                                                          "autoconnect": False}, timeout=10)
+    until(lambda: _octo_state(url, key) == "Operational", 30, "virtual printer operational")
+    printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
+    try:
+        assert printer.wait_connected(15)
+        position = M114Position(printer)
+        for dwell_at_park in (True, False):
+            data = _block_file(dwell_at_park)
+            pipe = _Layers()
+            cam = ParkedCamera(_Frames(), ParkCheck(park_spots(data), tolerance_mm=1.0), position)
+            mon = Monitor(printer, cam, pipe, wait_for_verdict=True)
+            t = threading.Thread(target=mon.run, kwargs={"poll_s": 0.05}, daemon=True)
+            t.start()
+            _octo_upload(url, key, f"held_{dwell_at_park}.gcode", data)
+            until(lambda mon=mon: len(mon.report.results) >= 4, 60, "four layers")
+            t.join(30)
+            rows = [(r.layer, r.status, r.message) for r in mon.report.results]
+            if dwell_at_park:
+                assert pipe.seen == [0, 1, 2, 3] and set(cam.verdicts.values()) == {"parked"}, rows
+            else:
+                assert pipe.seen == [] and all("frame rejected: the head was at X60.00 Y60.00" in m for _, _, m in rows), rows
+            until(lambda: _octo_state(url, key) == "Operational", 30, "job done")
+    finally:
         printer.close()
 
 

@@ -23,7 +23,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.cameras import SimCamera, open_camera
 from layerwatch.monitor.jobs import JobHost, JobWatcher, PrintJob
-from layerwatch.monitor.parked import ParkCheck, ParkedCamera, park_spots
+from layerwatch.monitor.parked import M114Position, ParkCheck, ParkedCamera, park_spots
 from layerwatch.monitor.pipeline import LayerPipeline
 from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.base import Printer
@@ -109,6 +109,8 @@ class JobService:
         self.park_tolerance_mm, self.wait_for_verdict = park_tolerance_mm, wait_for_verdict
         self.printer_name = f"{host.kind}:{str(host.http.base_url).rstrip('/')}"
         self.jobs: dict[int, int | None] = {}  # id(monitor) -> history job id
+        #: where the printer says the head is (OctoPrint: the firmware's M114 reply)
+        self.position = M114Position(printer) if host.kind == "octoprint" else host.position
 
     def watcher(self, **kw: Any) -> JobWatcher:
         """A :class:`JobWatcher` that starts, rejects and finishes jobs through this service."""
@@ -130,7 +132,7 @@ class JobService:
         cam = source
         if self.park_tolerance_mm is not None:
             spots = park_spots(data)
-            cam = ParkedCamera(source, ParkCheck(spots, self.park_tolerance_mm), self.host.position)
+            cam = ParkedCamera(source, ParkCheck(spots, self.park_tolerance_mm), self.position)
             log.info("park spots of %s: %d layers, first %s", job.name, len(spots), next(iter(spots.values()), None))
         mon = Monitor(self.printer, cam, pipeline, PausePolicy(self.cfg.policy), notifier=self.notifier,
                       history=self.history, job_id=job_id,

@@ -5,20 +5,30 @@ The snapshot block parks the head out of the camera's view before the trigger
 own G-code: the machine model of the G-code reader
 (:func:`layerwatch.gcode.reader.run`) gives the commanded XY at each trigger
 line, in G-code coordinates, whatever park rule the file was prepared with.
-When a trigger arrives, :class:`ParkedCamera` asks the printer where the head
-is (Moonraker: ``gcode_move.gcode_position``) right before and right after it
-grabs the frame; when either position is more than ``tolerance_mm`` from the
-park spot, the frame is rejected with a :class:`FrameNotParked` error whose
-message the monitor records as that layer's result (and never as a pause).
+When a trigger arrives, :class:`ParkedCamera` grabs the frame, then asks the
+printer where the head is (Moonraker: ``gcode_move.gcode_position``; OctoPrint:
+the firmware's ``M114`` reply, :class:`M114Position`). The block waits for the
+park move to finish (``M400``) before its trigger, and each layer parks at its
+own height, so a head still at this layer's park spot after the frame was there
+while it was taken. When the position is more than ``tolerance_mm`` (XY) or
+``z_tolerance_mm`` (Z) from the spot, the frame is rejected with a
+:class:`FrameNotParked` error whose message the monitor records as that
+layer's result (never as a pause).
 
-A host that cannot report the position (OctoPrint has no position API) leaves
-the frame unchecked (logged; :attr:`ParkedCamera.verdicts` says ``"unknown"``).
+Asking *after* the grab matters on OctoPrint: it queues ``M114`` behind the
+line being executed, so the reply comes when the dwell at the park spot ends
+(and before the move back, which OctoPrint sends only after that reply's
+``ok``); asking before would delay the photo to the end of the dwell. A printer
+that does not answer leaves the frame unchecked (logged;
+:attr:`ParkedCamera.verdicts` says ``"unknown"``).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +39,7 @@ from layerwatch.errors import CameraError, ConfigError, LayerwatchError
 from layerwatch.gcode.reader import run
 from layerwatch.monitor.jobs import find_triggers
 
-__all__ = ["FrameNotParked", "ParkCheck", "ParkedCamera", "park_spots"]
+__all__ = ["FrameNotParked", "ParkCheck", "ParkedCamera", "M114Position", "park_spots"]
 
 log = logging.getLogger("layerwatch.monitor.parked")
 
@@ -147,7 +157,7 @@ class ParkedCamera:
             return None
 
     def grab(self) -> np.ndarray:
-        """The frame, if the head was parked before and after it was taken.
+        """The frame, if the head is still at the layer's park spot after it was taken.
 
         Raises
         ------
@@ -156,13 +166,71 @@ class ParkedCamera:
         CameraError
             From the wrapped camera.
         """
-        before = self._where()
         frame = self.camera.grab()
-        after = self._where()
-        for pos in (before, after):
-            why = None if pos is None else self.check.reason(self.layer, pos)
-            if why is not None:
-                self.verdicts[self.layer] = why
-                raise FrameNotParked(why)
-        self.verdicts[self.layer] = "parked" if before is not None and after is not None else "unknown"
+        pos = self._where()
+        why = None if pos is None else self.check.reason(self.layer, pos)
+        if why is not None:
+            self.verdicts[self.layer] = why
+            raise FrameNotParked(why)
+        self.verdicts[self.layer] = "unknown" if pos is None else "parked"
         return frame
+
+
+#: the position in a Marlin/RepRapFirmware/Klipper ``M114`` reply (``X:1.00 Y:2.00 Z:3.00 E:0.00 Count ...``)
+_M114 = re.compile(r"X:\s*(-?[0-9.]+)\s+Y:\s*(-?[0-9.]+)\s+Z:\s*(-?[0-9.]+)")
+
+
+class M114Position:
+    """The head position through OctoPrint: send ``M114``, read the reply from its terminal log.
+
+    OctoPrint has no position API; its websocket pushes the serial log (``Recv: ...`` lines in
+    ``current.logs``), where the firmware's ``M114`` reply appears.
+
+    Parameters
+    ----------
+    printer : OctoPrintPrinter
+        Connector with the websocket open (``listeners`` receive its messages).
+    timeout_s : float
+        How long to wait for the reply: longer than the dwell at the park spot plus OctoPrint's
+        log push interval (0.5 s), s.
+    """
+
+    def __init__(self, printer: Any, timeout_s: float = 5.0) -> None:
+        self.printer, self.timeout_s = printer, float(timeout_s)
+        self._lock = threading.Lock()
+        self._reply = threading.Event()
+        self._waiting = False
+        self._value: Position | None = None
+        printer.listeners.append(self._on_message)
+
+    def _on_message(self, msg: dict) -> None:
+        body = msg.get("current")
+        if not self._waiting or not isinstance(body, dict) or not isinstance(body.get("logs"), list):
+            return
+        for line in body["logs"]:
+            m = _M114.search(line) if isinstance(line, str) and line.startswith("Recv:") else None
+            if m is not None:
+                with self._lock:
+                    if self._waiting:
+                        self._value = (float(m[1]), float(m[2]), float(m[3]))
+                        self._waiting = False
+                        self._reply.set()
+                return
+
+    def __call__(self) -> Position | None:
+        """Ask the firmware (``M114``) and wait for the reply; ``None`` when none comes in time.
+
+        Raises
+        ------
+        PrinterError
+            OctoPrint refused the command (not connected, unreachable).
+        """
+        with self._lock:
+            self._reply.clear()
+            self._value, self._waiting = None, True
+        self.printer.send_gcode("M114")
+        if not self._reply.wait(self.timeout_s):
+            with self._lock:
+                self._waiting = False
+            log.warning("no M114 reply within %.1f s; the frame is not checked", self.timeout_s)
+        return self._value
