@@ -51,9 +51,11 @@ def test_unprepared_file_is_refused_with_the_prepare_command():
 
 
 def test_triggers_the_host_never_delivers_or_in_comments_do_not_count():
-    # a Klipper macro does not exist on a Marlin printer behind OctoPrint; a comment is never sent
-    with pytest.raises(JobNotPrepared, match=r"\(LAYERWATCH_SNAPSHOT\) never reach layerwatch through octoprint"):
-        check_prepared(prepared("klipper"), "octoprint", "k.gcode")
+    # @layerwatch host commands stop at OctoPrint (plugins only); a comment is never sent
+    host_only = b"".join(ln + b"\n" for ln in prepared("octoprint").splitlines() if not ln.startswith(b"M118"))
+    with pytest.raises(JobNotPrepared, match=r"@layerwatch host commands only, which never reach layerwatch through"):
+        check_prepared(host_only, "octoprint", "k.gcode")
+    assert check_prepared(prepared("klipper"), "octoprint", "k.gcode") > 0  # OctoPrint in front of Klipper
     commented = b"G28\n; M118 E1 layerwatch snapshot layer=0 z=0.300\nG1 X1 Y1 E1\n"
     with pytest.raises(JobNotPrepared, match="no layerwatch snapshot trigger"):
         check_prepared(commented, "octoprint", "c.gcode")
@@ -209,3 +211,9 @@ def test_stored_layers_reference_their_images_relative_to_the_image_folder(tmp_p
                           "overlay": "jobs/000007/overlays/layer_0003.png"}
     assert all((tmp_path / p).stat().st_size > 1000 for p in res.images.values())
     assert pipe.topview is pipe.pipeline.topview  # everything else is the wrapped pipeline's
+    # an alert attaches the stored overlay: its path resolves from any working directory
+    from layerwatch.monitor.service import Monitor
+
+    attached = Monitor(None, None, pipe)._overlay(res, None)
+    assert attached == str(tmp_path / res.images["overlay"])
+    assert Monitor(None, None, pipe.pipeline)._overlay(LayerResult(0, 0.3, images={"overlay": "o.png"}), None) == "o.png"

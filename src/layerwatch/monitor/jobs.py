@@ -55,8 +55,10 @@ _GCODE_TYPES = ("text/plain", "text/x-gcode", "application/octet-stream", "appli
 _TRIGGER = re.compile(rb"(?im)^[ \t]*(?:N\d+[ \t]+)?(?P<cmd>@layerwatch[ \t]+snapshot|M118[^;\n]*?layerwatch[ \t]+snapshot"
                       rb"|RESPOND[^;\n]*?layerwatch[ \t]+snapshot|LAYERWATCH_SNAPSHOT)[ \t]+layer=(?P<layer>-?\d+)")
 
-#: which trigger lines each host's connector receives (see printers/octoprint.py, printers/moonraker.py)
-_SEEN_BY = {"octoprint": (b"M118",), "moonraker": (b"LAYERWATCH_SNAPSHOT", b"RESPOND", b"M118")}
+#: ``@layerwatch`` host commands reach only OctoPrint plugins and never the firmware, so neither
+#: connector sees them; every other trigger comes back from the firmware (M118 echo, Klipper's
+#: RESPOND; even Marlin's "Unknown command" echo of the Klipper macro carries the trigger text)
+_HOST_COMMAND = b"LAYERWATCH"
 
 
 @dataclass(frozen=True)
@@ -129,24 +131,24 @@ def check_prepared(data: bytes, host: str, name: str) -> int:
     Raises
     ------
     JobNotPrepared
-        No trigger at all, or only triggers this host never reports (``@layerwatch`` host commands
-        reach only OctoPrint plugins; ``LAYERWATCH_SNAPSHOT`` is a Klipper macro). The message
-        names the ``layerwatch gcode prepare`` command for this host.
+        No trigger at all, or only ``@layerwatch`` host commands (they reach OctoPrint plugins,
+        never the firmware, so no connector sees them). The message names the
+        ``layerwatch gcode prepare`` command for this host.
     """
     if data[:4] == b"GCDE":
         from layerwatch.gcode.bgcode import decode_bgcode
 
         data = decode_bgcode(data, name)
     found = [cmd for _, _, cmd in find_triggers(data)]
-    usable = [c for c in found if c.startswith(_SEEN_BY[host])]
+    usable = [c for c in found if c != _HOST_COMMAND]
     if usable:
         return len(usable)
     profile = HOST_PROFILE[host]
     fix = (f"prepare it with `layerwatch gcode prepare {name} --profile {profile} -o {name}` "
            f"and print the prepared file")
     if found:
-        raise JobNotPrepared(f"{name}: its snapshot triggers ({found[0].decode()}) never reach layerwatch through "
-                             f"{host}; {fix}.")
+        raise JobNotPrepared(f"{name}: its snapshot triggers are @layerwatch host commands only, which never reach "
+                             f"layerwatch through {host}; {fix}.")
     raise JobNotPrepared(f"{name}: no layerwatch snapshot trigger in the file, so no layer can be photographed; "
                          f"{fix}.")
 
