@@ -352,3 +352,41 @@ def test_cli_without_gcode_analyses_the_hosts_job_never_the_bundled_example(stac
         assert job["gcode_path"] == "plain_cli.gcode" and job["n_layers"] == 0
         assert "layerwatch gcode prepare plain_cli.gcode --profile klipper" in h.events(job["id"])[0]["message"]
     _moon_cancel(stack)
+
+
+@pytest.mark.moonraker
+@pytest.mark.slow
+def test_cli_follow_runs_as_a_service_until_sigterm(stack, tmp_path):
+    """``layerwatch monitor --follow`` as systemd runs it: picks up the job, analyses, stops cleanly on SIGTERM."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    db = tmp_path / "history.db"
+    cmd = [sys.executable, "-c", "from layerwatch.cli import main; main()", "monitor", "--follow",
+           "--printer", f"moonraker://127.0.0.1:{stack.port}", "--config", str(PART_CONFIG), "--history", str(db),
+           "--keep-jobs", "5"]
+    log = open(tmp_path / "monitor.log", "w")
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        until(lambda: db.exists(), 60, "the service to open its history")
+        stack.upload_and_print("lw_service.gcode", prepared("klipper").decode())
+
+        def analysed():
+            with History(db) as h:
+                jobs = h.jobs()
+                return jobs and jobs[0]["n_layers"] >= 2 and h.layers(jobs[0]["id"])
+        rows = until(analysed, 120, "two layers analysed by the service")
+        assert any(r.status == "ok" and (tmp_path / r.images["overlay"]).is_file() for r in rows)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        log.close()
+        _moon_cancel(stack)
+    text = (tmp_path / "monitor.log").read_text()
+    assert "lw_service.gcode: stopped" in text, text[-3000:]
+    with History(db) as h:
+        assert h.jobs()[0]["outcome"] == "stopped"

@@ -195,7 +195,7 @@ def monitor(
                           park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
                           max_jobs=None if follow else 1)
         console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
-        raise typer.Exit(1 if any(o in ("not prepared", "error") for _, o in done) else 0)
+        raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
     if follow:
         raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
     gpath = gcode or PART_GCODE
