@@ -138,6 +138,9 @@ def test_octoprint_jobs_are_picked_up_analysed_with_images_and_the_next_waited_f
             until(lambda n=n: len(svc.watcher.handled) == n, 30, f"job {n} handled")
             assert svc.thread.is_alive()  # waits for the next job
         assert [j.path for j, _ in svc.watcher.handled] == ["lw_job1.gcode", "folder/lw_job 2.gcode"]
+        # OctoPrint shows "Operational" after a job either way; its completion tells cancelled from done
+        assert [o for _, o in svc.watcher.handled] == ["cancelled", "cancelled"]
+        assert [svc.job(n)["outcome"] for n in (1, 2)] == ["cancelled", "cancelled"]
         # the downloaded file is the job's own: its hash is the uploaded prepared file's
         assert svc.job(2)["gcode_hash"] == hashlib.sha256(job_gcode).hexdigest()
 

@@ -108,7 +108,7 @@ class JobService:
         self.history, self.store, self.notifier = history, store, notifier
         self.park_tolerance_mm, self.wait_for_verdict = park_tolerance_mm, wait_for_verdict
         self.printer_name = f"{host.kind}:{str(host.http.base_url).rstrip('/')}"
-        self.jobs: dict[int, int | None] = {}  # id(monitor) -> history job id
+        self.jobs: dict[int, tuple[int | None, Any]] = {}  # id(monitor) -> (history job id, top view)
         #: where the printer says the head is (OctoPrint: the firmware's M114 reply)
         self.position = M114Position(printer) if host.kind == "octoprint" else host.position
 
@@ -137,7 +137,7 @@ class JobService:
         mon = Monitor(self.printer, cam, pipeline, PausePolicy(self.cfg.policy), notifier=self.notifier,
                       history=self.history, job_id=job_id,
                       wait_for_verdict=self.wait_for_verdict or self.cfg.policy.wait_for_verdict)
-        self.jobs[id(mon)] = job_id
+        self.jobs[id(mon)] = (job_id, pipeline.topview)
         log.info("monitoring %s (%d layers, history job %s)", job.path, toolpath.n_layers, job_id)
         return mon
 
@@ -155,11 +155,13 @@ class JobService:
 
     def finish(self, job: PrintJob, monitor: Monitor) -> None:
         """After a job: draw its layer stack, apply the image retention limits."""
-        job_id = self.jobs.pop(id(monitor), None)
+        job_id, topview = self.jobs.pop(id(monitor), (None, None))
+        if self.history is not None and job_id is not None and monitor.report.outcome != "idle":
+            self.history.end_job(job_id, monitor.report.outcome)  # the watcher may have told idle apart
         if self.store is None or job_id is None:
             return
         try:
-            self.store.finish(job_id, monitor.pipeline.topview, self.history)
+            self.store.finish(job_id, topview, self.history)
             self.store.prune()
         except (OSError, LayerwatchError) as exc:
             log.warning("images of job %s not finished: %s", job_id, exc)

@@ -192,6 +192,10 @@ class JobHost(ABC):
         """The head's position as the printer reports it (G-code coordinates, mm), or ``None`` if it cannot tell."""
         return None
 
+    def last_outcome(self, job: PrintJob) -> str | None:
+        """How ``job``, which just left the host, ended (``"done"``, ``"cancelled"``) where the state alone says idle."""
+        return None
+
     def download(self, job: PrintJob, max_bytes: int = MAX_GCODE_BYTES) -> bytes:
         """The job's G-code, streamed with a size cap.
 
@@ -261,6 +265,19 @@ class OctoPrintJobs(JobHost):
         origin = _field(file, "origin", str, "OctoPrint /api/job job.file") or "local"
         size = _field(file, "size", int, "OctoPrint /api/job job.file")
         return state, PrintJob("octoprint", path, origin, size)
+
+    def last_outcome(self, job: PrintJob) -> str | None:
+        """OctoPrint goes back to "Operational" after both; the file's print record (``prints.last.success``) tells.
+
+        OctoPrint records a cancelled and a failed print alike (``success: false``): both give ``"cancelled"``.
+        """
+        if job.origin != "local":
+            return None
+        body = self._json("GET", "/api/files/local/" + quote(job.path, safe="/"))
+        prints = _field(body, "prints", dict, "OctoPrint file record")
+        last = _field(prints, "last", dict, "OctoPrint file record prints") if prints else None
+        ok = last.get("success") if last else None
+        return None if not isinstance(ok, bool) else ("done" if ok else "cancelled")
 
     def download_path(self, job: PrintJob) -> str:
         if job.origin != "local":
@@ -464,6 +481,11 @@ class JobWatcher:
             elif time.monotonic() - ended_at > self.end_grace_s:
                 monitor.stop_event.set()  # the job is over but the monitor saw no layer: stop it
         _forget_job(monitor.printer)
+        if runner.report is not None and runner.report.outcome == "idle":  # OctoPrint: finished or cancelled?
+            try:
+                runner.report.outcome = self.host.last_outcome(job) or "idle"
+            except PrinterError as exc:
+                log.warning("outcome of %s unknown: %s", job.path, exc)
         if self.on_end is not None:
             try:
                 self.on_end(job, monitor)

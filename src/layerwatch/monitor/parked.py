@@ -70,7 +70,7 @@ def park_spots(data: bytes) -> dict[int, Position]:
     first: dict[int, int] = {}
     for line, layer, _ in found:
         first.setdefault(layer, line)
-    layers = sorted(first, key=first.get)
+    layers = sorted(first, key=lambda k: first[k])
     probe = run(data, np.array([first[k] for k in layers], np.int64))[5]
     return {k: (float(row[0]), float(row[1]), float(row[2])) for k, row in zip(layers, probe, strict=True)
             if np.isfinite(row[:3]).all()}
