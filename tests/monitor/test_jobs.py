@@ -1,4 +1,4 @@
-"""Job pick-up pieces without a host: trigger check, park spots, park check, reply validation, retention.
+"""Job pick-up pieces without a printer host: trigger check, park spots, park check, reply validation, retention.
 
 The hosts themselves (real OctoPrint, real Moonraker + Klippy) are in test_jobs_real.py.
 """
@@ -14,15 +14,8 @@ from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.monitor.artifacts import ArtifactStore
-from layerwatch.monitor.jobs import (
-    JobNotPrepared,
-    JobWatcher,
-    MoonrakerJobs,
-    OctoPrintJobs,
-    PrintJob,
-    check_prepared,
-    find_triggers,
-)
+from layerwatch.monitor.hosts import MoonrakerJobs, OctoPrintJobs, PrintJob
+from layerwatch.monitor.jobs import JobNotPrepared, JobWatcher, check_prepared, find_triggers
 from layerwatch.monitor.parked import FrameNotParked, ParkCheck, ParkedCamera, park_spots
 
 PARK = (200.0, 200.0)
@@ -147,7 +140,7 @@ def test_replies_are_validated():
     def sd(request):
         return httpx.Response(200, json={"state": "Printing", "job": {"file": {"path": "x.gco", "origin": "sdcard"}}})
 
-    with pytest.raises(JobNotPrepared, match="SD card"):
+    with pytest.raises(PrinterError, match="SD card"):
         _host(OctoPrintJobs, sd).download_path(_host(OctoPrintJobs, sd).current()[1])
 
 

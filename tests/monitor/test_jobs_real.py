@@ -27,7 +27,7 @@ from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode.postprocess import KLIPPER_MACRO
 from layerwatch.monitor.artifacts import ArtifactStore
 from layerwatch.monitor.follow import CameraSpec, JobService
-from layerwatch.monitor.jobs import job_host
+from layerwatch.monitor.hosts import job_host
 from layerwatch.monitor.parked import (
     FrameNotParked,
     M114Position,

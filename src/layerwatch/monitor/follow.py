@@ -11,23 +11,30 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from layerwatch.config import JobConfig
-from layerwatch.errors import LayerwatchError
+from layerwatch.errors import ConfigError, LayerwatchError
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.reader import load_bytes
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.pose import locate_bed
 from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.cameras import SimCamera, open_camera
-from layerwatch.monitor.jobs import JobHost, JobWatcher, PrintJob
+from layerwatch.monitor.hosts import JobHost, PrintJob, job_host
+from layerwatch.monitor.jobs import JobWatcher
+from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.parked import M114Position, ParkCheck, ParkedCamera, park_spots
 from layerwatch.monitor.pipeline import LayerPipeline
 from layerwatch.monitor.policy import PausePolicy
 from layerwatch.monitor.printers.base import Printer
 from layerwatch.monitor.service import Monitor
+from layerwatch.simulate import Failure, PrintSimulator, default_camera
+from layerwatch.storage.history import History
 
 __all__ = ["CameraSpec", "job_camera", "JobService"]
 
@@ -59,15 +66,10 @@ def job_camera(spec: CameraSpec, toolpath: Any, cfg: JobConfig) -> tuple[Any, Ca
     ConfigError
         A real camera without ``--camera-model``.
     """
-    from layerwatch.errors import ConfigError
-
     if spec.source != "sim":
         if spec.model is None:
             raise ConfigError("--camera-model camera.toml is needed with a real camera; make one with `layerwatch calibrate`.")
         return open_camera(spec.source, settle_s=spec.settle_s), CameraModel.load(spec.model)
-    from layerwatch.geometry.pose import locate_bed
-    from layerwatch.simulate import Failure, PrintSimulator, default_camera
-
     tv = cfg.topview.topview()
     truth = default_camera(tv, image_size=spec.image_size)
     fails = [Failure(spec.failure, onset=spec.onset, seed=spec.seed)] if spec.failure else []
@@ -187,13 +189,6 @@ def run_follow(printer: Printer, cfg: JobConfig, camera: CameraSpec, *, history:
     list of (PrintJob, str)
         Each job handled and its outcome.
     """
-    import signal
-    import threading
-
-    from layerwatch.monitor.jobs import job_host
-    from layerwatch.monitor.notify import Notifier
-    from layerwatch.storage.history import History
-
     hist = store = None
     try:
         host = job_host(printer)
