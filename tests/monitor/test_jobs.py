@@ -210,3 +210,24 @@ def test_stored_layers_reference_their_images_relative_to_the_image_folder(tmp_p
     attached = Monitor(None, None, pipe)._overlay(res, None)
     assert attached == str(tmp_path / res.images["overlay"])
     assert Monitor(None, None, pipe.pipeline)._overlay(LayerResult(0, 0.3, images={"overlay": "o.png"}), None) == "o.png"
+
+
+def test_a_job_without_a_configured_top_view_is_observed_where_its_part_is():
+    from layerwatch.config import JobConfig
+    from layerwatch.monitor.follow import fit_topview
+
+    tp = read_toolpath(PART_GCODE)
+    x0, y0, x1, y1 = tp.bounds
+    tv = fit_topview(JobConfig(), tp).topview
+    assert tv.center_mm == ((x0 + x1) / 2, (y0 + y1) / 2)
+    assert tv.width_mm == tv.height_mm >= max(x1 - x0, y1 - y0) + 30 and tv.width_mm >= 90
+    # a followed job gets it when the settings leave the top view at the built-in default
+    from layerwatch.monitor.follow import CameraSpec, JobService
+
+    svc = JobService(object(), _host(MoonrakerJobs, lambda r: httpx.Response(404)), JobConfig(),
+                     CameraSpec(image_size=(640, 360)), park_tolerance_mm=None)
+    mon = svc.start(PrintJob("moonraker", "p.gcode", "gcodes"), prepared("klipper"))
+    try:
+        assert mon.pipeline.topview.center_mm == tv.center_mm
+    finally:
+        mon.close()

@@ -23,6 +23,7 @@ from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.reader import load_bytes
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.pose import locate_bed
+from layerwatch.geometry.settings import TopViewSettings
 from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.cameras import SimCamera, open_camera
 from layerwatch.monitor.hosts import JobHost, PrintJob, job_host
@@ -36,7 +37,7 @@ from layerwatch.monitor.service import Monitor
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
 from layerwatch.storage.history import History
 
-__all__ = ["CameraSpec", "job_camera", "JobService"]
+__all__ = ["CameraSpec", "job_camera", "fit_topview", "JobService", "run_follow"]
 
 log = logging.getLogger("layerwatch.monitor.follow")
 
@@ -81,6 +82,29 @@ def job_camera(spec: CameraSpec, toolpath: Any, cfg: JobConfig) -> tuple[Any, Ca
     return source, model
 
 
+def fit_topview(cfg: JobConfig, toolpath: Any, margin_mm: float = 30.0, min_side_mm: float = 90.0) -> JobConfig:
+    """``cfg`` with the observed square centred on the job's part and large enough to hold it.
+
+    Used for each followed job when the settings leave the top view at its built-in default
+    (centred on the bed origin), as ``layerwatch analyze`` does without a job file: every
+    job may sit elsewhere on the bed.
+
+    Parameters
+    ----------
+    toolpath : Toolpath
+        The job's parsed G-code (``bounds``: x0, y0, x1, y1 in bed mm).
+    margin_mm : float
+        Added to the part's larger side, mm (15 mm each side, for strands beside the part).
+    min_side_mm : float
+        Smallest side of the square, mm (the paper's 90 mm).
+    """
+    x0, y0, x1, y1 = toolpath.bounds
+    side = max(min_side_mm, max(x1 - x0, y1 - y0) + margin_mm)
+    view = cfg.topview.model_copy(update={"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side,
+                                          "height_mm": side})
+    return cfg.model_copy(update={"topview": view})
+
+
 class JobService:
     """Everything one followed job needs, built when the job starts.
 
@@ -122,12 +146,13 @@ class JobService:
         """Build the monitor of ``job`` from its downloaded G-code (raises LayerwatchError when unusable)."""
         data, _ = load_bytes(gcode)
         toolpath = read_toolpath(data)
-        source, model = job_camera(self.camera, toolpath, self.cfg)
+        cfg = fit_topview(self.cfg, toolpath) if self.cfg.topview == TopViewSettings() else self.cfg
+        source, model = job_camera(self.camera, toolpath, cfg)
         job_id = None
         if self.history is not None:
             job_id = self.history.start_job(self.printer_name, job.path, hashlib.sha256(gcode).hexdigest(),
-                                            part=job.name, config=self.cfg)
-        pipeline: Any = LayerPipeline(toolpath, model, self.cfg)
+                                            part=job.name, config=cfg)
+        pipeline: Any = LayerPipeline(toolpath, model, cfg)
         if self.store is not None and job_id is not None:
             self.store.prune(keep=job_id)
             pipeline = StoringPipeline(pipeline, self.store, job_id)
@@ -136,9 +161,9 @@ class JobService:
             spots = park_spots(data)
             cam = ParkedCamera(source, ParkCheck(spots, self.park_tolerance_mm), self.position)
             log.info("park spots of %s: %d layers, first %s", job.name, len(spots), next(iter(spots.values()), None))
-        mon = Monitor(self.printer, cam, pipeline, PausePolicy(self.cfg.policy), notifier=self.notifier,
+        mon = Monitor(self.printer, cam, pipeline, PausePolicy(cfg.policy), notifier=self.notifier,
                       history=self.history, job_id=job_id,
-                      wait_for_verdict=self.wait_for_verdict or self.cfg.policy.wait_for_verdict)
+                      wait_for_verdict=self.wait_for_verdict or cfg.policy.wait_for_verdict)
         self.jobs[id(mon)] = (job_id, pipeline.topview)
         log.info("monitoring %s (%d layers, history job %s)", job.path, toolpath.n_layers, job_id)
         return mon

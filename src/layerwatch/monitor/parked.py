@@ -15,6 +15,12 @@ while it was taken. When the position is more than ``tolerance_mm`` (XY) or
 :class:`FrameNotParked` error whose message the monitor records as that
 layer's result (never as a pause).
 
+Both hosts report the *commanded* position (Klipper's ``gcode_position``, Marlin's
+``M114``), which runs ahead of the head once the next move is read. That errs on the
+safe side: the trigger follows an ``M400`` at the park spot, so a commanded position
+still there means the head is there, and one already elsewhere rejects the frame as
+the head starts to leave.
+
 Asking *after* the grab matters on OctoPrint: it queues ``M114`` behind the
 line being executed, so the reply comes when the dwell at the park spot ends
 (and before the move back, which OctoPrint sends only after that reply's
