@@ -13,8 +13,10 @@ holding at the park spot for the photo would. The monitor downloads the unchange
 """
 
 import hashlib
+import re
 import threading
 import time
+import warnings
 
 import httpx
 import pytest
@@ -40,6 +42,8 @@ from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
 from layerwatch.monitor.service import Monitor
 from layerwatch.storage.history import History
+from layerwatch.web.app import create_app
+from layerwatch.web.report import build_report
 
 CAMERA = CameraSpec(image_size=(640, 360))
 
@@ -276,6 +280,18 @@ def test_moonraker_jobs_are_picked_up_analysed_parked_and_old_images_pruned(stac
         assert any(r.images for r in svc.history.layers(first["id"]))
         assert (tmp_path / svc.store.rel(second["id"]) / "stack.png").is_file()
         assert svc.history.latest_layer(second["id"]).images["stack"].endswith("stack.png")
+        # the report and the dashboard show them as for the demo
+        report = build_report(svc.history, second["id"], tmp_path / "report", image_root=tmp_path).read_text()
+        missing = re.findall(r"class=.missing.>([^<]*)<", report)
+        assert not missing and report.count("data:image/png") >= 4, missing
+        with warnings.catch_warnings():  # starlette asks for httpx2, which is not installed here
+            warnings.simplefilter("ignore")
+            from fastapi.testclient import TestClient
+
+        client = TestClient(create_app(svc.history, image_root=tmp_path))
+        rel = svc.history.latest_layer(second["id"]).images["overlay"]
+        got = client.get("/api/image/" + rel)
+        assert got.status_code == 200 and got.content == (tmp_path / rel).read_bytes()
 
         # (debug-output Klippy would run it in milliseconds: the test wait keeps it printing for a poll)
         stack.upload_and_print("plain.gcode", "LAYERWATCH_TEST_LAYER_TIME SECONDS=3\n" + PART_GCODE.read_text())
