@@ -19,4 +19,4 @@ for f in "$conf/camera.toml" "$conf/layerwatch.toml"; do
     fi
 done
 exec layerwatch monitor --follow --printer "$LAYERWATCH_PRINTER" --camera "$LAYERWATCH_CAMERA" \
-    --camera-model "$conf/camera.toml" --config "$conf/layerwatch.toml" --history "${LAYERWATCH_DB:-/data/history.db}" --keep-mb "${LAYERWATCH_KEEP_MB:-2000}" --keep-mb "${LAYERWATCH_KEEP_MB:-2000}"
+    --camera-model "$conf/camera.toml" --config "$conf/layerwatch.toml" --history "${LAYERWATCH_DB:-/data/history.db}" --keep-mb "${LAYERWATCH_KEEP_MB:-2000}"
