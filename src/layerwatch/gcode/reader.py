@@ -207,7 +207,7 @@ def _filament_diameter(given: float | None, st: Statements) -> float:
     return 2.85 if (st.flavor or "").lower() == "ultigcode" else 1.75
 
 
-def _features(tags, seg_line: np.ndarray, detection: str, bounds: np.ndarray) -> np.ndarray:
+def _features(tags, seg_line: np.ndarray, seg_z: np.ndarray, detection: str, bounds: np.ndarray) -> np.ndarray:
     """Feature code per segment: the slicer's tags; moves before the first layer starts
     (start G-code purge and prime lines) are ``purge``."""
     n = seg_line.shape[0]
@@ -220,8 +220,10 @@ def _features(tags, seg_line: np.ndarray, detection: str, bounds: np.ndarray) ->
     purge = np.zeros(n, bool)
     if detection.startswith("tags") and tags.layer_lines.size:
         purge = seg_line < tags.layer_lines[0]
-    elif detection == "z" and len(bounds) > 1:
-        purge[: bounds[1]] = False  # merged prime lines: the segments above layer 0's Z
+    elif detection == "z" and len(bounds) > 1:  # prime lines above layer 0, merged into it by assign_layers
+        z0 = seg_z[bounds[0] : bounds[1]]
+        on_layer = np.flatnonzero(np.abs(z0 - z0.min()) < 1e-4)
+        purge[: on_layer[0] if on_layer.size else 0] = True
     feature[purge] = FEATURES.index("purge")
     return feature
 
@@ -336,7 +338,7 @@ def read_toolpath(
     warnings += w2
     if seg_z.shape[0] == 0:
         warnings.append(f"{short}: no extruding moves found (not a 3D-printer file, or E is never used)")
-    feature = _features(tags, seg_line, detection, bounds)
+    feature = _features(tags, seg_line, seg_z, detection, bounds)
     lo = hi = ext = None
     if len(lz):
         lo, hi, ext = _layer_boxes(seg_a, seg_b, seg_e, feature, bounds)

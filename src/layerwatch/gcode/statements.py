@@ -83,8 +83,9 @@ _DIAM = re.compile(
 )
 _CURA_DIAM = re.compile(rb"material_diameter\s*=\s*" + _N)
 _FIRST_H = re.compile(
-    rb"(?i)(?:first_layer_height|initial_layer_print_height|layer_height_0|first_layer_thickness_mm|"
-    rb"z_layer_height_first_layer_mm)\s*[=:,]\s*" + _N + rb"(?![\d%])"
+    # not KISSlicer's first_layer_thickness_mm: a per-style setting (negative = percent) that its
+    # per-object layering overrides (layer 0 printed at 0.263 / 0.278 mm where it says 0.2)
+    rb"(?i)(?:first_layer_height|initial_layer_print_height|layer_height_0|z_layer_height_first_layer_mm)\s*[=:,]\s*" + _N + rb"(?![\d%])"
 )
 _FLAVOR = re.compile(rb"(?im)^;\s*(?:FLAVOR:|gcode_flavor\s*=\s*)(\S+)")
 _LAYER_H = re.compile(rb"(?im)^;\s*(?:layer_height\s*[=:]|Layer height:)\s*" + _N)
@@ -249,8 +250,8 @@ def read_statements(data: bytes, head_bytes: int = 1 << 20, tail_bytes: int = 1 
     st.flavor = m.group(1).decode("latin-1") if m else None
     m = _LAYER_H.search(text)
     st.layer_height = _num(m.group(1)) if m else None
-    m = _FIRST_H.search(text)
-    st.first_layer_height = _num(m.group(1)) if m else None
+    # the first positive value: KISSlicer writes percentages as negative numbers (-50 = 50 %)
+    st.first_layer_height = next((v for m in _FIRST_H.finditer(text) if (v := _num(m.group(1))) and v > 0), None)
     return st
 
 
@@ -268,15 +269,21 @@ class Disagreement:
 
 
 def compare(st: Statements, *, layers: int, filament_mm: float, max_z: float | None,
-            first_layer_box: tuple[float, float, float, float] | None) -> list[Disagreement]:
+            first_layer_box: tuple[float, float, float, float] | None,
+            first_layer_z: float | None = None) -> list[Disagreement]:
     """Statements that the reading contradicts: layers beyond ±1, filament or max Z beyond 2 %,
-    a first layer reaching more than 2 mm outside the stated first-layer box."""
+    a first layer more than 0.05 mm off the stated height or reaching more than 2 mm outside
+    the stated first-layer box."""
     out: list[Disagreement] = []
+    if st.first_layer_height and first_layer_z is not None and abs(first_layer_z - st.first_layer_height) > 0.05:
+        out.append(Disagreement("first layer Z (mm)", st.first_layer_height, round(first_layer_z, 3), "0.05 mm"))
     if st.layer_count is not None and abs(layers - st.layer_count) > 1:
         out.append(Disagreement("layers", st.layer_count, layers, "1 layer"))
     if st.filament_mm and abs(filament_mm - st.filament_mm) > 0.02 * st.filament_mm:
         out.append(Disagreement("filament (mm)", st.filament_mm, round(filament_mm, 2), "2 %"))
-    if st.max_z and max_z is not None and abs(max_z - st.max_z) > max(0.02 * st.max_z, 0.05):
+    # the stated max Z may include a final lift (Cura's MAXZ): the top layer may sit one layer below it
+    lift = (st.layer_height or 0.0) + 0.05
+    if st.max_z and max_z is not None and not (st.max_z - max(lift, 0.02 * st.max_z) <= max_z <= st.max_z + 0.05):
         out.append(Disagreement("max Z (mm)", st.max_z, round(max_z, 3), "2 %"))
     if st.first_layer_box and first_layer_box is not None:
         sx0, sy0, sx1, sy1 = st.first_layer_box
