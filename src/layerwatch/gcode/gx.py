@@ -52,10 +52,11 @@ def decode_gx(data: bytes, name: str = "<memory>") -> bytes:
         )
     text = data[gcode_at:]
     notes = [
-        f"; xgcode filament used [mm] = {fil_right}, {fil_left}",
-        f"; xgcode print time [s] = {seconds}",
+        "; xgcode header statements:",
+        f"; filament used [mm] = {fil_right}, {fil_left}",
+        f"; estimated printing time [s] = {seconds}",
     ]
     if layer_um:
-        notes.append(f"; xgcode layer_height = {layer_um / 1000:g}")
+        notes.append(f"; layer_height = {layer_um / 1000:g}")
     sep = b"" if text.endswith(b"\n") or not text else b"\n"
     return text + sep + "\n".join(notes).encode() + b"\n"
