@@ -58,15 +58,17 @@ N_FSTATS = 5
 #: tool-on (M101 dialect, 1 when the extruder is switched on)
 N_PROBE = 13
 ABSURD_MM = 1.0e5
-#: at most this many chords per arc, and this many in the whole file (then 16 per arc)
+#: at most this many chords per arc, and in the whole file ARC_BUDGET_BASE + ARC_BUDGET_PER_BYTE x its
+#: size (then 16 per arc): memory stays proportional to the file whatever its radii
 ARC_MAX_CHORDS = 2048
-ARC_CHORD_BUDGET = 4_000_000
+ARC_BUDGET_BASE = 200_000
+ARC_BUDGET_PER_BYTE = 8
 ARC_MIN_CHORD_MM = 0.02
 
 # ---- machine state slots (float64)
 MS_LX, MS_LY, MS_LZ, MS_OX, MS_OY, MS_OZ, MS_E, MS_FEED = 0, 1, 2, 3, 4, 5, 6, 7
 MS_ABS, MS_EREL, MS_SCALE, MS_TOOL, MS_TOOLON, MS_TOOLON_MODE, MS_MOTION, MS_EAREA = 8, 9, 10, 11, 12, 13, 14, 15
-MS_CMD, MS_CMD_HIGH, MS_FED, MS_FED_HIGH, MS_ARC_CHORDS = 16, 17, 18, 19, 20
+MS_CMD, MS_CMD_HIGH, MS_FED, MS_FED_HIGH, MS_ARC_CHORDS, MS_ARC_BUDGET = 16, 17, 18, 19, 20, 21
 MS_FLOW = 24  # + tool index, 16 tools
 N_TOOLS = 16
 N_MS = MS_FLOW + N_TOOLS
@@ -359,7 +361,7 @@ def _arc_chords(ms, k, sweep, r0, r1):
     """Chord count bounded by the arc's length (``ARC_MIN_CHORD_MM``), ``ARC_MAX_CHORDS`` and the file budget."""
     length = abs(sweep) * max(r0, r1)
     cap = min(ARC_MAX_CHORDS, 1 + int(min(length, 1e9) / ARC_MIN_CHORD_MM))
-    if ms[MS_ARC_CHORDS] > ARC_CHORD_BUDGET:
+    if ms[MS_ARC_CHORDS] > ms[MS_ARC_BUDGET]:
         cap = min(cap, 16)
     k2 = max(1, min(k, cap))
     ms[MS_ARC_CHORDS] += k2
@@ -428,7 +430,8 @@ def _move(ms, fs, val, has, mo, chord_tol, segf, segi, ns, line, stats):
     tool = int(ms[MS_TOOL])
     flow = ms[MS_FLOW + tool] if tool < N_TOOLS else 1.0
     dxy = math.hypot(x1 - x0, y1 - y0)
-    absurd = not (abs(x1) <= ABSURD_MM and abs(y1) <= ABSURD_MM and abs(z1) <= ABSURD_MM and abs(de) <= ABSURD_MM)
+    absurd = not (abs(x1) <= ABSURD_MM and abs(y1) <= ABSURD_MM and abs(z1) <= ABSURD_MM and abs(de) <= ABSURD_MM
+                  and abs(x0) <= ABSURD_MM and abs(y0) <= ABSURD_MM and abs(z0) <= ABSURD_MM)
     if absurd:  # not drawn: the geometry stays finite and on Earth
         _flag(stats, ST_ABSURD, ST_FIRST_ABSURD, line)
         return segf, segi, ns, False
@@ -479,8 +482,9 @@ def _record_probe(probe_state, row, ms):
 
 
 @nb.njit(cache=True)
-def _new_state(e_rel_init, e_area_init):
+def _new_state(e_rel_init, e_area_init, n_bytes):
     ms = np.zeros(N_MS, np.float64)
+    ms[MS_ARC_BUDGET] = ARC_BUDGET_BASE + ARC_BUDGET_PER_BYTE * n_bytes
     ms[MS_ABS] = 1.0
     ms[MS_EREL] = 1.0 if e_rel_init else 0.0
     ms[MS_SCALE] = 1.0
@@ -526,7 +530,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
     probe_state = np.full((probes.shape[0], N_PROBE), np.nan)
     stats = np.zeros(N_STATS, np.int64)
     fs = np.zeros(N_FSTATS, np.float64)
-    ms = _new_state(e_rel_init, e_area_init)
+    ms = _new_state(e_rel_init, e_area_init, n)
     val = np.zeros(N_WORDS, np.float64)
     has = np.zeros(N_WORDS, np.bool_)
     gcodes = np.zeros(MAX_G, np.float64)

@@ -59,7 +59,8 @@ def load_bytes(source: str | Path | bytes | bytearray | memoryview) -> tuple[byt
     if not data or data.isspace():
         raise GcodeError(f"{name}: the file is empty; slice the model again and export G-code.")
     head = data[:65536]
-    if b"\x00" in head or sum(c < 9 or 13 < c < 32 for c in head[:4096]) > 16:
+    codes = np.frombuffer(head[:4096], np.uint8)
+    if b"\x00" in head or int(np.count_nonzero((codes < 9) | ((codes > 13) & (codes < 32)))) > 16:
         pos = head.find(b"\x00")
         raise GcodeError(
             f"{name}: binary data at byte {max(pos, 0)}, not G-code text; export ASCII G-code from the slicer."
