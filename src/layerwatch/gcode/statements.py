@@ -210,6 +210,21 @@ def _bed(st: Statements, text: bytes) -> None:
         st.bed_polygon = [(0.0, 0.0), (x, 0.0), (x, y), (0.0, y)]
 
 
+_THUMBNAIL = re.compile(rb"(?is);\s*thumbnail\w* begin.*?;\s*thumbnail\w* end|; THUMBNAIL_BLOCK_START.*?; THUMBNAIL_BLOCK_END")
+_KEEP = re.compile(rb"(?m)^[ \t]*(?:;|\(|M555 |G29 A)[^\n]*")
+
+
+def _statement_lines(data: bytes, head_bytes: int, tail_bytes: int) -> bytes:
+    """The comment lines (and M555 / G29 A lines) of the head and tail, thumbnails removed:
+    a few hundred kB at most, so that the ~30 statement patterns scan little."""
+    parts = [data] if len(data) <= head_bytes + tail_bytes else [data[:head_bytes], data[-tail_bytes:]]
+    out = []
+    for part in parts:
+        part = _THUMBNAIL.sub(b"", part)
+        out.extend(_KEEP.findall(part))
+    return b"\n".join(out) + b"\n"
+
+
 def read_statements(data: bytes, head_bytes: int = 1 << 20, tail_bytes: int = 1 << 19) -> Statements:
     """Read the statements from the head and tail of G-code ``data``.
 
@@ -225,7 +240,7 @@ def read_statements(data: bytes, head_bytes: int = 1 << 20, tail_bytes: int = 1 
     -------
     Statements
     """
-    text = data if len(data) <= head_bytes + tail_bytes else data[:head_bytes] + b"\n" + data[-tail_bytes:]
+    text = _statement_lines(data, head_bytes, tail_bytes)
     st = Statements()
     m = _LAYERS.search(text)
     st.layer_count = int(m.group(1)) if m else None
