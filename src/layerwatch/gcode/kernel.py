@@ -27,11 +27,17 @@ files (:mod:`layerwatch.gcode.jit_cache`).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numba as nb
 import numpy as np
 
+from layerwatch.gcode import jit_cache
 from layerwatch.gcode.arcs import arc_geometry
+
+# before any njit function below is loaded from disk: drop cached code built from other sources
+jit_cache.ensure_fresh(Path(__file__).resolve().parent / "__pycache__", "kernel",
+                       jit_cache.cache_key(jit_cache.KERNEL_SOURCES))
 
 # ---- byte codes
 NL, CR, TAB, SPACE = 10, 13, 9, 32
