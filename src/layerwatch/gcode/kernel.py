@@ -81,6 +81,7 @@ N_MS = MS_FLOW + N_TOOLS
 # ---- what a line does
 ACT_NONE, ACT_HOME, ACT_SETPOS, ACT_MOVE = 0, 1, 2, 3
 
+_POW10 = np.array([10.0**k for k in range(309)])
 #: first characters of ';' comments worth handing to the tag decoder
 _TAG_FIRST = np.zeros(256, np.bool_)
 for _c in b"LlZzTtFfCcBb'Ee":
@@ -97,31 +98,46 @@ def _is_letter(c):
     return (UPPER_A <= c <= UPPER_Z) or (LOWER_A <= c <= LOWER_Z)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _parse_num(buf, i, n):
-    """Parse a decimal number at ``buf[i:]`` (no exponent: ``E`` is an axis); returns (value, next_i, ok)."""
+    """Parse a decimal number at ``buf[i:]`` (no exponent: ``E`` is an axis); returns (value, next_i, ok).
+
+    Digits accumulate in an integer mantissa (exact, one multiply-add per digit) scaled once
+    by a power of ten; beyond 18 significant digits the rest only shift the exponent.
+    """
     while i < n and (buf[i] == SPACE or buf[i] == TAB):
         i += 1
-    sign = 1.0
+    neg = False
     if i < n and (buf[i] == MINUS or buf[i] == PLUS):
-        if buf[i] == MINUS:
-            sign = -1.0
+        neg = buf[i] == MINUS
         i += 1
-    val = 0.0
+    mant = 0
     nd = 0
+    exp10 = 0
+    i0 = i
     while i < n and _is_digit(buf[i]):
-        val = val * 10.0 + (buf[i] - DIGIT_0)
+        if nd < 18:
+            mant = mant * 10 + (buf[i] - DIGIT_0)
+            nd += 1 if (mant > 0) else 0
+        else:
+            exp10 += 1
         i += 1
-        nd += 1
+    ok = i > i0
     if i < n and buf[i] == DOT:
         i += 1
-        scale = 0.1
         while i < n and _is_digit(buf[i]):
-            val += (buf[i] - DIGIT_0) * scale
-            scale *= 0.1
+            if nd < 18:
+                mant = mant * 10 + (buf[i] - DIGIT_0)
+                nd += 1 if (mant > 0) else 0
+                exp10 -= 1
             i += 1
-            nd += 1
-    return sign * val, i, nd > 0
+            ok = True
+    val = float(mant)
+    if exp10 < 0:
+        val /= _POW10[min(-exp10, 308)]
+    elif exp10 > 0:
+        val *= _POW10[min(exp10, 308)]
+    return -val if neg else val, i, ok
 
 
 @nb.njit(cache=True)
@@ -161,7 +177,7 @@ def _count_g_lines(buf):
     return cap
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _lex_line(buf, i, n, val, has, gcodes):
     """Lex one line from ``buf[i]`` into ``val``/``has`` (by letter) and ``gcodes``.
 
@@ -274,7 +290,7 @@ def _apply_m(ms, m, val, has, stats):
         stats[ST_FLOW_SET] += 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _line_action(ms, val, has, gcodes, ng, mcode, stats):
     """Apply the line's modal words; returns (action, motion of the move)."""
     act = ACT_NONE
@@ -333,7 +349,7 @@ def _set_position(ms, val, has):
         ms[MS_E] = val[W_E] * sc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _advance_axes(ms, val, has):
     """Move the logical X/Y/Z and E; returns the filament length commanded (mm, volumetric converted)."""
     sc = ms[MS_SCALE]
@@ -349,7 +365,7 @@ def _advance_axes(ms, val, has):
     return de / ms[MS_EAREA] if ms[MS_EAREA] > 0 else de
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _account_filament(ms, fs, de, flow, xy_move):
     """Commanded and fed filament: high-water marks of the cumulative E (retract/deretract pairs count once)."""
     ms[MS_CMD] += de
@@ -374,7 +390,7 @@ def _arc_chords(ms, k, sweep, r0, r1):
     return k2, k2 < k
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _push_seg(segf, segi, ns, x0, y0, x1, y1, z, e, line, tool):
     """Append one segment, growing the buffers when full; returns the buffers."""
     if ns >= segf.shape[0]:
@@ -422,7 +438,7 @@ def _flag(stats, count_slot, first_slot, line):
     stats[count_slot] += 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _move(ms, fs, val, has, mo, chord_tol, segf, segi, ns, line, stats):
     """Execute a G0-G3 move; returns (segf, segi, ns, travelled) where ``travelled`` says a
     non-extruding XY move happened (its line goes to the travel list)."""
