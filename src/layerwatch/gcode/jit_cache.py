@@ -2,7 +2,7 @@
 
 numba's ``cache=True`` re-validates a cached function against the timestamp
 of its own source file only. The G-code kernel (:mod:`.kernel`) inlines the
-arc routine of :mod:`.arcs`, so an edit to ``arcs.py`` (or a package upgrade
+lexer of :mod:`.lexer` and the arc routine of :mod:`.arcs`, so an edit to ``arcs.py`` (or a package upgrade
 that changes it, or a new numba) would leave stale machine code in use.
 :func:`ensure_fresh` runs when :mod:`.kernel` is imported, before anything is
 compiled or loaded: it hashes the kernel's sources together with the numba,
@@ -28,7 +28,7 @@ __all__ = ["KERNEL_SOURCES", "cache_key", "ensure_fresh", "STAMP_NAME"]
 
 _HERE = Path(__file__).resolve().parent
 #: every source file whose code numba compiles into the kernel's cached functions
-KERNEL_SOURCES: tuple[Path, ...] = (_HERE / "kernel.py", _HERE / "arcs.py")
+KERNEL_SOURCES: tuple[Path, ...] = (_HERE / "kernel.py", _HERE / "lexer.py", _HERE / "arcs.py")
 STAMP_NAME = "layerwatch-kernel.key"
 
 

@@ -34,23 +34,28 @@ import numpy as np
 
 from layerwatch.gcode import jit_cache
 from layerwatch.gcode.arcs import arc_geometry
+from layerwatch.gcode.lexer import (
+    MAX_G,
+    N_WORDS,
+    W_A,
+    W_D,
+    W_E,
+    W_F,
+    W_I,
+    W_J,
+    W_R,
+    W_S,
+    W_T,
+    W_X,
+    W_Y,
+    W_Z,
+    count_g_lines,
+    lex_line,
+)
 
 # before any njit function below is loaded from disk: drop cached code built from other sources
 jit_cache.ensure_fresh(Path(__file__).resolve().parent / "__pycache__", "kernel",
                        jit_cache.cache_key(jit_cache.KERNEL_SOURCES))
-
-# ---- byte codes
-NL, CR, TAB, SPACE = 10, 13, 9, 32
-SEMICOLON, LPAREN, RPAREN, ASTERISK = 59, 40, 41, 42
-PLUS, MINUS, DOT, DIGIT_0, DIGIT_9 = 43, 45, 46, 48, 57
-UPPER_A, UPPER_Z, LOWER_A, LOWER_Z, UNDERSCORE = 65, 90, 97, 122, 95
-PRINTABLE_MIN, ASCII_END = 32, 128
-CASE_BIT = 32
-# ---- word letters, as offsets from 'A'
-W_A, W_D, W_E, W_F, W_G, W_I, W_J = 0, 3, 4, 5, 6, 8, 9
-W_M, W_R, W_S, W_T, W_X, W_Y, W_Z = 12, 17, 18, 19, 23, 24, 25
-N_WORDS = 26
-MAX_G = 4  # G words kept per line
 
 # ---- stats slots (int64)
 ST_LINES, ST_SEG, ST_TRAVEL, ST_CMT, ST_BAD, ST_FIRST_BAD, ST_UNKNOWN, ST_ABSURD = 0, 1, 2, 3, 4, 5, 6, 7
@@ -81,63 +86,6 @@ N_MS = MS_FLOW + N_TOOLS
 # ---- what a line does
 ACT_NONE, ACT_HOME, ACT_SETPOS, ACT_MOVE = 0, 1, 2, 3
 
-_POW10 = np.array([10.0**k for k in range(309)])
-#: first characters of ';' comments worth handing to the tag decoder
-_TAG_FIRST = np.zeros(256, np.bool_)
-for _c in b"LlZzTtFfCcBb'Ee":
-    _TAG_FIRST[_c] = True
-
-
-@nb.njit(cache=True, inline="always")
-def _is_digit(c):
-    return DIGIT_0 <= c <= DIGIT_9
-
-
-@nb.njit(cache=True, inline="always")
-def _is_letter(c):
-    return (UPPER_A <= c <= UPPER_Z) or (LOWER_A <= c <= LOWER_Z)
-
-
-@nb.njit(cache=True, inline="always")
-def _parse_num(buf, i, n):
-    """Parse a decimal number at ``buf[i:]`` (no exponent: ``E`` is an axis); returns (value, next_i, ok).
-
-    Digits accumulate in an integer mantissa (exact, one multiply-add per digit) scaled once
-    by a power of ten; beyond 18 significant digits the rest only shift the exponent.
-    """
-    while i < n and (buf[i] == SPACE or buf[i] == TAB):
-        i += 1
-    neg = False
-    if i < n and (buf[i] == MINUS or buf[i] == PLUS):
-        neg = buf[i] == MINUS
-        i += 1
-    mant = 0
-    nd = 0
-    exp10 = 0
-    i0 = i
-    while i < n and _is_digit(buf[i]):
-        if nd < 18:
-            mant = mant * 10 + (buf[i] - DIGIT_0)
-            nd += 1 if (mant > 0) else 0
-        else:
-            exp10 += 1
-        i += 1
-    ok = i > i0
-    if i < n and buf[i] == DOT:
-        i += 1
-        while i < n and _is_digit(buf[i]):
-            if nd < 18:
-                mant = mant * 10 + (buf[i] - DIGIT_0)
-                nd += 1 if (mant > 0) else 0
-                exp10 -= 1
-            i += 1
-            ok = True
-    val = float(mant)
-    if exp10 < 0:
-        val /= _POW10[min(-exp10, 308)]
-    elif exp10 > 0:
-        val *= _POW10[min(exp10, 308)]
-    return -val if neg else val, i, ok
 
 
 @nb.njit(cache=True)
@@ -152,90 +100,6 @@ def _grow_1(a, k):
     b = np.empty(a.shape[0] * 2 + k, a.dtype)
     b[: a.shape[0]] = a
     return b
-
-
-@nb.njit(cache=True, inline="always")
-def _to_eol(buf, i, n):
-    while i < n and buf[i] != NL:
-        i += 1
-    return i
-
-
-@nb.njit(cache=True)
-def _count_g_lines(buf):
-    """Lines whose first non-blank byte is ``G``/``g``: the segment capacity to start with."""
-    cap = 16
-    at_start = True
-    for k in range(buf.shape[0]):
-        c = buf[k]
-        if c == NL:
-            at_start = True
-        elif at_start and c != SPACE and c != TAB:
-            if c == UPPER_A + W_G or c == LOWER_A + W_G:
-                cap += 1
-            at_start = False
-    return cap
-
-
-@nb.njit(cache=True, inline="always")
-def _lex_line(buf, i, n, val, has, gcodes):
-    """Lex one line from ``buf[i]`` into ``val``/``has`` (by letter) and ``gcodes``.
-
-    Returns ``(i_at_newline, n_g, m_code, comment_at, bad, extended)``: the G
-    words, the first M code (-1 none), the byte offset of a ``;`` comment
-    that may be a tag (-1 none), whether the line held non-text bytes, and
-    whether it was an extended (macro) command.
-    """
-    has[:] = False
-    ng = 0
-    mcode = -1
-    cmt_at = -1
-    bad = False
-    first = True
-    while i < n and buf[i] != NL:
-        c = buf[i]
-        if c == SEMICOLON:
-            j = i + 1
-            while j < n and (buf[j] == SPACE or buf[j] == TAB):
-                j += 1
-            if j < n and _TAG_FIRST[buf[j]]:
-                cmt_at = i
-            return _to_eol(buf, i, n), ng, mcode, cmt_at, bad, False
-        if c == LPAREN:  # '(' comment
-            while i < n and buf[i] != NL and buf[i] != RPAREN:
-                i += 1
-            if i < n and buf[i] == RPAREN:
-                i += 1
-            continue
-        if c == SPACE or c == TAB or c == CR:
-            i += 1
-            continue
-        if c == ASTERISK:  # checksum: rest of line
-            return _to_eol(buf, i, n), ng, mcode, cmt_at, bad, False
-        if _is_letter(c):
-            if first and i + 1 < n and (_is_letter(buf[i + 1]) or buf[i + 1] == UNDERSCORE):
-                return _to_eol(buf, i, n), 0, -1, cmt_at, bad, True  # Klipper macro ...: ignored
-            first = False
-            w = (c & ~CASE_BIT) - UPPER_A
-            v, i, ok = _parse_num(buf, i + 1, n)
-            if w == W_G and ok:
-                if ng < MAX_G:
-                    gcodes[ng] = v
-                    ng += 1
-            elif w == W_M and ok:
-                if mcode < 0:
-                    mcode = int(v) if 0 <= v < 1e6 else 99999
-                    if not (mcode == 82 or mcode == 83 or mcode == 101 or mcode == 103 or mcode == 200 or mcode == 221):
-                        while i < n and buf[i] != NL and buf[i] != SEMICOLON:  # M117 text ...
-                            i += 1
-            else:
-                has[w] = True
-                val[w] = v if ok else math.nan  # a bare letter (G28 X) names the axis
-            continue
-        if c >= ASCII_END or c < PRINTABLE_MIN:
-            bad = True
-        i += 1
-    return i, ng, mcode, cmt_at, bad, False
 
 
 @nb.njit(cache=True)
@@ -544,7 +408,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
     fstats : (N_FSTATS,) float64  filament totals, mm
     """
     n = buf.shape[0]
-    cap = _count_g_lines(buf)
+    cap = count_g_lines(buf)
     segf = np.empty((cap, 6), np.float64)
     segi = np.empty((cap, 2), np.int64)
     travel_line = np.empty(cap // 4 + 16, np.int64)
@@ -566,7 +430,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
             npb += 1
         if i == n:
             break
-        i, ng, mcode, cmt_at, bad, extended = _lex_line(buf, i, n, val, has, gcodes)
+        i, ng, mcode, cmt_at, bad, extended = lex_line(buf, i, n, val, has, gcodes)
         if cmt_at >= 0:
             if nc >= cmt.shape[0]:
                 cmt = _grow_f(cmt, 64)
