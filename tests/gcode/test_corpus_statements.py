@@ -164,3 +164,25 @@ def test_bambu_volume_statement_is_mm3():
         st = _statements(path)
         assert st.filament_cm3 == pytest.approx(st.filament_volume_stated / 1000.0)
         assert any("mm^3" in n for n in st.notes)
+
+
+@pytest.mark.parametrize("path", FILES, ids=IDS)
+def test_non_part_lines_kept_for_references_but_not_in_bounds(path, parsed):
+    """Purge lines, skirts, brims and wipe towers stay in the toolpath (references draw them:
+    the camera sees that plastic) with their own feature codes; layer 0's part box leaves them out."""
+    import numpy as np
+
+    from layerwatch.gcode.toolpath import part_mask
+
+    st = _statements(path)
+    if st.first_layer_box is None:
+        pytest.skip(f"{path.name} states no first-layer box (M555, G29 A1)")
+    tp = parsed(path)
+    sl = tp.layer_slice(0)
+    pts = np.concatenate([tp.start[sl], tp.end[sl]])
+    bx0, by0, bx1, by1 = st.first_layer_box
+    outside = ((pts[:, 0] < bx0 - BOX_TOL_MM) | (pts[:, 0] > bx1 + BOX_TOL_MM)
+               | (pts[:, 1] < by0 - BOX_TOL_MM) | (pts[:, 1] > by1 + BOX_TOL_MM))
+    assert outside.any(), "layer 0 draws no purge/skirt outside the part box"
+    not_part = ~np.concatenate([part_mask(tp.feature[sl])] * 2)
+    assert not_part[outside].all()  # everything drawn outside the stated box is classified as not-part
