@@ -18,7 +18,7 @@ import numpy as np
 
 from layerwatch.gcode.toolpath import feature_code
 
-__all__ = ["TagScan", "decode_tags", "feature_from_name", "detect_slicer"]
+__all__ = ["TagScan", "decode_tags", "feature_from_name"]
 
 _NUM = r"([-+]?\d*\.?\d+)"
 #: (style name, regex, group of z or None); order = priority when several styles are present
@@ -163,30 +163,3 @@ def decode_tags(data: bytes, cmt: np.ndarray) -> TagScan:
             scan.layer_z = z
             break
     return scan
-
-
-_SLICERS = (
-    (rb"PrusaSlicer", "PrusaSlicer"),
-    (rb"SuperSlicer", "SuperSlicer"),
-    (rb"OrcaSlicer", "OrcaSlicer"),
-    (rb"BambuStudio", "BambuStudio"),
-    (rb"Cura_SteamEngine", "Cura"),
-    (rb"Simplify3D", "Simplify3D"),
-    (rb"ideaMaker", "ideaMaker"),
-    (rb"KISSlicer", "KISSlicer"),
-    (rb"Kiri:Moto", "Kiri:Moto"),
-    (rb"IceSL", "IceSL"),
-    (rb"Miracle-Grue", "Miracle-Grue"),
-    (rb"Slic3r", "Slic3r"),
-    (rb"FlashPrint", "FlashPrint"),
-    (rb"FullControl", "FullControl"),
-    (rb"skeinforge|<version> \d", "Skeinforge"),
-)
-
-
-def detect_slicer(head: bytes) -> str | None:
-    """Name of the slicer that wrote a file, from its first few kB."""
-    for pat, name in _SLICERS:
-        if re.search(pat, head):
-            return name
-    return None
