@@ -122,3 +122,12 @@ def test_damaged_bgcode_is_a_gcode_error(cut):
         bad[14:18] = b"\xff\xff\xff\x7f"  # absurd block size
     with pytest.raises(GcodeError):
         read_toolpath(bytes(bad))
+
+
+def test_malformed_numbers_are_a_warning_with_file_and_line(tmp_path):
+    path = tmp_path / "bad.gcode"
+    path.write_bytes(b"M83\nG1 Z0.2\nG1 X1 Y1 E1\nG1 X2 Y1 E1.2.3\nG1 X3 Y1 E--1\nG1 X4 Y1 E1\n")
+    tp = read_toolpath(path)
+    [w] = [w for w in tp.warnings if "malformed" in w]
+    assert w.startswith("bad.gcode:4: 'G1 X2 Y1 E1.2.3': 2 line(s)")
+    assert tp.n_segments == 3  # E1.2 read; E--1 has no number, so that move extrudes nothing

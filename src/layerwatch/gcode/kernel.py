@@ -35,6 +35,8 @@ import numpy as np
 from layerwatch.gcode import jit_cache
 from layerwatch.gcode.arcs import arc_geometry
 from layerwatch.gcode.lexer import (
+    BAD_BYTES,
+    BAD_WORD,
     MAX_G,
     N_WORDS,
     W_A,
@@ -60,8 +62,8 @@ jit_cache.ensure_fresh(Path(__file__).resolve().parent / "__pycache__", "kernel"
 # ---- stats slots (int64)
 ST_LINES, ST_SEG, ST_TRAVEL, ST_CMT, ST_BAD, ST_FIRST_BAD, ST_UNKNOWN, ST_ABSURD = 0, 1, 2, 3, 4, 5, 6, 7
 ST_FIRST_ABSURD, ST_TOOLON, ST_ARCS, ST_ARC_BAD, ST_FIRST_ARC_BAD, ST_NONL, ST_FWRETRACT = 8, 9, 10, 11, 12, 13, 14
-ST_VOLUMETRIC, ST_ARC_CAPPED, ST_FIRST_ARC_CAPPED, ST_FLOW_SET = 15, 16, 17, 18
-N_STATS = 20
+ST_VOLUMETRIC, ST_ARC_CAPPED, ST_FIRST_ARC_CAPPED, ST_FLOW_SET, ST_MALFORMED, ST_FIRST_MALFORMED = 15, 16, 17, 18, 19, 20
+N_STATS = 22
 # ---- filament totals (float64, mm of filament)
 FS_XY_CMD, FS_CMD_HIGH, FS_FED_HIGH, FS_EONLY_FED, FS_XY_FED = 0, 1, 2, 3, 4
 N_FSTATS = 5
@@ -439,8 +441,10 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
             nc += 1
         if extended:
             stats[ST_UNKNOWN] += 1
-        if bad:
+        if bad & BAD_BYTES:
             _flag(stats, ST_BAD, ST_FIRST_BAD, line)
+        if bad & BAD_WORD:
+            _flag(stats, ST_MALFORMED, ST_FIRST_MALFORMED, line)
         act, mo = _line_action(ms, val, has, gcodes, ng, mcode, stats)
         if act == ACT_HOME:
             _home(ms, val, has)

@@ -26,6 +26,9 @@ W_A, W_D, W_E, W_F, W_G, W_I, W_J = 0, 3, 4, 5, 6, 8, 9
 W_M, W_R, W_S, W_T, W_X, W_Y, W_Z = 12, 17, 18, 19, 23, 24, 25
 N_WORDS = 26
 MAX_G = 4  # G words kept per line
+# ---- what was wrong with a line (bit flags)
+BAD_BYTES = 1  # non-text bytes
+BAD_WORD = 2  # a malformed number or a stray character ('E1.2.3', 'X--1', '%')
 
 _POW10 = np.array([10.0**k for k in range(309)])
 #: first characters of ';' comments worth handing to the tag decoder
@@ -115,14 +118,15 @@ def lex_line(buf, i, n, val, has, gcodes):
 
     Returns ``(i_at_newline, n_g, m_code, comment_at, bad, extended)``: the G
     words, the first M code (-1 none), the byte offset of a ``;`` comment
-    that may be a tag (-1 none), whether the line held non-text bytes, and
-    whether it was an extended (macro) command.
+    that may be a tag (-1 none), ``BAD_*`` flags (non-text bytes, malformed
+    words; what could not be read is ignored), and whether it was an extended
+    (macro) command.
     """
     has[:] = False
     ng = 0
     mcode = -1
     cmt_at = -1
-    bad = False
+    bad = 0
     first = True
     while i < n and buf[i] != NL:
         c = buf[i]
@@ -133,11 +137,13 @@ def lex_line(buf, i, n, val, has, gcodes):
             if j < n and _TAG_FIRST[buf[j]]:
                 cmt_at = i
             return _to_eol(buf, i, n), ng, mcode, cmt_at, bad, False
-        if c == LPAREN:  # '(' comment
-            while i < n and buf[i] != NL and buf[i] != RPAREN:
+        if c == LPAREN:  # '(' comment; Skeinforge nests them: '(<setting> Space_(mm): 2.0 </setting>)'
+            depth = 0
+            while i < n and buf[i] != NL:
+                depth += 1 if buf[i] == LPAREN else (-1 if buf[i] == RPAREN else 0)
                 i += 1
-            if i < n and buf[i] == RPAREN:
-                i += 1
+                if depth == 0:
+                    break
             continue
         if c == SPACE or c == TAB or c == CR:
             i += 1
@@ -164,7 +170,6 @@ def lex_line(buf, i, n, val, has, gcodes):
                 has[w] = True
                 val[w] = v if ok else math.nan  # a bare letter (G28 X) names the axis
             continue
-        if c >= ASCII_END or c < PRINTABLE_MIN:
-            bad = True
+        bad |= BAD_BYTES if (c >= ASCII_END or c < PRINTABLE_MIN) else BAD_WORD
         i += 1
     return i, ng, mcode, cmt_at, bad, False

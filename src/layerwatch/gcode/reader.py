@@ -175,6 +175,8 @@ def _kernel_warnings(data: bytes, short: str, st: np.ndarray) -> list[str]:
     """One ``file:line: text`` warning per kind of problem the kernel counted."""
     kinds = (
         (K.ST_BAD, K.ST_FIRST_BAD, "line(s) with non-text bytes; those bytes were ignored"),
+        (K.ST_MALFORMED, K.ST_FIRST_MALFORMED,
+         "line(s) with a malformed number or stray character; what could not be read was ignored"),
         (K.ST_ABSURD, K.ST_FIRST_ABSURD,
          f"move(s) beyond {K.ABSURD_MM:g} mm (absurd coordinates; check units); not drawn"),
         (K.ST_ARC_BAD, K.ST_FIRST_ARC_BAD,
