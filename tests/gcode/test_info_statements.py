@@ -51,3 +51,22 @@ def test_filament_diameter_option_is_validated(capsys):
     assert main(["gcode", "info", "--json", "--filament-diameter", "2.85", str(path)]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["reading"]["filament_diameter_mm"] == 2.85
+
+
+def test_volumetric_file_says_so(tmp_path, capsys):
+    path = tmp_path / "ulti.gcode"
+    path.write_bytes(b";FLAVOR:UltiGCode\nG90\nM82\nG92 E0\nG1 Z0.2\nG1 X0 Y0\nG1 X10 Y0 E6.38\nG1 X10 Y10 E12.76\n")
+    assert main(["gcode", "info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "E words are volumes" in out and "2.85 mm" in out
+
+
+def test_damaged_bgcode_is_exit_2_with_one_line(tmp_path, capsys):
+    src = next((p for p in FILES.values() if p.suffix == ".bgcode"), None)
+    if src is None:
+        pytest.skip("shared data absent")
+    bad = tmp_path / "cut.bgcode"
+    bad.write_bytes(src.read_bytes()[:5000])
+    assert main(["gcode", "info", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "cut.bgcode" in err and "export" in err

@@ -94,6 +94,9 @@ def info(
     for label, rkey, skey in _ROWS:
         table.add_row(label, _fmt(doc["reading"][rkey]), _fmt(stated.get(skey)) if skey else "")
     console.print(table)
+    if tp.volumetric:
+        console.print(f"E words are volumes (mm^3): converted to lengths with {tp.filament_diameter:g} mm filament "
+                      "(--filament-diameter to change)")
     for note in stated.get("notes", []):
         err_console.print(f"note: {note}", highlight=False)
     for d in doc["disagreements"]:
