@@ -93,6 +93,22 @@ def test_filament_as_stated(path, parsed):
 
 
 @pytest.mark.parametrize("path", FILES, ids=IDS)
+def test_filament_volume_as_stated(path, parsed):
+    st = _statements(path)
+    if st.filament_cm3 is None:
+        pytest.skip(f"{path.name} states no filament volume")
+    tp = parsed(path)
+    cm3 = tp.filament_commanded_mm * tp.filament_area_mm2 / 1000.0
+    found = compare(st, layers=tp.n_layers, filament_mm=tp.filament_commanded_mm, max_z=None,
+                    first_layer_box=None, filament_cm3=cm3)
+    if path.name in KNOWN_DISAGREEMENTS:
+        assert any(d.field == "filament (cm3)" for d in found), KNOWN_DISAGREEMENTS[path.name]
+        return
+    assert cm3 == pytest.approx(st.filament_cm3, rel=0.02, abs=0.006)  # statements round to 0.01 cm^3
+    assert not found
+
+
+@pytest.mark.parametrize("path", FILES, ids=IDS)
 def test_m221_applied_to_what_is_fed(path, parsed):
     text = load_bytes(path)[0]
     flows = [float(v) for v in re.findall(rb"(?m)^M221 (?:T0 )?S(\d+(?:\.\d+)?)", text)]

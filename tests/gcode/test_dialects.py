@@ -36,6 +36,15 @@ def test_ultigcode_e_is_volume():
     assert tp175.extrusion_mm == pytest.approx(4 * area / (math.pi * 1.75**2 / 4))
 
 
+def test_ultigcode_material_header_is_a_volume_statement():
+    area = math.pi * 2.85**2 / 4
+    head = b";FLAVOR:UltiGCode\n;TIME:100\n;MATERIAL:%d\n;MATERIAL2:0\n" % round(4 * area)
+    tp = read_toolpath(_layered(_square(area), head=head))
+    assert tp.statements.filament_cm3 == pytest.approx(4 * area / 1000, abs=1e-3)
+    assert tp.statements.filament_mm is None  # the header states a volume only
+    assert tp.filament_commanded_mm * tp.filament_area_mm2 / 1000 == pytest.approx(tp.statements.filament_cm3, abs=1e-3)
+
+
 def test_m200_d_switches_to_volumes_and_back():
     area = math.pi * 1.75**2 / 4
     body = b"M83\nM200 D1.75\nG1 X10 Y0 E%g\nM200 D0\nG1 X10 Y10 E1\n" % area

@@ -67,6 +67,8 @@ _VOLUME = (
     re.compile(rb"(?im)^;\s*filament used\s*=[^\n(]*\(([\d.]+)cm3\)"),
     re.compile(rb"(?im)^;\s*Ext #?\d+\s*=\s*[\d.]+\s*mm\s*\(([\d.]+)\s*cm\^3\)"),
 )
+#: Cura UltiGCode header: ';MATERIAL:18720' is mm^3 of filament (extruder 1; MATERIAL2 the second)
+_ULTI_MATERIAL = re.compile(rb"(?m)^;MATERIAL2?:(\d+)\s*$")
 _MASS = (
     re.compile(rb"(?im)^;\s*total filament used \[g\]\s*=\s*([\d.]+)"),
     re.compile(rb"(?im)^;\s*filament used \[g\]\s*=\s*([\d., ]+?)\s*$"),
@@ -250,6 +252,10 @@ def read_statements(data: bytes, head_bytes: int = 1 << 20, tail_bytes: int = 1 
     d = _num(m.group(1)) if m else None
     st.filament_diameter = d if d is not None and 0.5 <= d <= 5.0 else None
     vol = _first_total(_VOLUME, text)
+    ulti = [v for v in (_num(m.group(1)) for m in _ULTI_MATERIAL.finditer(text)) if v is not None]
+    if vol is None and ulti:
+        vol = sum(ulti) / 1000.0
+        st.notes.append(f"UltiGCode header ;MATERIAL: {sum(ulti):g} mm^3 read as {vol:g} cm^3")
     st.filament_volume_stated = vol
     st.filament_cm3 = vol
     if vol and st.filament_mm and st.filament_diameter:
@@ -285,7 +291,7 @@ class Disagreement:
 
 def compare(st: Statements, *, layers: int, filament_mm: float, max_z: float | None,
             first_layer_box: tuple[float, float, float, float] | None,
-            first_layer_z: float | None = None) -> list[Disagreement]:
+            first_layer_z: float | None = None, filament_cm3: float | None = None) -> list[Disagreement]:
     """Statements that the reading contradicts: layers beyond ±1, filament or max Z beyond 2 %,
     a first layer more than 0.05 mm off the stated height or reaching more than 2 mm outside
     the stated first-layer box."""
@@ -298,6 +304,9 @@ def compare(st: Statements, *, layers: int, filament_mm: float, max_z: float | N
         out.append(Disagreement("filament (mm)", st.filament_mm, round(filament_mm, 2), "2 %"))
     # the stated max Z may include a final lift (Cura's MAXZ): the top layer may sit one layer below it
     lift = (st.layer_height or 0.0) + 0.05
+    if st.filament_cm3 and filament_cm3 is not None and abs(filament_cm3 - st.filament_cm3) > max(
+            0.02 * st.filament_cm3, 0.006):  # statements round to 0.01 cm^3
+        out.append(Disagreement("filament (cm3)", st.filament_cm3, round(filament_cm3, 3), "2 %"))
     if st.max_z and max_z is not None and not (st.max_z - max(lift, 0.02 * st.max_z) <= max_z <= st.max_z + 0.05):
         out.append(Disagreement("max Z (mm)", st.max_z, round(max_z, 3), "2 %"))
     if st.first_layer_box and first_layer_box is not None:

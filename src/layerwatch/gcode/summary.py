@@ -51,6 +51,7 @@ def disagreements(tp: Toolpath, st: Statements | None = None) -> list[Disagreeme
     return compare(
         st, layers=tp.n_layers, filament_mm=tp.filament_commanded_mm, max_z=tp.layers[-1].z,
         first_layer_box=tp.layers[0].bounds, first_layer_z=tp.layers[0].z,
+        filament_cm3=tp.filament_commanded_mm * tp.filament_area_mm2 / 1000.0,
     )
 
 
