@@ -1,6 +1,6 @@
 """Numba state machine: G-code bytes -> extruding segments, in one pass.
 
-The kernel lexes the ``uint8`` buffer (no ``str`` copy) and runs the modal
+The kernel lexes the ``uint8`` buffer (no ``str`` copy; :mod:`.lexer`) and runs the modal
 machine as it goes (G90/G91, M82/M83, G92, G20/G21, G0-G3, G10/G11, G28,
 T, F, M101/M103, M200 D volumetric E, M221 flow). It emits flat arrays of
 extruding segments, the lines of travel moves, the byte offsets of ``;``
@@ -19,9 +19,9 @@ state as "filament used".
 
 The machine state lives in one float64 array (indices ``MS_*``), the words of
 the current line in two arrays indexed by letter; each step is a small
-function (numba inlines them). Arc linearisation is in :mod:`.arcs`; numba
-compiles it into this module's code, so the on-disk cache is keyed on both
-files (:mod:`layerwatch.gcode.jit_cache`).
+function (the hot ones inlined by numba). The lexer (:mod:`.lexer`) and the
+arc geometry (:mod:`.arcs`) are compiled into this module's code, so the
+on-disk cache is keyed on all three files (:mod:`layerwatch.gcode.jit_cache`).
 """
 
 from __future__ import annotations
@@ -189,7 +189,7 @@ def _line_action(ms, val, has, gcodes, ng, mcode, stats):
 
 
 @nb.njit(cache=True)
-def _home(ms, val, has):
+def _home(ms, has):
     """G28: the named axes (all when none) to 0 with their offsets cleared."""
     all_axes = not (has[W_X] or has[W_Y] or has[W_Z])
     for w, lo, oo in ((W_X, MS_LX, MS_OX), (W_Y, MS_LY, MS_OY), (W_Z, MS_LZ, MS_OZ)):
@@ -447,7 +447,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
             _flag(stats, ST_MALFORMED, ST_FIRST_MALFORMED, line)
         act, mo = _line_action(ms, val, has, gcodes, ng, mcode, stats)
         if act == ACT_HOME:
-            _home(ms, val, has)
+            _home(ms, has)
         elif act == ACT_SETPOS:
             _set_position(ms, val, has)
         elif act == ACT_MOVE:
