@@ -232,20 +232,24 @@ def _features(tags, seg_line: np.ndarray, seg_z: np.ndarray, detection: str, bou
 
 
 def _layer_boxes(seg_a, seg_b, seg_e, feature, bounds):
-    """Per-layer part box (L, 2) lo/hi (not-part features left out unless alone) and extrusion (L,)."""
+    """Per-layer part box (L, 2) lo/hi (not-part features left out unless alone) and extrusion (L,).
+
+    All segments are reduced per layer at once; only the layers that hold skirt, brim, purge
+    or wipe-tower segments are redone on their part segments.
+    """
     idx = bounds[:-1]
+    lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
+    hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
     part = part_mask(feature)
-    big = np.float64(np.inf)
-    a_lo = np.where(part[:, None], seg_a, big)
-    b_lo = np.where(part[:, None], seg_b, big)
-    lo = np.minimum(np.minimum.reduceat(a_lo, idx, axis=0), np.minimum.reduceat(b_lo, idx, axis=0))
-    hi = np.maximum(np.maximum.reduceat(np.where(part[:, None], seg_a, -big), idx, axis=0),
-                    np.maximum.reduceat(np.where(part[:, None], seg_b, -big), idx, axis=0))
-    alone = ~np.isfinite(lo).all(axis=1)
-    if alone.any():  # a layer of skirt or purge only: its box is what is there
-        all_lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
-        all_hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
-        lo[alone], hi[alone] = all_lo[alone], all_hi[alone]
+    if not part.all():
+        mixed = np.flatnonzero(np.add.reduceat((~part).astype(np.int64), idx) > 0)
+        for k in mixed:
+            a, b = bounds[k], bounds[k + 1]
+            keep = part[a:b]
+            if keep.any():  # a layer of skirt or purge only keeps the box of what is there
+                pa, pb = seg_a[a:b][keep], seg_b[a:b][keep]
+                lo[k] = np.minimum(pa.min(axis=0), pb.min(axis=0))
+                hi[k] = np.maximum(pa.max(axis=0), pb.max(axis=0))
     return lo, hi, np.add.reduceat(seg_e, idx)
 
 

@@ -227,7 +227,7 @@ def _statement_lines(data: bytes, head_bytes: int, tail_bytes: int) -> bytes:
     return b"\n".join(out) + b"\n"
 
 
-def read_statements(data: bytes, head_bytes: int = 1 << 20, tail_bytes: int = 1 << 19) -> Statements:
+def read_statements(data: bytes, head_bytes: int = 1 << 19, tail_bytes: int = 1 << 18) -> Statements:
     """Read the statements from the head and tail of G-code ``data``.
 
     Parameters
