@@ -39,9 +39,10 @@ def test_bad_values_exit_2_with_one_line(extra, says, tmp_path, capsys):
 def test_prepare_parks_on_the_files_bed(tmp_path, capsys):
     out = tmp_path / "o.gcode"
     assert main(["gcode", "prepare", str(ENDER), "-o", str(out)]) == 0
-    assert "bed X 5..215, Y 0..220 mm (bed_shape), park X210 Y215" in capsys.readouterr().err
+    # the corner farthest from the part; the start G-code's purge line (front) is not part of the part
+    assert "bed X 5..215, Y 0..220 mm (bed_shape), park X210 Y5" in capsys.readouterr().err
     text = out.read_text()
-    assert "G1 X210 Y215 F9000" in text and "X250" not in text and "nan" not in text.lower()
+    assert "G1 X210 Y5 F9000" in text and "X250" not in text and "nan" not in text.lower()
 
 
 def test_prepare_refuses_to_guess_the_bed(tmp_path, capsys):

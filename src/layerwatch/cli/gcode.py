@@ -18,7 +18,7 @@ gcode_app = typer.Typer(
 _PROFILES = ("paper", "octoprint", "klipper", "timelapse", "m240")
 
 
-def _read_with_progress(path: Path):
+def _read_with_progress(path: Path, filament_diameter: float | None = None):
     from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
 
     from layerwatch.cli import err_console
@@ -26,44 +26,83 @@ def _read_with_progress(path: Path):
 
     big = path.is_file() and path.stat().st_size > 5_000_000
     if not big:
-        return read_toolpath(path)
+        return read_toolpath(path, filament_diameter=filament_diameter)
     with Progress(
         TextColumn("parsing"), BarColumn(), DownloadColumn(), console=err_console, transient=True
     ) as bar:
         task = bar.add_task("parse", total=path.stat().st_size)
-        return read_toolpath(path, progress=lambda done, total: bar.update(task, completed=done, total=total))
+        return read_toolpath(path, filament_diameter=filament_diameter,
+                             progress=lambda done, total: bar.update(task, completed=done, total=total))
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, (list, tuple)):
+        return " .. ".join(_fmt(x) for x in v) if len(v) == 2 else ", ".join(_fmt(x) for x in v)
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+#: (label, key in the reading, key in the statements)
+_ROWS = (
+    ("generator", "generator", None),
+    ("layers", "layers", "layer_count"),
+    ("detection", "detection", None),
+    ("Z range (mm)", "z_range_mm", "max_z"),
+    ("first layer Z (mm)", "first_layer_z_mm", "first_layer_height"),
+    ("layer height (mm)", "median_layer_height_mm", "layer_height"),
+    ("segments", "segments", None),
+    ("filament, E words (mm)", "filament_commanded_mm", "filament_mm"),
+    ("filament, E words (cm3)", "filament_commanded_cm3", "filament_cm3"),
+    ("filament fed, M221 + flushes (mm)", "filament_fed_mm", None),
+    ("filament diameter (mm)", "filament_diameter_mm", "filament_diameter"),
+    ("first layer box (mm)", "first_layer_box_mm", "first_layer_box"),
+    ("part bounds (mm)", "part_bounds_mm", "print_box"),
+)
 
 
 @gcode_app.command("info")
-def info(file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="A .gcode (or .bgcode) file.")]) -> None:
-    """Print layers, Z range, detection method, extrusion length and bounds."""
+def info(
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="A .gcode, .bgcode or FlashForge .gx file.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the reading and the file's statements as JSON.")] = False,
+    filament_diameter: Annotated[
+        float | None,
+        typer.Option("--filament-diameter", parser=Finite(0.5, 5, unit="mm"),
+                     help="Filament diameter, mm (default: the file's, else 1.75; 2.85 for UltiGCode)."),
+    ] = None,
+) -> None:
+    """Print what the reader finds next to what the file states, with a warning where they disagree."""
+    import json
+
     from rich.table import Table
 
     from layerwatch.cli import console, err_console
+    from layerwatch.gcode.summary import info_dict
 
-    tp = _read_with_progress(file)
+    tp = _read_with_progress(file, filament_diameter)
     if tp.n_layers == 0 and not _has_moves(file):  # no move at all: not G-code (CNC files are still described)
         from layerwatch.errors import GcodeError
 
         raise GcodeError(f"{file.name} has no G-code moves: not a G-code file; pass the file your slicer exported.")
-    table = Table(title=f"{file.name}", show_header=False)
+    doc = info_dict(tp)
+    if as_json:
+        print(json.dumps(doc, indent=1))
+        return
+    table = Table(title=f"{file.name}")
     table.add_column("field", style="bold")
-    table.add_column("value")
-    zs = [lay.z for lay in tp.layers]
-    table.add_row("slicer", tp.slicer or "unknown")
-    table.add_row("layers", str(tp.n_layers))
-    table.add_row("detection", tp.detection)
-    table.add_row("Z range (mm)", f"{min(zs):.3f} .. {max(zs):.3f}" if zs else "-")
-    if tp.n_layers:
-        h = sorted(lay.height for lay in tp.layers)
-        table.add_row("layer height (mm)", f"{h[len(h) // 2]:.3f} (median)")
-    table.add_row("segments", str(tp.n_segments))
-    table.add_row("extrusion (mm of filament)", f"{tp.extrusion_mm:.1f}")
-    table.add_row("filament diameter (mm)", f"{tp.filament_diameter:g}")
-    b = tp.bounds
-    table.add_row("bounds X (mm)", f"{b[0]:.2f} .. {b[2]:.2f}")
-    table.add_row("bounds Y (mm)", f"{b[1]:.2f} .. {b[3]:.2f}")
+    table.add_column("read")
+    table.add_column("file states")
+    stated = doc["statements"] or {}
+    for label, rkey, skey in _ROWS:
+        table.add_row(label, _fmt(doc["reading"][rkey]), _fmt(stated.get(skey)) if skey else "")
     console.print(table)
+    if tp.volumetric:
+        console.print(f"E words are volumes (mm^3): converted to lengths with {tp.filament_diameter:g} mm filament "
+                      "(--filament-diameter to change)")
+    for note in stated.get("notes", []):
+        err_console.print(f"note: {note}", highlight=False)
+    for d in doc["disagreements"]:
+        err_console.print(f"[yellow]warning:[/] the file's statement disagrees: {d}", highlight=False)
     for w in tp.warnings:
         err_console.print(f"[yellow]warning:[/] {w}", highlight=False)
 
