@@ -242,6 +242,7 @@ _HEAVY = (
     "layerwatch.monitor.service.Monitor.run",
     "layerwatch.evaluate.harness.run_evaluation",
     "layerwatch.evaluate.demo.run_demo",
+    "layerwatch.cli.demo.run_demo",  # imported by name at the verb module's top
     "layerwatch.simulate.simulate_print",
     "layerwatch.render.backend.render_layers",
     "uvicorn.run",

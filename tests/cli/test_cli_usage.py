@@ -141,7 +141,7 @@ def test_a_bug_is_exit_70_with_a_crash_file(capsys, monkeypatch, tmp_path):
     def broken(*_a, **_k):
         raise ZeroDivisionError("boom")
 
-    monkeypatch.setattr("layerwatch.gcode.read_toolpath", broken)
+    monkeypatch.setattr("layerwatch.cli.gcode.read_toolpath", broken)
     code, _, err = _run(["gcode", "info", EX], capsys, monkeypatch, tmp_path)
     assert code == 70 and len(err) == 1 and err[0].startswith("internal error: ZeroDivisionError: boom")
     crash = list(tmp_path.glob("layerwatch-crash-*.txt"))

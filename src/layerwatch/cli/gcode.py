@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 from typing import Annotated, Any
 
+import pydantic
 import typer
+from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
+from rich.table import Table
 
+from layerwatch.cli import console, err_console
 from layerwatch.cli.params import WRITE_FILE, Finite
+from layerwatch.errors import ConfigError, GcodeError
+from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.bed import bed_from_gcode, parse_bed, parse_xy
+from layerwatch.gcode.reader import load_bytes
+from layerwatch.gcode.settings import SnapshotSettings
+from layerwatch.gcode.snapshot import prepare_gcode
+from layerwatch.gcode.summary import info_dict
 
 __all__ = ["register"]
 
@@ -19,11 +32,6 @@ _PROFILES = ("paper", "octoprint", "klipper", "timelapse", "m240")
 
 
 def _read_with_progress(path: Path, filament_diameter: float | None = None):
-    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn
-
-    from layerwatch.cli import err_console
-    from layerwatch.gcode import read_toolpath
-
     big = path.is_file() and path.stat().st_size > 5_000_000
     if not big:
         return read_toolpath(path, filament_diameter=filament_diameter)
@@ -72,13 +80,6 @@ def info(
     ] = None,
 ) -> None:
     """Print what the reader finds next to what the file states, with a warning where they disagree."""
-    import json
-
-    from rich.table import Table
-
-    from layerwatch.cli import console, err_console
-    from layerwatch.gcode.summary import info_dict
-
     tp = _read_with_progress(file, filament_diameter)
     if tp.n_layers == 0 and not _has_moves(file):  # no move at all: not G-code (CNC files are still described)
         from layerwatch.errors import GcodeError
@@ -109,8 +110,6 @@ def info(
 
 def _has_moves(file: Path, limit: int = 1 << 20) -> bool:
     """True when the file's first ``limit`` bytes hold a G0-G3 move (binary .bgcode counts as G-code)."""
-    import re
-
     with open(file, "rb") as fh:
         head = fh.read(limit)
     return head.startswith(b"GCDE") or re.search(rb"(?m)^[ \t]*[Gg]0*[0-3](?![0-9.])", head) is not None
@@ -141,15 +140,6 @@ def prepare(
         "--hold", parser=Finite(0.5, 120, unit="s"), help="klipper profile: longest wait for the host's frame, s.")] = 10.0,
 ) -> None:
     """Insert a snapshot block (paper Table 1) after every (Nth) layer, parked on the file's bed."""
-    import pydantic
-
-    from layerwatch.cli import console, err_console
-    from layerwatch.errors import ConfigError, GcodeError
-    from layerwatch.gcode.bed import bed_from_gcode, parse_bed, parse_xy
-    from layerwatch.gcode.reader import load_bytes
-    from layerwatch.gcode.settings import SnapshotSettings
-    from layerwatch.gcode.snapshot import prepare_gcode
-
     if profile not in _PROFILES:
         raise ConfigError(f"unknown profile {profile!r}; use one of {', '.join(_PROFILES)}.")
     if firmware and firmware not in ("marlin", "klipper", "reprap"):

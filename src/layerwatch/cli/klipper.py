@@ -2,18 +2,18 @@
 
 from __future__ import annotations
 
+import sys
+
 import typer
+
+from layerwatch import __version__
+from layerwatch.gcode.klipper_macros import klipper_config as text
 
 __all__ = ["register"]
 
 
 def klipper_config() -> None:
     """Print layerwatch.cfg (macros LAYERWATCH_SNAPSHOT / LAYERWATCH_WAIT); add [include layerwatch.cfg] to printer.cfg."""
-    import sys
-
-    from layerwatch import __version__
-    from layerwatch.gcode.klipper_macros import klipper_config as text
-
     sys.stdout.write(text(__version__))
 
 

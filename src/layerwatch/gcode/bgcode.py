@@ -11,6 +11,7 @@ import struct
 import zlib
 
 from layerwatch.errors import GcodeError
+from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
 
 __all__ = ["decode_bgcode"]
 
@@ -20,8 +21,6 @@ _ENCODING = {0: "none", 1: "MeatPack", 2: "MeatPack with comments"}
 
 
 def _decode_block(payload: bytes, comp: int, enc: int, usize: int) -> bytes | None:
-    from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
-
     if comp == 0:
         raw = payload
     elif comp == 1:
