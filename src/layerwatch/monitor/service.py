@@ -372,7 +372,7 @@ class Monitor:
             while not self.stop_event.is_set():
                 self.poll_acknowledgements()  # the dashboard's acknowledge button (shared history)
                 try:
-                    if self.printer.needs_stepping:
+                    if getattr(self.printer, "needs_stepping", False):  # a duck-typed connector prints on its own
                         if self._step():
                             break
                         continue
