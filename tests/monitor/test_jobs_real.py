@@ -332,7 +332,7 @@ def test_frames_taken_off_the_park_spot_are_rejected_and_recorded(stack, tmp_pat
             printer.send_gcode("G90\nG1 X20 Y30 Z1.5 F6000\nM400")
             until(lambda: host.position()[:2] == (20.0, 30.0), 10, "the head at X20 Y30")
             res = mon.handle_trigger(SnapshotTrigger(0, 0.3, "moonraker"))
-            assert res.status == "error" and "head was at X20.00 Y30.00 Z1.50, not at layer 0's park spot" in res.message
+            assert res.status == "camera_fault" and "head was at X20.00 Y30.00 Z1.50, not at layer 0's park spot" in res.message
             (row,) = hist.layers(job)
             assert row.message == res.message  # the reason is in the history
             printer.send_gcode(f"G1 X{spot[0]} Y{spot[1]} Z{spot[2]} F6000\nM400")

@@ -69,7 +69,7 @@ def test_moonraker_mapping(server):
         msg = str(e.value)
         assert "Klippy Host not connected" in msg and "Traceback" not in msg and "FIRMWARE_RESTART" in msg
         _set(401, '{"error": {"code": 401, "message": "Unauthorized"}}')
-        with pytest.raises(PrinterError, match=r"refused the request \(HTTP 401: Unauthorized\); add \?key=API_KEY"):
+        with pytest.raises(PrinterError, match=r"refused the request \(HTTP 401: Unauthorized\); set LAYERWATCH_MOONRAKER_KEY"):
             p.pause()
         _set(500, "boom")
         with pytest.raises(PrinterError, match=r"Moonraker POST /printer/print/cancel failed with HTTP 500: boom"):

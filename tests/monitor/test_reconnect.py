@@ -18,6 +18,7 @@ from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, un
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import PrinterError
 from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.health import FaultSettings
 from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.service import Monitor
@@ -76,13 +77,13 @@ def test_outage_backoff_is_exponential_capped_and_resets(caplog):
              + [("printing", 3), ("finished", None)])
     printer = FlakyPrinter(steps)
     mon = Monitor(printer, SimCamera(_frame), CleanPipeline(), PausePolicy(), wait_for_verdict=True,
-                  initial_backoff_s=0.01, max_backoff_s=0.04)
-    with caplog.at_level(logging.INFO, logger="layerwatch.monitor"):
+                  initial_backoff_s=0.01, max_backoff_s=0.04, faults=FaultSettings(printer_grace_s=0))
+    with caplog.at_level(logging.DEBUG, logger="layerwatch.monitor"):
         rep = mon.run(poll_s=0)
     # doubling from 0.01 s, capped at 0.04 s; back to 0.01 s after the printer answered
     assert _retry_waits(caplog) == [0.01, 0.02, 0.04, 0.04, 0.04, 0.04, 0.01, 0.02]
-    assert rep.alerts == 2  # one per outage, not one per retry
-    assert sum("printer unreachable" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING) >= 2
+    assert rep.alerts == 4  # per outage: one when the grace period (0 s) is over, one at recovery; not one per retry
+    assert sum("printer fault" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING) == 2
     reconnects = [r for r in caplog.records if getattr(r, "event", "") == "printer_reconnected"]
     assert [r.failed_polls for r in reconnects] == [6, 2]
     assert printer.pauses == 0 and rep.pauses == 0  # an unreachable printer never pauses
@@ -101,10 +102,11 @@ def test_moonraker_restart_mid_print(tmp_path, caplog):
         printer = MoonrakerPrinter(stack.url, timeout_s=2)
         assert printer.wait_connected(15)
         pipe = CleanPipeline()
-        mon = Monitor(printer, SimCamera(_frame), pipe, PausePolicy(), initial_backoff_s=0.1, max_backoff_s=0.4)
+        mon = Monitor(printer, SimCamera(_frame), pipe, PausePolicy(), initial_backoff_s=0.1, max_backoff_s=0.4,
+                      faults=FaultSettings(printer_grace_s=0))
         out = {}
         t = threading.Thread(target=lambda: out.setdefault("report", mon.run(poll_s=0.05)), daemon=True)
-        with caplog.at_level(logging.INFO, logger="layerwatch"):
+        with caplog.at_level(logging.DEBUG, logger="layerwatch"):
             stack.upload_and_print("lw_restart.gcode", klipper_gcode(n_layers=80, layer_s=0.2))
             t.start()
             until(lambda: len(pipe.seen) >= 2, 20, "two analysed layers")

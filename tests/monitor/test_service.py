@@ -85,8 +85,17 @@ def test_camera_errors_alert_but_never_pause():
             return True
 
     rep = Monitor(vp, BrokenCamera(), StandInPipeline(), notifier=N()).run(poll_s=0.001)
-    assert rep.pauses == 0 and vp.pause_count == 0 and rep.alerts == 8
-    assert all(r.status == "error" for r in rep.results) and "web page" in sent[0]
+    # one alert for the episode, after 3 bad frames in a row (FaultSettings.camera_alert_after), not one per layer
+    assert rep.pauses == 0 and vp.pause_count == 0 and rep.alerts == 1 and rep.camera_faults == 8
+    assert all(r.status == "camera_fault" for r in rep.results) and "web page" in sent[0]
+    assert "3 unusable frames in a row" in sent[0]
+
+
+class ErrorPipeline:
+    """Every layer fails to analyse (the policy alerts on each, never pauses)."""
+
+    def process(self, photo, layer_index):
+        return LayerResult(layer=layer_index, z=0.3, status="error", message="warp failed: web page")
 
 
 def test_slow_notifier_does_not_hold_up_analysis_and_every_alert_is_sent():
@@ -101,8 +110,7 @@ def test_slow_notifier_does_not_hold_up_analysis_and_every_alert_is_sent():
             sent.append(message)
             return True
 
-    pipe = StandInPipeline()
-    mon = Monitor(vp, BrokenCamera(), pipe, notifier=SlowNotifier())
+    mon = Monitor(vp, SimCamera(_frame(None)), ErrorPipeline(), notifier=SlowNotifier())
     done = threading.Event()
     runner = threading.Thread(target=lambda: (mon.run(poll_s=0.001), done.set()))
     runner.start()

@@ -175,6 +175,9 @@ class LayerResult:
         Monitor: printer trigger to the pause request, ms (layers that paused).
     simulated_failures : list of str
         Simulator: failure types injected in the photo (the demo).
+    frame_quality : dict of str to float
+        Camera-fault gate: the figures of a refused frame (``status="camera_fault"``;
+        :func:`~layerwatch.analysis.frame_quality.assess_frame`).
     """
 
     layer: int
@@ -204,6 +207,7 @@ class LayerResult:
     photo_ms: float | None = None
     trigger_to_pause_ms: float | None = None
     simulated_failures: list[str] = field(default_factory=list)
+    frame_quality: dict[str, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:

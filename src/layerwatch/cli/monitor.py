@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -96,22 +97,35 @@ def monitor_config(path: Path | None, history=None, *, paper: bool = False):
     from layerwatch.pipeline.config import resolve_config
 
     dash = dashboard_settings(history) if history is not None else {}
+    dash.pop("host", None)  # printer credentials come from the job file, the environment or a key file only
     resolved = resolve_config(path, recommended=not paper, dashboard=dash)
     return resolved.config, resolved.section_sources()
 
 
-def open_printer(spec: str, gcode: bytes | None = None):
-    """Printer connector from ``octoprint://host:port?key=K``, ``moonraker://host:port`` or ``virtual[:FILE]``."""
+def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None = None, host=None):
+    """Printer connector from ``octoprint://host:port``, ``moonraker://host:port`` or ``virtual[:FILE]``.
+
+    The API key comes from ``key_file`` (``--key-file``), the environment (``LAYERWATCH_OCTOPRINT_KEY``,
+    ``LAYERWATCH_MOONRAKER_KEY``), the job file's ``[host]`` section (``host``: :class:`HostSettings`), or,
+    with a warning, a ``?key=`` in ``spec`` (see :func:`~layerwatch.monitor.printers.keys.resolve_key`).
+    """
     from layerwatch.errors import ConfigError
+    from layerwatch.monitor.printers.keys import redact_url, resolve_key, split_url_key
 
-    if spec.startswith("octoprint://"):
-        from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+    kind = spec.split("://", 1)[0] if "://" in spec else ""
+    if kind in ("octoprint", "moonraker"):
+        file = key_file or (Path(host.key_file) if host is not None and host.key_file else None)
+        config_key = host.api_key.get_secret_value() if host is not None and host.api_key else None
+        key, source = resolve_key(kind, spec, key_file=file, config_key=config_key)
+        logging.getLogger("layerwatch.monitor").info("%s API key from: %s", kind, source)
+        url = split_url_key(spec)[0]
+        if kind == "octoprint":
+            from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
 
-        return OctoPrintPrinter(spec)
-    if spec.startswith("moonraker://"):
+            return OctoPrintPrinter(url, key)
         from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 
-        return MoonrakerPrinter(spec)
+        return MoonrakerPrinter(url, key)
     if spec == "virtual" or spec.startswith("virtual:"):
         from layerwatch.monitor.printers.virtual import VirtualPrinter
 
@@ -120,11 +134,13 @@ def open_printer(spec: str, gcode: bytes | None = None):
         if data is None:
             raise ConfigError("--printer virtual needs a G-code: virtual:FILE or --gcode FILE.")
         return VirtualPrinter(data, name=Path(path).name if path else "virtual.gcode")
-    raise ConfigError(f"unknown --printer {spec!r}; use octoprint://host:port?key=..., moonraker://host:port or virtual:FILE.")
+    raise ConfigError(f"unknown --printer {redact_url(spec)!r}; use octoprint://host:port, moonraker://host:port "
+                      "or virtual:FILE.")
 
 
 def monitor(
-    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port?key=KEY | moonraker://host:port | virtual[:FILE]")] = "virtual",
+    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port | moonraker://host:port | virtual[:FILE] (API key: --key-file, LAYERWATCH_OCTOPRINT_KEY / LAYERWATCH_MOONRAKER_KEY, or [host] in the job file)")] = "virtual",
+    key_file: Annotated[Path | None, typer.Option("--key-file", exists=True, dir_okay=False, help="File whose first line is the printer host's API key (chmod 600).")] = None,
     camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | sim")] = "sim",
     gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: downloaded from the OctoPrint/Moonraker host; the bundled example for virtual).")] = None,
     camera_model: Annotated[Path | None, typer.Option("--camera-model", exists=True, dir_okay=False, help="camera.toml with intrinsics and pose.")] = None,
@@ -141,6 +157,7 @@ def monitor(
     keep_mb: Annotated[float | None, typer.Option("--keep-mb", parser=Finite(1, 10_000_000, unit="MB"), help="Keep at most this many MB of images; oldest jobs' images deleted first.")] = None,
     keep_jobs: Annotated[int | None, typer.Option("--keep-jobs", parser=Finite(1, 1_000_000, integer=True), help="Keep the images of at most this many jobs.")] = None,
     park_tolerance: Annotated[float, typer.Option("--park-tolerance", parser=Finite(0, 50, unit="mm"), help="Reject frames taken with the head farther than this from the park spot, mm (0: no check).")] = 1.0,
+    poll: Annotated[float, typer.Option("--poll", parser=Finite(0.05, 60, unit="s"), help="Printer status poll interval, s; an unreachable host is retried with back-off up to this interval.")] = 0.2,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     import logging
@@ -152,6 +169,7 @@ def monitor(
     from layerwatch.gcode.postprocess import insert_snapshots
     from layerwatch.monitor.notify import Notifier
     from layerwatch.monitor.printers.base import parse_trigger
+    from layerwatch.monitor.printers.keys import read_key_file, redact_url
     from layerwatch.monitor.service import Monitor
     from layerwatch.pipeline.policy import PausePolicy
     from layerwatch.pipeline.step import LayerPipeline
@@ -172,12 +190,16 @@ def monitor(
     logging.getLogger("layerwatch.monitor").info(
         "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
         job_file or "none", history or "none")
+    if key_file is not None:  # a key file that is empty, not a key or readable by everyone: one line now
+        if printer.startswith("virtual"):
+            raise ConfigError("--key-file is for octoprint:// and moonraker:// printers; the virtual printer needs no key.")
+        read_key_file(key_file)
     if images is not None:  # an unusable --images folder is refused now (one line, exit 2), not at the first layer
         images.mkdir(parents=True, exist_ok=True)
     if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
         from layerwatch.monitor.follow import CameraSpec, run_follow
 
-        done = run_follow(open_printer(printer), cfg, CameraSpec(camera, camera_model, settle, failure, onset, seed),
+        done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, CameraSpec(camera, camera_model, settle, failure, onset, seed),
                           history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
                           park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
                           max_jobs=None if follow else 1)
@@ -194,23 +216,27 @@ def monitor(
     from layerwatch.monitor.follow import CameraSpec, job_camera
 
     cam_src, cam_model = job_camera(CameraSpec(camera, camera_model, settle, failure, onset, seed), toolpath, cfg)
-    prn = open_printer(printer, data)
+    prn = open_printer(printer, data, key_file=key_file, host=cfg.host)
     hist = job = None
     if history is not None:
         hist = History(history)
-        job = hist.start_job(printer.split("?")[0], gpath, config=cfg)
+        job = hist.start_job(redact_url(printer), gpath, config=cfg)
     mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg), PausePolicy(cfg.policy),
                   notifier=Notifier(cfg.notify), history=hist, job_id=job,
-                  wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict)
-    console.print(f"monitoring {printer.split('?')[0]} with camera {camera} ({toolpath.n_layers} layers)")
+                  wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict,
+                  faults=cfg.faults, frame_quality=cfg.frame_quality)
+    console.print(f"monitoring {redact_url(printer)} with camera {redact_url(camera)} ({toolpath.n_layers} layers)")
     try:
-        rep = mon.run(install_signals=True, poll_s=0.2)
+        rep = mon.run(install_signals=True, poll_s=poll)
     finally:
         prn.close()
         if hist is not None:
             hist.close()
     lat = rep.latencies_ms
     console.print(f"{len(rep.results)} layers analysed, {rep.pauses} pause(s), {rep.alerts} alert(s); outcome {rep.outcome}")
+    if rep.camera_faults or rep.printer_faults:
+        console.print(f"faults (never a pause): {rep.camera_faults} unusable frame(s), "
+                      f"{rep.printer_faults} failed printer poll(s)")
     for d in rep.decisions:
         if d.stops:
             console.print(f"[bold red]{d.action.upper()}[/] {d.reason}")

@@ -6,9 +6,19 @@ unless ``wait_for_verdict`` is set. Alerts go out on a second worker thread,
 in order, so a slow or dead notification target never holds up the
 analysis of the next layer or a pause (the pause request is sent first, from
 the analysis thread); :meth:`Monitor.close` (called by :meth:`Monitor.run`)
-waits for the queued alerts. Camera, pipeline and printer failures are
-alerted and logged, never turned into a pause; the printer connection is
-retried with exponential backoff.
+waits for the queued alerts.
+
+Faults are never print failures. A printer host that does not answer, or
+answers nonsense, is retried with exponential back-off capped at the poll
+interval (so the monitor sees the host again within one poll interval of its
+return); a camera that raises or returns no usable image, and a frame the
+camera-fault gate (:func:`~layerwatch.analysis.frame_quality.assess_frame`)
+refuses, give a ``camera_fault`` layer record that the pause policy does not
+judge. Both are logged as rate-limited warnings, written to the history as
+``printer_fault``/``camera_fault`` events (and ``..._recovered`` when they end)
+and notified after a grace period or a number of bad frames in a row
+(:class:`~layerwatch.monitor.health.FaultSettings`); :meth:`Monitor.health`
+shows the ongoing ones.
 """
 
 from __future__ import annotations
@@ -24,12 +34,21 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame
 from layerwatch.analysis.result import LayerResult
-from layerwatch.errors import CameraError, LayerwatchError, PrinterError
+from layerwatch.errors import LayerwatchError
+from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
+from layerwatch.monitor.printers.replies import RateLimitedLog
 from layerwatch.pipeline.policy import Decision, PausePolicy
 
-__all__ = ["Monitor", "MonitorReport"]
+__all__ = ["Monitor", "MonitorReport", "CAMERA_FAULT", "frame_problem"]
+
+#: ``LayerResult.status`` of a layer whose photo was unusable (the policy does not judge it)
+CAMERA_FAULT = "camera_fault"
+
+#: smallest side of a usable camera frame, px
+MIN_FRAME_SIDE = 16
 
 log = logging.getLogger("layerwatch.monitor")
 
@@ -47,6 +66,8 @@ class MonitorReport:
     pauses: int = 0
     alerts: int = 0
     outcome: str = "unknown"
+    printer_faults: int = 0
+    camera_faults: int = 0
 
     @property
     def latencies_ms(self) -> list[float]:
@@ -54,8 +75,25 @@ class MonitorReport:
         return [r.trigger_to_pause_ms for r in self.results if r.trigger_to_pause_ms is not None]
 
 
-def _log(event: str, **kv: Any) -> None:
-    log.info("%s %s", event, " ".join(f"{k}={v}" for k, v in kv.items()), extra={"event": event, **kv})
+def _log(event: str, level: int = logging.INFO, **kv: Any) -> None:
+    log.log(level, "%s %s", event, " ".join(f"{k}={v}" for k, v in kv.items()), extra={"event": event, **kv})
+
+
+def frame_problem(photo: Any) -> str | None:
+    """Why a camera's return value is no image to analyse, or None.
+
+    A usable frame is a ``uint8`` ndarray of shape (H, W, 3) (or (H, W)) with both sides
+    at least :data:`MIN_FRAME_SIDE` px.
+    """
+    if not isinstance(photo, np.ndarray):
+        return f"the camera returned {type(photo).__name__}, not an image"
+    if photo.dtype != np.uint8:
+        return f"the camera returned a {photo.dtype} image, not 8-bit"
+    if photo.ndim not in (2, 3) or photo.ndim == 3 and photo.shape[2] != 3:
+        return f"the camera returned an array of shape {photo.shape}, not (H, W, 3)"
+    if min(photo.shape[:2]) < MIN_FRAME_SIDE:
+        return f"the camera returned a {photo.shape[1]}x{photo.shape[0]} image (empty or a placeholder)"
+    return None
 
 
 class Monitor:
@@ -78,12 +116,20 @@ class Monitor:
     initial_backoff_s, max_backoff_s : float
         First and largest wait between printer retries, s; the wait doubles after each
         failed status poll and goes back to ``initial_backoff_s`` once the printer answers.
+        ``max_backoff_s=None``: the poll interval of :meth:`run` (recovery is seen within one
+        poll interval of the host's return).
+    faults : FaultSettings, optional
+        When faults are notified (grace period, bad frames in a row, warning interval).
+    frame_quality : FrameQualitySettings, optional
+        The camera-fault gate run on each frame before the pipeline; ``None`` (the default of
+        this class; the ``monitor`` command always passes the job's settings) runs none.
     """
 
     def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
                  *, notifier: Any = None, history: Any = None, job_id: int | None = None,
-                 wait_for_verdict: bool = False, max_backoff_s: float = 30.0,
-                 initial_backoff_s: float = 1.0) -> None:
+                 wait_for_verdict: bool = False, max_backoff_s: float | None = None,
+                 initial_backoff_s: float = 0.1, faults: FaultSettings | None = None,
+                 frame_quality: FrameQualitySettings | None = None) -> None:
         self.printer, self.camera, self.pipeline = printer, camera, pipeline
         self.policy = policy or PausePolicy()
         self.notifier, self.history, self.job_id = notifier, history, job_id
@@ -97,18 +143,34 @@ class Monitor:
         self._futures: list[Future] = []
         self._lock = threading.Lock()
         self._ack_seen = 0  # id of the last history event checked for dashboard acknowledgements
+        self.faults = faults or FaultSettings()
+        self.frame_quality = frame_quality if frame_quality is not None and frame_quality.enabled else None
+        self._printer_fault = FaultTracker("printer", grace_s=self.faults.printer_grace_s)
+        self._camera_fault = FaultTracker("camera", after_n=self.faults.camera_alert_after)
+        self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
+        self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
+
+    def health(self) -> dict[str, dict | None]:
+        """Ongoing faults: ``{"printer": {...} or None, "camera": {...} or None}`` (see :class:`Fault`)."""
+        with self._lock:
+            return {"printer": self._printer_fault.state(), "camera": self._camera_fault.state()}
 
     # ------------------------------------------------------------------ triggers
     def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
         """Take the photo for ``trigger`` and queue (or run) its analysis."""
         _log("trigger", layer=trigger.layer, z=trigger.z, source=trigger.source)
-        if hasattr(self.camera, "set_layer"):
-            self.camera.set_layer(trigger.layer)
         try:
+            if hasattr(self.camera, "set_layer"):
+                self.camera.set_layer(trigger.layer)
             photo = self.camera.grab()
-        except (CameraError, OSError) as exc:
-            res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=str(exc))
-            self._finish(trigger, res)
+            problem = frame_problem(photo)
+        except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a crash
+            problem = f"camera error: {type(exc).__name__}: {exc}"
+        if problem is not None:
+            res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT, message=problem)
+            if self.wait_for_verdict:
+                return self._finish(trigger, res)
+            self._futures.append(self._pool.submit(self._finish, trigger, res))  # keep layer order
             return res
         t_photo = time.monotonic()
         if self.wait_for_verdict:
@@ -116,7 +178,27 @@ class Monitor:
         self._futures.append(self._pool.submit(self._analyse, trigger, photo, t_photo))
         return None
 
+    def _gate(self, trigger: SnapshotTrigger, photo: np.ndarray) -> LayerResult | None:
+        """The camera-fault gate: a ``camera_fault`` record for a frame unfit for analysis, else None."""
+        if self.frame_quality is None:
+            return None
+        try:
+            quality = assess_frame(photo, self._last_good, self.frame_quality)
+        except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
+            log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", trigger.layer)
+            return None
+        if quality.ok:
+            self._last_good = photo
+            return None
+        res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT,
+                          message="unusable frame: " + "; ".join(quality.reasons))
+        res.frame_quality = {k: round(float(v), 3) for k, v in quality.figures.items()}
+        return res
+
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
+        res = self._gate(trigger, photo)
+        if res is not None:
+            return self._finish(trigger, res)
         try:
             res = self.pipeline.process(photo, trigger.layer)
         except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
@@ -134,14 +216,15 @@ class Monitor:
                     (self.printer.pause if decision.action == "pause" else self.printer.cancel)()
                     res.trigger_to_pause_ms = round((time.monotonic() - trigger.time) * 1000, 1)
                     self.report.pauses += 1
-                except LayerwatchError as exc:
-                    self._alert(f"could not {decision.action} the printer: {exc}", res)
+                except Exception as exc:  # noqa: BLE001 - the host failed: say so, keep watching
+                    self._alert(f"could not {decision.action} the printer: {exc}", res, level="critical", force=True)
             res.decision, res.decision_reason = decision.action, decision.reason
             self.report.results.append(res)
             self.report.decisions.append(decision)
             _log("layer", layer=res.layer, status=res.status, ratio=round(float(res.anomaly_ratio), 4),
                  action=decision.action, latency_ms=res.trigger_to_pause_ms)
             self._record(res, decision)
+            self._track_camera(res)
             if decision.action != "none":
                 self._alert(decision.reason, res, level="critical" if decision.stops else "warning",
                             force=decision.stops, image=self._overlay(res, top))
@@ -161,6 +244,38 @@ class Monitor:
         except (LayerwatchError, ValueError, AttributeError) as exc:  # the alert goes out without a picture
             log.warning("overlay for layer %d not drawn: %s", res.layer, exc)
             return None
+
+    def _track_camera(self, res: LayerResult) -> None:
+        """Open, count, notify or close the camera-fault episode after one layer (lock held)."""
+        if res.status != CAMERA_FAULT:
+            ended = self._camera_fault.recovered() if res.status != "error" else None
+            if ended is not None:
+                self._warn.reset("camera")
+                _log("camera_recovered", frames=ended.count)
+                self._event("camera_recovered", f"camera delivers usable frames again after {ended.count} bad one(s)",
+                            {"layer": res.layer, "frames": ended.count})
+                if ended.notified:
+                    self._alert(f"camera recovered: usable frames again from layer {res.layer}", res, level="info",
+                                force=True)
+            return
+        self.report.camera_faults += 1
+        started, notify = self._camera_fault.failed(res.message)
+        self._warn.warning("camera", "camera fault on layer %d (never a pause): %s", res.layer, res.message)
+        if started:
+            self._event("camera_fault", res.message, {"layer": res.layer, **res.frame_quality})
+        if notify:
+            n = self._camera_fault.current.count if self._camera_fault.current else 0
+            self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}",
+                        res, force=True)
+
+    def _event(self, kind: str, message: str, data: dict | None = None) -> None:
+        """Append a history event (a failed write is a warning)."""
+        if self.history is None or self.job_id is None:
+            return
+        try:
+            self.history.add_event(self.job_id, kind, message, data)
+        except LayerwatchError as exc:
+            log.warning("history write failed: %s", exc)
 
     def _record(self, res: LayerResult, decision: Decision) -> None:
         if self.history is None or self.job_id is None:
@@ -241,59 +356,38 @@ class Monitor:
 
     # ------------------------------------------------------------------ loop
     def run(self, *, poll_s: float = 0.2, install_signals: bool = False) -> MonitorReport:
-        """Run until the print ends or :attr:`stop_event` is set (SIGTERM/SIGINT when ``install_signals``)."""
+        """Run until the print ends or :attr:`stop_event` is set (SIGTERM/SIGINT when ``install_signals``).
+
+        No printer or camera fault ends the run: a failed poll (unreachable host, time-out,
+        malformed reply, a connector bug) is retried with back-off up to
+        ``max_backoff_s`` (default ``poll_s``) until the host answers again.
+        """
         if install_signals and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, lambda *_: self.stop_event.set())
-        step = getattr(self.printer, "step_to_next_trigger", None)
-        driven = step is not None and getattr(self.printer, "_thread", None) is None
+        cap = self.max_backoff_s if self.max_backoff_s is not None else max(poll_s, self.initial_backoff_s)
         backoff = self.initial_backoff_s
-        outage: tuple[float, int] | None = None  # (start, failed polls) while the printer is unreachable
-        prev_state = last_seen = ""
+        settled = last_seen = ""  # last settled state (not pausing/resuming/cancelling), last state seen
         try:
             while not self.stop_event.is_set():
                 self.poll_acknowledgements()  # the dashboard's acknowledge button (shared history)
-                if driven:
-                    trig = step()
-                    if trig is not None:
-                        self.printer.poll_triggers()
-                        self.handle_trigger(trig)
-                    if self.printer.status().state == "paused":  # no operator at a virtual printer
-                        self._pool.shutdown(wait=True)
-                        break
-                    if trig is None and self.printer.status().state in ("finished", "cancelled"):
-                        break
-                    continue
                 try:
+                    if getattr(self.printer, "needs_stepping", False):  # a duck-typed connector prints on its own
+                        if self._step():
+                            break
+                        continue
                     for trig in self.printer.poll_triggers():
                         self.handle_trigger(trig)
                     state = self.printer.status().state
-                    backoff = self.initial_backoff_s
-                    if outage is not None:
-                        _log("printer_reconnected", after_s=round(time.monotonic() - outage[0], 1),
-                             failed_polls=outage[1], state=state)
-                        outage = None
-                    if state in TRANSIENT_STATES:
-                        # pausing/resuming/cancelling: neither paused nor resumed yet; prev_state keeps
-                        # the last settled state, so "pausing -> printing" is no operator resume
-                        if state != last_seen:
-                            _log("transient", state=state)
-                    else:
-                        if prev_state == "paused" and state == "printing" and self.policy.halted:
-                            _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
-                            self.acknowledge()  # the operator resumed: accept what was seen
-                        prev_state = state
-                    last_seen = state
-                except PrinterError as exc:
-                    # never a pause: alert once per outage, then log each retry (capped exponential backoff)
-                    _log("printer_unreachable", retry_s=backoff, error=str(exc))
-                    if outage is None:
-                        outage = (time.monotonic(), 0)
-                        self._alert(f"printer unreachable, retrying with backoff up to {self.max_backoff_s:g} s: {exc}")
-                    outage = (outage[0], outage[1] + 1)
+                except Exception as exc:  # noqa: BLE001 - a host fault (or a connector bug) is retried, never fatal
+                    self._printer_failed(exc, backoff, cap)
                     self.stop_event.wait(backoff)
-                    backoff = min(backoff * 2, self.max_backoff_s)
+                    backoff = min(backoff * 2, cap)
                     continue
+                backoff = self.initial_backoff_s
+                self._printer_answered(state)
+                settled = self._follow_state(state, settled, last_seen)
+                last_seen = state
                 if state in ("finished", "cancelled", "idle") and self.report.results:
                     break
                 self.stop_event.wait(poll_s)
@@ -307,10 +401,65 @@ class Monitor:
                     log.warning("history end_job failed: %s", exc)
         return self.report
 
+    def _step(self) -> bool:
+        """One step of a caller-driven printer (the virtual replay); True when the run should end."""
+        trig = self.printer.step_to_next_trigger()
+        if trig is not None:
+            self.printer.poll_triggers()
+            self.handle_trigger(trig)
+        if self.printer.status().state == "paused":  # no operator at a virtual printer
+            self._pool.shutdown(wait=True)
+            return True
+        return trig is None and self.printer.status().state in ("finished", "cancelled")
+
+    def _follow_state(self, state: str, settled: str, last_seen: str) -> str:
+        """Log transient states and take an operator's resume as an acknowledgement; the new settled state."""
+        if state in TRANSIENT_STATES:
+            # pausing/resuming/cancelling: neither paused nor resumed yet; ``settled`` keeps the
+            # last settled state, so "pausing -> printing" is no operator resume
+            if state != last_seen:
+                _log("transient", state=state)
+            return settled
+        if settled == "paused" and state == "printing" and self.policy.halted:
+            _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
+            self.acknowledge()  # the operator resumed: accept what was seen
+        return state
+
+    def _printer_failed(self, exc: Exception, retry_s: float, cap: float) -> None:
+        """One failed poll: count it, warn (rate-limited), record the episode, notify after the grace period."""
+        error = str(exc) if isinstance(exc, LayerwatchError) else f"{type(exc).__name__}: {exc}"
+        if not isinstance(exc, LayerwatchError):
+            log.debug("unexpected printer error", exc_info=exc)
+        self.report.printer_faults += 1
+        with self._lock:
+            started, notify = self._printer_fault.failed(error)
+            count = self._printer_fault.current.count if self._printer_fault.current else 0
+        _log("printer_unreachable", logging.DEBUG, retry_s=retry_s, error=error)
+        self._warn.warning("printer", "printer fault (never a pause), retrying every <= %g s: %s", cap, error)
+        if started:
+            self._event("printer_fault", error, {"retry_s": retry_s})
+        if notify:
+            self._alert(f"printer unreachable for {self.faults.printer_grace_s:g} s ({count} failed polls), "
+                        f"retrying every <= {cap:g} s; layers are not being checked: {error}", force=True)
+
+    def _printer_answered(self, state: str) -> None:
+        """The host answered: close the fault episode, if any."""
+        with self._lock:
+            ended = self._printer_fault.recovered()
+        if ended is None:
+            return
+        self._warn.reset("printer")
+        after = round(time.monotonic() - ended.started, 2)
+        _log("printer_reconnected", after_s=after, failed_polls=ended.count, state=state)
+        self._event("printer_recovered", f"printer answers again after {after} s ({ended.count} failed polls)",
+                    {"after_s": after, "failed_polls": ended.count, "state": state})
+        if ended.notified:
+            self._alert(f"printer reachable again after {after:g} s (state {state})", level="info", force=True)
+
     def _outcome(self) -> str:
         try:
             state = self.printer.status().state
-        except LayerwatchError:
+        except Exception:  # noqa: BLE001 - the host is gone at the end: the outcome is unknown, not a crash
             return "unknown"
         return {"finished": "done", "cancelled": "cancelled", "paused": "paused"}.get(
             state, "stopped" if self.stop_event.is_set() else state)

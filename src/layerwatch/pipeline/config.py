@@ -41,11 +41,13 @@ from typing import Any
 
 from pydantic import Field, ValidationError
 
+from layerwatch.analysis.frame_quality import FrameQualitySettings
 from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.errors import ConfigError
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
 from layerwatch.geometry.settings import MarkerSettings, TopViewSettings
 from layerwatch.pipeline.policy import NotifySettings, PolicySettings
+from layerwatch.pipeline.watch_settings import FaultSettings, HostSettings
 from layerwatch.render.settings import RenderSettings
 from layerwatch.settings_base import Section
 
@@ -74,6 +76,9 @@ class JobConfig(Section):
     analysis: AnalysisSettings = Field(default_factory=AnalysisSettings)
     policy: PolicySettings = Field(default_factory=PolicySettings)
     notify: NotifySettings = Field(default_factory=NotifySettings)
+    host: HostSettings = Field(default_factory=HostSettings)
+    faults: FaultSettings = Field(default_factory=FaultSettings)
+    frame_quality: FrameQualitySettings = Field(default_factory=FrameQualitySettings)
 
 
 def _format_validation(exc: ValidationError) -> str:

@@ -19,15 +19,20 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from layerwatch.errors import PrinterError
+from layerwatch.monitor.printers.replies import MAX_REPLY_BYTES, read_capped
 
 if TYPE_CHECKING:
     import httpx
 
-__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES", "WS_RETRY_S"]
+__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES", "WS_RETRY_S",
+           "WS_MAX_FRAME_BYTES"]
 
 #: websocket reconnect wait of the connectors: first, largest (s); doubles per failed attempt.
 #: Capped low so that triggers flow again within seconds after a host restart.
 WS_RETRY_S = (0.5, 5.0)
+
+#: largest websocket message the connectors accept, bytes (OctoPrint's history message is the largest)
+WS_MAX_FRAME_BYTES = 4 << 20
 
 #: states a job passes through on its way to paused / printing / cancelled
 TRANSIENT_STATES = frozenset({"pausing", "resuming", "cancelling"})
@@ -95,7 +100,8 @@ def error_detail(body: str, limit: int = 160) -> str:
 
 
 def http_request(http: httpx.Client, method: str, path: str, *, printer: str, credential: str,
-                 auth_hint: str, status_hints: Mapping[int, str] | None = None, **kw: Any) -> httpx.Response:
+                 auth_hint: str, status_hints: Mapping[int, str] | None = None,
+                 max_bytes: int = MAX_REPLY_BYTES, **kw: Any) -> httpx.Response:
     """Send one request of a printer connector and turn every failure into a :class:`PrinterError`.
 
     Parameters
@@ -112,8 +118,10 @@ def http_request(http: httpx.Client, method: str, path: str, *, printer: str, cr
         How to fix a 401/403 (one clause).
     status_hints : mapping of int to str, optional
         Extra explanation per status code (OctoPrint's 409: not connected / not printing).
+    max_bytes : int
+        Largest body accepted, bytes (:data:`~layerwatch.monitor.printers.replies.MAX_REPLY_BYTES`).
     **kw
-        Passed to :meth:`httpx.Client.request` (``params``, ``json``...).
+        Passed to :meth:`httpx.Client.build_request` (``params``, ``json``...).
 
     Returns
     -------
@@ -123,17 +131,26 @@ def http_request(http: httpx.Client, method: str, path: str, *, printer: str, cr
     Raises
     ------
     PrinterError
-        Unreachable host (connection refused, timeout...), refused credentials,
-        or any status >= 400 (with the server's own message, never its traceback).
+        Unreachable host (connection refused, timeout, reset mid-body...), a body
+        over ``max_bytes``, refused credentials, or any status >= 400 (with the
+        server's own message, never its traceback).
     """
     import httpx
 
     base = str(http.base_url).rstrip("/")
+    where = f"{printer} {method} {path}"
     try:
-        r = http.request(method, path, **kw)
-    except httpx.HTTPError as exc:
+        r = http.send(http.build_request(method, path, **kw), stream=True)
+        try:
+            body = read_capped(r, max_bytes, where)
+        finally:
+            r.close()
+    except (httpx.HTTPError, OSError) as exc:  # OSError: a socket error httpx did not wrap
         raise PrinterError(f"{printer} at {base} unreachable ({type(exc).__name__}); "
                            "check host, port and that it runs.") from exc
+    # the body is decoded already (gzip...): keep the headers that still describe it
+    headers = [(k, v) for k, v in r.headers.items() if k.lower() not in ("content-encoding", "content-length")]
+    r = httpx.Response(r.status_code, headers=headers, content=body, request=r.request)
     if r.status_code < 400:
         return r
     detail = error_detail(r.text)
@@ -153,7 +170,8 @@ class PrinterStatus:
     ----------
     state : str
         ``"idle"``, ``"printing"``, ``"paused"``, ``"cancelled"``, ``"finished"``,
-        ``"error"`` or ``"offline"``; or a transient ``"pausing"``, ``"resuming"``,
+        ``"error"``, ``"offline"`` or ``"unknown"`` (a state the connector does not know,
+        never taken for the end of the job); or a transient ``"pausing"``, ``"resuming"``,
         ``"cancelling"`` (OctoPrint) while the host is between two of those: a
         ``"pausing"`` job is not paused yet (OctoPrint ignores a resume then).
     file : str or None
@@ -232,6 +250,19 @@ class Printer(ABC):
         """Call ``callback(trigger)`` for every future trigger (from the connector's thread)."""
         with self._lock:
             self._callbacks.append(callback)
+
+    # -- driving -----------------------------------------------------------
+    @property
+    def needs_stepping(self) -> bool:
+        """True when the caller advances the job with :meth:`step_to_next_trigger` (a replay nobody started).
+
+        A real host prints on its own and pushes triggers: ``False``.
+        """
+        return False
+
+    def step_to_next_trigger(self) -> SnapshotTrigger | None:
+        """Advance a caller-driven printer to its next trigger (see :attr:`needs_stepping`)."""
+        raise NotImplementedError(f"{type(self).__name__} prints on its own; it is not stepped")
 
     # -- control ---------------------------------------------------------
     @abstractmethod

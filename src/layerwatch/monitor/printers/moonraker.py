@@ -14,20 +14,25 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 from collections.abc import Iterable
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import urlsplit
 
+from layerwatch.errors import PrinterError
 from layerwatch.monitor.printers.base import (
+    WS_MAX_FRAME_BYTES,
     WS_RETRY_S,
     Printer,
     PrinterStatus,
     http_request,
     parse_trigger,
 )
+from layerwatch.monitor.printers.keys import split_url_key
+from layerwatch.monitor.printers.replies import RateLimitedLog, field, reply_json
 
-__all__ = ["MoonrakerPrinter", "SUBSCRIBE"]
+__all__ = ["MoonrakerPrinter", "SUBSCRIBE", "clean_objects"]
 
 log = logging.getLogger("layerwatch.monitor.moonraker")
 
@@ -49,13 +54,72 @@ _STATES = {"printing": "printing", "paused": "paused", "complete": "finished", "
            "standby": "idle", "error": "error"}
 
 
+#: type of each field the connector reads, per printer object; a field of another type is dropped
+_FIELDS: dict[str, dict[str, tuple[type, ...]]] = {
+    "print_stats": {"state": (str,), "filename": (str,)},
+    "gcode_move": {"gcode_position": (list,)},
+    "virtual_sdcard": {"progress": (int, float)},
+    "webhooks": {"state": (str,), "state_message": (str,)},
+}
+
+
+def _finite(value: Any, lo: float = -math.inf, hi: float = math.inf) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and lo <= value <= hi)
+
+
+def clean_objects(status: Any) -> tuple[dict[str, dict[str, Any]], list[str]]:
+    """The fields of a Moonraker ``status`` object the connector uses, each of the right type.
+
+    Parameters
+    ----------
+    status : object
+        ``result.status`` of an object query, or ``params[0]`` of ``notify_status_update``.
+
+    Returns
+    -------
+    objects : dict of str to dict
+        Only known objects and fields; ``None`` values are kept (Moonraker sends them for unset
+        fields), wrong types, non-finite numbers and short positions are dropped.
+    problems : list of str
+        One entry per dropped field (``"gcode_move.gcode_position: ..."``).
+    """
+    out: dict[str, dict[str, Any]] = {}
+    problems: list[str] = []
+    if not isinstance(status, dict):
+        return out, [f"status is {type(status).__name__}, not an object"]
+    for obj, fields in status.items():
+        known = _FIELDS.get(obj)
+        if known is None:
+            continue
+        if not isinstance(fields, dict):
+            problems.append(f"{obj} is {type(fields).__name__}, not an object")
+            continue
+        for name, value in fields.items():
+            kinds = known.get(name)
+            if kinds is None or value is None:
+                continue
+            ok = isinstance(value, kinds) and not isinstance(value, bool)
+            if ok and name == "progress":
+                ok = _finite(value, 0.0, 1.0)
+            elif ok and name == "gcode_position":
+                ok = len(value) >= 3 and all(_finite(v) for v in value[:4])
+            if ok:
+                out.setdefault(obj, {})[name] = value
+            else:
+                problems.append(f"{obj}.{name}: {str(value)[:40]!r}")
+    return out, problems
+
+
 class MoonrakerPrinter(Printer):
-    """Connector for ``moonraker://host:port[?key=API_KEY]``.
+    """Connector for ``moonraker://host:port`` (API key: ``api_key``, or ``?key=`` in the URL).
 
     Parameters
     ----------
     url : str
         ``moonraker://host:port`` or ``http://host:port``.
+    api_key : str, optional
+        Moonraker API key (only needed when the host is not a trusted client).
     timeout_s : float
         HTTP timeout, s.
     push : bool
@@ -64,13 +128,15 @@ class MoonrakerPrinter(Printer):
 
     name = "moonraker"
 
-    def __init__(self, url: str, *, timeout_s: float = 5.0, push: bool = True) -> None:
+    def __init__(self, url: str, api_key: str | None = None, *, timeout_s: float = 5.0, push: bool = True) -> None:
         import httpx
 
         super().__init__()
-        parts = urlsplit(url)
-        key = (parse_qs(parts.query).get("key") or [None])[0]
+        bare, url_key = split_url_key(url)
+        parts = urlsplit(bare)
+        key = api_key or url_key
         self.base = f"http://{parts.netloc}"
+        self._warn = RateLimitedLog(log)
         self._http = httpx.Client(base_url=self.base, timeout=timeout_s, headers={"X-Api-Key": key} if key else {})
         self._objects: dict[str, dict[str, Any]] = {}
         self._last_layer: int | None = None
@@ -83,10 +149,14 @@ class MoonrakerPrinter(Printer):
 
     # -- HTTP ------------------------------------------------------------------
     def _req(self, method: str, path: str, **kw) -> Any:
+        """Send a request; the reply's ``result`` object for a GET, else None (a command's reply is not used)."""
         r = http_request(self._http, method, path, printer="Moonraker", credential="the request",
-                         auth_hint="add ?key=API_KEY to the printer URL or add this host to "
+                         auth_hint="set LAYERWATCH_MOONRAKER_KEY or pass --key-file, or add this host to "
                                    "[authorization] trusted_clients", status_hints=_HINTS, **kw)
-        return r.json().get("result") if r.content else None
+        if method != "GET":
+            return None
+        where = f"Moonraker {method} {path}"
+        return field(reply_json(r, where), "result", dict, where, optional=False)
 
     def server_info(self) -> dict[str, Any]:
         """``/server/info`` result (``klippy_state``, ``moonraker_version``...)."""
@@ -96,7 +166,11 @@ class MoonrakerPrinter(Printer):
         res = self._req("GET", "/printer/objects/query",
                         params={"print_stats": "", "gcode_move": "", "virtual_sdcard": "progress",
                                 "webhooks": "state,state_message"})
-        self._merge(res.get("status", {}))
+        objects, problems = clean_objects(field(res, "status", dict, "Moonraker object query", optional=False))
+        if problems:
+            raise PrinterError(f"Moonraker object query: unexpected value(s) {'; '.join(problems[:3])}; "
+                               "unexpected host reply.")
+        self._merge(objects)
         return self._status()
 
     def _status(self) -> PrinterStatus:
@@ -106,7 +180,7 @@ class MoonrakerPrinter(Printer):
         prog = self._objects.get("virtual_sdcard", {}).get("progress")
         # After a Klippy shutdown (M112, MCU error) print_stats still says "paused" or "printing":
         # Klippy's own state wins, so a shutdown is never taken for a pause.
-        state = _KLIPPY_STATES.get(klippy) or _STATES.get(str(ps.get("state", "")), "idle")
+        state = _KLIPPY_STATES.get(klippy) or _STATES.get(str(ps.get("state", "standby")), "unknown")
         return PrinterStatus(state, ps.get("filename") or None,
                              self._last_layer, float(pos[2]) if pos and len(pos) > 2 else None,
                              None if prog is None else float(prog))
@@ -125,32 +199,45 @@ class MoonrakerPrinter(Printer):
         self._req("POST", "/printer/gcode/script", params={"script": script})
 
     # -- JSON-RPC push ---------------------------------------------------------------
-    def _merge(self, status: dict[str, Any]) -> None:
-        for obj, fields in status.items():
-            if isinstance(fields, dict):
-                self._objects.setdefault(obj, {}).update(fields)
+    def _merge(self, objects: dict[str, dict[str, Any]]) -> None:
+        """Merge fields already checked by :func:`clean_objects`."""
+        for obj, fields in objects.items():
+            self._objects.setdefault(obj, {}).update(fields)
+
+    def _merge_status(self, status: Any) -> None:
+        objects, problems = clean_objects(status)
+        if problems:
+            self._warn.warning("frame", "Moonraker websocket: ignored unexpected value(s) %s", "; ".join(problems[:3]))
+        self._merge(objects)
 
     def handle_frame(self, raw: str | bytes | dict) -> None:
-        """Process one websocket JSON-RPC frame (notification or subscribe reply)."""
+        """Process one websocket JSON-RPC frame (notification or subscribe reply).
+
+        A frame that is not JSON, not an object, or has parameters of the wrong
+        type is ignored with a rate-limited warning; it never raises.
+        """
         try:
             msg = json.loads(raw) if isinstance(raw, (str, bytes)) else raw
-        except ValueError:
-            return
+        except (ValueError, RecursionError):
+            msg = None
         if not isinstance(msg, dict):
+            self._warn.warning("frame", "Moonraker websocket: ignored a frame that is not a JSON object")
             return
-        method, params = msg.get("method"), msg.get("params") or []
+        method, params = msg.get("method"), msg.get("params")
+        params = params if isinstance(params, list) else []
+        result = msg.get("result")
         if method == "notify_gcode_response":
             for line in params:
-                trig = parse_trigger(str(line), source=self.name)
+                trig = parse_trigger(line, source=self.name) if isinstance(line, str) else None
                 if trig is not None and trig.layer != self._last_layer:
                     self._last_layer = trig.layer
                     self._emit(trig)
-        elif method == "notify_status_update" and params and isinstance(params[0], dict):
-            self._merge(params[0])
+        elif method == "notify_status_update" and params:
+            self._merge_status(params[0])
         elif method in _KLIPPY_EVENTS:
             self._merge({"webhooks": {"state": _KLIPPY_EVENTS[method]}})
-        elif isinstance(msg.get("result"), dict) and "status" in msg["result"]:
-            self._merge(msg["result"]["status"])
+        elif isinstance(result, dict) and "status" in result:
+            self._merge_status(result["status"])
             self._ws_ready.set()
 
     def wait_connected(self, timeout: float = 10.0) -> bool:
@@ -164,6 +251,7 @@ class MoonrakerPrinter(Printer):
         while not self._stop.is_set():
             try:
                 with connect("ws" + self.base[4:] + "/websocket", open_timeout=5, close_timeout=1,
+                             max_size=WS_MAX_FRAME_BYTES,
                              additional_headers=dict(self._http.headers.items()) if "x-api-key" in self._http.headers else None) as ws:
                     ws.send(json.dumps(SUBSCRIBE))
                     backoff = WS_RETRY_S[0]
@@ -175,7 +263,7 @@ class MoonrakerPrinter(Printer):
             except Exception as exc:  # noqa: BLE001 - reconnect on anything
                 if self._stop.is_set():
                     return
-                log.warning("Moonraker websocket: %s; reconnecting in %.1f s", exc, backoff)
+                self._warn.warning("ws", "Moonraker websocket: %s; reconnecting in %.1f s", exc, backoff)
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, WS_RETRY_S[1])
 

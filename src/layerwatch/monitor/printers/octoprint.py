@@ -15,18 +15,27 @@ import logging
 import threading
 from collections.abc import Iterable
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import urlsplit
 
 from layerwatch.errors import PrinterError
 from layerwatch.monitor.printers.base import (
+    WS_MAX_FRAME_BYTES,
     WS_RETRY_S,
     Printer,
     PrinterStatus,
     http_request,
     parse_trigger,
 )
+from layerwatch.monitor.printers.keys import ENV_VARS, split_url_key
+from layerwatch.monitor.printers.replies import (
+    RateLimitedLog,
+    field,
+    number_field,
+    reply_json,
+    text_field,
+)
 
-__all__ = ["OctoPrintPrinter", "parse_octoprint_message"]
+__all__ = ["OctoPrintPrinter", "parse_octoprint_message", "parse_job"]
 
 log = logging.getLogger("layerwatch.monitor.octoprint")
 
@@ -41,14 +50,16 @@ _STATES = {"printing": "printing", "paused": "paused", "pausing": "pausing", "re
            "detecting serial": "offline", "connecting": "offline", "closed": "offline", "error": "error"}
 
 
-def parse_octoprint_message(msg: dict[str, Any], source: str = "octoprint") -> list:
-    """Snapshot triggers in one decoded websocket message (``current``/``history`` logs)."""
+def parse_octoprint_message(msg: Any, source: str = "octoprint") -> list:
+    """Snapshot triggers in one decoded websocket message (``current``/``history`` logs).
+
+    Anything that is not an object with ``logs`` lists of strings is ignored.
+    """
     out = []
     for key in ("current", "history"):
-        body = msg.get(key)
-        if not isinstance(body, dict):
-            continue
-        for line in body.get("logs") or []:
+        body = msg.get(key) if isinstance(msg, dict) else None
+        logs = body.get("logs") if isinstance(body, dict) else None
+        for line in logs if isinstance(logs, list) else []:
             if isinstance(line, str) and line.startswith("Recv:"):
                 trig = parse_trigger(line[5:], source=source)
                 if trig is not None:
@@ -56,13 +67,34 @@ def parse_octoprint_message(msg: dict[str, Any], source: str = "octoprint") -> l
     return out
 
 
+def parse_job(job: Any, last_layer: int | None = None) -> PrinterStatus:
+    """:class:`PrinterStatus` of an ``/api/job`` reply, every field type-checked.
+
+    Raises
+    ------
+    PrinterError
+        A field has the wrong type, or the completion is not a finite percentage.
+    """
+    where = "OctoPrint /api/job"
+    st = text_field(job, "state", where, optional=False).lower()
+    state = next((v for k, v in _STATES.items() if st.startswith(k)), "unknown")
+    info = field(job, "job", dict, where) or {}
+    file = field(info, "file", dict, where + " job") or {}
+    name = text_field(file, "name", where + " job.file")
+    progress = field(job, "progress", dict, where) or {}
+    done = number_field(progress, "completion", where + " progress", 0.0, 100.0)
+    return PrinterStatus(state, name, last_layer, None, None if done is None else done / 100.0)
+
+
 class OctoPrintPrinter(Printer):
-    """Connector for ``octoprint://host:port?key=API_KEY`` (or ``url`` + ``api_key``).
+    """Connector for an OctoPrint server.
 
     Parameters
     ----------
     url : str
-        ``http://host:port`` (``octoprint://`` is accepted; ``?key=`` gives the key).
+        ``http://host:port`` (``octoprint://`` is accepted; a ``?key=`` in it gives the key
+        when ``api_key`` is not given, but the CLI reads keys from a key file, the environment
+        or the job file, see :mod:`~layerwatch.monitor.printers.keys`).
     api_key : str, optional
     timeout_s : float
         HTTP timeout, s.
@@ -76,10 +108,12 @@ class OctoPrintPrinter(Printer):
         import httpx
 
         super().__init__()
-        parts = urlsplit(url)
-        api_key = api_key or (parse_qs(parts.query).get("key") or [None])[0]
+        bare, url_key = split_url_key(url)
+        parts = urlsplit(bare)
+        api_key = api_key or url_key
         if not api_key:
-            raise PrinterError("OctoPrint needs an API key; pass octoprint://host:port?key=... (Settings > API).")
+            raise PrinterError(f"OctoPrint needs an API key (Settings > API); set {ENV_VARS['octoprint']}, "
+                               "pass --key-file FILE or put api_key in the job file's [host] section.")
         self.base = f"http://{parts.netloc}{parts.path.rstrip('/')}"
         self._http = httpx.Client(base_url=self.base, headers={"X-Api-Key": api_key}, timeout=timeout_s)
         self._stop = threading.Event()
@@ -88,23 +122,22 @@ class OctoPrintPrinter(Printer):
         self._ws_ready = threading.Event()
         #: ``listener(message)`` for every decoded websocket message (e.g. the M114 reply of parked.py)
         self.listeners: list = []
+        self._warn = RateLimitedLog(log)
         if push:
             self._thread = threading.Thread(target=self._ws_loop, name="octoprint-ws", daemon=True)
             self._thread.start()
 
     # -- REST --------------------------------------------------------------
     def _req(self, method: str, path: str, **kw) -> Any:
+        """Send a request; the validated JSON body for a GET or a login, else None (a command's reply is not used)."""
         r = http_request(self._http, method, path, printer="OctoPrint", credential="the API key",
                          auth_hint="copy the key from Settings > API", status_hints=_HINTS, **kw)
-        return r.json() if r.content and "json" in r.headers.get("content-type", "") else None
+        if method == "GET" or path == "/api/login":
+            return reply_json(r, f"OctoPrint {method} {path}")
+        return None
 
     def status(self) -> PrinterStatus:
-        job = self._req("GET", "/api/job")
-        st = str(job.get("state", "")).lower()
-        state = next((v for k, v in _STATES.items() if st.startswith(k)), "idle")
-        f = (job.get("job") or {}).get("file") or {}
-        prog = (job.get("progress") or {}).get("completion")
-        return PrinterStatus(state, f.get("name"), self._last_layer, None, None if prog is None else prog / 100.0)
+        return parse_job(self._req("GET", "/api/job"), self._last_layer)
 
     def pause(self) -> None:
         self._req("POST", "/api/job", json={"command": "pause", "action": "pause"})
@@ -132,8 +165,10 @@ class OctoPrintPrinter(Printer):
         while not self._stop.is_set():
             try:
                 login = self._req("POST", "/api/login", json={"passive": True})
-                with connect(ws_url, open_timeout=5, close_timeout=1) as ws:
-                    ws.send(json.dumps({"auth": f"{login['name']}:{login['session']}"}))
+                user = text_field(login, "name", "OctoPrint /api/login", optional=False)
+                session = text_field(login, "session", "OctoPrint /api/login", optional=False)
+                with connect(ws_url, open_timeout=5, close_timeout=1, max_size=WS_MAX_FRAME_BYTES) as ws:
+                    ws.send(json.dumps({"auth": f"{user}:{session}"}))
                     backoff = WS_RETRY_S[0]
                     while not self._stop.is_set():
                         try:
@@ -141,22 +176,24 @@ class OctoPrintPrinter(Printer):
                         except TimeoutError:
                             continue
                         self._ws_ready.set()
-                        self._on_message(raw)
+                        self.handle_message(raw)
             except Exception as exc:  # noqa: BLE001 - reconnect on anything
                 if self._stop.is_set():
                     return
-                log.warning("OctoPrint websocket: %s; reconnecting in %.1f s", exc, backoff)
+                self._warn.warning("ws", "OctoPrint websocket: %s; reconnecting in %.1f s", exc, backoff)
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, WS_RETRY_S[1])
 
-    def _on_message(self, raw: str | bytes) -> None:
+    def handle_message(self, raw: str | bytes) -> None:
+        """Process one websocket message; a message that is not JSON or not of the expected shape is ignored."""
         try:
             msg = json.loads(raw)
-        except ValueError:
+        except (ValueError, RecursionError):
+            self._warn.warning("frame", "OctoPrint websocket: a message that is not JSON was ignored")
             return
         for listener in list(self.listeners) if isinstance(msg, dict) else ():
             listener(msg)
-        for trig in parse_octoprint_message(msg if isinstance(msg, dict) else {}, self.name):
+        for trig in parse_octoprint_message(msg, self.name):
             if trig.layer != self._last_layer:
                 self._last_layer = trig.layer
                 self._emit(trig)

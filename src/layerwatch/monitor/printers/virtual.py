@@ -81,6 +81,11 @@ class VirtualPrinter(Printer):
             return None  # second trigger line of the same block (@ command + M118 echo)
         return trig
 
+    @property
+    def needs_stepping(self) -> bool:
+        """True until :meth:`start` runs the replay in its own thread."""
+        return self._thread is None
+
     def step_to_next_trigger(self) -> SnapshotTrigger | None:
         """Execute lines up to and including the next trigger.
 

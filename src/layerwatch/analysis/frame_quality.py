@@ -1,0 +1,279 @@
+"""The camera-fault gate: is a frame fit for analysis at all?
+
+A black, over-exposed, flat, pure-noise, badly blurred or JPEG-blocked frame,
+a frame that repeats the previous one (a lagged or frozen stream, with or
+without fresh sensor noise), or a frame in which the bed markers sit away
+from where they were, is a *camera* fault: comparing it with the layer's
+reference would report "material outside the part" and pause a good print.
+:func:`assess_frame` says which of these a frame shows; the monitor records a
+failing frame with its reasons, alerts after a few in a row and never lets it
+count toward a pause.
+
+The checks are made so that a real print failure passes: spaghetti, a
+foreign body or a shifted part change the *scene*, not the camera, so they
+leave exposure, noise, sharpness and blocking alone and differ from the
+previous frame by structure, not noise. Markers hidden by spaghetti are not
+a fault; only visible markers away from their place are.
+
+All functions are pure: arrays in, figures out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from layerwatch.settings_base import Section
+
+__all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "grey_of", "noise_sigma", "blockiness",
+           "sharpness", "change_from", "marker_shift_px"]
+
+#: width of the reduced grey image the exposure, sharpness and change checks use, px
+WORK_WIDTH = 640
+
+#: The 3x3 kernel of Immerkaer's noise estimate (Immerkaer 1996, "Fast noise variance estimation"):
+#: it cancels planes and most edges; its response to white noise of std s has std 6 s.
+_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
+class FrameQualitySettings(Section):
+    """Limits of the camera-fault gate (config section ``[frame_quality]``).
+
+    Grey levels are of an 8-bit image (0-255); the defaults pass the real photos in the
+    project's data set (exposure drift, glare, glass beds, dark filament) and the simulator's
+    clean and failed layers (see ``benchmarks/frame_quality_gate.py``).
+
+    Attributes
+    ----------
+    enabled : bool
+        Run the gate at all.
+    dark_p99 : float
+        A frame whose 99th grey percentile is below this is black (light off, lens covered).
+    bright_fraction : float
+        A frame with more than this fraction of pixels >= 250 is over-exposed.
+    min_range : float
+        Least spread between the 1st and 99th grey percentile (a flat, grey frame has less).
+    max_noise : float
+        Largest sensor-noise std (Immerkaer estimate, grey levels); a pure-noise frame has ~40-75.
+    min_sharpness : float
+        Least Laplacian std of the 640-px grey image, relative to its 1-99 % range
+        (x 100); a defocused or smeared frame has less.
+    max_blockiness : float
+        Largest ratio of grey steps on the 8-px JPEG grid to steps elsewhere: ~1 for a normal
+        JPEG, up to 2.1 for the heavily compressed real webcam photos of the data set, 2.7 for
+        quality 15 and 3.7 for quality 5 (simulated 720p frames).
+    min_change, max_repeat_spread : float
+        A frame is a repeat of the previous accepted one (a lagged or frozen stream, with fresh
+        noise or not) when its structured change from it is below ``min_change`` grey levels
+        *and* the residual's spread is below ``max_repeat_spread`` (only sensor noise differs;
+        a new exposure of an unchanged scene differs in light, see :func:`change_from`).
+    max_marker_shift_px : float
+        Largest shift of a visible bed marker from its expected place, px (at the frame's size).
+    """
+
+    enabled: bool = True
+    dark_p99: float = Field(30.0, ge=0, le=255)
+    bright_fraction: float = Field(0.5, gt=0, le=1)
+    min_range: float = Field(20.0, ge=0, le=255)
+    max_noise: float = Field(20.0, gt=0, le=255)
+    min_sharpness: float = Field(1.0, ge=0, le=100)
+    max_blockiness: float = Field(2.4, gt=1, le=100)
+    min_change: float = Field(2.0, ge=0, le=255)
+    max_repeat_spread: float = Field(1.5, ge=0, le=255)
+    max_marker_shift_px: float = Field(12.0, gt=0, le=10_000)
+
+
+@dataclass(frozen=True)
+class FrameQuality:
+    """Verdict of :func:`assess_frame`.
+
+    Attributes
+    ----------
+    ok : bool
+        The frame may be analysed.
+    reasons : list of str
+        One short reason per failed check (empty when ``ok``), e.g.
+        ``"black frame (99th percentile 12/255)"``.
+    figures : dict of str to float
+        Every measured figure (``p1``, ``p99``, ``bright``, ``noise``, ``sharpness``,
+        ``blockiness``, ``change``, ``change_spread``, ``marker_shift_px``), for records and tuning.
+    """
+
+    ok: bool
+    reasons: list[str] = field(default_factory=list)
+    figures: dict[str, float] = field(default_factory=dict)
+
+
+def grey_of(image: np.ndarray) -> np.ndarray:
+    """8-bit grey image of a BGR or grey ``uint8`` array, shape (H, W).
+
+    Raises
+    ------
+    ValueError
+        Not a 2-D or (H, W, 3|4) ``uint8`` array.
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or img.ndim == 3 and img.shape[2] not in (1, 3, 4):
+        raise ValueError(f"expected a uint8 (H, W) or (H, W, 3) image, got {img.dtype} {img.shape}")
+    if img.ndim == 2:
+        return img
+    return img[..., 0] if img.shape[2] == 1 else cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_BGR2GRAY)
+
+
+def _reduced(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
+    """``grey`` area-averaged to ``width`` px wide (not enlarged), float32."""
+    h, w = grey.shape
+    if w > width:
+        grey = cv2.resize(grey, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+    return grey.astype(np.float32)
+
+
+def noise_sigma(grey: np.ndarray) -> float:
+    """Sensor-noise std of a grey image, grey levels (Immerkaer's estimate, median form).
+
+    The median of ``|I * N|`` over the image, / 0.6745 / 6, is the std of white noise and
+    ignores edges and texture that cover less than half the image (a spaghetti nest).
+    """
+    resp = cv2.filter2D(grey.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
+    return float(np.median(np.abs(resp)) / 0.6745 / 6.0)
+
+
+def blockiness(grey: np.ndarray, block: int = 8) -> float:
+    """Ratio of mean grey steps across the JPEG block grid to steps inside blocks (1 = no blocking)."""
+    g = grey.astype(np.float32)
+    ratios = []
+    for d in (np.abs(np.diff(g, axis=1)), np.abs(np.diff(g, axis=0)).T):
+        n = d.shape[1] // block * block
+        if n < 2 * block:
+            return 1.0
+        per = d[:, :n].reshape(d.shape[0], -1, block).mean(axis=(0, 1))  # mean step at each offset 0..7
+        inside = np.delete(per, block - 1).mean()
+        ratios.append(float((per[block - 1] + 0.5) / (inside + 0.5)))
+    return float(np.mean(ratios))
+
+
+def sharpness(small: np.ndarray, spread: float) -> float:
+    """Laplacian std of a reduced grey image per 100 grey levels of its 1-99 % spread."""
+    return float(cv2.Laplacian(small, cv2.CV_32F).std() * 100.0 / max(spread, 1.0))
+
+
+def change_from(small: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
+    """Structured change of a reduced grey frame from the previous one, and the residual's spread.
+
+    The previous frame is first matched in gain and offset (auto-exposure drift is no
+    change); the residual is smoothed over 5 x 5 px (sensor noise averages out, a new
+    layer or a failure does not).
+
+    Returns
+    -------
+    change : float
+        99.9th percentile of the residual's deviation less 3 robust stds, grey levels: ~0
+        for a repeated frame even with fresh noise, several grey levels for a new layer.
+    spread : float
+        Robust std of the smoothed residual, grey levels: below ~1 when only sensor noise
+        differs, more when the light or the scene changed.
+    """
+    if previous.shape != small.shape:
+        return float("inf"), float("inf")
+    a, b = np.polyfit(previous.ravel()[::7], small.ravel()[::7], 1)
+    resid = cv2.blur(small - (a * previous + b), (5, 5))
+    dev = np.abs(resid - float(np.median(resid)))
+    spread = float(np.median(dev) / 0.6745)
+    return float(max(np.percentile(dev, 99.9) - 3.0 * spread, 0.0)), spread
+
+
+def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:
+    """Median distance of the markers seen to their expected places, px; None when fewer than 2 are seen.
+
+    Parameters
+    ----------
+    found_px : ndarray, shape (K, 2)
+        Detected marker centres (a spaghetti strand or a clip may add false ones).
+    expected_px : ndarray, shape (M, 2)
+        Where the markers were (the calibration's projection), same image size.
+    search_px : float
+        Only markers within this distance of an expected place count as seen.
+    """
+    found = np.asarray(found_px, np.float64).reshape(-1, 2)
+    expected = np.asarray(expected_px, np.float64).reshape(-1, 2)
+    if len(found) == 0 or len(expected) == 0:
+        return None
+    d = np.linalg.norm(expected[:, None, :] - found[None, :, :], axis=2).min(axis=1)
+    seen = d[d <= search_px]
+    return float(np.median(seen)) if len(seen) >= 2 else None
+
+
+def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str, float]) -> list[str]:
+    p1, p99 = (float(v) for v in np.percentile(small, (1, 99)))
+    fig.update(p1=p1, p99=p99, bright=float(np.mean(small >= 250)))
+    out = []
+    if p99 < s.dark_p99:
+        out.append(f"black frame (99th percentile {p99:.0f}/255): light off or lens covered")
+    if fig["bright"] > s.bright_fraction:
+        out.append(f"over-exposed ({fig['bright']:.0%} of pixels white): lower the exposure or the light")
+    if p99 - p1 < s.min_range and not out:
+        out.append(f"no dynamic range (grey {p1:.0f}-{p99:.0f}): the picture is flat")
+    return out
+
+
+def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarray] | None = None,
+                 settings: FrameQualitySettings | None = None, *, markers_px: np.ndarray | None = None,
+                 expected_markers_px: np.ndarray | None = None) -> FrameQuality:
+    """Check one camera frame before analysis.
+
+    Parameters
+    ----------
+    image_bgr : ndarray, uint8, shape (H, W, 3) or (H, W)
+        The frame.
+    previous : ndarray or sequence of ndarray, optional
+        The last frame(s) that passed, oldest first, same camera; a frame that differs from
+        the last of them by noise only is a repeated (lagged or frozen) frame.
+    settings : FrameQualitySettings, optional
+        Limits (defaults when omitted).
+    markers_px : ndarray, shape (K, 2), optional
+        Bed-marker centres detected in this frame (see :mod:`layerwatch.geometry.markers`).
+    expected_markers_px : ndarray, shape (M, 2), optional
+        Where the markers are expected (the calibration's projection at this frame's size).
+
+    Returns
+    -------
+    FrameQuality
+        ``ok`` is False when any check fails; ``figures`` holds every measured value.
+
+    Raises
+    ------
+    ValueError
+        ``image_bgr`` is not an 8-bit image (the caller's camera check comes first).
+    """
+    s = settings or FrameQualitySettings()
+    grey = grey_of(image_bgr)
+    small = _reduced(grey)
+    fig: dict[str, float] = {}
+    reasons = _exposure_reasons(small, s, fig)
+    fig["noise"] = noise_sigma(grey)
+    fig["blockiness"] = blockiness(grey)
+    fig["sharpness"] = sharpness(small, fig["p99"] - fig["p1"])
+    if not reasons:  # a black or white frame has no noise, blocks or edges worth judging
+        if fig["noise"] > s.max_noise:
+            reasons.append(f"noise (std {fig['noise']:.0f} grey levels): the picture is mostly sensor noise")
+        elif fig["sharpness"] < s.min_sharpness:
+            reasons.append(f"blurred (sharpness {fig['sharpness']:.2f}): refocus or clean the lens")
+        if fig["blockiness"] > s.max_blockiness:
+            reasons.append(f"JPEG blocking ({fig['blockiness']:.1f}x): raise the camera's JPEG quality")
+    prev = previous[-1] if isinstance(previous, Sequence) and len(previous) else previous
+    if isinstance(prev, np.ndarray) and not reasons:
+        fig["change"], fig["change_spread"] = change_from(small, _reduced(grey_of(prev)))
+        if fig["change"] < s.min_change and fig["change_spread"] < s.max_repeat_spread:
+            reasons.append(f"same picture as the previous frame (change {fig['change']:.1f} grey levels): "
+                           "the stream is lagging or frozen")
+    if markers_px is not None and expected_markers_px is not None:
+        shift = marker_shift_px(markers_px, expected_markers_px, 0.08 * float(np.hypot(*grey.shape)))
+        if shift is not None:
+            fig["marker_shift_px"] = shift
+            if shift > s.max_marker_shift_px:
+                reasons.append(f"bed markers {shift:.0f} px from their place: the camera moved; recalibrate")
+    return FrameQuality(not reasons, reasons, fig)
