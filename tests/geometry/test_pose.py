@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from geometry_scenes import posed_camera, rotation_error_deg
 
-from layerwatch.errors import LayerwatchError, MarkerError
+from layerwatch.errors import CalibrationError, LayerwatchError, MarkerError
 from layerwatch.geometry.pose import camera_moved, locate_bed, solve_pose
 from layerwatch.geometry.settings import MarkerSettings
 from layerwatch.geometry.synthetic import project_points, render_bed_scene
@@ -143,3 +143,14 @@ def test_camera_moved_check(camera, topview, bed_photo, caplog):
     assert "moved" in caplog.text
     gone = camera_moved(saved, np.zeros_like(bed_photo))
     assert gone.moved
+
+
+def test_projection_without_a_full_pose_names_the_fix(camera):
+    """``CameraModel.pose`` (what projection and the warp use) refuses a model missing either
+    half of its pose with the calibrate hint, never a TypeError on None."""
+    rvec, tvec = camera.pose
+    assert rvec.shape == (3,) and tvec.shape == (3,)
+    for half in ({"rvec": None}, {"tvec": None}, {"rvec": None, "tvec": None}):
+        cam = replace(camera, **half)
+        with pytest.raises(CalibrationError, match="no bed pose yet"):
+            project_points(cam, np.zeros((1, 3)))

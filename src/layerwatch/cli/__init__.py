@@ -139,10 +139,10 @@ def _literal_help(cmd, rich: bool) -> None:
         _literal_help(sub, rich)
 
 
-def _click_exceptions() -> tuple[tuple[type, ...], tuple[type, ...]]:
+def _click_exceptions() -> tuple[tuple[type[Exception], ...], tuple[type[Exception], ...]]:
     """(ClickException classes, Abort classes) of typer's bundled click and, if installed, click."""
-    errors: list[type] = []
-    aborts: list[type] = [typer.Abort]
+    errors: list[type[Exception]] = []
+    aborts: list[type[Exception]] = [typer.Abort]
     for name in ("typer._click.exceptions", "click.exceptions"):
         try:
             mod = importlib.import_module(name)

@@ -21,6 +21,7 @@ _ENCODING = {0: "none", 1: "MeatPack", 2: "MeatPack with comments"}
 
 
 def _decode_block(payload: bytes, comp: int, enc: int, usize: int) -> bytes | None:
+    raw: bytes | None
     if comp == 0:
         raw = payload
     elif comp == 1:
@@ -76,7 +77,10 @@ def decode_bgcode(data: bytes, name: str = "<memory>") -> bytes:
         raise GcodeError(f"{name}: not a binary G-code file (no GCDE header).")
     _version, checksum_type = _u("<IH", data, 4, name)
     crc = 4 if checksum_type == 1 else 0
-    i, out, head, tail = 10, [], [], []
+    i = 10
+    out: list[bytes] = []
+    head: list[bytes] = []
+    tail: list[bytes] = []
     while i < len(data):
         btype, comp, usize = _u("<HHI", data, i, name)
         i += 8

@@ -67,6 +67,38 @@ def heatshrink_decode(src: bytes, out_size: int, window_bits: int, count_bits: i
 _TABLE = np.frombuffer(b"0123456789. \nGX", np.uint8)
 
 
+@nb.njit(cache=True, inline="always")
+def _meatpack_command(c, packing, nospace):
+    """``(packing, nospace)`` after the command byte ``c`` of a ``0xFF 0xFF <c>`` signal."""
+    if c == 251:
+        packing = True
+    elif c == 250 or c == 249:
+        packing = False
+    elif c == 247:
+        nospace = True
+    elif c == 246:
+        nospace = False
+    return packing, nospace
+
+
+@nb.njit(cache=True, inline="always")
+def _meatpack_chars(c, nospace, table):
+    """The two characters of packed byte ``c``, low nibble first: ``(c0, c1, first_full,
+    second_full)``; nibble ``0xF`` means a full byte follows instead (its character is 0)."""
+    lo = c & 15
+    hi = (c >> 4) & 15
+    first_full = lo == 15
+    second_full = hi == 15
+    c0 = table[lo] if not first_full else 0
+    c1 = table[hi] if not second_full else 0
+    if nospace:
+        if lo == 11:
+            c0 = 69
+        if hi == 11:
+            c1 = 69
+    return c0, c1, first_full, second_full
+
+
 @nb.njit(cache=True)
 def _meatpack(src, table):
     out = np.empty(src.shape[0] * 2 + 16, np.uint8)
@@ -95,27 +127,16 @@ def _meatpack(src, table):
                     cmd_count += 1
                 continue
             if cmd_active:
-                if c == 251:
-                    packing = True
-                elif c == 250 or c == 249:
-                    packing = False
-                elif c == 247:
-                    nospace = True
-                elif c == 246:
-                    nospace = False
+                packing, nospace = _meatpack_command(c, packing, nospace)
                 cmd_active = False
                 continue
-            if cmd_count > 0:  # a single 0xFF was data
+            if cmd_count > 0:  # a single 0xFF was data: decode it before c
                 cmd_count = 0
-                k2 = 255
-                if packing and full_queue == 0:
-                    pass
-                # process the 0xFF as an ordinary byte first
                 if not packing:
-                    out[n] = k2
+                    out[n] = 255
                     n += 1
                 elif full_queue > 0:
-                    out[n] = k2
+                    out[n] = 255
                     n += 1
                     if char_buf > 0:
                         out[n] = char_buf
@@ -123,7 +144,7 @@ def _meatpack(src, table):
                         char_buf = 0
                     full_queue -= 1
                 else:
-                    full_queue += 2  # 0xFF = both nibbles unpacked
+                    full_queue += 2  # 0xFF = both nibbles full bytes
         if not packing:
             out[n] = c
             n += 1
@@ -137,17 +158,7 @@ def _meatpack(src, table):
                 char_buf = 0
             full_queue -= 1
             continue
-        lo = c & 15
-        hi = (c >> 4) & 15
-        first_full = lo == 15
-        second_full = hi == 15
-        c0 = table[lo] if not first_full else 0
-        c1 = table[hi] if not second_full else 0
-        if nospace:
-            if lo == 11:
-                c0 = 69
-            if hi == 11:
-                c1 = 69
+        c0, c1, first_full, second_full = _meatpack_chars(c, nospace, table)
         if first_full:
             full_queue += 1
             if second_full:

@@ -383,6 +383,27 @@ def _new_state(e_rel_init, e_area_init, n_bytes):
 
 
 @nb.njit(cache=True)
+def _new_outputs(cap):
+    """Empty ``(segf, segi, travel_line, cmt)`` for a file of ``cap`` G lines (they grow as needed)."""
+    segf = np.empty((cap, 6), np.float64)
+    segi = np.empty((cap, 2), np.int64)
+    travel_line = np.empty(cap // 4 + 16, np.int64)
+    cmt = np.empty((64, 2), np.int64)
+    return segf, segi, travel_line, cmt
+
+
+@nb.njit(cache=True, inline="always")
+def _count_lex_problems(stats, line, bad, extended):
+    """Count a line the lexer found extended (unknown words), with bad bytes or a malformed word."""
+    if extended:
+        stats[ST_UNKNOWN] += 1
+    if bad & BAD_BYTES:
+        _flag(stats, ST_BAD, ST_FIRST_BAD, line)
+    if bad & BAD_WORD:
+        _flag(stats, ST_MALFORMED, ST_FIRST_MALFORMED, line)
+
+
+@nb.njit(cache=True)
 def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
     """Lex and execute ``buf``.
 
@@ -410,11 +431,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
     fstats : (N_FSTATS,) float64  filament totals, mm
     """
     n = buf.shape[0]
-    cap = count_g_lines(buf)
-    segf = np.empty((cap, 6), np.float64)
-    segi = np.empty((cap, 2), np.int64)
-    travel_line = np.empty(cap // 4 + 16, np.int64)
-    cmt = np.empty((64, 2), np.int64)
+    segf, segi, travel_line, cmt = _new_outputs(count_g_lines(buf))
     probe_state = np.full((probes.shape[0], N_PROBE), np.nan)
     stats = np.zeros(N_STATS, np.int64)
     fs = np.zeros(N_FSTATS, np.float64)
@@ -439,12 +456,7 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
             cmt[nc, 0] = cmt_at
             cmt[nc, 1] = line
             nc += 1
-        if extended:
-            stats[ST_UNKNOWN] += 1
-        if bad & BAD_BYTES:
-            _flag(stats, ST_BAD, ST_FIRST_BAD, line)
-        if bad & BAD_WORD:
-            _flag(stats, ST_MALFORMED, ST_FIRST_MALFORMED, line)
+        _count_lex_problems(stats, line, bad, extended)
         act, mo = _line_action(ms, val, has, gcodes, ng, mcode, stats)
         if act == ACT_HOME:
             _home(ms, has)

@@ -71,44 +71,75 @@ def assign_layers(
     if n == 0:
         return np.zeros(1, np.int64), np.zeros(0), "none", warnings
     if style is not None and tag_lines.size:
-        ids = np.searchsorted(tag_lines, seg_line, side="right") - 1
-        np.maximum(ids, 0, out=ids)  # moves before the first tag (purge line) join layer 0
-        bounds = _runs(ids)
-        z = np.empty(bounds.size - 1)
-        for k in range(bounds.size - 1):
-            a, b = bounds[k], bounds[k + 1]
-            tz = tag_z[ids[a]]
-            z[k] = tz if np.isfinite(tz) else float(seg_z[(a + b) // 2])  # mid-layer segment
+        bounds, z = _tag_layers(seg_z, seg_line, tag_lines, tag_z)
         return bounds, z, f"tags:{style}", warnings
     dz = np.abs(np.diff(seg_z))
     changes = int(np.count_nonzero(dz > 1e-4))
     if n > 50 and changes > 0.3 * n:
-        h = layer_height_hint
-        plateau = _runs(np.round(seg_z, 4))
-        sizes = np.diff(plateau)
-        flat_z = seg_z[plateau[:-1][sizes >= 10]]
-        steps = np.diff(np.unique(flat_z))
-        if h is None and steps.size:
-            h = float(np.median(steps))
-        if h is None and seg_xy is not None:
-            h = _revolution_height(seg_xy, seg_z)
-        if h is None or not (0.01 <= h <= 2.0):
-            rise = float(seg_z.max() - seg_z.min())
-            h = 0.2 if rise <= 0 else min(0.2, rise)
-            warnings.append(f"spiral print without a known layer height; binned every {h:g} mm")
-        # base one step below the first segment: its own layer top is z0 (flat start) or the
-        # first segment ends a rising turn that began one increment lower
-        d0 = float(seg_z[1] - seg_z[0]) if n > 1 else 0.0
-        zb = float(seg_z[0]) - (d0 if 1e-6 < d0 < h else h)
-        k = np.ceil((seg_z - zb) / h - 1e-6).astype(np.int64)
-        k = np.maximum.accumulate(np.maximum(k, 1))
-        bounds = _runs(k)
-        z = zb + k[bounds[:-1]] * h
+        h = _spiral_height(seg_z, layer_height_hint, seg_xy, warnings)
+        bounds, z = _spiral_layers(seg_z, h)
         return bounds, z, "spiral", warnings
+    bounds, z = _z_layers(seg_z)
+    return bounds, z, "z", warnings
+
+
+def _tag_layers(
+    seg_z: np.ndarray, seg_line: np.ndarray, tag_lines: np.ndarray, tag_z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Layers from the slicer's layer tags: ``(bounds, z)`` as :func:`assign_layers` returns."""
+    ids = np.searchsorted(tag_lines, seg_line, side="right") - 1
+    np.maximum(ids, 0, out=ids)  # moves before the first tag (purge line) join layer 0
+    bounds = _runs(ids)
+    z = np.empty(bounds.size - 1)
+    for k in range(bounds.size - 1):
+        a, b = bounds[k], bounds[k + 1]
+        tz = tag_z[ids[a]]
+        z[k] = tz if np.isfinite(tz) else float(seg_z[(a + b) // 2])  # mid-layer segment
+    return bounds, z
+
+
+def _spiral_height(
+    seg_z: np.ndarray, layer_height_hint: float | None, seg_xy: np.ndarray | None, warnings: list[str]
+) -> float:
+    """Bin height of a spiral print, mm: the header's layer height, else the step between its
+    flat stretches, else its rise per turn, else 0.2 mm (or the whole rise) with a warning."""
+    h = layer_height_hint
+    plateau = _runs(np.round(seg_z, 4))
+    sizes = np.diff(plateau)
+    flat_z = seg_z[plateau[:-1][sizes >= 10]]
+    steps = np.diff(np.unique(flat_z))
+    if h is None and steps.size:
+        h = float(np.median(steps))
+    if h is None and seg_xy is not None:
+        h = _revolution_height(seg_xy, seg_z)
+    if h is None or not (0.01 <= h <= 2.0):
+        rise = float(seg_z.max() - seg_z.min())
+        h = 0.2 if rise <= 0 else min(0.2, rise)
+        warnings.append(f"spiral print without a known layer height; binned every {h:g} mm")
+    return h
+
+
+def _spiral_layers(seg_z: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """A spiral print binned every ``h`` mm: ``(bounds, z)`` as :func:`assign_layers` returns."""
+    n = seg_z.shape[0]
+    # base one step below the first segment: its own layer top is z0 (flat start) or the
+    # first segment ends a rising turn that began one increment lower
+    d0 = float(seg_z[1] - seg_z[0]) if n > 1 else 0.0
+    zb = float(seg_z[0]) - (d0 if 1e-6 < d0 < h else h)
+    k = np.ceil((seg_z - zb) / h - 1e-6).astype(np.int64)
+    k = np.maximum.accumulate(np.maximum(k, 1))
+    bounds = _runs(k)
+    z = zb + k[bounds[:-1]] * h
+    return bounds, z
+
+
+def _z_layers(seg_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Layers where the extruding Z changes: ``(bounds, z)`` as :func:`assign_layers` returns."""
+    n = seg_z.shape[0]
     bounds = _runs(np.round(seg_z, 4))
     z = seg_z[bounds[:-1]].astype(np.float64)
     # a prime/purge line drawn above the first layer (IceSL, start G-code) joins layer 0
     while z.size >= 2 and z[0] > z[1] + 1e-4 and bounds[1] < 0.05 * n:
         bounds = np.delete(bounds, 1)
         z = z[1:]
-    return bounds, z, "z", warnings
+    return bounds, z

@@ -161,7 +161,7 @@ def _layer_thickness(lz: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | Non
     prev_ok = np.zeros(n, bool)
     prev_ok[1:] = ((lo[:-1] <= hi[1:]) & (lo[1:] <= hi[:-1])).all(axis=1) & nonempty[:-1] & nonempty[1:]
     out = steps.copy()
-    for k in np.flatnonzero(~prev_ok[1:] & nonempty[1:]) + 1:
+    for k in (np.flatnonzero(~prev_ok[1:] & nonempty[1:]) + 1).tolist():
         below = 0.0
         for j in range(k - 1, max(k - 200, -1), -1):
             if nonempty[j] and lz[j] < lz[k] and (lo[j] <= hi[k]).all() and (lo[k] <= hi[j]).all():

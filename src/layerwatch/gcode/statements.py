@@ -178,37 +178,48 @@ def _length(text: bytes) -> float | None:
     return None
 
 
+def _xywh_box(groups: tuple[bytes | None, ...]) -> tuple[float, float, float, float] | None:
+    """``(x0, y0, x1, y1)`` (mm) from the four captured numbers ``x, y, width, height``; None
+    where one does not parse."""
+    x, y, w, h = (_num(g) for g in groups)
+    if x is None or y is None or w is None or h is None:
+        return None
+    return (x, y, x + w, y + h)
+
+
 def _boxes(st: Statements, text: bytes) -> None:
     m = _M555.search(text)
     if m:
-        x, y, w, h = (_num(g) for g in m.groups())
-        if None not in (x, y, w, h):
-            st.first_layer_box, st.first_layer_box_source = (x, y, x + w, y + h), "M555"
+        box = _xywh_box(m.groups())
+        if box is not None:
+            st.first_layer_box, st.first_layer_box_source = box, "M555"
     m = _G29_AREA.search(text) if st.first_layer_box is None else None
     if m:
-        x, y, w, h = (_num(g) for g in m.groups())
-        if None not in (x, y, w, h):
-            st.first_layer_box, st.first_layer_box_source = (x, y, x + w, y + h), "G29 A1"
+        box = _xywh_box(m.groups())
+        if box is not None:
+            st.first_layer_box, st.first_layer_box_source = box, "G29 A1"
     cura = [_CURA_BOX[k].search(text) for k in ("MINX", "MINY", "MAXX", "MAXY")]
     if all(cura):
-        vals = [_num(c.group(1)) for c in cura]
-        if None not in vals:
-            st.print_box = tuple(vals)
+        x0, y0, x1, y1 = (_num(c.group(1)) for c in cura if c is not None)
+        if x0 is not None and y0 is not None and x1 is not None and y1 is not None:
+            st.print_box = (x0, y0, x1, y1)
 
 
 def _bed(st: Statements, text: bytes) -> None:
     m = _BED_POLY.search(text)
     if m:
-        pts = []
+        pts: list[tuple[float, float]] = []
         for pair in m.group(1).split(b","):
             xy = pair.strip().split(b"x")
-            if len(xy) == 2 and _num(xy[0]) is not None and _num(xy[1]) is not None:
-                pts.append((_num(xy[0]), _num(xy[1])))
+            if len(xy) == 2:
+                px, py = _num(xy[0]), _num(xy[1])
+                if px is not None and py is not None:
+                    pts.append((px, py))
         st.bed_polygon = pts or None
         return
     sizes = {m.group(1).lower(): _num(m.group(2)) for m in _BED_XY.finditer(text)}
-    if sizes.get(b"x") and sizes.get(b"y"):
-        x, y = sizes[b"x"], sizes[b"y"]
+    x, y = sizes.get(b"x"), sizes.get(b"y")
+    if x and y:
         st.bed_polygon = [(0.0, 0.0), (x, 0.0), (x, y), (0.0, y)]
 
 

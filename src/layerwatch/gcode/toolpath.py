@@ -97,6 +97,34 @@ class Layer:
         return self.seg_stop - self.seg_start
 
 
+def _synthetic_layers(
+    start: np.ndarray, end: np.ndarray, e: np.ndarray, layer_z: np.ndarray, heights: np.ndarray,
+    bounds_idx: np.ndarray,
+) -> tuple[Layer, ...]:
+    """The layers of :meth:`Toolpath.from_segments`: layer ``i`` holds segments
+    ``bounds_idx[i]:bounds_idx[i + 1]`` at ``layer_z[i]`` (mm), ``heights[i]`` thick (mm), with
+    its bounding box (mm) and filament used (``e``, mm)."""
+    layers = []
+    for i in range(len(bounds_idx) - 1):
+        a, b = int(bounds_idx[i]), int(bounds_idx[i + 1])
+        pts = np.concatenate([start[a:b], end[a:b]])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        layers.append(
+            Layer(
+                index=i,
+                z=float(layer_z[i]),
+                height=float(heights[i]),
+                seg_start=a,
+                seg_stop=b,
+                line_start=0,
+                line_stop=0,
+                bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
+                extrusion_mm=float(e[a:b].sum()),
+            )
+        )
+    return tuple(layers)
+
+
 @dataclass
 class Toolpath:
     """Extruding segments of a whole print plus per-layer metadata.
@@ -275,24 +303,7 @@ class Toolpath:
         feat = (
             np.zeros(n, np.uint8) if feature is None else np.asarray(feature, np.uint8).reshape(-1)
         )
-        layers = []
-        for i in range(len(bounds_idx) - 1):
-            a, b = int(bounds_idx[i]), int(bounds_idx[i + 1])
-            pts = np.concatenate([start[a:b], end[a:b]])
-            lo, hi = pts.min(axis=0), pts.max(axis=0)
-            layers.append(
-                Layer(
-                    index=i,
-                    z=float(layer_z[i]),
-                    height=float(heights[i]),
-                    seg_start=a,
-                    seg_stop=b,
-                    line_start=0,
-                    line_stop=0,
-                    bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
-                    extrusion_mm=float(e[a:b].sum()),
-                )
-            )
+        layers = _synthetic_layers(start, end, e, layer_z, heights, bounds_idx)
         return cls(
             start=start,
             end=end,
@@ -302,7 +313,7 @@ class Toolpath:
             feature=feat,
             tool=np.zeros(n, np.uint8),
             line=np.zeros(n, np.int64),
-            layers=tuple(layers),
+            layers=layers,
             detection="synthetic",
             source=source,
         )

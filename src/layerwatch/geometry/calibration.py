@@ -134,6 +134,7 @@ def calibrate_intrinsics(photos: Sequence, board: BoardSpec = BoardSpec(), *, mi
         raise CalibrationError(
             f"the {board.kind} ({board.cols}x{board.rows}) was found in {len(objs)} photo(s), "
             f"{min_views} are needed; check --board-size and take sharp photos of the whole board at varied angles.")
+    assert size is not None  # photos were read: objs holds min_views (>= 1) views of the board
     flags = cv2.CALIB_FIX_K3 if len(objs) < 8 else 0
     rms, K, dist, _, _ = cv2.calibrateCamera(objs, imgs, size, None, None, flags=flags)
     if not np.isfinite(rms) or K[0, 0] <= 0:

@@ -97,6 +97,21 @@ class CameraModel:
         return self.rvec is not None and self.tvec is not None
 
     @property
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(rvec, tvec)`` of ``camera_from_bed``, each shape (3,).
+
+        Raises
+        ------
+        CalibrationError
+            The model has no bed pose yet.
+        """
+        if self.rvec is None or self.tvec is None:
+            raise CalibrationError(
+                "the camera model has no bed pose yet: run `layerwatch calibrate --markers PHOTO`."
+            )
+        return self.rvec, self.tvec
+
+    @property
     def R(self) -> np.ndarray:
         """Rotation of ``camera_from_bed``, shape (3, 3)."""
         if self.rvec is None:

@@ -43,7 +43,7 @@ def to_grey(photo: np.ndarray) -> np.ndarray:
     """uint8 grey image ``(h, w)`` of a BGR/grey photo (uint8 or uint16)."""
     img = check_image(photo)
     if img.dtype != np.uint8:
-        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)  # type: ignore[call-overload]  # stub rejects dst=None, which OpenCV accepts
     if img.ndim == 3:
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY) if img.shape[2] >= 3 else img[..., 0]
     return np.ascontiguousarray(img)

@@ -44,7 +44,8 @@ def project_points(camera: CameraModel, xyz_mm: np.ndarray) -> np.ndarray:
     p = np.asarray(xyz_mm, dtype=np.float64).reshape(-1, np.shape(xyz_mm)[-1])
     if p.shape[1] == 2:
         p = np.c_[p, np.zeros(len(p))]
-    uv = cv2.projectPoints(p.reshape(-1, 1, 3), camera.rvec, camera.tvec, camera.K, camera.dist)[0]
+    rvec, tvec = camera.pose
+    uv = cv2.projectPoints(p.reshape(-1, 1, 3), rvec, tvec, camera.K, camera.dist)[0]
     return uv.reshape(-1, 2)
 
 

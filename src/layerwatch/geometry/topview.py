@@ -140,9 +140,10 @@ class TopView:
 
     @classmethod
     def from_dict(cls, d: dict) -> TopView:
+        cx, cy = (float(v) for v in d.get("center_mm", (0.0, 0.0)))
         return cls(
             px_per_mm=float(d.get("px_per_mm", 6.67)),
             width_mm=float(d.get("width_mm", 90.0)),
             height_mm=float(d.get("height_mm", 90.0)),
-            center_mm=tuple(float(v) for v in d.get("center_mm", (0.0, 0.0))),
+            center_mm=(cx, cy),
         )

@@ -91,7 +91,7 @@ class TopViewWarper:
         self._invalid: dict = {}
 
     # ------------------------------------------------------------ lookups
-    def _lookup(self, size: tuple[int, int]):
+    def _lookup(self, size: tuple[int, int]) -> tuple[CameraModel, np.ndarray, np.ndarray]:
         """``(camera at size, S, lookup (Lh, Lw, 2) float32)``; ``S`` maps undistorted px -> lookup px."""
         if size in self._lookups:
             return self._lookups[size]
@@ -123,7 +123,8 @@ class TopViewWarper:
         camera's). ``valid`` marks top-view pixels whose source lies inside
         the photo and in front of the camera.
         """
-        size = tuple(int(v) for v in (image_size or self.camera.image_size))
+        w, h = (int(v) for v in (image_size or self.camera.image_size))
+        size = (w, h)
         key = self._key(z, size)
         hit = self._maps.get(key)
         if hit is not None:
@@ -140,14 +141,13 @@ class TopViewWarper:
         coarse = cv2.warpPerspective(lut, D @ H_ti @ np.linalg.inv(S), (cw, ch), flags=cv2.INTER_LINEAR,
                                      borderMode=cv2.BORDER_CONSTANT, borderValue=(_FAR, _FAR, 0, 0))
         src = cv2.resize(coarse, (2 * cw, 2 * ch), interpolation=cv2.INTER_LINEAR)[2 : 2 + hh, 2 : 2 + ww]
-        w, h = size
         valid = cv2.inRange(src, (0.0, 0.0), (w - 1.0, h - 1.0)) > 0
         depth_ok = self._in_front(cam, z)
         if depth_ok is not None:
             src = src.copy()
             valid &= depth_ok
             src[~depth_ok] = _FAR
-        map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)
+        map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)  # type: ignore[call-overload]  # stub rejects map2=None, which OpenCV accepts
         self._invalid[key] = None if valid.all() else np.flatnonzero(~valid)
         out = (map1, map2, valid)
         self._maps[key] = out
@@ -157,7 +157,7 @@ class TopViewWarper:
 
     def _in_front(self, cam: CameraModel, z: float) -> np.ndarray | None:
         """None when the whole top view is in front of the camera, else a bool mask."""
-        R, t = cam.R, cam.tvec
+        R, t = cam.R, cam.pose[1]
         bed_from_top = self.topview.bed_from_top
         # camera depth is affine in the top-view pixel coordinates
         a = R[2, :2] @ bed_from_top[:2, :]

@@ -44,7 +44,8 @@ def box_part(
     """
     cx, cy = center
     h = size_mm / 2
-    starts, ends, zs, feats = [], [], [], []
+    starts, ends, feats = [], [], []
+    zs: list[float] = []
     ext, per, inf = (FEATURES.index(n) for n in ("external_perimeter", "perimeter", "infill"))
     n_layers = int(round(height_mm / layer_h))
     for k in range(n_layers):
@@ -114,6 +115,35 @@ def _clip_line(p0, d, half, r_in, r_out):
     return [(a, b) for a, b in ((lo, min(hi, tc - w)), (max(lo, tc + w), hi)) if b > a]
 
 
+def _tower_walls(center, h, r_hole, r_boss, width, block, ext, per):
+    """``[((starts, ends), feature code)]``: outer and inner perimeter around the hole and
+    around the outside (the square block while ``block``, else the round boss)."""
+    cx, cy = center
+    loops = [(_ring(cx, cy, r_hole + width / 2), ext), (_ring(cx, cy, r_hole + 1.5 * width), per)]
+    if block:
+        loops += [(_loop(cx - h + width / 2, cy - h + width / 2, cx + h - width / 2, cy + h - width / 2), ext),
+                  (_loop(cx - h + 1.5 * width, cy - h + 1.5 * width, cx + h - 1.5 * width, cy + h - 1.5 * width), per)]
+    else:
+        loops += [(_ring(cx, cy, r_boss - width / 2, 64), ext), (_ring(cx, cy, r_boss - 1.5 * width, 64), per)]
+    return loops
+
+
+def _tower_infill(center, k, half, r_in, r_out, spacing, width):
+    """``[(start, end)]`` of layer ``k``'s infill lines (+-45 deg alternating, ``spacing`` mm
+    apart) clipped as :func:`_clip_line` says; lines shorter than ``width`` are dropped."""
+    cx, cy = center
+    d = np.array([1.0, 1.0 if k % 2 == 0 else -1.0]) / np.sqrt(2.0)
+    nrm = np.array([-d[1], d[0]])
+    lines = []
+    for c in np.arange(-np.sqrt(2) * half + spacing / 2, np.sqrt(2) * half, spacing):
+        p0 = c * nrm
+        for t0, t1 in _clip_line(p0, d, half, r_in, r_out):
+            if t1 - t0 < width:
+                continue
+            lines.append(([[cx, cy] + p0 + t0 * d], [[cx, cy] + p0 + t1 * d]))
+    return lines
+
+
 def tower_part(
     size_mm: float = 30.0,
     height_mm: float = 100.0,
@@ -167,37 +197,26 @@ def tower_part(
     ext, per, inf, sol, top = (FEATURES.index(n) for n in ("external_perimeter", "perimeter", "infill",
                                                           "solid_infill", "top_solid_infill"))
     n_block = int(round(boss_from_mm / layer_h))
-    starts, ends, zs, feats = [], [], [], []
+    starts, ends, feats = [], [], []
+    zs: list[float] = []
     n_layers = int(round(height_mm / layer_h))
     for k in range(n_layers):
         z = round((k + 1) * layer_h, 6)
         block = z <= boss_from_mm + 1e-9
-        loops = [(_ring(cx, cy, r_hole + width / 2), ext), (_ring(cx, cy, r_hole + 1.5 * width), per)]
-        if block:
-            loops += [(_loop(cx - h + width / 2, cy - h + width / 2, cx + h - width / 2, cy + h - width / 2), ext),
-                      (_loop(cx - h + 1.5 * width, cy - h + 1.5 * width, cx + h - 1.5 * width, cy + h - 1.5 * width), per)]
-        else:
-            loops += [(_ring(cx, cy, r_boss - width / 2, 64), ext), (_ring(cx, cy, r_boss - 1.5 * width, 64), per)]
-        for (a, b), code in loops:
+        for (a, b), code in _tower_walls(center, h, r_hole, r_boss, width, block, ext, per):
             starts.append(a)
             ends.append(b)
             feats += [code] * len(a)
         half = h - 2 * width if block else r_boss
         r_out = None if block else r_boss - 2 * width
-        d = np.array([1.0, 1.0 if k % 2 == 0 else -1.0]) / np.sqrt(2.0)
-        nrm = np.array([-d[1], d[0]])
         first, last = (0, n_block - 1) if block else (n_block, n_layers - 1)
         spacing, code = infill_spacing_mm, inf
         if k < first + solid_layers or k > last - solid_layers:
             spacing, code = width, (top if k > last - solid_layers else sol)
-        for c in np.arange(-np.sqrt(2) * half + spacing / 2, np.sqrt(2) * half, spacing):
-            p0 = c * nrm
-            for t0, t1 in _clip_line(p0, d, half, r_hole + 2 * width, r_out):
-                if t1 - t0 < width:
-                    continue
-                starts.append([[cx, cy] + p0 + t0 * d])
-                ends.append([[cx, cy] + p0 + t1 * d])
-                feats.append(code)
+        for a, b in _tower_infill(center, k, half, r_hole + 2 * width, r_out, spacing, width):
+            starts.append(a)
+            ends.append(b)
+            feats.append(code)
         zs += [z] * (sum(len(s) for s in starts) - len(zs))
     return Toolpath.from_segments(
         np.concatenate(starts), np.concatenate(ends), np.array(zs), width=width,

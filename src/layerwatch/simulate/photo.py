@@ -84,7 +84,8 @@ class Photographer:
 
     def _rays(self) -> None:
         cam = self.camera
-        key = ("rays", cam.image_size, cam.K.tobytes(), cam.dist.tobytes(), cam.rvec.tobytes())
+        rvec, tvec = cam.pose
+        key = ("rays", cam.image_size, cam.K.tobytes(), cam.dist.tobytes(), rvec.tobytes())
         dirs = _cached(key)
         if dirs is None:
             w, h = cam.image_size
@@ -96,7 +97,7 @@ class Photographer:
             dirs = _cached(key, np.ascontiguousarray((d @ cam.R).astype(np.float32)))
         self.dirs = dirs
         self.C = cam.center_mm.astype(np.float64)
-        self._key = key + (cam.tvec.tobytes(),)
+        self._key = key + (tvec.tobytes(),)
 
     def shoot(self, h: np.ndarray, mat: np.ndarray, index: int, layer_h: float):
         """Photo of height field ``h`` (float32 (H, W) mm) with materials ``mat`` (uint8).

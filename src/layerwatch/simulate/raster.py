@@ -177,6 +177,6 @@ def solid_area(start: np.ndarray, end: np.ndarray, half_width, topview, close_mm
     fp = capsule_mask(start, end, half_width, topview).astype(np.uint8)
     k = max(int(round(close_mm * topview.px_per_mm)) | 1, 3)
     pad = k
-    fp = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    fp = cv2.morphologyEx(fp, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    return fp[pad:-pad, pad:-pad].astype(bool)
+    padded = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+    closed = cv2.morphologyEx(padded, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return closed[pad:-pad, pad:-pad].astype(bool)

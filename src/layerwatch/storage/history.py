@@ -146,6 +146,13 @@ def _int(value: Any) -> int:
     return max(-(2**63), min(2**63 - 1, int(value)))
 
 
+def _inserted_id(cur: sqlite3.Cursor) -> int:
+    """The id of the row an ``INSERT`` just added (sqlite3 sets ``lastrowid`` after each one)."""
+    rowid = cur.lastrowid
+    assert rowid is not None
+    return int(rowid)
+
+
 def _config_json(config: Any) -> str | None:
     if config is None:
         return None
@@ -276,7 +283,7 @@ class History:
                 (pid, None if gcode_path is None else str(gcode_path), gcode_hash, part, cfg, now,
                  json.dumps(this_process())),
             )
-            return int(cur.lastrowid)
+            return _inserted_id(cur)
 
         return self._run(fn, write=True)
 
@@ -287,7 +294,7 @@ class History:
     def add_layer(self, job_id: int, result: LayerResult) -> None:
         """Store (or replace) one layer's result; one transaction per call."""
         text = result.to_json()
-        ratio = result.anomaly_ratio
+        ratio: float | None = result.anomaly_ratio
         ratio = None if ratio is None or ratio != ratio else float(ratio)
 
         def fn(db: sqlite3.Connection) -> None:
@@ -316,7 +323,7 @@ class History:
                 "INSERT INTO events(job_id, time, kind, message, data) VALUES (?, ?, ?, ?, ?)",
                 (_int(job_id), time.time(), str(kind), str(message), payload),
             )
-            return int(cur.lastrowid)
+            return _inserted_id(cur)
 
         return self._run(fn, write=True)
 
@@ -383,7 +390,7 @@ class History:
                 "INSERT INTO audit(time, action, target, client, actor, detail) VALUES (?, ?, ?, ?, ?, ?)",
                 (time.time(), str(action), target, str(client), str(actor), payload),
             )
-            return int(cur.lastrowid)
+            return _inserted_id(cur)
 
         return self._run(fn, write=True)
 

@@ -43,7 +43,7 @@ def redact(value: Any) -> Any:
     recursively.
     """
     if isinstance(value, dict):
-        out = {}
+        out: dict[Any, Any] = {}
         for k, v in value.items():
             key = str(k).lower()
             if _is_secret_key(key) and v not in (None, "", [], {}) and not isinstance(v, bool):

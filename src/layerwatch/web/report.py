@@ -129,7 +129,7 @@ def build_report(history: History, job_id: int, out_dir: str | Path, image_root:
         "<h2>Anomaly ratio over layers</h2>", _img_tag(curve, "a% curve"),
         "<h2>First failing layer</h2>",
         (f"<p class='fail'>layer {first.layer} (a% {100 * first.anomaly_ratio:.1f} % &gt; {100 * pause:.1f} %)</p>"
-         if first else "<p>none: every layer stayed under the pause threshold</p>"),
+         if first is not None and pause is not None else "<p>none: every layer stayed under the pause threshold</p>"),
     ]
     if first:
         parts.append(layer_block(first, "First failing layer"))

@@ -83,7 +83,9 @@ class Sessions:
 
     def csrf_ok(self, session: Session | None, given: str | None) -> bool:
         """True when ``given`` is ``session``'s CSRF token (constant-time)."""
-        return session is not None and bool(given) and hmac.compare_digest(self.csrf(session).encode(), given.encode())
+        if session is None or not given:
+            return False
+        return hmac.compare_digest(self.csrf(session).encode(), given.encode())
 
 
 class Throttle:
