@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from layerwatch.cli.params import SEED, WRITE_DB, Finite
-from layerwatch.cli.pipeline import PAPER_HELP
+from layerwatch.cli.pipeline import BED_HELP, PAPER_HELP, scene_baseline
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
@@ -136,6 +136,7 @@ def monitor(
     onset: Annotated[int, typer.Option("--onset", parser=Finite(1, 100_000, integer=True), help="sim camera: first failed layer.")] = 15,
     seed: Annotated[int, typer.Option("--seed", parser=SEED, help="sim camera: seed.")] = 1,
     paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
+    bed_photo: Annotated[Path | None, typer.Option("--bed-photo", dir_okay=False, help=BED_HELP)] = None,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     import dataclasses
@@ -177,6 +178,7 @@ def monitor(
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
     tv = cfg.topview.topview()
+    sim_bed = None
     if camera == "sim":
         from layerwatch.geometry.pose import locate_bed
         from layerwatch.simulate import Failure, PrintSimulator, default_camera
@@ -187,6 +189,8 @@ def monitor(
         cam_src = SimCamera(lambda i: sim.frame(min(i, toolpath.n_layers - 1)).photo, settle_s=settle)
         cam_model = (CameraModel.load(camera_model) if camera_model else
                      locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), sim.frame(0).photo, cfg.markers, tv))
+        if bed_photo is None and camera_model is None:  # the simulated empty bed, as calibrate would keep it
+            sim_bed = sim.bed_photo()
     else:
         if camera_model is None:
             raise ConfigError("--camera-model camera.toml is needed with a real camera; make one with `layerwatch calibrate`.")
@@ -197,7 +201,8 @@ def monitor(
     if history is not None:
         hist = History(history)
         job = hist.start_job(printer.split("?")[0], gpath, config=cfg)
-    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg), PausePolicy(cfg.policy),
+    bed = sim_bed if sim_bed is not None else scene_baseline(cfg, cam_model, bed_photo)
+    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg, bed_photo=bed), PausePolicy(cfg.policy),
                   notifier=Notifier(cfg.notify), history=hist, job_id=job,
                   wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict)
     console.print(f"monitoring {printer.split('?')[0]} with camera {camera} ({toolpath.n_layers} layers)")

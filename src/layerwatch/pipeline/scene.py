@@ -54,6 +54,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -75,10 +76,12 @@ from layerwatch.analysis.scene_change import (
 from layerwatch.analysis.settings import SceneSettings
 from layerwatch.errors import CalibrationError
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.markers import detect_dots
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 
-__all__ = ["GAIN_RANGE", "REBASE_AFTER", "SceneModel", "SceneObservation", "check_bed_photo"]
+__all__ = ["GAIN_RANGE", "REBASE_AFTER", "SceneModel", "SceneObservation", "bed_photo_pose_problem", "check_bed_photo",
+           "load_bed_photo"]
 
 #: photometric gains outside this range mean a frame that does not show the scene (dark, overexposed)
 GAIN_RANGE = (0.4, 2.5)
@@ -105,6 +108,69 @@ def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "
         raise CalibrationError(f"{name} is {arr.shape[1] if arr.ndim >= 2 else '?'}x{arr.shape[0]} but the camera "
                                f"was calibrated at {w}x{h}; take the bed photo with the monitoring camera.")
     return arr
+
+
+def bed_photo_pose_problem(photo: np.ndarray, camera: CameraModel, tolerance_px: float | None = None) -> str | None:
+    """Whether the bed photo was taken from the camera's calibrated pose, judged by its dot markers.
+
+    The camera's ``markers_mm`` are projected through the pose; each must have
+    a detected dot within ``tolerance_px`` (default 1.5 % of the image width).
+    ``None`` when they do, or when the check cannot run (no markers recorded,
+    ArUco markers, fewer than three dots found: the scene model's own check
+    on the first frame then decides).
+    """
+    if camera.markers_mm is None or camera.marker_kind != "dots" or not camera.has_pose:
+        return None
+    dots = np.array([b.center for b in detect_dots(photo)], float).reshape(-1, 2)
+    if len(dots) < 3:
+        return None
+    pts = np.c_[np.asarray(camera.markers_mm, float).reshape(-1, 2), np.zeros(len(camera.markers_mm))]
+    uv = cv2.projectPoints(pts, camera.rvec, camera.tvec, camera.K, camera.dist)[0].reshape(-1, 2)
+    tol = tolerance_px if tolerance_px is not None else 0.015 * camera.image_size[0]
+    dist = np.linalg.norm(uv[:, None, :] - dots[None, :, :], axis=2).min(axis=1)
+    if np.median(dist) > tol:
+        return (f"its markers lie {np.median(dist):.0f} px from where the calibrated pose puts them "
+                "(another camera position?)")
+    return None
+
+
+def load_bed_photo(path: str | Path | None, camera: CameraModel, *, given: bool) -> tuple[np.ndarray | None, str]:
+    """Read and check the empty-bed photo for :class:`SceneModel`.
+
+    Parameters
+    ----------
+    path : str or Path or None
+        ``--bed-photo`` (``given=True``) or the photo recorded with the camera model.
+    camera : CameraModel
+    given : bool
+        The user named the file: a missing or unreadable file and a wrong size
+        raise. A recorded one that is missing is a warning.
+
+    Returns
+    -------
+    photo : ndarray or None
+        ``None`` when there is none to use (the first photo is the baseline).
+    note : str
+        What is missing or why the photo is not used ("" when it is).
+
+    Raises
+    ------
+    CalibrationError
+        A given file is missing or unreadable; any bed photo of another size than the camera's.
+    """
+    if path is None:
+        return None, ("no empty-bed photo (take one with `layerwatch calibrate --markers bed.jpg` or pass "
+                      "--bed-photo): the first photo is the scene's baseline")
+    p = Path(path)
+    if not p.is_file():
+        if given:
+            raise CalibrationError(f"bed photo {p} not found; pass the empty-bed photo taken at calibration.")
+        return None, f"the bed photo recorded with the camera ({p}) is missing: the first photo is the baseline"
+    photo = check_bed_photo(cv2.imread(str(p), cv2.IMREAD_COLOR), camera, name=f"bed photo {p}")
+    problem = bed_photo_pose_problem(photo, camera)
+    if problem is not None:
+        return None, f"bed photo {p} is not used: {problem}; the first photo is the baseline"
+    return photo, ""
 
 
 @dataclass
