@@ -29,7 +29,7 @@ photo:
    frame's block scores (the threshold follows each frame's own noise) and,
    unless it is above ``SHADE_LIMIT`` times that, when a gain of its own
    does not explain it (the residual after the best per-block, per-channel
-   gain is above the same kind of threshold with half the floor): a moving
+   gain is above the same kind of threshold): a moving
    shade or the edge of a lamp's cone changes brightness, strands and
    objects change texture.
 
@@ -347,7 +347,7 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
     g = np.repeat(np.repeat(sxy / np.maximum(syy, 1e-6), b, 0), b, 1)
     shade_free = _block_mean(np.abs(img - g * pred).mean(axis=2), ok, counts, n, m, b)
     threshold, noise = _noise_threshold(score[scored], settings.min_change, settings.noise_k)
-    thr2, _ = _noise_threshold(shade_free[scored], 0.5 * settings.min_change, settings.noise_k)
+    thr2, _ = _noise_threshold(shade_free[scored], settings.min_change, settings.noise_k)
     strong = score > SHADE_LIMIT * threshold
     changed = scored & (score > threshold) & (strong | (shade_free > thr2))
     return ChangeMap(score, scored, changed, threshold, noise, b)

@@ -230,6 +230,10 @@ def evaluate(
                       f"{100 * configured['pause_ratio']:.1f} %: clean layers above it {configured['clean_above']}/"
                       f"{configured['n_clean']}; AUROC " + ", ".join(
                           f"{t} {v[1]:.2f}" for t, v in configured["types"].items()))
+        if "whole_view" in configured:
+            console.print("with the scene channel (whole view): AUROC " + ", ".join(
+                f"{t} {v:.2f}" for t, v in configured["whole_view"].items())
+                + f"; clean layers with a change beside the print {configured['clean_outside']}/{configured['n_clean']}")
     r = s.rec_metric
     console.print(f"recommended: {s.metrics[r]} T_S={s.thresholds[s.rec_t]:.2f}, pause a% > "
                   f"{100 * s.pause_ratio[r]:.1f} %; report {path} ({data.seconds:.0f} s)")
