@@ -40,8 +40,10 @@ camera view (working resolution, :mod:`layerwatch.analysis.scene_change`):
   camera moved, light switched: gain out of range or more than
   ``scene.max_changed_share`` of the blocks changed) is **rejected**: it never
   updates ``E`` and the pipeline reports it as an error (an alert, never a
-  pause). A bed photo that does not match the first frame that way is
-  dropped (a warning) and the first accepted photo becomes the baseline;
+  pause). A bed photo that does not match the first frame that way, or
+  whose view is shifted against it (phase correlation above
+  ``MAX_SHIFT_PX``: another camera pose), is dropped (a warning) and the
+  first accepted photo becomes the baseline;
   after ``REBASE_AFTER`` rejected frames in a row the current view becomes
   the baseline (the camera was moved for good: said in the result's message).
 
@@ -85,6 +87,8 @@ __all__ = ["GAIN_RANGE", "REBASE_AFTER", "SceneModel", "SceneObservation", "bed_
 
 #: photometric gains outside this range mean a frame that does not show the scene (dark, overexposed)
 GAIN_RANGE = (0.4, 2.5)
+#: whole-view shift (working px) between the bed photo and the first frame that means another pose
+MAX_SHIFT_PX = 2.0
 #: rejected frames in a row after which the current view becomes the baseline (camera moved for good)
 REBASE_AFTER = 3
 
@@ -322,6 +326,11 @@ class SceneModel:
         walls = obs.body & ~ledges
         usable = (self.observed & ~obs.predicted & ~walls & (img.max(axis=2) < SATURATED)
                   & (E.max(axis=2) < SATURATED))
+        if self.baseline == "bed photo" and not self._confirmed:
+            shift = self._shift(img, E, usable)
+            if shift is not None:
+                obs.rejected = shift
+                return
         obs.ratio, obs.gain = photometric_fit(img, E, usable)
         if np.any(obs.gain < GAIN_RANGE[0]) or np.any(obs.gain > GAIN_RANGE[1]):
             obs.rejected = (f"the frame does not show the expected scene (photometric gain "
@@ -332,6 +341,20 @@ class SceneModel:
         if share > st.max_changed_share:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "
                             "or the light changed")
+
+    @staticmethod
+    def _shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> str | None:
+        """Why the baseline is not this camera view (shift of the usable area above ``MAX_SHIFT_PX``), or ``None``."""
+        a, b = img.mean(axis=2), E.mean(axis=2)
+        if usable.sum() < 1000 or a[usable].std() < 3 or b[usable].std() < 3:
+            return None  # dark, flat or hidden: the gain check decides
+        a = np.where(usable, a, a[usable].mean())  # the print is not part of the bed photo
+        b = np.where(usable, b, b[usable].mean())
+        win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+        (dx, dy), _ = cv2.phaseCorrelate(b.astype(np.float32), a.astype(np.float32), win)
+        if np.hypot(dx, dy) > MAX_SHIFT_PX:
+            return f"the view is shifted by ({dx:.0f}, {dy:.0f}) working px against it: another camera pose"
+        return None
 
     def update(self, obs: SceneObservation) -> None:
         """Accept the photo after its layer was analysed: ``E`` takes it inside ``M`` only.
