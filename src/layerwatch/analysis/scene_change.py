@@ -41,7 +41,6 @@ milliseconds (``SceneObservation.timings_ms``).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -54,9 +53,11 @@ from layerwatch.errors import AnalysisError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["ChangeMap", "change_blocks", "change_regions", "image_rays", "photometric_fit", "plane_maps",
+__all__ = ["ChangeMap", "change_blocks", "change_regions", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
            "predicted_change", "to_working", "top_coords", "working_size"]
 
+#: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
+OUTLIER_LOG = 0.2
 #: a block scoring above this many thresholds changed whatever a local shade explains
 SHADE_LIMIT = 3.0
 #: grey level at and above which a pixel is taken as saturated (left out of the fit and the scores)
@@ -212,10 +213,11 @@ def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
     Radiance is albedo times irradiance, and a camera's gamma keeps a product
     a product, so a change of light (exposure, white balance, flicker, a lamp
     that moved) multiplies the expected image by a *smooth* per-channel field.
-    It is estimated in the log domain: the median of
+    It is estimated in the log domain: the mean of
     ``log(1 + photo) - log(1 + expected)`` over the usable pixels of every
-    ``cell_px`` cell (every second pixel), cells with less than a quarter
-    usable take the frame's median, then a ``smooth_cells`` x
+    ``cell_px`` cell (every second pixel), then again without the pixels
+    more than ``OUTLIER_LOG`` from it (strands, objects); cells with less
+    than a quarter usable take the frame's median, then a ``smooth_cells`` x
     ``smooth_cells`` median over cells (a failure covering a few cells does
     not bend the field), bilinear up to the image.
 
@@ -236,24 +238,23 @@ def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
         The frame's median ratio per channel (0 when fewer than 50 usable pixels).
     """
     h, w = usable.shape
-    ok = usable[::2, ::2]
+    ok = np.ascontiguousarray(usable[::2, ::2]).astype(np.float32)
     if ok.sum() < 50:
         return np.ones((h, w, 3), np.float32), np.zeros(3)
-    lr = np.log1p(photo[::2, ::2]) - np.log1p(expected[::2, ::2])
+    lr = cv2.subtract(np.log1p(photo[::2, ::2]), np.log1p(expected[::2, ::2]))
     c = max(1, cell_px // 2)
-    n, m = -(-ok.shape[0] // c), -(-ok.shape[1] // c)
-    pad = ((0, n * c - ok.shape[0]), (0, m * c - ok.shape[1]))
-    vals = np.pad(np.where(ok[..., None], lr, np.nan), (*pad, (0, 0)), constant_values=np.nan)
-    cells = vals.reshape(n, c, m, c, 3).transpose(0, 2, 4, 1, 3).reshape(n, m, 3, c * c)
-    counts = np.pad(ok, pad).reshape(n, c, m, c).sum(axis=(1, 3))
-    glob = np.median(lr[ok], axis=0)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells: replaced just below
-        med = np.nanmedian(cells, axis=3)
-    med = np.where((counts >= 0.25 * c * c)[..., None] & np.isfinite(med), med, glob)
+    size = (-(-ok.shape[1] // c), -(-ok.shape[0] // c))  # cells (m, n)
+    glob = np.array([np.median(lr[..., k][ok > 0]) for k in range(3)])
+    keep = ok
+    for _ in range(2):  # masked cell means, then again without the pixels far from them (the changes)
+        frac = cv2.resize(keep, size, interpolation=cv2.INTER_AREA)
+        mean = cv2.resize(lr * keep[..., None], size, interpolation=cv2.INTER_AREA) / np.maximum(frac, 1e-6)[..., None]
+        mean = np.where((frac >= 0.25)[..., None], mean, glob).astype(np.float32)
+        near = cv2.resize(mean, ok.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        keep = ok * (channel_max(np.abs(lr - near)) < OUTLIER_LOG).astype(np.float32)
     if smooth_cells > 1:
-        med = ndimage.median_filter(med, size=(smooth_cells, smooth_cells, 1), mode="nearest")
-    field = cv2.resize(med.astype(np.float32), (m * cell_px, n * cell_px), interpolation=cv2.INTER_LINEAR)[:h, :w]
+        mean = ndimage.median_filter(mean, size=(smooth_cells, smooth_cells, 1), mode="nearest")
+    field = cv2.resize(mean, (size[0] * cell_px, size[1] * cell_px), interpolation=cv2.INTER_LINEAR)[:h, :w]
     return np.exp(field).astype(np.float32), np.exp(glob).astype(np.float64)
 
 
@@ -299,10 +300,21 @@ class ChangeMap:
         return out
 
 
-def _block_mean(res: np.ndarray, ok: np.ndarray, counts: np.ndarray, n: int, m: int, b: int) -> np.ndarray:
-    """Mean of ``res`` over the usable pixels of each ``b`` x ``b`` block, shape (n, m) float32."""
-    sums = np.where(ok, res, 0.0).reshape(n, b, m, b).sum(axis=(1, 3))
-    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0).astype(np.float32)
+def channel_mean(img: np.ndarray) -> np.ndarray:
+    """Mean over the three channels of a float32 (h, w, 3) image, float32 (h, w)."""
+    return cv2.transform(img, np.full((1, 3), 1.0 / 3.0, np.float32))
+
+
+def channel_max(img: np.ndarray) -> np.ndarray:
+    """Largest of the three channels, (h, w) (element-wise: numpy's reduction over a 3-long axis is slow)."""
+    return np.maximum(np.maximum(img[..., 0], img[..., 1]), img[..., 2])
+
+
+def _block_mean(res: np.ndarray, okf: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """Mean of ``res`` over the usable pixels (``okf`` 0/1) of each block; ``frac``: their share per block."""
+    m, n = frac.shape[::-1]
+    sums = cv2.resize(res * okf, (m, n), interpolation=cv2.INTER_AREA)
+    return np.where(frac > 0, sums / np.maximum(frac, 1e-6), 0.0).astype(np.float32)
 
 
 def _noise_threshold(vals: np.ndarray, floor: float, k: float) -> tuple[float, float]:
@@ -335,17 +347,17 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
     h, w = usable.shape
     n, m = h // b, w // b
     crop = (slice(0, n * b), slice(0, m * b))
-    pred = np.minimum(expected * ratio, 255.0)[crop]  # the camera clips too
-    img, ok = photo[crop], usable[crop]
-    counts = ok.reshape(n, b, m, b).sum(axis=(1, 3))
-    scored = counts >= 0.5 * b * b
-    score = _block_mean(np.abs(img - pred).mean(axis=2), ok, counts, n, m, b)
+    pred = np.minimum(expected[crop] * ratio[crop], 255.0)  # the camera clips too
+    img = np.ascontiguousarray(photo[crop])
+    okf = np.ascontiguousarray(usable[crop]).astype(np.float32)
+    frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
+    scored = frac >= 0.5
+    score = _block_mean(channel_mean(cv2.absdiff(img, pred)), okf, frac)
     # the same residual after the best gain per block and channel: what a local shade explains
-    okf = ok[..., None].astype(np.float32)
-    sxy = (img * pred * okf).reshape(n, b, m, b, 3).sum(axis=(1, 3))
-    syy = (pred * pred * okf).reshape(n, b, m, b, 3).sum(axis=(1, 3))
-    g = np.repeat(np.repeat(sxy / np.maximum(syy, 1e-6), b, 0), b, 1)
-    shade_free = _block_mean(np.abs(img - g * pred).mean(axis=2), ok, counts, n, m, b)
+    sxy = cv2.resize(img * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    syy = cv2.resize(pred * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
+    shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
     threshold, noise = _noise_threshold(score[scored], settings.min_change, settings.noise_k)
     thr2, _ = _noise_threshold(shade_free[scored], settings.min_change, settings.noise_k)
     strong = score > SHADE_LIMIT * threshold

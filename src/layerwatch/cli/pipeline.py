@@ -192,6 +192,8 @@ def evaluate(
     clean_layers: Annotated[int, typer.Option("--clean-layers", parser=Finite(0, 100_000, integer=True), help="Also simulate about N layers of whole "
                                               "clean prints and count false alarms of the configured setting.")] = 0,
     paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
+    beside: Annotated[float, typer.Option("--beside-share", parser=Finite(0, 1), help="Share of the foreign bodies "
+                                          "and spaghetti placed on the bed beside the part.")] = 0.0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
     from layerwatch.cli import console
@@ -206,7 +208,7 @@ def evaluate(
     cam = default_camera(cfg.topview.topview(), image_size=(width, int(round(width * 9 / 16))))
     with _progress() as bar:
         task = bar.add_task("simulating + scoring", total=layers)
-        data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera,
+        data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera, beside_share=beside,
                               progress=lambda d, n: bar.update(task, completed=d, total=n))
     s = summarize(data)
     notes = [f"{e}" for e in data.errors]

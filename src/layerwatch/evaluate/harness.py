@@ -149,8 +149,10 @@ def tile_fraction(mask: np.ndarray, n: int, m: int, cell_px: int, block_cells: i
 
 
 def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 3,
-                clean_share: float = 0.4) -> list[tuple[object, list[int]]]:
+                clean_share: float = 0.4, beside_share: float = 0.0) -> list[tuple[object, list[int]]]:
     """Scenarios and the layers to photograph in each, about ``n_layers`` frames in all.
+
+    ``beside_share`` of the foreign bodies and spaghetti lie on the bed beside the part.
 
     Returns
     -------
@@ -160,7 +162,7 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
     n_clean_frames = int(round(n_layers * clean_share))
     n_fail = max(len(FAILURE_TYPES), int(round((n_layers - n_clean_frames) / per_fail)))
     plan = []
-    for s in random_scenarios(tp, n_fail, seed=seed, clean_fraction=0.0):
+    for s in random_scenarios(tp, n_fail, seed=seed, clean_fraction=0.0, beside_fraction=beside_share):
         if not s.failures:  # a type no layer of this part can take (run_evaluation says which)
             continue
         f = s.failures[0]
@@ -278,6 +280,7 @@ def run_evaluation(
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
     match_camera: bool = False,
+    beside_share: float = 0.0,
 ) -> EvalData:
     """Simulate about ``n_layers`` layer photos and score them (see module notes).
 
@@ -295,6 +298,8 @@ def run_evaluation(
         ``progress(done, total)``.
     match_camera : bool
         Camera-matched references (see :class:`~layerwatch.pipeline.step.LayerPipeline`).
+    beside_share : float
+        Share of the foreign bodies and spaghetti placed on the bed beside the part.
 
     Returns
     -------
@@ -302,11 +307,11 @@ def run_evaluation(
     """
     t0 = time.perf_counter()
     tv = config.topview.topview()
-    plan = plan_frames(toolpath, n_layers, seed=seed)
+    plan = plan_frames(toolpath, n_layers, seed=seed, beside_share=beside_share)
     total = sum(len(ls) for _, ls in plan)
     data = EvalData(setup={
         "n_frames": total, "n_scenarios": len(plan), "image_size": list(camera.image_size),
-        "analysis": config.analysis.model_dump(), "match_camera": match_camera, "scene": config.scene.enabled,
+        "analysis": config.analysis.model_dump(), "match_camera": match_camera, "scene": config.scene.enabled, "beside_share": beside_share,
         "toolpath": toolpath.source, "toolpath_layers": toolpath.n_layers, "seed": seed,
     })
     planned = {sc.failures[0].type for sc, _ in plan if sc.failures}

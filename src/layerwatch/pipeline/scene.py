@@ -67,6 +67,8 @@ from layerwatch.analysis.scene_change import (
     ChangeMap,
     change_blocks,
     change_regions,
+    channel_max,
+    channel_mean,
     image_rays,
     photometric_fit,
     plane_maps,
@@ -94,6 +96,11 @@ REBASE_AFTER = 3
 
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)``
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
+
+
+def _saturated(img: np.ndarray) -> np.ndarray:
+    """Pixels with a channel at or above :data:`SATURATED`, bool (h, w)."""
+    return channel_max(img) >= SATURATED
 
 
 def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "bed photo") -> np.ndarray:
@@ -306,7 +313,7 @@ class SceneModel:
 
     @staticmethod
     def _unusable_baseline(image: np.ndarray) -> str | None:
-        grey = image.mean(axis=2)
+        grey = channel_mean(image)
         if grey.mean() < 12 or grey.std() < 3 or (grey >= SATURATED).mean() > 0.5:
             return "the frame is too dark, flat or overexposed to be the scene's baseline"
         return None
@@ -324,8 +331,7 @@ class SceneModel:
         obs.body, obs.ledges = self.body | obs.predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
-        usable = (self.observed & ~obs.predicted & ~walls & (img.max(axis=2) < SATURATED)
-                  & (E.max(axis=2) < SATURATED))
+        usable = self.observed & ~obs.predicted & ~walls & ~_saturated(img) & ~_saturated(E)
         if self.baseline == "bed photo" and not self._confirmed:
             shift = self._shift(img, E, usable)
             if shift is not None:
@@ -345,7 +351,7 @@ class SceneModel:
     @staticmethod
     def _shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> str | None:
         """Why the baseline is not this camera view (shift of the usable area above ``MAX_SHIFT_PX``), or ``None``."""
-        a, b = img.mean(axis=2), E.mean(axis=2)
+        a, b = channel_mean(img), channel_mean(E)
         if usable.sum() < 1000 or a[usable].std() < 3 or b[usable].std() < 3:
             return None  # dark, flat or hidden: the gain check decides
         a = np.where(usable, a, a[usable].mean())  # the print is not part of the bed photo
@@ -369,7 +375,7 @@ class SceneModel:
         elif obs.body is not None:
             back = self._in_expected_frame(obs)
             take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)
-            self.expected[take] = back[take]
+            np.copyto(self.expected, back, where=take[..., None])
             self._confirmed = True
             self.body, self.ledges = obs.body, obs.ledges
             self.body_layer = max(self.body_layer, obs.layer)

@@ -355,13 +355,16 @@ def random_scenarios(
     seed: int = 0,
     types: tuple[str, ...] = FAILURE_TYPES,
     clean_fraction: float = 1.0 / 7.0,
+    beside_fraction: float = 0.0,
 ) -> list[Scenario]:
     """Sample ``n`` single-failure scenarios (and clean controls) for an evaluation.
 
     Types cycle through ``types`` (a fraction ``clean_fraction`` of clean
     controls interleaved); onsets are drawn among layers where the type makes
     sense (infill present, thin walls present — else outer perimeters — and
-    never the first two layers); sizes from a per-type range in mm.
+    never the first two layers); sizes from a per-type range in mm. A share
+    ``beside_fraction`` of the foreign bodies and spaghetti is placed on the
+    bed beside the part (``place="beside"``) instead of on the onset layer.
 
     Returns
     -------
@@ -385,6 +388,8 @@ def random_scenarios(
             size_mm=float(rng.uniform(lo, hi)),
             seed=int(rng.integers(2**31)),
             mode="under" if (kind == "infill_defect" and rng.random() < 0.3) else "missing",
+            place="beside" if (kind in ("foreign_body", "spaghetti") and beside_fraction > 0
+                               and rng.random() < beside_fraction) else "on",
         )
         out.append(Scenario((f,), name=f"s{k:03d}-{kind}"))
     return out
