@@ -142,3 +142,29 @@ def test_layer_result_keeps_the_scene_fields_through_json():
     assert back.outside_regions == res.outside_regions
     assert back.scene == res.scene
     assert LayerResult.from_json(LayerResult(layer=1, z=0.3).to_json()).scene is None
+
+
+def test_compare_with_a_bed_photo_reports_what_changed_beside_the_footprint(tmp_path, capsys):
+    from layerwatch.cli import main
+
+    bed = np.clip(_texture(600, 600, seed=5), 0, 255).astype(np.uint8)
+    top = bed.copy()
+    top[200:400, 200:400] = 200  # the part (its footprint is the mask)
+    cv2.circle(top, (480, 120), 25, (30, 30, 30), -1)  # a nut on the bed beside it
+    mask = np.zeros((600, 600), np.uint8)
+    mask[200:400, 200:400] = 255
+    paths = {k: tmp_path / f"{k}.png" for k in ("top", "ref", "mask", "bed", "small")}
+    for k, img in (("top", top), ("ref", top), ("mask", mask), ("bed", bed), ("small", bed[:300])):
+        cv2.imwrite(str(paths[k]), img)
+    args = ["compare", str(paths["top"]), str(paths["ref"]), "--mask", str(paths["mask"]), "-c", str(tmp_path / "j.toml")]
+    (tmp_path / "j.toml").write_text("[topview]\npx_per_mm = 6.67\nwidth_mm = 90\nheight_mm = 90\ncenter_mm = [45, 45]\n")
+    assert main([*args, "--bed-photo", str(paths["bed"]), "--json", str(tmp_path / "r.json")]) == 0
+    res = LayerResult.from_json((tmp_path / "r.json").read_text())
+    assert len(res.outside_regions) == 1 and res.outside_anomalous_mm2 > 20
+    cx, cy = res.outside_regions[0].centroid_mm
+    assert abs(cx - 480 / 6.67) < 3 and abs(cy - (90 - 120 / 6.67)) < 3
+    capsys.readouterr()
+    assert main([*args, "--bed-photo", str(paths["small"])]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert main(args) == 0
+    assert "no --bed-photo" in capsys.readouterr().out

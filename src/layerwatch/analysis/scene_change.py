@@ -53,7 +53,7 @@ from layerwatch.errors import AnalysisError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["ChangeMap", "change_blocks", "change_regions", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
+__all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
            "predicted_change", "to_working", "top_coords", "working_size"]
 
 #: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
@@ -404,3 +404,42 @@ def change_regions(changed: np.ndarray, similarity: np.ndarray, topview: TopView
                           outside_fraction=1.0))
     out.sort(key=lambda r: -r.area_mm2)
     return out
+
+
+def changed_beside(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndarray, topview: TopView,
+                   settings: SceneSettings) -> list[Region]:
+    """Single-photo scene check in the top view: the photo against the empty bed beside the footprint.
+
+    What ``layerwatch compare --bed-photo`` runs on one top view (no series,
+    no camera): both images warped to the same top view, compared outside
+    the footprint dilated by ``settings.margin_mm`` with the same photometric
+    fit and change blocks as the series channel (blocks of
+    ``settings.block_px`` top-view px). Lower layers and walls seen beside the
+    top layer are not modelled here, so a tall part's own walls count as change.
+
+    Parameters
+    ----------
+    top, bed_top : ndarray, uint8, shape (H, W) or (H, W, 3)
+        Top views of the photo and of the empty bed.
+    footprint : ndarray, bool, shape (H, W)
+    topview : TopView
+    settings : SceneSettings
+
+    Returns
+    -------
+    list of Region
+        Changed regions beside the footprint (bed mm), largest first.
+    """
+    size = tuple(topview.shape[::-1])
+    a, b = to_working(np.asarray(top), size), to_working(np.asarray(bed_top), size)
+    k = int(round(2 * settings.margin_mm * topview.px_per_mm)) | 1
+    near = cv2.dilate(np.asarray(footprint, np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    usable = ~near & (channel_max(a) > 0) & (channel_max(b) > 0) & (channel_max(a) < SATURATED)
+    ratio, _ = photometric_fit(a, b, usable)
+    ch = change_blocks(a, b, usable, ratio, settings)
+    sim = np.where(ch.changed, np.minimum(1.0, ch.threshold / np.maximum(ch.score, 1e-6)), 1.0)
+    b_px = ch.block_px
+    sim_px = np.ones(topview.shape, np.float32)
+    up = np.repeat(np.repeat(sim, b_px, 0), b_px, 1).astype(np.float32)
+    sim_px[: up.shape[0], : up.shape[1]] = up
+    return change_regions(ch.pixels(topview.shape) & usable, sim_px, topview, settings.min_region_mm2)
