@@ -125,7 +125,7 @@ def _valid_value(param, fx: dict[str, Path]) -> str:
         return "1"
     if "camera" in name and ann is not str:
         return str(fx["camera"])
-    if name in {"photo", "photo_top", "reference", "mask", "photos", "markers"}:
+    if name in {"photo", "photo_top", "reference", "mask", "photos", "markers", "bed_photo"}:
         return str(fx["png"])
     if name in {"config"}:
         return str(fx["config"])

@@ -156,3 +156,39 @@ def test_small_footprint_needs_min_area_before_the_ratio_rule_pauses():
     assert p.update(small(13, 5.76)).stops
     no_floor = PausePolicy(PolicySettings(pause_ratio=0.025, consecutive_layers=2, min_area_mm2=0.0))
     assert no_floor.update(small(2, 2.88)).action == "notify" and no_floor.update(small(3, 2.88)).stops
+
+
+def _scene(layer, area, x=60.0, y=60.0, status="ok"):
+    """A layer whose HOG a% is 0 and whose scene channel saw ``area`` mm^2 change at (x, y) beside the print."""
+    res = _res(layer, 0.0, status=status)
+    if area:
+        res.outside_regions = [_region(area, x, y, outside=1.0)]
+        res.outside_anomalous_mm2 = float(area)
+    return res
+
+
+def test_outside_rule_pauses_on_change_beside_the_print_that_stays():
+    p = PausePolicy(PolicySettings(outside_pause_mm2=12.0, consecutive_layers=2))
+    assert p.update(_scene(3, 20)).action == "notify"
+    d = p.update(_scene(4, 22))
+    assert d.action == "pause" and "beside the print" in d.reason and "(60, 60) mm" in d.reason
+
+
+def test_outside_rule_needs_the_same_place_the_area_and_is_off_by_default():
+    p = PausePolicy(PolicySettings(outside_pause_mm2=12.0, consecutive_layers=2))
+    assert p.update(_scene(3, 20, 40, 40)).action == "notify"
+    assert p.update(_scene(4, 20, 140, 140)).action == "notify"  # elsewhere: noise does not stay in place
+    assert p.update(_scene(5, 8, 140, 140)).action == "none"  # below the area
+    q = PausePolicy(PolicySettings(consecutive_layers=2))  # the paper's settings: outside_pause_mm2 = 0
+    assert all(q.update(_scene(i, 500)).action == "none" for i in range(3, 8))
+
+
+def test_outside_rule_errors_never_pause_and_acknowledged_change_counts_only_when_it_grows():
+    p = PausePolicy(PolicySettings(outside_pause_mm2=12.0, consecutive_layers=2))
+    assert p.update(_scene(3, 20)).action == "notify"
+    assert p.update(_scene(4, 0, status="error")).action == "notify"  # a black frame: alert only
+    assert p.update(_scene(5, 20)).stops
+    p.acknowledge()
+    assert [p.update(_scene(i, 21)).action for i in (6, 7, 8)] == ["none", "none", "none"]
+    assert p.update(_scene(9, 40)).action == "notify"
+    assert p.update(_scene(10, 41)).stops

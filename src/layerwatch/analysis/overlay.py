@@ -30,6 +30,7 @@ __all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "bloc
 _CMAP = "RdYlGn"
 _FOOTPRINT_RGB = (0, 220, 255)
 _REGION_RGB = (255, 0, 255)
+_OUTSIDE_RGB = (255, 160, 0)  # scene channel: change beside the print
 
 
 def _colormap(values: np.ndarray) -> np.ndarray:
@@ -126,7 +127,8 @@ def overlay_image(
     topview : TopView
         Geometry of ``top`` (its shape must match).
     footprint : ndarray, shape (H, W), bool, optional
-        Layer footprint, outlined in cyan.
+        Layer footprint, outlined in cyan. The scene channel's regions beside
+        the print (``result.outside_regions``) are boxed in orange.
     alpha : float
         Opacity of the heatmap colour on a block of similarity 0; a block of
         similarity 1 gets 30 % of it.
@@ -162,8 +164,13 @@ def overlay_image(
     anomalous = anomalous_blocks(result)
     thick = max(1, round(min(shape) / 300))
     _outline(img, block_tiles(anomalous, shape, c, b, fill=False), _REGION_RGB, thick)
+    for r in result.outside_regions:  # the scene channel's changes beside the print (bed mm boxes)
+        (u0, v0), (u1, v1) = np.round(topview.to_px(np.array([r.bbox_mm[:2], r.bbox_mm[2:]], float))).astype(int)
+        cv2.rectangle(img, (u0, v1), (u1, v0), _OUTSIDE_RGB, thick)
     if caption:
         text = f"layer {result.layer}  {result.metric} < {result.threshold:.2f}  a% = {100 * result.anomaly_ratio:.1f}"
+        if result.outside_anomalous_mm2 > 0:
+            text += f"  beside {result.outside_anomalous_mm2:.0f} mm2"
         scale = max(0.35, min(shape) / 1200)
         (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
         cv2.rectangle(img, (0, 0), (tw + 8, th + base + 8), (0, 0, 0), -1)

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BlockGrid", "LayerResult", "MetricScore", "Region"]
+__all__ = ["BlockGrid", "LayerResult", "MetricScore", "Region", "SceneStats"]
 
 
 @dataclass
@@ -97,6 +97,49 @@ class MetricScore:
     anomaly_ratio: float
     n_anomalous: int
     mean_similarity: float
+
+
+@dataclass
+class SceneStats:
+    """What the scene channel saw in one photo (``LayerResult.scene``; :mod:`layerwatch.pipeline.scene`).
+
+    Attributes
+    ----------
+    baseline : str
+        What the expected appearance started from: ``"bed photo"``,
+        ``"first photo"``, or ``""`` when this photo became the baseline
+        (nothing to compare with yet).
+    threshold : float
+        The frame's block threshold, grey levels (mean absolute residual).
+    noise : float
+        Robust spread of the frame's block scores (1.4826 MAD), grey levels.
+    blocks_scored, blocks_changed : int
+        Working-image blocks compared and found changed outside the predicted change.
+    gain : tuple of float
+        Photometric gain per channel (BGR) of the photo against the expected appearance.
+    ms : float
+        Time of the channel on this photo, ms.
+    """
+
+    baseline: str = ""
+    threshold: float = 0.0
+    noise: float = 0.0
+    blocks_scored: int = 0
+    blocks_changed: int = 0
+    gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    ms: float = 0.0
+
+
+def _region(r: dict[str, Any]) -> Region:
+    return Region(
+        area_mm2=float(r["area_mm2"]),
+        bbox_mm=tuple(r["bbox_mm"]),
+        centroid_mm=tuple(r["centroid_mm"]),
+        n_blocks=int(r["n_blocks"]),
+        mean_similarity=float(r["mean_similarity"]),
+        min_similarity=float(r.get("min_similarity", 0.0)),
+        outside_fraction=float(r.get("outside_fraction", 0.0)),
+    )
 
 
 def _clean(value: Any) -> Any:
@@ -178,6 +221,14 @@ class LayerResult:
     frame_quality : dict of str to float
         Camera-fault gate: the figures of a refused frame (``status="camera_fault"``;
         :func:`~layerwatch.analysis.frame_quality.assess_frame`).
+    outside_anomalous_mm2 : float
+        Scene channel: area changed beside the layer's predicted change (not
+        in a%, which stays eq. 5 over the printed area), mm^2 on the layer
+        plane; 0 when the channel is off or had no baseline.
+    outside_regions : list of Region
+        Scene channel: the connected changed areas (bed mm), largest first.
+    scene : SceneStats or None
+        Scene channel's figures for this photo; ``None`` when it is off.
     """
 
     layer: int
@@ -208,6 +259,9 @@ class LayerResult:
     trigger_to_pause_ms: float | None = None
     simulated_failures: list[str] = field(default_factory=list)
     frame_quality: dict[str, float] = field(default_factory=dict)
+    outside_anomalous_mm2: float = 0.0
+    outside_regions: list[Region] = field(default_factory=list)
+    scene: SceneStats | None = None
 
     @property
     def ok(self) -> bool:
@@ -234,18 +288,12 @@ class LayerResult:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> LayerResult:
         d = dict(d)
-        regions = [
-            Region(
-                area_mm2=float(r["area_mm2"]),
-                bbox_mm=tuple(r["bbox_mm"]),
-                centroid_mm=tuple(r["centroid_mm"]),
-                n_blocks=int(r["n_blocks"]),
-                mean_similarity=float(r["mean_similarity"]),
-                min_similarity=float(r.get("min_similarity", 0.0)),
-                outside_fraction=float(r.get("outside_fraction", 0.0)),
-            )
-            for r in d.pop("regions", [])
-        ]
+        regions = [_region(r) for r in d.pop("regions", [])]
+        d["outside_regions"] = [_region(r) for r in d.get("outside_regions") or []]
+        if isinstance(d.get("scene"), dict):
+            sc = d["scene"]
+            d["scene"] = SceneStats(**{k: (tuple(v) if k == "gain" else v) for k, v in sc.items()
+                                       if k in SceneStats.__dataclass_fields__})
         heat = d.pop("heatmap", None)
         mask = d.pop("mask", None)
         for key, value in (d.pop("extra", None) or {}).items():  # rows written before the typed fields
@@ -256,7 +304,8 @@ class LayerResult:
             d["per_metric"] = {name: MetricScore(**v) for name, v in d["per_metric"].items()}
         known = {f for f in cls.__dataclass_fields__}
         kwargs = {k: v for k, v in d.items() if k in known}
-        for key in ("anomaly_ratio", "printed_area_mm2", "anomalous_area_mm2", "outside_area_mm2"):
+        for key in ("anomaly_ratio", "printed_area_mm2", "anomalous_area_mm2", "outside_area_mm2",
+                    "outside_anomalous_mm2"):
             if kwargs.get(key) is None and key in kwargs:
                 kwargs[key] = float("nan")
         res = cls(**kwargs, regions=regions)

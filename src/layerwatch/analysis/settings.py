@@ -8,7 +8,7 @@ from pydantic import Field
 
 from layerwatch.settings_base import Section
 
-__all__ = ["AnalysisSettings", "METRIC_NAMES"]
+__all__ = ["AnalysisSettings", "METRIC_NAMES", "SceneSettings"]
 
 METRIC_NAMES = (
     "cosine",
@@ -93,3 +93,48 @@ class AnalysisSettings(Section):
     # displaced part); regions still have to start on the considered blocks.
     # Values below footprint_margin_mm mean the footprint margin.
     grow_margin_mm: float = Field(0.0, ge=0)
+
+
+class SceneSettings(Section):
+    """The image-space scene channel (config section ``[scene]``, :mod:`layerwatch.analysis.scene_change`).
+
+    Off in the built-in (paper) values, on in the recommended ones
+    (:data:`layerwatch.pipeline.config.RECOMMENDED`), so ``--paper-settings``
+    reproduces the paper's single-photo method.
+
+    Attributes
+    ----------
+    enabled : bool
+        Compare every photo with the expected appearance of the scene outside
+        the layer's predicted change (default False: the paper's method).
+    working_px : int
+        Long side of the working image the camera frame is reduced to, px
+        (640: a 1080p frame is averaged 3 x 3, a 720p one 2 x 2).
+    margin_mm : float
+        Dilation of the layer's footprint before it is projected into the
+        image: half a bead, the wall's bulge and the thin shadow line at its
+        foot, mm.
+    block_px : int
+        Side of a change block in working-image px (8 px ~ 2 mm on the bed for
+        a 90 mm square seen by a 720p/1080p camera).
+    noise_k : float
+        Block threshold = median + ``noise_k`` x 1.4826 MAD of the frame's
+        block scores (the noise estimate of that frame), grey levels.
+    min_change : float
+        Lowest block threshold, grey levels (0-255) of mean absolute residual.
+    min_region_mm2 : float
+        Smallest changed region reported, mm^2 on the layer plane.
+    max_changed_share : float
+        A frame whose changed blocks exceed this share of the scored blocks
+        does not show the scene the model expects (camera moved, covered,
+        light switched): it is rejected as a camera fault, never a failure.
+    """
+
+    enabled: bool = False
+    working_px: int = Field(640, ge=160, le=4096)
+    margin_mm: float = Field(1.5, ge=0, le=20)
+    block_px: int = Field(8, ge=2, le=64)
+    noise_k: float = Field(6.0, gt=0, le=100)
+    min_change: float = Field(8.0, ge=0, le=255)
+    min_region_mm2: float = Field(4.0, ge=0)
+    max_changed_share: float = Field(0.35, gt=0, le=1)

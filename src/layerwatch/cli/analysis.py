@@ -59,6 +59,8 @@ def compare(
     output: Annotated[Path | None, typer.Option("-o", "--output", parser=WRITE_FILE, help="Overlay PNG to write (default: <photo>_overlay.png).")] = None,
     all_metrics: Annotated[bool, typer.Option("--all-metrics", help="Also print a% for all twelve measures.")] = False,
     json_out: Annotated[Path | None, typer.Option("--json", parser=WRITE_FILE, help="Also write the LayerResult as JSON here.")] = None,
+    bed_photo: Annotated[Path | None, typer.Option("--bed-photo", dir_okay=False, help="Top view of the empty bed "
+                                                   "(`layerwatch warp bed.jpg`): also report what changed beside the footprint.")] = None,
 ) -> None:
     """Compare a top-view photo with its reference: print a% and failing regions, write the overlay.
 
@@ -89,6 +91,7 @@ def compare(
     if topview.shape != (h, w):  # pragma: no cover - rounding guard
         raise AnalysisError(f"cannot build a {w}x{h} px top view at {ppm} px/mm; adjust --px-per-mm.")
     res = analyze_layer(top, ref, foot, topview, cfg.analysis, all_metrics=all_metrics)
+    _beside(res, photo_top, bed_photo, foot, topview, cfg)
     out = output or photo_top.with_name(photo_top.stem + "_overlay.png")
     write_overlay(out, top, res, topview, foot if mask is not None else None)
     res.images["overlay"] = str(out)
@@ -99,6 +102,32 @@ def compare(
     from layerwatch.cli import console
 
     console.print(f"overlay written to {out}  ({res.timings_ms['total']:.0f} ms)")
+
+
+def _beside(res, photo_top: Path, bed_photo: Path | None, foot, topview, cfg) -> None:
+    """``--bed-photo``: the single-photo scene check beside the footprint into ``res`` (or say it is missing)."""
+    import cv2
+
+    from layerwatch.analysis.scene_change import changed_beside
+    from layerwatch.cli import console
+    from layerwatch.errors import AnalysisError
+
+    if bed_photo is None:
+        console.print("[dim]no --bed-photo: what lies beside the footprint is not compared with the empty bed[/]")
+        return
+    if not bed_photo.is_file():
+        raise AnalysisError(f"bed photo {bed_photo} does not exist; pass the empty bed's top view (layerwatch warp).")
+    top = cv2.imread(str(photo_top), cv2.IMREAD_COLOR)
+    bed = cv2.imread(str(bed_photo), cv2.IMREAD_COLOR)
+    if bed is None:
+        raise AnalysisError(f"bed photo {bed_photo} is not a readable image; pass a PNG or JPEG file.")
+    if bed.shape != top.shape:
+        raise AnalysisError(f"bed photo is {bed.shape[1]}x{bed.shape[0]} px but the photo is {top.shape[1]}x{top.shape[0]}; "
+                            "warp both to the same top view.")
+    res.outside_regions = changed_beside(top, bed, foot, topview, cfg.scene)
+    res.outside_anomalous_mm2 = float(sum(r.area_mm2 for r in res.outside_regions))
+    console.print(f"beside the footprint: {res.outside_anomalous_mm2:.1f} mm² changed against the empty bed "
+                  f"in {len(res.outside_regions)} region(s)")
 
 
 def _print_result(res, has_mask: bool) -> None:

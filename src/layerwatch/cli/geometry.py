@@ -101,8 +101,31 @@ def calibrate(
         c = model.center_mm
         console.print(f"bed pose: reprojection error {model.errors['pose_px']:.2f} px, camera at "
                       f"({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) mm; markers drawn in {png}")
+        model = _keep_bed_photo(model, markers, photo, output)
     model.save(output)
     console.print(f"camera model written to {output}")
+
+
+def _keep_bed_photo(model, markers: Path, photo, output: Path):
+    """Copy the empty-bed marker photo beside the camera model and record it there (the scene channel's baseline).
+
+    Only a photo of the model's own resolution is kept (the scene channel
+    compares frames pixel by pixel); otherwise the model is returned unchanged with a note.
+    """
+    import dataclasses
+    import shutil
+
+    from layerwatch.cli import console
+
+    if (photo.shape[1], photo.shape[0]) != tuple(model.image_size):
+        console.print(f"[yellow]bed photo not kept:[/] it is {photo.shape[1]}x{photo.shape[0]}, the camera model "
+                      f"{model.image_size[0]}x{model.image_size[1]}; take it at the monitoring resolution")
+        return model
+    bed = output.with_name(output.stem + "_bed" + markers.suffix.lower())
+    if bed.resolve() != markers.resolve():
+        shutil.copyfile(markers, bed)
+    console.print(f"empty-bed photo kept as {bed} (the scene channel's baseline)")
+    return dataclasses.replace(model, bed_photo=str(bed))
 
 
 def warp(

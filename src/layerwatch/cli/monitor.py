@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from layerwatch.cli.params import SEED, WRITE_DB, WRITE_DIR, Finite
-from layerwatch.cli.pipeline import PAPER_HELP
+from layerwatch.cli.pipeline import BED_HELP, PAPER_HELP, scene_baseline
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
@@ -158,6 +158,7 @@ def monitor(
     keep_jobs: Annotated[int | None, typer.Option("--keep-jobs", parser=Finite(1, 1_000_000, integer=True), help="Keep the images of at most this many jobs.")] = None,
     park_tolerance: Annotated[float, typer.Option("--park-tolerance", parser=Finite(0, 50, unit="mm"), help="Reject frames taken with the head farther than this from the park spot, mm (0: no check).")] = 1.0,
     poll: Annotated[float, typer.Option("--poll", parser=Finite(0.05, 60, unit="s"), help="Printer status poll interval, s; an unreachable host is retried with back-off up to this interval.")] = 0.2,
+    bed_photo: Annotated[Path | None, typer.Option("--bed-photo", exists=True, dir_okay=False, help=BED_HELP)] = None,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     import logging
@@ -221,7 +222,8 @@ def monitor(
     if history is not None:
         hist = History(history)
         job = hist.start_job(redact_url(printer), gpath, config=cfg)
-    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg), PausePolicy(cfg.policy),
+    bed = scene_baseline(cfg, cam_model, bed_photo)  # None: the first accepted photo is the scene's start
+    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg, bed_photo=bed), PausePolicy(cfg.policy),
                   notifier=Notifier(cfg.notify), history=hist, job_id=job,
                   wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict,
                   faults=cfg.faults, frame_quality=cfg.frame_quality)

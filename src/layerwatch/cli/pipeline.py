@@ -61,6 +61,32 @@ PAPER_HELP = ("Leave out the evaluation's recommended settings: the job file ove
               "(cosine, T_S 0.7, 5 mm margin, pause a% > 10 %).")
 
 
+#: the help of ``--bed-photo``, the same on every verb
+BED_HELP = ("Photo of the empty bed from the monitoring camera (default: the one `calibrate --markers` kept "
+            "with the camera model): the scene channel's first expected appearance.")
+
+
+def scene_baseline(cfg, camera, bed_photo: Path | None):
+    """The empty-bed photo for the scene channel (``--bed-photo`` or the camera's), saying what is missing.
+
+    ``None`` when the channel is off (``--paper-settings``) or there is no usable bed photo.
+    """
+    from rich.markup import escape
+
+    from layerwatch.cli import console
+    from layerwatch.pipeline.scene import load_bed_photo
+
+    if not cfg.scene.enabled:
+        if bed_photo is not None:
+            console.print("[yellow]note:[/] the scene channel is off ([scene] enabled = false); --bed-photo is not used")
+        return None
+    path = bed_photo if bed_photo is not None else camera.bed_photo
+    photo, note = load_bed_photo(path, camera, given=bed_photo is not None)
+    if note:
+        console.print(f"[yellow]note:[/] {escape(note)}")
+    return photo
+
+
 def analyze(
     photos: Annotated[list[Path], typer.Argument(exists=True, dir_okay=False, help="Layer photos, named by layer (layer_0012.png) or in order.")],
     gcode: Annotated[Path, typer.Option("--gcode", "-g", exists=True, dir_okay=False, help="The job's G-code.")],
@@ -69,8 +95,9 @@ def analyze(
     config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML.")] = None,
     cache: Annotated[Path | None, typer.Option("--cache", parser=WRITE_DIR, help="Reference cache folder.")] = None,
     paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
+    bed_photo: Annotated[Path | None, typer.Option("--bed-photo", dir_okay=False, help=BED_HELP)] = None,
 ) -> None:
-    """Analyse photos of a print layer by layer: warp, reference, HOG comparison, pause decision.
+    """Analyse photos of a print layer by layer: warp, reference, HOG comparison, scene, pause decision.
 
     Exits 1 when no photo could be analysed.
     """
@@ -86,9 +113,10 @@ def analyze(
     tp = _toolpath(gcode)
     cfg = job_settings(config, gcode, tp, paper=paper).config
     cam = CameraModel.load(camera)
+    bed = scene_baseline(cfg, cam, bed_photo)
     with _progress() as bar:
         task = bar.add_task("analysing", total=len(photos))
-        run = run_offline(tp, cam, cfg, photos, out, cache_dir=cache,
+        run = run_offline(tp, cam, cfg, photos, out, cache_dir=cache, bed_photo=bed,
                           progress=lambda d, n, text: bar.update(task, completed=d, total=n, description=text))
     for p in run.problems:
         console.print(f"[yellow]warning:[/] {escape(p)}")
@@ -107,41 +135,49 @@ def analyze(
 
 def simulate(
     gcode: Annotated[Path | None, typer.Option("--gcode", "-g", exists=True, dir_okay=False, help="G-code (default: the bundled example part).")] = None,
-    failure: Annotated[list[str] | None, typer.Option("--failure", "-f", help="TYPE@LAYER[:SIZE_MM], repeatable, "
-                                                       "e.g. spaghetti@15 or layer_shift@10:3.")] = None,
+    failure: Annotated[list[str] | None, typer.Option("--failure", "-f", help="TYPE@LAYER[:SIZE_MM][/beside], repeatable, "
+                                                       "e.g. spaghetti@15, layer_shift@10:3 or foreign_body@8:10/beside "
+                                                       "(on the bed beside the part).")] = None,
     out: Annotated[Path, typer.Option("-o", "--out", parser=WRITE_DIR, help="Output folder (photos, truth masks, camera.toml).")] = Path("sim"),
     layers: Annotated[int | None, typer.Option("--layers", "-n", parser=Finite(1, 100_000, integer=True), help="Only the first N layers.")] = None,
     seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 0,
     width: Annotated[int, typer.Option("--width", parser=Finite(64, 8192, integer=True, unit="px"), help="Photo width px (16:9).")] = 1280,
     config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([topview]).")] = None,
 ) -> None:
-    """Simulate camera photos of a print (with failures and ground-truth masks)."""
+    """Simulate camera photos of a print (with failures and ground-truth masks) and the empty bed (bed.png)."""
+    import cv2
+
     from layerwatch.cli import console
     from layerwatch.errors import ConfigError
-    from layerwatch.simulate import Failure, default_camera, save_frame, simulate_print
+    from layerwatch.simulate import Failure, PrintSimulator, default_camera, save_frame
 
     fails = []
     for spec in failure or []:
         try:
             kind, rest = spec.split("@", 1)
+            rest, slash, place = rest.partition("/")
             onset, _, size = rest.partition(":")
-            fails.append(Failure(kind.strip(), onset=int(onset), size_mm=float(size)) if size else
-                         Failure(kind.strip(), onset=int(onset)))
+            fails.append(Failure(kind.strip(), onset=int(onset), **({"size_mm": float(size)} if size else {}),
+                                 **({"place": place.strip()} if slash else {})))
         except ValueError:
-            raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM]; e.g. spaghetti@15.") from None
+            raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM][/beside]; e.g. spaghetti@15.") from None
     tp = _toolpath(gcode)
     cfg = job_settings(config, gcode, tp).config
     tv = cfg.topview.topview()
     cam = default_camera(tv, image_size=(width, int(round(width * 9 / 16))))
     out.mkdir(parents=True, exist_ok=True)
+    sim = PrintSimulator(tp, cam, tv, fails, seed=seed)
+    cv2.imwrite(str(out / "bed.png"), sim.bed_photo())  # the empty bed, kept with the camera as calibrate does
+    cam.bed_photo = str(out / "bed.png")
     cam.save(out / "camera.toml")
     n = tp.n_layers if layers is None else min(layers, tp.n_layers)
     with _progress() as bar:
         task = bar.add_task("simulating", total=n)
-        for fr in simulate_print(tp, cam, tv, fails, seed=seed, layers=range(n)):
+        for i in range(n):
+            fr = sim.frame(i)
             save_frame(fr, out)
             bar.update(task, advance=1, description=f"layer {fr.layer}")
-    console.print(f"wrote {n} photos (+ truth masks where failed) and camera.toml to {out}")
+    console.print(f"wrote {n} photos (+ truth masks where failed), the empty bed (bed.png) and camera.toml to {out}")
 
 
 def evaluate(
@@ -156,6 +192,8 @@ def evaluate(
     clean_layers: Annotated[int, typer.Option("--clean-layers", parser=Finite(0, 100_000, integer=True), help="Also simulate about N layers of whole "
                                               "clean prints and count false alarms of the configured setting.")] = 0,
     paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
+    beside: Annotated[float, typer.Option("--beside-share", parser=Finite(0, 1), help="Share of the foreign bodies "
+                                          "and spaghetti placed on the bed beside the part.")] = 0.0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
     from layerwatch.cli import console
@@ -170,7 +208,7 @@ def evaluate(
     cam = default_camera(cfg.topview.topview(), image_size=(width, int(round(width * 9 / 16))))
     with _progress() as bar:
         task = bar.add_task("simulating + scoring", total=layers)
-        data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera,
+        data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera, beside_share=beside,
                               progress=lambda d, n: bar.update(task, completed=d, total=n))
     s = summarize(data)
     notes = [f"{e}" for e in data.errors]
@@ -194,6 +232,10 @@ def evaluate(
                       f"{100 * configured['pause_ratio']:.1f} %: clean layers above it {configured['clean_above']}/"
                       f"{configured['n_clean']}; AUROC " + ", ".join(
                           f"{t} {v[1]:.2f}" for t, v in configured["types"].items()))
+        if "whole_view" in configured:
+            console.print("with the scene channel (whole view): AUROC " + ", ".join(
+                f"{t} {v:.2f}" for t, v in configured["whole_view"].items())
+                + f"; clean layers with a change beside the print {configured['clean_outside']}/{configured['n_clean']}")
     r = s.rec_metric
     console.print(f"recommended: {s.metrics[r]} T_S={s.thresholds[s.rec_t]:.2f}, pause a% > "
                   f"{100 * s.pause_ratio[r]:.1f} %; report {path} ({data.seconds:.0f} s)")

@@ -58,6 +58,7 @@ def run_demo(
     size_mm: float = 18.0,
     seed: int = 1,
     image_size: tuple[int, int] = (1280, 720),
+    place: str | None = None,
     stop_at_pause: bool = True,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> DemoResult:
@@ -71,6 +72,9 @@ def run_demo(
         Simulate only the first ``layers`` layers.
     failure, onset, size_mm, seed
         Injected failure (type, first layer, size) and the simulation seed.
+    place : {"on", "beside"}, optional
+        Where a spaghetti or foreign body lands (default: beside the part, on
+        the bed, where only the scene channel sees it; other types: on the part).
     image_size : (int, int)
         Camera resolution.
     stop_at_pause : bool
@@ -95,20 +99,25 @@ def run_demo(
     n = tp.n_layers if layers is None else max(1, min(int(layers), tp.n_layers))
     onset = min(int(onset), n - 1)
     truth_cam = default_camera(tv, image_size=image_size)
-    sim = PrintSimulator(tp, truth_cam, tv, [Failure(failure, onset=onset, size_mm=size_mm, seed=seed)], seed=seed)
+    if place is None:
+        place = "beside" if failure in ("spaghetti", "foreign_body") else "on"
+    sim = PrintSimulator(tp, truth_cam, tv, [Failure(failure, onset=onset, size_mm=size_mm, seed=seed, place=place)],
+                         seed=seed)
     # calibrate the pose from the markers in the first photo, as a user would
     first = sim.frame(0)
     camera = locate_bed(dataclasses.replace(truth_cam, rvec=None, tvec=None), first.photo, cfg.markers, tv)
     notes.append(f"camera pose from the bed markers: reprojection error {camera.errors.get('pose_px', float('nan')):.2f} px")
     folder = ResultsFolder(out, tv)
-    res_demo = DemoResult(out, None, onset, failure, notes=notes)
-    results = _watch(LayerPipeline(tp, camera, cfg), PausePolicy(cfg.policy), sim, first, n, folder, res_demo,
+    res_demo = DemoResult(out, None, onset, failure if place == "on" else f"{failure} beside the part", notes=notes)
+    # the empty bed, photographed before the print as `calibrate --markers` keeps it: the scene's baseline
+    pipe = LayerPipeline(tp, camera, cfg, bed_photo=sim.bed_photo())
+    results = _watch(pipe, PausePolicy(cfg.policy), sim, first, n, folder, res_demo,
                      stop_at_pause, progress)
     folder.stack()
     _record_history(out, gpath, results, res_demo, cfg)
     res_demo.seconds = time.perf_counter() - t0
     folder.summary(results, res_demo.paused_at, res_demo.reason, extra={
-        "part": str(gpath), "injected failure": f"{failure} from layer {onset}",
+        "part": str(gpath), "injected failure": f"{failure} from layer {onset} ({place} the part)",
         "policy": res_demo.policy, "seconds": round(res_demo.seconds, 1),
         "analysis": cfg.analysis.model_dump(), "pause_rule": cfg.policy.model_dump(),
     })

@@ -76,6 +76,11 @@ class LayerRecord:
     surface : str
         What the layer's plan prints where the failure is (:func:`surface_under`):
         ``"solid"``, ``"sparse"``, ``"walls"`` or ``"none"``; ``""`` for clean layers.
+    outside_mm2 : float
+        The scene channel's change beside the printed layer (``LayerResult.outside_anomalous_mm2``), mm^2;
+        0 when the channel is off.
+    printed_mm2 : float
+        The layer's printed area ``S_P`` (eq. 5), mm^2.
     """
 
     scenario: str
@@ -88,6 +93,8 @@ class LayerRecord:
     region: np.ndarray | None = None
     since_onset: int = -1
     surface: str = ""
+    outside_mm2: float = 0.0
+    printed_mm2: float = 0.0
 
 
 #: toolpath features counted as a solid surface / as sparse infill by :func:`surface_under`
@@ -144,8 +151,10 @@ def tile_fraction(mask: np.ndarray, n: int, m: int, cell_px: int, block_cells: i
 
 
 def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 3,
-                clean_share: float = 0.4) -> list[tuple[Scenario, list[int]]]:
+                clean_share: float = 0.4, beside_share: float = 0.0) -> list[tuple[Scenario, list[int]]]:
     """Scenarios and the layers to photograph in each, about ``n_layers`` frames in all.
+
+    ``beside_share`` of the foreign bodies and spaghetti lie on the bed beside the part.
 
     Returns
     -------
@@ -155,7 +164,7 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
     n_clean_frames = int(round(n_layers * clean_share))
     n_fail = max(len(FAILURE_TYPES), int(round((n_layers - n_clean_frames) / per_fail)))
     plan = []
-    for s in random_scenarios(tp, n_fail, seed=seed, clean_fraction=0.0):
+    for s in random_scenarios(tp, n_fail, seed=seed, clean_fraction=0.0, beside_fraction=beside_share):
         if not s.failures:  # a type no layer of this part can take (run_evaluation says which)
             continue
         f = s.failures[0]
@@ -274,6 +283,7 @@ def run_evaluation(
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
     match_camera: bool = False,
+    beside_share: float = 0.0,
 ) -> EvalData:
     """Simulate about ``n_layers`` layer photos and score them (see module notes).
 
@@ -291,6 +301,8 @@ def run_evaluation(
         ``progress(done, total)``.
     match_camera : bool
         Camera-matched references (see :class:`~layerwatch.pipeline.step.LayerPipeline`).
+    beside_share : float
+        Share of the foreign bodies and spaghetti placed on the bed beside the part.
 
     Returns
     -------
@@ -298,11 +310,11 @@ def run_evaluation(
     """
     t0 = time.perf_counter()
     tv = config.topview.topview()
-    plan = plan_frames(toolpath, n_layers, seed=seed)
+    plan = plan_frames(toolpath, n_layers, seed=seed, beside_share=beside_share)
     total = sum(len(ls) for _, ls in plan)
     data = EvalData(setup={
         "n_frames": total, "n_scenarios": len(plan), "image_size": list(camera.image_size),
-        "analysis": config.analysis.model_dump(), "match_camera": match_camera,
+        "analysis": config.analysis.model_dump(), "match_camera": match_camera, "scene": config.scene.enabled, "beside_share": beside_share,
         "toolpath": toolpath.source, "toolpath_layers": toolpath.n_layers, "seed": seed,
     })
     planned = {sc.failures[0].type for sc, _ in plan if sc.failures}
@@ -313,7 +325,8 @@ def run_evaluation(
     pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
     done = 0
     for k, (scen, layers) in enumerate(plan):
-        sim = PrintSimulator(toolpath, camera, tv, scen.failures, seed=seed * 1000 + k)
+        sim = PrintSimulator(toolpath, camera, tv, scen, seed=seed * 1000 + k)
+        pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)  # each print its own scene
         size = scen.failures[0].size_mm if scen.failures else 0.0
         for i in layers:
             frame = sim.frame(i)
@@ -326,7 +339,8 @@ def run_evaluation(
             since = int(i) - scen.failures[0].onset if kind != "clean" else -1
             surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high, region, since, surface))
+                                            a, iou, clean_high, region, since, surface,
+                                            float(res.outside_anomalous_mm2), float(res.printed_area_mm2)))
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -357,17 +371,20 @@ def clean_false_alarms(
     -------
     dict
         ``layers``, ``prints``, ``layer_alarms`` (a% above the ratio), ``policy_alarms``
-        (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list).
+        (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list),
+        ``outside_layers`` (layers with any scene-channel change beside the print), ``max_outside_mm2``.
     """
     tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
     policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),
                                                        "consecutive_layers": int(consecutive)})
     prints = max(1, int(round(n_layers / toolpath.n_layers)))
-    out: dict[str, Any] = {"layers": 0, "prints": prints, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
+    out: dict[str, Any] = {"layers": 0, "prints": prints, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0,
+                           "max_a": 0.0, "a": [], "outside_layers": 0, "max_outside_mm2": 0.0}
     done = 0
     for k in range(prints):
         sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
+        pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
         paused = False
         photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
         for res, decision in judge_layers(pipe, PausePolicy(policy_settings), photos):
@@ -379,6 +396,8 @@ def clean_false_alarms(
             out["layers"] += 1
             out["a"].append(float(res.anomaly_ratio))
             out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
+            out["outside_layers"] += int(res.outside_anomalous_mm2 > 0)
+            out["max_outside_mm2"] = max(out["max_outside_mm2"], float(res.outside_anomalous_mm2))
             if res.layer >= policy_settings.skip_first_layers:
                 out["layer_alarms"] += int(res.anomaly_ratio > pause_ratio)
             if not paused:  # after a pause the policy waits for the operator: nothing more to count

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import ConfigError
@@ -29,18 +30,23 @@ __all__ = ["OfflineRun", "assign_layers", "run_offline"]
 
 _NUM = re.compile(r"(\d+)")
 _TRUTH_SUFFIXES = ("_truth", "_area")  # simulator ground-truth masks written beside the photos
+_BED_STEMS = ("bed",)  # the empty-bed photo (`simulate` writes bed.png, `calibrate` <model>_bed.*)
 
 
 def assign_layers(photos: Sequence[str | Path], n_layers: int) -> tuple[dict[int, Path], list[str]]:
     """Map layer index -> photo path; returns the map and problems (duplicates, out of range)."""
     paths = [Path(p) for p in photos]
     truth = [p for p in paths if p.stem.endswith(_TRUTH_SUFFIXES)]
-    paths = [p for p in paths if not p.stem.endswith(_TRUTH_SUFFIXES)]
+    beds = [p for p in paths if p.stem == "bed" or p.stem.endswith("_bed")]
+    paths = [p for p in paths if not p.stem.endswith(_TRUTH_SUFFIXES) and p not in beds]
     nums = [_NUM.findall(p.stem) for p in paths]
     problems: list[str] = []
     if truth:
         problems.append(f"{len(truth)} ground-truth mask file(s) (*_truth/*_area, from `layerwatch simulate`) "
                         "are not photos; skipped")
+    if beds:
+        problems.append(f"{', '.join(p.name for p in beds)}: the empty-bed photo is not a layer photo; skipped "
+                        "(it is the scene's baseline: --bed-photo, or recorded with the camera)")
     out: dict[int, Path] = {}
     if paths and all(nums):
         for p, ns in zip(paths, nums, strict=True):
@@ -81,20 +87,26 @@ def run_offline(
     *,
     cache_dir: str | Path | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    bed_photo: np.ndarray | None = None,
 ) -> OfflineRun:
     """Analyse every photo and write the results folder (resumable).
+
+    ``bed_photo`` is the scene channel's first expected appearance
+    (:class:`~layerwatch.pipeline.scene.SceneModel`). Results reused from an
+    earlier run still pass their photo to the scene model (no analysis), so
+    the layers analysed after them are compared with the right scene.
 
     Returns
     -------
     OfflineRun
         Results by layer (reused ones included), missing layers, per-photo
-        problems, and the first layer where the pause rule fires.
+        problems (scene notes included), and the first layer where the pause rule fires.
     """
     if not photos:
         raise ConfigError("no photos given; pass the layer photos (e.g. photos/*.png).")
     mapping, problems = assign_layers(photos, toolpath.n_layers)
     run = OfflineRun(problems=problems)
-    pipe = LayerPipeline(toolpath, camera, config, cache_dir=cache_dir)
+    pipe = LayerPipeline(toolpath, camera, config, cache_dir=cache_dir, bed_photo=bed_photo)
     folder = ResultsFolder(out, pipe.topview)
     done = folder.done()
     todo = sorted(mapping)
@@ -105,6 +117,10 @@ def run_offline(
         if prev is not None and prev.status != "error":
             run.results[i] = prev
             run.reused += 1
+            if pipe.scene is not None:  # the scene model must still see the layer (no analysis)
+                photo = cv2.imread(str(mapping[i]), cv2.IMREAD_COLOR)
+                if photo is not None:
+                    pipe.scene.update(pipe.scene.observe(photo, i, pipe.footprint))
         else:
             path = mapping[i]
             photo = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -121,6 +137,8 @@ def run_offline(
             run.results[i] = res
             if res.status == "error":
                 run.problems.append(f"layer {i} ({mapping[i].name}): {res.message}")
+            elif res.message:
+                run.problems.append(f"layer {i}: {res.message}")
         if progress is not None:
             progress(k + 1, len(todo), f"layer {i}")
     stop = first_stop((run.results[i] for i in sorted(run.results)), config.policy)

@@ -195,6 +195,10 @@ def _targets(s: Summary, clean_run: dict | None) -> list[str]:
         npause = clean_run["pauses"]
         L.append(_rate_row("false pauses / 1000 clean layers (the monitor's policy stops a clean print)", npause, n,
                            f"{npause} pauses in {n} layers of {prints} clean prints", bound_digits=2))
+        if clean_run.get("outside_layers") is not None:
+            no = clean_run["outside_layers"]
+            L.append(_rate_row("clean layers with a change beside the print (scene channel) / 1000", no, n,
+                               f"{no} of {n}; largest {clean_run.get('max_outside_mm2', 0.0):.1f} mm^2"))
     L.append(f"| clean printed-area blocks with cosine > 0.7 | >= 95 % | {_fmt(s.clean_block_share, True)} % "
              f"({_fmt(s.clean_flat_share, True)} % of the blocks are featureless in both images and match by rule; "
              f"{_fmt(s.clean_textured_share, True)} % of the others are above 0.7) "
@@ -218,6 +222,10 @@ def _configured(configured: dict | None) -> list[str]:
         for t, (n, auc_t, det_t, iou_t) in c["types"].items():
             L.append(f"| {t} | {n} | {_fmt(auc_t)} | {100 * det_t:.0f} % | {_fmt(iou_t)} |")
         L.append("")
+        if "whole_view" in c:
+            L += ["With the scene channel (the change beside the printed layer added to S_A, over S_P): AUROC "
+                  + ", ".join(f"{t} {_fmt(v)}" for t, v in c["whole_view"].items())
+                  + f"; clean layers with any change beside the print: {c['clean_outside']} of {c['n_clean']}.", ""]
     return L
 
 

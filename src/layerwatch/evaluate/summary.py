@@ -197,6 +197,9 @@ def at_setting(data: EvalData, metric: str, threshold: float, pause_ratio: float
         ``metric``, ``threshold``, ``pause_ratio``, ``n_clean``, ``clean_above`` (clean layers above
         the pause ratio), ``max_clean`` (highest clean a%), and per failure type ``{type: (n layers,
         AUROC, share above the pause ratio, mean IoU of failures >= 5 mm or nan)}`` under ``types``;
+        ``whole_view``: per failure type the AUROC of the whole-view score (``S_A`` plus the scene
+        channel's change beside the print, over ``S_P``) and ``clean_outside``, the clean layers
+        with any such change (both only when the scene channel ran);
         None when the measure or T_S was not scored.
     """
     if metric not in data.metrics or not data.records:
@@ -217,6 +220,13 @@ def at_setting(data: EvalData, metric: str, threshold: float, pause_ratio: float
         big = [r.iou[m, j] for r in recs if r.kind == t and r.iou is not None and r.size_mm >= IOU_MIN_SIZE_MM]
         types[t] = (int(sel.sum()), roc_auc(a[sel], clean), float((a[sel] > pause_ratio).mean()),
                     float(np.mean(big)) if big else float("nan"))
-    return {"metric": metric, "threshold": float(data.thresholds[j]), "pause_ratio": float(pause_ratio),
-            "n_clean": int(clean.size), "clean_above": int((clean > pause_ratio).sum()),
-            "max_clean": float(clean.max()) if clean.size else float("nan"), "types": types}
+    out = {"metric": metric, "threshold": float(data.thresholds[j]), "pause_ratio": float(pause_ratio),
+           "n_clean": int(clean.size), "clean_above": int((clean > pause_ratio).sum()),
+           "max_clean": float(clean.max()) if clean.size else float("nan"), "types": types}
+    if data.setup.get("scene"):
+        outside = np.array([r.outside_mm2 for r in recs])
+        printed = np.array([max(r.printed_mm2, 1.0) for r in recs])
+        whole = a + outside / printed
+        out["whole_view"] = {t: roc_auc(whole[kinds == t], whole[kinds == "clean"]) for t in types}
+        out["clean_outside"] = int((outside[kinds == "clean"] > 0).sum())
+    return out

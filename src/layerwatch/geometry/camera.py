@@ -62,6 +62,11 @@ class CameraModel:
         Reprojection errors (``"intrinsics_px"``, ``"pose_px"``) in pixels.
     created : str
         ISO timestamp of the calibration.
+    bed_photo : str or None
+        The empty-bed photo kept with the model (``calibrate --markers``):
+        written relative to the model file's folder when it lies there,
+        read back as an absolute path; the scene channel's first expected
+        appearance (:mod:`layerwatch.pipeline.scene`).
     """
 
     K: np.ndarray
@@ -76,6 +81,7 @@ class CameraModel:
     created: str = field(
         default_factory=lambda: _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     )
+    bed_photo: str | None = None
 
     def __post_init__(self) -> None:
         self.K = _arr(self.K, (3, 3), "K")
@@ -179,6 +185,8 @@ class CameraModel:
             d["tvec"] = self.tvec.tolist()
         if self.markers_mm is not None:
             d["markers_mm"] = self.markers_mm.tolist()
+        if self.bed_photo:
+            d["bed_photo"] = str(self.bed_photo)
         return d
 
     @classmethod
@@ -195,6 +203,7 @@ class CameraModel:
                 approximate=bool(d.get("approximate", False)),
                 errors=dict(d.get("errors", {})),
                 created=str(d.get("created", "")),
+                bed_photo=str(d["bed_photo"]) if d.get("bed_photo") else None,
             )
         except KeyError as exc:
             raise ConfigError(f"camera model is missing the field {exc}; recalibrate.") from None
@@ -203,6 +212,10 @@ class CameraModel:
         """Write the model as TOML (``.toml``) or JSON (anything else)."""
         path = Path(path)
         d = self.to_dict()
+        if self.bed_photo:  # relative to the model's folder when it lies there (the folder can move)
+            bed = Path(self.bed_photo).resolve()
+            folder = path.resolve().parent
+            d["bed_photo"] = str(bed.relative_to(folder)) if bed.is_relative_to(folder) else str(bed)
         if path.suffix.lower() == ".toml":
             import tomli_w
 
@@ -231,4 +244,7 @@ class CameraModel:
             raise ConfigError(f"camera model {path} is not valid: {exc}; recalibrate.") from None
         if not isinstance(d, dict):
             raise ConfigError(f"camera model {path} is not a table; recalibrate.")
-        return cls.from_dict(d)
+        model = cls.from_dict(d)
+        if model.bed_photo:
+            model.bed_photo = str((path.parent / model.bed_photo).resolve())
+        return model

@@ -321,6 +321,8 @@ class Monitor:
         with self._lock:
             before = len(self.policy.acknowledged)
             self.policy.acknowledge()
+            if hasattr(self.pipeline, "acknowledge"):  # the scene channel stops reporting what was accepted
+                self.pipeline.acknowledge()
             n = len(self.policy.acknowledged) - before
         _log("acknowledged", source=source, regions=n)
         if self.history is not None and self.job_id is not None:

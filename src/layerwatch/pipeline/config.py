@@ -42,7 +42,7 @@ from typing import Any
 from pydantic import Field, ValidationError
 
 from layerwatch.analysis.frame_quality import FrameQualitySettings
-from layerwatch.analysis.settings import AnalysisSettings
+from layerwatch.analysis.settings import AnalysisSettings, SceneSettings
 from layerwatch.errors import ConfigError
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
 from layerwatch.geometry.settings import MarkerSettings, TopViewSettings
@@ -61,7 +61,8 @@ SOURCES = ("default", "recommended", "dashboard", "gcode", "file", "flag")
 RECOMMENDED: dict[str, dict] = {
     "analysis": {"metric": "jaccard", "threshold": 0.20, "footprint_margin_mm": 0.0,
                  "presmooth_px": 1.25, "flat_tolerance": 1.5, "grow_threshold": 0.2, "grow_margin_mm": 5.0},
-    "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1},
+    "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1, "outside_pause_mm2": 12.0},
+    "scene": {"enabled": True},
 }
 
 
@@ -74,6 +75,7 @@ class JobConfig(Section):
     markers: MarkerSettings = Field(default_factory=MarkerSettings)
     render: RenderSettings = Field(default_factory=RenderSettings)
     analysis: AnalysisSettings = Field(default_factory=AnalysisSettings)
+    scene: SceneSettings = Field(default_factory=SceneSettings)
     policy: PolicySettings = Field(default_factory=PolicySettings)
     notify: NotifySettings = Field(default_factory=NotifySettings)
     host: HostSettings = Field(default_factory=HostSettings)

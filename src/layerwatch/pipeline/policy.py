@@ -15,6 +15,11 @@ Rules (all thresholds in :class:`PolicySettings`):
    ``settings.action``.
 3. One strong event: anomalous area outside the footprint above
    ``strong_outside_area_mm2`` -> ``settings.strong_action``.
+4. The scene channel's change beside the print (``outside_anomalous_mm2``,
+   ``outside_regions``; off when ``outside_pause_mm2`` is 0): at least
+   ``outside_pause_mm2`` not acknowledged on ``consecutive_layers`` analysed
+   layers in a row, in overlapping places -> ``settings.action``; one such
+   layer -> ``notify``.
 
 Errors (camera, warp, printer) never pause: they give ``notify``. After a
 pause the policy stays quiet until :meth:`PausePolicy.acknowledge` (the
@@ -61,7 +66,14 @@ class PolicySettings(Section):
       overlaps one of the previous layer and is ``growth_ratio`` times its area
       (or outgrew its acknowledged area that much) -> ``action``;
     * **strong event**: more than ``strong_outside_area_mm2`` of anomalous area
-      outside the footprint -> ``strong_action`` (0 disables it).
+      outside the footprint -> ``strong_action`` (0 disables it);
+    * **outside rule** (the scene channel, :mod:`layerwatch.pipeline.scene`):
+      at least ``outside_pause_mm2`` of change beside the print that the
+      operator has not acknowledged, on ``consecutive_layers`` layers in a
+      row with overlapping outside regions -> ``action``; a single such layer
+      -> ``"notify"`` (when ``notify_single_layer``). 0 disables it (the
+      paper's settings); the recommended 12 mm^2 is three 2 x 2 mm blocks
+      and above every clean layer of the evaluation (``docs/architecture.md``).
 
     ``wait_for_verdict`` is read by the monitor: hold the printer until the
     layer is judged.
@@ -83,6 +95,8 @@ class PolicySettings(Section):
         Smallest region the growth rule looks at, mm^2.
     action, strong_action : {"notify", "pause", "cancel"}
     skip_first_layers : int
+    outside_pause_mm2 : float
+        Change beside the print for the outside rule, mm^2 (0 = off).
     notify_single_layer : bool
     wait_for_verdict : bool
     """
@@ -98,6 +112,7 @@ class PolicySettings(Section):
     growth_min_area_mm2: float = Field(25.0, ge=0)
     strong_action: Literal["notify", "pause", "cancel"] = "pause"
     notify_single_layer: bool = True
+    outside_pause_mm2: float = Field(0.0, ge=0)
 
 
 class NotifySettings(Section):
@@ -167,6 +182,10 @@ class PausePolicy:
         self._last_ratio = 0.0
         self._acked_ratio = 0.0
         self._fresh_area = 0.0
+        self._out_streak = 0
+        self._prev_outside: list[Region] = []
+        self._last_outside: list[Region] = []
+        self._acked_outside: list[tuple[tuple[float, float, float, float], float]] = []
 
     @property
     def halted(self) -> bool:
@@ -182,8 +201,10 @@ class PausePolicy:
         """The operator resumed: forget the streak and accept the current regions."""
         for r in self._last_regions:
             self._acked.append((tuple(r.bbox_mm), float(r.area_mm2)))
+        for r in self._last_outside:
+            self._acked_outside.append((tuple(r.bbox_mm), float(r.area_mm2)))
         self._acked_ratio = max(self._acked_ratio, self._last_ratio)
-        self._streak = 0
+        self._streak = self._out_streak = 0
         self._halted = False
 
     def _acked_area(self, r: Region) -> float | None:
@@ -227,6 +248,7 @@ class PausePolicy:
         # rule also needs min_area_mm2 of fresh anomalous area, so two or three edge blocks never pause
         alarm = ratio > limit and self._fresh_area >= s.min_area_mm2
         self._streak = self._streak + 1 if alarm else 0
+        outside_regions, outside_area = self._outside(result)
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
         if s.strong_outside_area_mm2 > 0 and outside > s.strong_outside_area_mm2:
@@ -236,6 +258,11 @@ class PausePolicy:
                 f"(> {s.strong_outside_area_mm2:.0f}; spaghetti or detachment?)",
                 layer,
             )
+        if self._out_streak >= s.consecutive_layers:
+            big = outside_regions[0]
+            return self._stop(s.action, f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print "
+                                        f"(largest at ({big.centroid_mm[0]:.0f}, {big.centroid_mm[1]:.0f}) mm) "
+                                        f"for {self._out_streak} layers", layer)
         # a real failure stays in place: consecutive alarms must share a region
         # (isolated noise spikes land at random places); without regions, trust a%.
         persistent = not regions or not prev or any(
@@ -247,9 +274,30 @@ class PausePolicy:
         grown = self._growth(regions, prev, layer)
         if grown is not None:
             return grown
+        if self._out_streak and s.notify_single_layer and not alarm:
+            return Decision("notify", f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print", layer)
         if alarm and s.notify_single_layer:
             return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer)
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
+
+    def _outside(self, result: LayerResult) -> tuple[list[Region], float]:
+        """The outside rule's state after ``result``: fresh outside regions (largest first) and their area, mm^2.
+
+        Regions the operator acknowledged count again only when they grew by ``growth_ratio``.
+        """
+        s = self.settings
+        self._last_outside = list(result.outside_regions)
+        fresh = []
+        for r in result.outside_regions:
+            acked = [a for box, a in self._acked_outside if _overlap(box, tuple(r.bbox_mm))]
+            if not acked or r.area_mm2 > s.growth_ratio * max(acked):
+                fresh.append(r)
+        area = float(sum(r.area_mm2 for r in fresh))
+        alarm = s.outside_pause_mm2 > 0 and area >= s.outside_pause_mm2
+        prev, self._prev_outside = self._prev_outside, (fresh if alarm else [])
+        same_place = not prev or any(_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in fresh for p in prev)
+        self._out_streak = (self._out_streak + 1 if same_place else 1) if alarm else 0
+        return fresh, area
 
     def _fresh_ratio(self, result: LayerResult, regions: list[Region]) -> tuple[float, float]:
         """a% and outside area of the anomaly the operator has not acknowledged (``regions`` are the fresh ones).

@@ -13,7 +13,14 @@ G-code (toolpath), camera pose and config are known:
    blur it by the camera's sampling footprint on that plane
    (:func:`~layerwatch.render.camera_match.match_camera`);
 3. **analyse**: HOG of both images, similarity heatmap, anomaly ratio a%
-   (eq. 5) and regions (:func:`~layerwatch.analysis.scoring.analyze_layer`).
+   (eq. 5) and regions (:func:`~layerwatch.analysis.scoring.analyze_layer`);
+4. **scene** (``[scene] enabled``, on in the recommended settings): the
+   camera image outside the layers' predicted change is compared with the
+   scene's expected appearance (:class:`~layerwatch.pipeline.scene.SceneModel`,
+   seeded by the empty-bed photo when given); what changed there is
+   ``outside_anomalous_mm2`` and ``outside_regions`` (bed mm) of the result,
+   beside a% (which stays eq. 5 over the printed area). A frame that does not
+   show the scene at all is rejected like a frame-gate rejection.
 
 This is the one per-layer step: the monitor, ``analyze``, the demo and the
 evaluation harness (which sweeps other measures and thresholds over the
@@ -57,6 +64,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import Decision, PausePolicy
+from layerwatch.pipeline.scene import SceneModel, SceneObservation
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
 from layerwatch.render.camera_match import match_camera as camera_matched
 from layerwatch.render.fast import StackRenderer
@@ -117,6 +125,9 @@ class LayerPipeline:
         References kept in memory (least recently used dropped).
     frame_gate : callable, optional
         Frame-quality check run before the warp (see the module notes).
+    bed_photo : ndarray, optional
+        Empty-bed photo of the same camera and pose: the scene channel's first
+        expected appearance (without it, the first accepted photo is).
 
     Raises
     ------
@@ -135,6 +146,7 @@ class LayerPipeline:
         all_metrics: bool = False,
         memo: int = 8,
         frame_gate: FrameGate | None = None,
+        bed_photo: np.ndarray | None = None,
     ) -> None:
         if toolpath.n_layers == 0:
             raise RenderError(f"{toolpath.source} has no layers; check the G-code has extrusion moves.")
@@ -152,6 +164,9 @@ class LayerPipeline:
         #: grey top view and valid mask of the last successfully warped photo (for overlays)
         self.last_top: np.ndarray | None = None
         self.last_valid: np.ndarray | None = None
+        #: the scene channel's model (``None`` when ``[scene] enabled`` is off)
+        self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo)
+                      if self.config.scene.enabled else None)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -210,6 +225,26 @@ class LayerPipeline:
         for i in sorted(range(self.toolpath.n_layers) if layers is None else layers):
             self.reference(int(i))
 
+    def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
+        """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
+        lay = self.toolpath.layers[index]
+        return self.reference(index).footprint, float(lay.z - (lay.height if lay.height > 0 else 0.2)), float(lay.z)
+
+    def new_print(self, bed_photo: np.ndarray | None = None) -> None:
+        """Forget the scene of the previous print (the scene channel starts again from ``bed_photo``)."""
+        self.previous_photo = None
+        if self.scene is not None:
+            self.scene.reset(bed_photo)
+
+    def acknowledge(self) -> int:
+        """The operator accepted the changes beside the print: the scene channel stops reporting them.
+
+        Call it with :meth:`~layerwatch.pipeline.policy.PausePolicy.acknowledge`
+        (resume). Returns the working-image pixels the expected appearance took
+        from the last photo (0 when the channel is off or nothing changed).
+        """
+        return 0 if self.scene is None else self.scene.acknowledge()
+
     # ------------------------------------------------------------ analysis
     def top_view(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
         """The photo warped to the top view of the plane ``Z = z`` as the analysis reads it.
@@ -248,7 +283,7 @@ class LayerPipeline:
             when the photo cannot be used (wrong type/shape, rejected by the
             frame gate, failed warp, nothing visible); ``timings_ms`` has
             ``reference``, ``warp``, ``analysis`` (and the analysis' own ``hog``,
-            ``metric``, ``regions``) and ``total``. :attr:`last_top` and
+            ``metric``, ``regions``), ``scene`` (when on) and ``total``. :attr:`last_top` and
             :attr:`last_valid` hold the top view of an analysed photo.
         """
         t0 = time.perf_counter()
@@ -263,13 +298,23 @@ class LayerPipeline:
             if reason is not None:
                 return self._error(base, f"frame rejected: {reason}", timings, t0)
             ref = self.reference(int(layer_index))
+            obs = None
+            if self.scene is not None:
+                obs = self.scene.observe(photo, index, self.footprint)
+                timings["scene"] = obs.ms
+                if obs.rejected is not None:
+                    res = self._error(base, f"frame rejected: {obs.rejected}", timings, t0)
+                    res.scene = obs.stats()
+                    return res
             t1 = time.perf_counter()
-            timings["reference"] = (t1 - t0) * 1e3
+            timings["reference"] = (t1 - t0) * 1e3 - timings.get("scene", 0.0)
             top, valid = self.top_view(photo, ref.z)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
             res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
                                 z=ref.z, all_metrics=self.all_metrics)
+            if obs is not None:
+                self._scene_result(res, obs, photo, ref.z, valid)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
@@ -280,6 +325,18 @@ class LayerPipeline:
                           "total": (t3 - t0) * 1e3}
         self.last_top, self.last_valid = top, valid
         return res
+
+    def _scene_result(self, res: LayerResult, obs: SceneObservation, photo: np.ndarray, z: float,
+                      valid: np.ndarray) -> None:
+        """The scene channel's outside anomaly into ``res``, then ``E`` takes the layer (analysed photos only)."""
+        t = time.perf_counter()
+        h, w = np.asarray(photo).shape[:2]
+        self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)
+        self.scene.update(obs)
+        ms = obs.ms + (time.perf_counter() - t) * 1e3
+        res.timings_ms["scene"] = ms
+        if res.scene is not None:
+            res.scene.ms = round(ms, 3)
 
     def _frame_rejected(self, photo: np.ndarray) -> str | None:
         """The frame-quality hook (module notes): ``None`` when the frame may be analysed, else the reason."""

@@ -258,6 +258,21 @@ class PrintSimulator:
         win = h[max(v0, 0) : min(v1 + 1, H), max(u0, 0) : min(u1 + 1, W)]
         return float(win.max()) if win.size else 0.0
 
+    def bed_photo(self) -> np.ndarray:
+        """The empty bed as the same camera sees it before the print (no part, no failure).
+
+        What ``layerwatch calibrate --markers`` keeps: the same camera, pose,
+        lights and sensor model, with its own noise and exposure draw.
+
+        Returns
+        -------
+        ndarray, uint8, shape (h, w, 3)
+            BGR photo.
+        """
+        flat = np.zeros(self.grid.shape, np.float32)
+        photo, _ = self.cam.shoot(flat, np.zeros(self.grid.shape, np.uint8), self.tp.n_layers + 1000, 0.2)
+        return photo
+
     def frame(self, index: int) -> SimFrame:
         """Simulate the photo taken after layer ``index`` (0-based)."""
         if not 0 <= index < self.tp.n_layers:

@@ -30,6 +30,7 @@ __all__ = [
     "resolve",
     "thin_wall_segments",
     "random_scenarios",
+    "beside_point",
 ]
 
 FAILURE_TYPES: tuple[str, ...] = (
@@ -77,6 +78,11 @@ class Failure:
     mode : str
         ``infill_defect``: ``"missing"`` (segments removed) or ``"under"``
         (under-extruded: beads at 30 % width).
+    place : str
+        ``foreign_body``/``spaghetti`` without ``center_mm``: ``"on"`` draws the
+        centre on the onset layer's beads, ``"beside"`` on the bed beside the
+        part (:func:`beside_point`: out of the onset layer's bounding box by
+        half the size plus 3 mm, on a random side).
     """
 
     type: str
@@ -87,6 +93,7 @@ class Failure:
     duration: int | None = None
     offset_mm: tuple[float, float] | None = None
     mode: str = "missing"
+    place: str = "on"
 
     def __post_init__(self) -> None:
         if self.type not in FAILURE_TYPES:
@@ -97,6 +104,10 @@ class Failure:
             raise ConfigError("a failure needs onset >= 0 and a finite size_mm > 0; fix the scenario.")
         if self.mode not in ("missing", "under"):
             raise ConfigError(f"failure mode must be 'missing' or 'under', got '{self.mode}'.")
+        if self.place not in ("on", "beside"):
+            raise ConfigError(f"failure place must be 'on' or 'beside', got '{self.place}'.")
+        if self.place == "beside" and self.type not in ("foreign_body", "spaghetti"):
+            raise ConfigError(f"only foreign_body and spaghetti can be placed beside the part, not {self.type}.")
 
     @property
     def layers(self) -> int:
@@ -224,6 +235,21 @@ def _strands(rng: np.random.Generator, center: np.ndarray, radius: float, n_seg:
     return np.array(rows, dtype=np.float64).reshape(-1, 10)
 
 
+def beside_point(tp: Toolpath, index: int, size_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """A point on the bed beside layer ``index``: out of its bounding box by ``size_mm / 2 + 3`` mm, bed mm (2,)."""
+    x0, y0, x1, y1 = tp.layers[index].bounds
+    gap = size_mm / 2 + 3.0
+    side = int(rng.integers(4))
+    t = rng.uniform(0.2, 0.8)
+    if side == 0:
+        return np.array([x0 - gap, y0 + t * (y1 - y0)])
+    if side == 1:
+        return np.array([x1 + gap, y0 + t * (y1 - y0)])
+    if side == 2:
+        return np.array([x0 + t * (x1 - x0), y0 - gap])
+    return np.array([x0 + t * (x1 - x0), y1 + gap])
+
+
 def _object(rng: np.random.Generator, center: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     """Capsules of a foreign object lying on the layer (b = 0: layer z added per frame)."""
     kind = rng.integers(3)
@@ -269,6 +295,8 @@ def resolve(f: Failure, tp: Toolpath) -> ResolvedFailure:
     sel = _selection(tp, f) if f.type in ("infill_defect", "thin_wall") else None
     if f.center_mm is not None:
         center = np.asarray(f.center_mm, float)
+    elif f.place == "beside":
+        center = beside_point(tp, f.onset, f.size_mm, rng)
     else:
         pts = _layer_points(tp, f.onset, sel)
         if len(pts) == 0:
@@ -327,13 +355,16 @@ def random_scenarios(
     seed: int = 0,
     types: tuple[str, ...] = FAILURE_TYPES,
     clean_fraction: float = 1.0 / 7.0,
+    beside_fraction: float = 0.0,
 ) -> list[Scenario]:
     """Sample ``n`` single-failure scenarios (and clean controls) for an evaluation.
 
     Types cycle through ``types`` (a fraction ``clean_fraction`` of clean
     controls interleaved); onsets are drawn among layers where the type makes
     sense (infill present, thin walls present — else outer perimeters — and
-    never the first two layers); sizes from a per-type range in mm.
+    never the first two layers); sizes from a per-type range in mm. A share
+    ``beside_fraction`` of the foreign bodies and spaghetti is placed on the
+    bed beside the part (``place="beside"``) instead of on the onset layer.
 
     Returns
     -------
@@ -357,6 +388,8 @@ def random_scenarios(
             size_mm=float(rng.uniform(lo, hi)),
             seed=int(rng.integers(2**31)),
             mode="under" if (kind == "infill_defect" and rng.random() < 0.3) else "missing",
+            place="beside" if (kind in ("foreign_body", "spaghetti") and beside_fraction > 0
+                               and rng.random() < beside_fraction) else "on",
         )
         out.append(Scenario((f,), name=f"s{k:03d}-{kind}"))
     return out

@@ -103,7 +103,8 @@ def build_report(history: History, job_id: int, out_dir: str | Path, image_root:
     pause = (cfg.get("policy") or {}).get("pause_ratio")
     if pause is None and results:
         pause = 0.10
-    first = next((r for r in results if pause is not None and r.status == "ok" and r.anomaly_ratio > pause), None)
+    first = next((r for r in results if pause is not None and r.status == "ok"
+                  and (r.anomaly_ratio > pause or r.decision in ("pause", "cancel"))), None)
     worst = max((r for r in results if r.status == "ok"), key=lambda r: r.anomaly_ratio, default=None)
     curve = curve_png([r.layer for r in results], [r.anomaly_ratio if r.status == "ok" else None for r in results], pause)
 
@@ -128,8 +129,10 @@ def build_report(history: History, job_id: int, out_dir: str | Path, image_root:
         f"<tr><th>layers analysed</th><td>{len(results)}</td></tr></table>",
         "<h2>Anomaly ratio over layers</h2>", _img_tag(curve, "a% curve"),
         "<h2>First failing layer</h2>",
-        (f"<p class='fail'>layer {first.layer} (a% {100 * first.anomaly_ratio:.1f} % &gt; {100 * pause:.1f} %)</p>"
-         if first is not None and pause is not None else "<p>none: every layer stayed under the pause threshold</p>"),
+        (f"<p class='fail'>layer {first.layer} (a% {100 * first.anomaly_ratio:.1f} %"
+         + (f", pause threshold {100 * pause:.1f} %" if pause is not None else "")
+         + f"; {first.outside_anomalous_mm2:.0f} mm^2 changed beside the print)</p>"
+         if first is not None else "<p>none: every layer stayed under the pause threshold</p>"),
     ]
     if first:
         parts.append(layer_block(first, "First failing layer"))

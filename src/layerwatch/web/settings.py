@@ -67,7 +67,10 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "policy.pause_ratio": (0.001, 0.5, "(a%)"), "policy.min_area_mm2": (0.0, 400.0, "mm^2"),
     "policy.consecutive_layers": (1, 10, "layers"), "policy.strong_outside_area_mm2": (1.0, 2500.0, "mm^2"),
     "policy.growth_ratio": (1.0, 10.0, ""), "policy.skip_first_layers": (0, 20, "layers"),
-    "policy.growth_min_area_mm2": (0.0, 2500.0, "mm^2"),
+    "policy.growth_min_area_mm2": (0.0, 2500.0, "mm^2"), "policy.outside_pause_mm2": (0.0, 2500.0, "mm^2"),
+    "scene.working_px": (160, 4096, "px"), "scene.margin_mm": (0.0, 20.0, "mm"), "scene.block_px": (2, 64, "px"),
+    "scene.noise_k": (0.1, 100.0, ""), "scene.min_change": (0.0, 255.0, "grey levels"),
+    "scene.min_region_mm2": (0.0, 2500.0, "mm^2"), "scene.max_changed_share": (0.01, 1.0, ""),
     "notify.min_interval_s": (0.0, 86400.0, "s"),
 }
 STOP_KEYS = ("action", "strong_action")  # policy keys whose "notify" means: never pause

@@ -1,0 +1,445 @@
+"""Image-space change detection beside the printed layer: the pure functions of the scene channel.
+
+The camera is stationary, so everything it sees that the G-code does not
+change between two photos must look the same up to light and noise. The
+stateful model (:class:`layerwatch.pipeline.scene.SceneModel`) keeps an
+*expected appearance* image ``E`` of the scene; this module computes, for one
+photo:
+
+1. **Predicted change** ``M_k`` (:func:`predicted_change`): the layer's printed
+   footprint (top view, dilated by ``margin_mm``) projected into the camera
+   image on the layer's bottom and top planes (its top surface and the wall
+   band below it), through the calibrated camera with its lens distortion.
+   Rays of the working image are intersected with each plane
+   (:func:`image_rays`, :func:`plane_maps`, :func:`top_coords`: the bed point
+   of a ray is linear in the plane's height), so the projection is exact for
+   every plane, not only the bed.
+2. **Photometric normalisation** (:func:`photometric_fit`): a smooth
+   per-channel illumination ratio ``photo ~ ratio * E``, robust medians of
+   the log ratio over coarse cells outside ``M_k``, median-smoothed over
+   cells, so exposure drift, auto white balance, flicker and a light that
+   moved a little do not count as change (a single global gain did not
+   suffice on the simulator: its spot light moves between frames).
+   Vignetting is fixed per pixel and so is in ``E``.
+3. **Change blocks** (:func:`change_blocks`): the mean absolute residual
+   ``|photo - min(ratio E, 255)|`` (channel mean, grey levels) per block of
+   ``block_px`` px, scored where at least half the block is outside the
+   printed body and on the observed square. A block changed when its score
+   is above ``max(min_change, median + noise_k * 1.4826 MAD)`` of the
+   frame's block scores (the threshold follows each frame's own noise) and,
+   unless it is above ``SHADE_LIMIT`` times that, when a gain of its own
+   does not explain it (the residual after the best per-block, per-channel
+   gain is above the same kind of threshold): a moving
+   shade or the edge of a lamp's cone changes brightness, strands and
+   objects change texture.
+
+Working image. The frame is reduced to ``working_px`` on its long side by
+area averaging (a 1080p frame 3 x 3) and smoothed (Gaussian, sigma 0.7 px):
+block statistics of 8 px ~ 2 mm do not need more, and it costs a few
+milliseconds (``SceneObservation.timings_ms``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from layerwatch.analysis.result import Region
+from layerwatch.analysis.settings import SceneSettings
+from layerwatch.errors import AnalysisError
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.topview import TopView
+
+__all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
+           "predicted_change", "to_working", "top_coords", "working_size"]
+
+#: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
+OUTLIER_LOG = 0.2
+#: a block scoring above this many thresholds changed whatever a local shade explains
+SHADE_LIMIT = 3.0
+#: grey level at and above which a pixel is taken as saturated (left out of the fit and the scores)
+SATURATED = 250.0
+
+
+def working_size(image_size: tuple[int, int], long_side: int) -> tuple[int, int]:
+    """``(width, height)`` of the working image: the frame scaled to ``long_side`` px (never enlarged)."""
+    w, h = (int(v) for v in image_size)
+    f = min(1.0, float(long_side) / max(w, h))
+    return max(1, int(round(w * f))), max(1, int(round(h * f)))
+
+
+def to_working(photo: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A camera frame as the scene channel reads it.
+
+    Parameters
+    ----------
+    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
+        Frame as captured (any size with the working image's aspect ratio).
+    size : (int, int)
+        Working ``(width, height)`` px.
+
+    Returns
+    -------
+    ndarray, float32, shape (height, width, 3)
+        Area-averaged and smoothed (sigma 0.7 px), grey levels 0-255.
+
+    Raises
+    ------
+    AnalysisError
+        Not a uint8 grey or colour image, or another aspect ratio.
+    """
+    arr = np.asarray(photo)
+    if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (3, 4)):
+        raise AnalysisError(f"the scene channel needs a uint8 grey or colour frame, got {arr.dtype} {arr.shape}.")
+    h, w = arr.shape[:2]
+    if abs(w / h - size[0] / size[1]) > 0.01 * size[0] / size[1]:
+        raise AnalysisError(f"frame is {w}x{h}, not the camera's aspect ratio; recalibrate at this resolution.")
+    if arr.ndim == 2:
+        arr = cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR)
+    elif arr.shape[2] == 4:
+        arr = arr[..., :3]
+    small = cv2.resize(arr, size, interpolation=cv2.INTER_AREA) if (w, h) != tuple(size) else arr
+    return cv2.GaussianBlur(small.astype(np.float32), (0, 0), 0.7)
+
+
+def image_rays(camera: CameraModel, size: tuple[int, int]) -> np.ndarray:
+    """Unit ray of every working-image pixel in bed coordinates.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        Posed camera (scaled to ``size``; the lens distortion is undone).
+    size : (int, int)
+        Working ``(width, height)`` px.
+
+    Returns
+    -------
+    ndarray, float32, shape (height, width, 3)
+        Directions ``d`` with the ray ``C + t d`` (``C``: ``camera.center_mm``).
+    """
+    cam = camera.scaled_to(size)
+    w, h = size
+    uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
+    n = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist).reshape(h, w, 2)
+    d = np.concatenate([n, np.ones((h, w, 1))], -1) @ cam.R  # R^T applied to row vectors
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return d.astype(np.float32)
+
+
+def plane_maps(rays: np.ndarray, center_mm: np.ndarray, topview: TopView) -> tuple[np.ndarray, np.ndarray]:
+    """Where each image pixel's ray meets the plane ``Z = z``, as ``A + z B`` (top-view px).
+
+    Along a ray ``C + t d`` the bed point is linear in its height, so one
+    pair of arrays gives the map of every plane with two fused operations
+    (:func:`top_coords`).
+
+    Returns
+    -------
+    A, B : ndarray, float32, shape (2, height, width)
+        Top-view ``(u, v)`` of the ray on the plane ``z`` is ``A + z * B``;
+        rays that do not go down towards the bed get ``A`` far outside the top view.
+    """
+    C = np.asarray(center_mm, np.float64)
+    d = rays.astype(np.float64)
+    down = d[..., 2] < -1e-6
+    dz = np.where(down, d[..., 2], -1.0)
+    T = topview.top_from_bed
+    kx, ky = d[..., 0] / dz, d[..., 1] / dz  # bed xy per mm of height along the ray
+    x0, y0 = C[0] - C[2] * kx, C[1] - C[2] * ky  # the ray's point on the bed (z = 0)
+    A = np.stack([T[0, 0] * x0 + T[0, 2], T[1, 1] * y0 + T[1, 2]])
+    B = np.stack([T[0, 0] * kx, T[1, 1] * ky])
+    A[:, ~down] = -1e6
+    B[:, ~down] = 0.0
+    return A.astype(np.float32), B.astype(np.float32)
+
+
+def top_coords(maps: tuple[np.ndarray, np.ndarray], z: float) -> tuple[np.ndarray, np.ndarray]:
+    """Top-view ``(mapx, mapy)`` (float32, shape (height, width)) of every image pixel on the plane ``Z = z``.
+
+    ``maps`` is :func:`plane_maps`; the result is ready for :func:`cv2.remap`.
+    """
+    A, B = maps
+    z = np.float32(z)
+    return A[0] + z * B[0], A[1] + z * B[1]
+
+
+def predicted_change(
+    footprint: np.ndarray,
+    z_planes: np.ndarray,
+    maps: tuple[np.ndarray, np.ndarray],
+    topview: TopView,
+    margin_mm: float,
+) -> np.ndarray:
+    """Where the camera image may change because the G-code printed ``footprint`` between the planes.
+
+    Parameters
+    ----------
+    footprint : ndarray, bool, shape (H, W)
+        Top-view footprint of a layer (``topview`` geometry).
+    z_planes : ndarray, shape (P,)
+        Planes the material spans, mm (the layer's bottom and top: its top
+        surface and the wall band below it).
+    maps : (A, B)
+        :func:`plane_maps` of the working image.
+    topview : TopView
+    margin_mm : float
+        Dilation of the footprint before the projection, mm; a negative
+        margin erodes it (the inside of a top surface, away from its walls).
+
+    Returns
+    -------
+    ndarray, bool, shape (height, width)
+        Working-image mask.
+    """
+    fp = np.asarray(footprint, np.uint8)
+    k = int(round(2 * abs(margin_mm) * topview.px_per_mm)) | 1
+    if k > 1:
+        se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        fp = cv2.dilate(fp, se) if margin_mm > 0 else cv2.erode(fp, se)
+    out = np.zeros(maps[0].shape[1:], np.uint8)
+    for z in np.asarray(z_planes, float).ravel():
+        mx, my = top_coords(maps, float(z))
+        out |= cv2.remap(fp, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.astype(bool)
+
+
+def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
+                    cell_px: int = 32, smooth_cells: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """The smooth illumination ratio ``photo / expected`` per channel, fitted robustly outside ``M_k``.
+
+    Radiance is albedo times irradiance, and a camera's gamma keeps a product
+    a product, so a change of light (exposure, white balance, flicker, a lamp
+    that moved) multiplies the expected image by a *smooth* per-channel field.
+    It is estimated in the log domain: the mean of
+    ``log(1 + photo) - log(1 + expected)`` over the usable pixels of every
+    ``cell_px`` cell (every second pixel), then again without the pixels
+    more than ``OUTLIER_LOG`` from it (strands, objects); cells with less
+    than a quarter usable take the frame's median, then a ``smooth_cells`` x
+    ``smooth_cells`` median over cells (a failure covering a few cells does
+    not bend the field), bilinear up to the image.
+
+    Parameters
+    ----------
+    photo, expected : ndarray, float32, shape (h, w, 3)
+        Working images, grey levels.
+    usable : ndarray, bool, shape (h, w)
+        Pixels that should not have changed (outside ``M_k``, on the observed
+        square, not saturated).
+    cell_px, smooth_cells : int
+
+    Returns
+    -------
+    ratio : ndarray, float32, shape (h, w, 3)
+        ``photo ~ ratio * expected``.
+    gain : ndarray, float64, shape (3,)
+        The frame's median ratio per channel (0 when fewer than 50 usable pixels).
+    """
+    h, w = usable.shape
+    ok = np.ascontiguousarray(usable[::2, ::2]).astype(np.float32)
+    if ok.sum() < 50:
+        return np.ones((h, w, 3), np.float32), np.zeros(3)
+    lr = cv2.subtract(np.log1p(photo[::2, ::2]), np.log1p(expected[::2, ::2]))
+    c = max(1, cell_px // 2)
+    size = (-(-ok.shape[1] // c), -(-ok.shape[0] // c))  # cells (m, n)
+    glob = np.array([np.median(lr[..., k][ok > 0]) for k in range(3)])
+    keep = ok
+    for _ in range(2):  # masked cell means, then again without the pixels far from them (the changes)
+        frac = cv2.resize(keep, size, interpolation=cv2.INTER_AREA)
+        mean = cv2.resize(lr * keep[..., None], size, interpolation=cv2.INTER_AREA) / np.maximum(frac, 1e-6)[..., None]
+        mean = np.where((frac >= 0.25)[..., None], mean, glob).astype(np.float32)
+        near = cv2.resize(mean, ok.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        keep = ok * (channel_max(np.abs(lr - near)) < OUTLIER_LOG).astype(np.float32)
+    if smooth_cells > 1:
+        mean = ndimage.median_filter(mean, size=(smooth_cells, smooth_cells, 1), mode="nearest")
+    field = cv2.resize(mean, (size[0] * cell_px, size[1] * cell_px), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    return np.exp(field).astype(np.float32), np.exp(glob).astype(np.float64)
+
+
+@dataclass
+class ChangeMap:
+    """Change blocks of one photo against ``E`` (working-image geometry).
+
+    Attributes
+    ----------
+    score : ndarray, float32, shape (n, m)
+        Mean absolute residual per block, grey levels (0 where not scored).
+    scored : ndarray, bool, shape (n, m)
+        Blocks at least half usable (outside ``M_k``, on the observed square).
+    changed : ndarray, bool, shape (n, m)
+        Scored blocks above ``threshold``.
+    threshold : float
+        The frame's block threshold, grey levels.
+    noise : float
+        Robust spread of the block scores (1.4826 MAD), grey levels.
+    block_px : int
+    """
+
+    score: np.ndarray
+    scored: np.ndarray
+    changed: np.ndarray
+    threshold: float
+    noise: float
+    block_px: int
+
+    @property
+    def changed_share(self) -> float:
+        """Changed blocks over scored blocks (0 when none scored)."""
+        n = int(self.scored.sum())
+        return float(self.changed.sum()) / n if n else 0.0
+
+    def pixels(self, shape: tuple[int, int]) -> np.ndarray:
+        """Changed blocks as a working-image mask of ``shape`` (h, w), bool."""
+        b = self.block_px
+        full = np.repeat(np.repeat(self.changed, b, 0), b, 1)
+        out = np.zeros(shape, bool)
+        h, w = min(shape[0], full.shape[0]), min(shape[1], full.shape[1])
+        out[:h, :w] = full[:h, :w]
+        return out
+
+
+def channel_mean(img: np.ndarray) -> np.ndarray:
+    """Mean over the three channels of a float32 (h, w, 3) image, float32 (h, w)."""
+    return cv2.transform(img, np.full((1, 3), 1.0 / 3.0, np.float32))
+
+
+def channel_max(img: np.ndarray) -> np.ndarray:
+    """Largest of the three channels, (h, w) (element-wise: numpy's reduction over a 3-long axis is slow)."""
+    return np.maximum(np.maximum(img[..., 0], img[..., 1]), img[..., 2])
+
+
+def _block_mean(res: np.ndarray, okf: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """Mean of ``res`` over the usable pixels (``okf`` 0/1) of each block; ``frac``: their share per block."""
+    m, n = frac.shape[::-1]
+    sums = cv2.resize(res * okf, (m, n), interpolation=cv2.INTER_AREA)
+    return np.where(frac > 0, sums / np.maximum(frac, 1e-6), 0.0).astype(np.float32)
+
+
+def _noise_threshold(vals: np.ndarray, floor: float, k: float) -> tuple[float, float]:
+    """``(max(floor, median + k * 1.4826 MAD), 1.4826 MAD)`` of the block scores ``vals``."""
+    if vals.size == 0:
+        return float(floor), 0.0
+    med = float(np.median(vals))
+    noise = float(1.4826 * np.median(np.abs(vals - med)))
+    return max(float(floor), med + k * noise), noise
+
+
+def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
+                  settings: SceneSettings) -> ChangeMap:
+    """Score every block of the photo against the normalised expected appearance.
+
+    Parameters
+    ----------
+    photo, expected : ndarray, float32, shape (h, w, 3)
+    usable : ndarray, bool, shape (h, w)
+    ratio : ndarray, float32, shape (h, w, 3)
+        :func:`photometric_fit`.
+    settings : SceneSettings
+        ``block_px``, ``noise_k``, ``min_change``.
+
+    Returns
+    -------
+    ChangeMap
+    """
+    b = int(settings.block_px)
+    h, w = usable.shape
+    n, m = h // b, w // b
+    crop = (slice(0, n * b), slice(0, m * b))
+    pred = np.minimum(expected[crop] * ratio[crop], 255.0)  # the camera clips too
+    img = np.ascontiguousarray(photo[crop])
+    okf = np.ascontiguousarray(usable[crop]).astype(np.float32)
+    frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
+    scored = frac >= 0.5
+    score = _block_mean(channel_mean(cv2.absdiff(img, pred)), okf, frac)
+    # the same residual after the best gain per block and channel: what a local shade explains
+    sxy = cv2.resize(img * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    syy = cv2.resize(pred * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
+    shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
+    threshold, noise = _noise_threshold(score[scored], settings.min_change, settings.noise_k)
+    thr2, _ = _noise_threshold(shade_free[scored], settings.min_change, settings.noise_k)
+    strong = score > SHADE_LIMIT * threshold
+    changed = scored & (score > threshold) & (strong | (shade_free > thr2))
+    return ChangeMap(score, scored, changed, threshold, noise, b)
+
+
+def change_regions(changed: np.ndarray, similarity: np.ndarray, topview: TopView,
+                   min_area_mm2: float) -> list[Region]:
+    """Connected changed areas of the top view as :class:`~layerwatch.analysis.result.Region` records.
+
+    Parameters
+    ----------
+    changed : ndarray, bool, shape (H, W)
+        Top-view pixels of changed blocks (outside the layer's predicted change).
+    similarity : ndarray, float32, shape (H, W)
+        Per pixel ``threshold / score`` of its block (below 1 = changed), 1 elsewhere.
+    topview : TopView
+    min_area_mm2 : float
+        Smaller regions are dropped.
+
+    Returns
+    -------
+    list of Region
+        Largest first; ``outside_fraction`` 1, ``n_blocks`` the region's
+        area in 2 x 2 mm blocks (rounded up).
+    """
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(changed.astype(np.uint8), connectivity=8)
+    px_mm2 = 1.0 / topview.px_per_mm**2
+    out: list[Region] = []
+    for i in range(1, n):
+        x, y, w, h, area_px = (int(v) for v in stats[i])
+        area = area_px * px_mm2
+        if area < min_area_mm2:
+            continue
+        sel = lab[y : y + h, x : x + w] == i
+        sims = similarity[y : y + h, x : x + w][sel]
+        vv, uu = np.nonzero(sel)
+        (x0, y0), (x1, y1) = topview.to_mm(np.array([[x, y + h - 1], [x + w - 1, y]], float))  # v runs down
+        cx, cy = topview.to_mm(np.array([uu.mean() + x, vv.mean() + y]))
+        out.append(Region(area_mm2=float(area), bbox_mm=(float(x0), float(y0), float(x1), float(y1)),
+                          centroid_mm=(float(cx), float(cy)), n_blocks=int(np.ceil(area / 4.0)),
+                          mean_similarity=float(sims.mean()), min_similarity=float(sims.min()),
+                          outside_fraction=1.0))
+    out.sort(key=lambda r: -r.area_mm2)
+    return out
+
+
+def changed_beside(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndarray, topview: TopView,
+                   settings: SceneSettings) -> list[Region]:
+    """Single-photo scene check in the top view: the photo against the empty bed beside the footprint.
+
+    What ``layerwatch compare --bed-photo`` runs on one top view (no series,
+    no camera): both images warped to the same top view, compared outside
+    the footprint dilated by ``settings.margin_mm`` with the same photometric
+    fit and change blocks as the series channel (blocks of
+    ``settings.block_px`` top-view px). Lower layers and walls seen beside the
+    top layer are not modelled here, so a tall part's own walls count as change.
+
+    Parameters
+    ----------
+    top, bed_top : ndarray, uint8, shape (H, W) or (H, W, 3)
+        Top views of the photo and of the empty bed.
+    footprint : ndarray, bool, shape (H, W)
+    topview : TopView
+    settings : SceneSettings
+
+    Returns
+    -------
+    list of Region
+        Changed regions beside the footprint (bed mm), largest first.
+    """
+    size = tuple(topview.shape[::-1])
+    a, b = to_working(np.asarray(top), size), to_working(np.asarray(bed_top), size)
+    k = int(round(2 * settings.margin_mm * topview.px_per_mm)) | 1
+    near = cv2.dilate(np.asarray(footprint, np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    usable = ~near & (channel_max(a) > 0) & (channel_max(b) > 0) & (channel_max(a) < SATURATED)
+    ratio, _ = photometric_fit(a, b, usable)
+    ch = change_blocks(a, b, usable, ratio, settings)
+    sim = np.where(ch.changed, np.minimum(1.0, ch.threshold / np.maximum(ch.score, 1e-6)), 1.0)
+    b_px = ch.block_px
+    sim_px = np.ones(topview.shape, np.float32)
+    up = np.repeat(np.repeat(sim, b_px, 0), b_px, 1).astype(np.float32)
+    sim_px[: up.shape[0], : up.shape[1]] = up
+    return change_regions(ch.pixels(topview.shape) & usable, sim_px, topview, settings.min_region_mm2)

@@ -1,0 +1,170 @@
+"""The scene channel's pure functions: projection of the predicted change, photometric fit, change blocks."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from layerwatch.analysis.result import LayerResult, Region, SceneStats
+from layerwatch.analysis.scene_change import (
+    change_blocks,
+    change_regions,
+    image_rays,
+    photometric_fit,
+    plane_maps,
+    predicted_change,
+    to_working,
+    top_coords,
+    working_size,
+)
+from layerwatch.analysis.settings import SceneSettings
+from layerwatch.errors import AnalysisError
+from layerwatch.geometry.topview import TopView
+from layerwatch.simulate.scene import default_camera
+
+TV = TopView(4.0, 90.0, 90.0, (110.0, 100.0))
+
+
+def _texture(h=180, w=320, seed=0) -> np.ndarray:
+    """A bed-like texture (grey levels ~ 60-110), float32 (h, w, 3)."""
+    rng = np.random.default_rng(seed)
+    base = cv2.GaussianBlur(rng.normal(85, 25, (h, w)).astype(np.float32), (0, 0), 1.2)
+    return np.repeat(base[..., None], 3, axis=2) * np.array([1.0, 0.95, 0.9], np.float32)
+
+
+def _noisy(img, seed=1, sigma=1.5):
+    return (img + np.random.default_rng(seed).normal(0, sigma, img.shape)).astype(np.float32)
+
+
+def test_plane_maps_put_each_pixel_where_the_camera_projects_its_bed_point():
+    cam = default_camera(TV, image_size=(640, 360))
+    maps = plane_maps(image_rays(cam, (640, 360)), cam.center_mm, TV)
+    for z in (0.0, 7.5):
+        mx, my = top_coords(maps, z)
+        for u, v in ((100, 200), (320, 180), (500, 300)):
+            xy = TV.to_mm(np.array([mx[v, u], my[v, u]], float))
+            uv = cv2.projectPoints(np.array([[*xy, z]]), cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(2)
+            assert np.allclose(uv, (u, v), atol=0.05)
+
+
+def test_predicted_change_is_the_footprint_where_the_camera_sees_it_and_grows_with_the_margin():
+    cam = default_camera(TV, image_size=(640, 360))
+    maps = plane_maps(image_rays(cam, (640, 360)), cam.center_mm, TV)
+    fp = np.zeros(TV.shape, bool)
+    (u0, v1), (u1, v0) = np.round(TV.to_px(np.array([[100.0, 90.0], [120.0, 110.0]]))).astype(int)
+    fp[v0:v1, u0:u1] = True
+    m0 = predicted_change(fp, (4.8, 5.0), maps, TV, 0.0)
+    m2 = predicted_change(fp, (4.8, 5.0), maps, TV, 2.0)
+    inner = predicted_change(fp, (5.0,), maps, TV, -2.0)
+    centre = cv2.projectPoints(np.array([[110.0, 100.0, 5.0]]), cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(2)
+    assert m0[int(round(centre[1])), int(round(centre[0]))]
+    assert m2.sum() > m0.sum() > inner.sum() > 0
+    assert not (inner & ~m0).any() and not (m0 & ~m2).any()
+    far = cv2.projectPoints(np.array([[75.0, 70.0, 0.0]]), cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(2)
+    assert not m2[int(far[1]), int(far[0])]
+
+
+def test_a_light_change_is_not_a_change_but_an_object_is():
+    E = _texture()
+    h, w = E.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    light = (1.25 + 0.25 * xx / w - 0.1 * yy / h)[..., None] * np.array([1.0, 1.05, 0.9], np.float32)  # exposure + WB
+    photo = _noisy(np.minimum(E * light, 255))
+    usable = np.ones((h, w), bool)
+    st = SceneSettings()
+    ratio, gain = photometric_fit(photo, E, usable)
+    assert np.all(gain > 1.1)
+    assert not change_blocks(photo, E, usable, ratio, st).changed.any()
+    bad = photo.copy()
+    cv2.circle(bad, (200, 90), 12, (20.0, 20.0, 25.0), -1)  # a dark nut
+    for k in range(4):  # strands
+        cv2.line(bad, (40, 40 + 6 * k), (120, 60 + 9 * k), (230.0, 200.0, 120.0), 2)
+    ratio, _ = photometric_fit(bad, E, usable)
+    ch = change_blocks(bad, E, usable, ratio, st)
+    b = st.block_px
+    assert ch.changed[90 // b, 200 // b] and ch.changed[50 // b, 80 // b]
+    assert ch.changed.sum() < 0.1 * ch.scored.sum()
+
+
+def test_a_moving_shade_is_explained_by_a_local_gain():
+    E = _texture(seed=3)
+    shade = np.ones(E.shape[:2], np.float32)
+    shade[40:120, 60:200] = 0.8  # a soft shadow sweeping over the bed: brightness, not texture
+    photo = _noisy(E * cv2.GaussianBlur(shade, (0, 0), 4.0)[..., None])
+    usable = np.ones(E.shape[:2], bool)
+    ratio = np.ones_like(E)  # as if the smooth fit had missed it entirely
+    assert not change_blocks(photo, E, usable, ratio, SceneSettings()).changed.any()
+
+
+def test_unusable_pixels_are_not_scored_and_a_black_frame_has_no_gain():
+    E = _texture()
+    usable = np.zeros(E.shape[:2], bool)
+    usable[:, :100] = True
+    ch = change_blocks(_noisy(E), E, usable, np.ones_like(E), SceneSettings())
+    assert ch.scored[:, : 96 // 8].all() and not ch.scored[:, 104 // 8 :].any()
+    _, gain = photometric_fit(np.zeros_like(E), E, np.ones(E.shape[:2], bool))
+    assert np.all(gain < 0.1)
+
+
+def test_to_working_reduces_and_refuses_odd_frames():
+    assert working_size((1920, 1080), 640) == (640, 360)
+    assert working_size((320, 180), 640) == (320, 180)
+    img = to_working(np.full((1080, 1920, 3), 100, np.uint8), (640, 360))
+    assert img.shape == (360, 640, 3) and img.dtype == np.float32 and np.allclose(img, 100)
+    with pytest.raises(AnalysisError):
+        to_working(np.zeros((1000, 1000, 3), np.uint8), (640, 360))
+    with pytest.raises(AnalysisError):
+        to_working(np.zeros((360, 640, 3), np.float32), (640, 360))
+
+
+def test_change_regions_are_in_bed_mm_with_an_ordered_box():
+    tv = TopView(5.0, 60.0, 60.0, (30.0, 30.0))
+    changed = np.zeros(tv.shape, bool)
+    (u0, v1), (u1, v0) = np.round(tv.to_px(np.array([[10.0, 40.0], [20.0, 50.0]]))).astype(int)
+    changed[v0:v1, u0:u1] = True
+    regions = change_regions(changed, np.where(changed, 0.5, 1.0).astype(np.float32), tv, 4.0)
+    assert len(regions) == 1
+    r = regions[0]
+    x0, y0, x1, y1 = r.bbox_mm
+    assert x0 < x1 and y0 < y1
+    assert abs(r.area_mm2 - 100) < 10 and abs(r.centroid_mm[0] - 15) < 0.5 and abs(r.centroid_mm[1] - 45) < 0.5
+    assert r.outside_fraction == 1.0 and r.mean_similarity == pytest.approx(0.5)
+    assert change_regions(changed, np.ones(tv.shape, np.float32), tv, 200.0) == []
+
+
+def test_layer_result_keeps_the_scene_fields_through_json():
+    res = LayerResult(layer=3, z=0.9, outside_anomalous_mm2=12.5,
+                      outside_regions=[Region(12.5, (1.0, 2.0, 3.0, 4.0), (2.0, 3.0), 4, 0.4, 0.3, 1.0)],
+                      scene=SceneStats("bed photo", 8.0, 0.5, 900, 3, (1.0, 1.1, 0.9), 12.0))
+    back = LayerResult.from_json(res.to_json())
+    assert back.outside_anomalous_mm2 == 12.5
+    assert back.outside_regions == res.outside_regions
+    assert back.scene == res.scene
+    assert LayerResult.from_json(LayerResult(layer=1, z=0.3).to_json()).scene is None
+
+
+def test_compare_with_a_bed_photo_reports_what_changed_beside_the_footprint(tmp_path, capsys):
+    from layerwatch.cli import main
+
+    bed = np.clip(_texture(600, 600, seed=5), 0, 255).astype(np.uint8)
+    top = bed.copy()
+    top[200:400, 200:400] = 200  # the part (its footprint is the mask)
+    cv2.circle(top, (480, 120), 25, (30, 30, 30), -1)  # a nut on the bed beside it
+    mask = np.zeros((600, 600), np.uint8)
+    mask[200:400, 200:400] = 255
+    paths = {k: tmp_path / f"{k}.png" for k in ("top", "ref", "mask", "bed", "small")}
+    for k, img in (("top", top), ("ref", top), ("mask", mask), ("bed", bed), ("small", bed[:300])):
+        cv2.imwrite(str(paths[k]), img)
+    args = ["compare", str(paths["top"]), str(paths["ref"]), "--mask", str(paths["mask"]), "-c", str(tmp_path / "j.toml")]
+    (tmp_path / "j.toml").write_text("[topview]\npx_per_mm = 6.67\nwidth_mm = 90\nheight_mm = 90\ncenter_mm = [45, 45]\n")
+    assert main([*args, "--bed-photo", str(paths["bed"]), "--json", str(tmp_path / "r.json")]) == 0
+    res = LayerResult.from_json((tmp_path / "r.json").read_text())
+    assert len(res.outside_regions) == 1 and res.outside_anomalous_mm2 > 20
+    cx, cy = res.outside_regions[0].centroid_mm
+    assert abs(cx - 480 / 6.67) < 3 and abs(cy - (90 - 120 / 6.67)) < 3
+    capsys.readouterr()
+    assert main([*args, "--bed-photo", str(paths["small"])]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert main(args) == 0
+    assert "no --bed-photo" in capsys.readouterr().out
