@@ -64,12 +64,31 @@ def _bed_albedo(x, y, bed, bed_rgb, bg_rgb, markers, marker_r, seed, out):
                 out[c] = out[c] * (1 - w) + 0.93 * w
 
 
+@njit(cache=True, inline="always")
+def _solid_at(h, gap, v, u, z, z_prev):
+    """Is height ``z`` of cell ``(v, u)`` material? Below the top ``h`` and not in the cell's gap.
+
+    A ray that was above the gap's top at its previous sample (``z_prev``) has
+    crossed the material over the gap: solid (thin skins stay opaque at any step).
+    """
+    if z > h[v, u]:
+        return False
+    lo, hi = gap[v, u, 0], gap[v, u, 1]
+    if lo <= 0.0:  # a gap down to the bed: the ray's last sample on the bed plane is not material
+        lo = -1.0
+    return not (lo < z < hi and z_prev < hi)
+
+
 @njit(cache=True)
 def render_view(
-    dirs, C, h, mat, nrm, wn, ao, s, ux0, vy0, zmax, bbox,
+    dirs, C, h, mat, gap, nrm, wn, ao, s, ux0, vy0, zmax, bbox,
     albedo, spec, light, bed_alb, bg_rgb, layer_h, out,
 ):
     """Ray-cast and shade one camera frame (linear radiance, float32 (h, w, 3)).
+
+    ``gap`` (H, W, 2): per cell the empty interval ``(lo, hi)`` under printed
+    material (a window, the space under an overhang or a bridge; ``hi = 0``:
+    none), which rays pass through.
 
     ``light`` = ``[Lx, Ly, Lz, ax, ay, az, cos_in, cos_out, I, ambient, fill, dref]``;
     ``bbox`` = ``(xmin, ymin, xmax, ymax)`` of cells with height > 0 (mm);
@@ -119,6 +138,7 @@ def render_view(
                     t = ta
                     f_prev = 1e9
                     t_prev = ta
+                    z_prev = 1e9
                     while t <= tb + dt:
                         tt = min(t, tb)
                         x, y, z = C[0] + tt * d0, C[1] + tt * d1, C[2] + tt * d2
@@ -127,17 +147,19 @@ def render_view(
                         if 0 <= u < Wg and 0 <= v < Hg:
                             hh = h[v, u]
                             f = z - hh
-                            if f <= 0.0 and hh > 0.0:
+                            if f <= 0.0 and hh > 0.0 and _solid_at(h, gap, v, u, z, z_prev):
                                 th = tt
                                 if f_prev < 1e8:
                                     th = t_prev + (tt - t_prev) * f_prev / (f_prev - f)
                                 px, py, pz = C[0] + th * d0, C[1] + th * d1, C[2] + th * d2
                                 gu, gv = u, v
                                 hit = True
-                                wall = (-f) > 2.0 * dt * (-d2)
+                                z_up = z + 2.0 * dt * (-d2)  # entered through a side: solid just above too
+                                wall = _solid_at(h, gap, v, u, z_up, z_up)
                                 break
                             f_prev = f
                         t_prev = tt
+                        z_prev = z
                         if t > tb:
                             break
                         t += dt
