@@ -52,6 +52,8 @@ from layerwatch.render.camera_view import SKIP_PX, bilinear, ray_setup, skip_map
 
 __all__ = ["OccupancyStack", "view_through_volume"]
 
+_Z_TOL = 1e-4  # mm: a point this far above a slot's (rounded) top still belongs to it
+
 
 class OccupancyStack:
     """Bit-packed occupancy of the printed layers, one raster per z slot.
@@ -132,7 +134,7 @@ class OccupancyStack:
 @njit(cache=True, inline="always")
 def _solid(bits, tops, xi, yi, z):
     """1 when the point at pixel ``(xi, yi)`` and height ``z`` (mm) lies inside a printed bead, else 0."""
-    s = np.searchsorted(tops, z)
+    s = np.searchsorted(tops, z - _Z_TOL)
     if s >= bits.shape[0]:
         return 0
     return (bits[s, yi, xi >> 3] >> (xi & 7)) & 1
@@ -185,10 +187,7 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z,
                     x, y, zz, k = x + dx * jump, y + dy * jump, zz - dz * jump, k + int(jump)
                     continue
                 h = height[yi, xi]
-                if zz <= 0.0:  # the bed: bare (its shaded top view) or under an overhang (its albedo)
-                    val = bilinear(shaded, x, y) if h <= 0.0 else bed[yi, xi]
-                    break
-                if h >= zz and _solid(bits, tops, xi, yi, zz) != 0:
+                if h >= zz and _solid(bits, tops, xi, yi, zz) != 0:  # (below the bed: the first slot)
                     hz = zz
                     if k == 0 or h - zz <= 1.5 * dz:  # the column's top surface
                         val, hz = bilinear(shaded, x, y), h
@@ -198,6 +197,9 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z,
                     else:  # a top surface under something higher (sill, floor seen through a window)
                         f = min((z - zz) / depth_scale, 1.0) if depth_scale > 0.0 else 1.0
                         val = hidden * (1.0 - depth_dark * f)
+                    break
+                if zz <= 0.0:  # the bed: bare (its shaded top view) or under an overhang (its albedo)
+                    val = bilinear(shaded, x, y) if h <= 0.0 else bed[yi, xi]
                     break
                 x, y, zz, k = x + dx, y + dy, zz - dz, k + 1
             if val < 0.0:  # max_depth_mm reached: what lies under the ray there

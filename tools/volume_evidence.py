@@ -1,0 +1,81 @@
+"""Clean prints judged with the height-map and with the occupancy-volume reference (issue 18).
+
+For each part (``window_part``: a bridge, a hollow box with a window, an
+overhang; the bundled example part) and each ``render.reference``, whole
+clean prints are simulated and judged by the harness's
+:func:`~layerwatch.evaluate.harness.clean_false_alarms` with the recommended
+setting (jaccard, T_S 0.20, pause a% > 2.5 % on two layers) and with a
+footprint margin (the whole-view direction of the issue): layers, single-layer
+alarms, the policy's notices and pauses, max and mean clean a%. The same
+photos (same seeds) are judged with both references.
+
+Run::
+
+    PYTHONPATH=src python tools/volume_evidence.py [--prints N] [--example-layers N] [--out docs/evaluation/volume.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+
+from layerwatch.evaluate.harness import clean_false_alarms  # noqa: E402
+from layerwatch.examples import PART_CONFIG, PART_GCODE  # noqa: E402
+from layerwatch.gcode import read_toolpath  # noqa: E402
+from layerwatch.pipeline.config import resolve_config  # noqa: E402
+from layerwatch.simulate import default_camera  # noqa: E402
+from layerwatch.simulate.parts import window_part  # noqa: E402
+
+
+def judge(name, tp, cfg, n_layers, seed, margins):
+    cam = default_camera(cfg.topview.topview())
+    rows = []
+    for margin, ref in ((m, r) for m in margins for r in ("height", "volume")):
+        c = cfg.model_copy(update={"render": cfg.render.model_copy(update={"reference": ref}),
+                                   "analysis": cfg.analysis.model_copy(update={"footprint_margin_mm": margin})})
+        t = time.perf_counter()
+        r = clean_false_alarms(tp, c, cam, n_layers, float(c.policy.pause_ratio),
+                               consecutive=c.policy.consecutive_layers, seed=seed)
+        a = np.asarray(r["a"])
+        rows.append((name, ref, margin, r["layers"], r["prints"], r["layer_alarms"], r["policy_alarms"], r["pauses"],
+                     100 * r["max_a"], 100 * float(a.mean()) if a.size else float("nan"),
+                     100 * float(np.percentile(a, 99)) if a.size else float("nan"), time.perf_counter() - t))
+        print(" | ".join(str(v if not isinstance(v, float) else round(v, 2)) for v in rows[-1]), flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--prints", type=int, default=3, help="clean prints of window_part per reference")
+    ap.add_argument("--example-layers", type=int, default=0, help="layers of the example part (0: skip)")
+    ap.add_argument("--margins", type=float, nargs="+", default=[0.0, 5.0],
+                    help="footprint_margin_mm values (0: the recommended footprint-only analysis)")
+    ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
+    args = ap.parse_args()
+    rows = []
+    tp = window_part()
+    cfg = resolve_config(None).config  # recommended setting, observed square centred on the part (0, 0)
+    rows += judge("window_part", tp, cfg, args.prints * tp.n_layers, args.seed, args.margins)
+    if args.example_layers:
+        ex = read_toolpath(PART_GCODE)
+        rows += judge("example part", ex, resolve_config(PART_CONFIG).config, args.example_layers, args.seed,
+                      args.margins)
+    head = ("| part | reference | margin mm | clean layers | prints | single-layer alarms (a% > 2.5 %) | policy notices/pauses "
+            "| pauses | max a% | mean a% | 99th pct a% | seconds |\n|" + "---|" * 12)
+    lines = [head] + ["| " + " | ".join(f"{v:.2f}" if isinstance(v, float) else str(v) for v in r) + " |"
+                      for r in rows]
+    print("\n".join(lines))
+    if args.out:
+        args.out.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
