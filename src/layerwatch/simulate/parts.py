@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from layerwatch.errors import ConfigError
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 
 __all__ = ["blocks_part", "box_part", "tower_part", "toolpath_gcode", "window_part"]
@@ -251,8 +252,17 @@ def blocks_part(
     -------
     Toolpath
         Features: external_perimeter, solid_infill.
+
+    Raises
+    ------
+    ConfigError
+        No block, or a block that is empty or not finite.
     """
     bl = np.asarray(blocks, np.float64).reshape(-1, 6)
+    ok = np.isfinite(bl).all(1) & (bl[:, 0] < bl[:, 2]) & (bl[:, 1] < bl[:, 3]) & (bl[:, 4] >= 0) & (bl[:, 4] < bl[:, 5])
+    if len(bl) == 0 or not ok.all() or not (layer_h > 0 and width > 0):
+        raise ConfigError("blocks_part needs blocks (x0, y0, x1, y1, z0, z1) with x0 < x1, y0 < y1, 0 <= z0 < z1 "
+                          "and a positive layer height and width.")
     cx, cy = center
     starts, ends, zs, feats = [], [], [], []
     n_layers = int(round(bl[:, 5].max() / layer_h))
