@@ -7,7 +7,9 @@ clean prints are simulated and judged by the harness's
 setting (jaccard, T_S 0.20, pause a% > 2.5 % on two layers) and with a
 footprint margin (the whole-view direction of the issue): layers, single-layer
 alarms, the policy's notices and pauses, max and mean clean a%. The same
-photos (same seeds) are judged with both references.
+photos (same seeds) are judged with both references. Then, on one clean print
+of ``window_part``, the blocks of the whole view where the two references
+differ: which one the photo matches there.
 
 Run::
 
@@ -26,11 +28,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 
 import numpy as np  # noqa: E402
 
-from layerwatch.evaluate.harness import clean_false_alarms  # noqa: E402
+from layerwatch.evaluate.harness import clean_false_alarms, tile_fraction  # noqa: E402
 from layerwatch.examples import PART_CONFIG, PART_GCODE  # noqa: E402
 from layerwatch.gcode import read_toolpath  # noqa: E402
 from layerwatch.pipeline.config import resolve_config  # noqa: E402
-from layerwatch.simulate import default_camera  # noqa: E402
+from layerwatch.pipeline.step import LayerPipeline  # noqa: E402
+from layerwatch.simulate import PrintSimulator, default_camera  # noqa: E402
 from layerwatch.simulate.parts import window_part  # noqa: E402
 
 
@@ -49,6 +52,39 @@ def judge(name, tp, cfg, n_layers, seed, margins):
                      100 * float(np.percentile(a, 99)) if a.size else float("nan"), time.perf_counter() - t))
         print(" | ".join(str(v if not isinstance(v, float) else round(v, 2)) for v in rows[-1]), flush=True)
     return rows
+
+
+def differing_blocks(tp, cfg, seed, min_share=0.25, grey=20):
+    """On the blocks where the two references differ, how well does each match the clean photo?
+
+    Every block of the whole view (not only the footprint) whose tile has at
+    least ``min_share`` of pixels where the height-map and volume references
+    differ by more than ``grey`` levels is compared: mean similarity (the
+    configured measure) of the photo's top view with each reference, and the
+    share of those blocks below T_S (anomalous, were they considered).
+    """
+    cam = default_camera(cfg.topview.topview())
+    pipes = {ref: LayerPipeline(tp, cam, cfg.model_copy(update={
+        "render": cfg.render.model_copy(update={"reference": ref})}), memo=2) for ref in ("height", "volume")}
+    sim = PrintSimulator(tp, cam, cfg.topview.topview(), (), seed=seed)
+    sims = {"height": [], "volume": []}
+    for i in range(tp.n_layers):
+        photo = sim.frame(i).photo
+        res = {ref: p.process(photo, i) for ref, p in pipes.items()}
+        if any(r.status != "ok" or r.heatmap is None for r in res.values()):
+            continue
+        diff = np.abs(pipes["height"].reference(i).image.astype(int) - pipes["volume"].reference(i).image) > grey
+        g = res["height"].grid
+        n, m = res["height"].heatmap.shape
+        sel = tile_fraction(diff, n, m, g.cell_px, g.block_cells) >= min_share
+        for ref, r in res.items():
+            sims[ref].append(np.asarray(r.heatmap)[sel])
+    out = {}
+    for ref, v in sims.items():
+        a = np.concatenate(v) if v else np.zeros(0)
+        out[ref] = (a.size, float(a.mean()) if a.size else float("nan"),
+                    100 * float((a < cfg.analysis.threshold).mean()) if a.size else float("nan"))
+    return out
 
 
 def main() -> None:
@@ -72,6 +108,11 @@ def main() -> None:
             "| pauses | max a% | mean a% | 99th pct a% | seconds |\n|" + "---|" * 12)
     lines = [head] + ["| " + " | ".join(f"{v:.2f}" if isinstance(v, float) else str(v) for v in r) + " |"
                       for r in rows]
+    blocks = differing_blocks(tp, cfg, args.seed)
+    lines += ["", f"window_part, one clean print (seed {args.seed}), whole view: blocks where the two references "
+              f"differ ({cfg.analysis.metric}, T_S {cfg.analysis.threshold:.2f})", "",
+              "| reference | blocks | mean similarity with the photo | blocks below T_S |", "|---|---|---|---|"]
+    lines += [f"| {ref} | {n} | {mean:.3f} | {below:.1f} % |" for ref, (n, mean, below) in blocks.items()]
     print("\n".join(lines))
     if args.out:
         args.out.write_text("\n".join(lines) + "\n")

@@ -7,11 +7,16 @@ import pytest
 from pydantic import ValidationError
 from render_parts import square_part
 
+from layerwatch.geometry.settings import TopViewSettings
 from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.render import fast
 from layerwatch.render.cache import ReferenceCache
 from layerwatch.render.fast import StackRenderer
 from layerwatch.render.settings import RenderSettings
 from layerwatch.render.volume import OccupancyStack, view_through_volume
+from layerwatch.simulate import default_camera
 from layerwatch.simulate.parts import blocks_part
 
 TV = TopView(8.0, 50.0, 50.0, (0.0, 0.0))  # 400 x 400 px
@@ -149,3 +154,26 @@ def test_bad_input():
         view_through_volume(height, height, occ, np.zeros((3, 3), np.float32), CAM, TV, 2.0)
     with pytest.raises(ValueError, match="centre"):
         view_through_volume(height, height, occ, height, np.array([np.nan, 0.0, 50.0]), TV, 2.0)
+
+
+
+def test_volume_too_large_falls_back_to_the_height_map(monkeypatch, caplog):
+    tp = blocks_part(BRIDGE)
+    monkeypatch.setattr(fast, "VOLUME_MAX_BYTES", 1000)
+    sr = StackRenderer(tp, TV, RenderSettings(reference="volume"))
+    assert sr.volume is None and "occupancy volume" in caplog.text
+    height = StackRenderer(tp, TV, RenderSettings(reference="height"))
+    last = tp.n_layers - 1
+    assert np.array_equal(sr.render(last, CAM).image, height.render(last, CAM).image)
+
+
+def test_pipeline_reference_and_disk_cache_follow_the_setting(tmp_path):
+    tp = blocks_part(BRIDGE)
+    tvs = TopViewSettings(px_per_mm=8.0, width_mm=50.0, height_mm=50.0)
+    cam = default_camera(tvs.topview(), image_size=(640, 360))
+    images = {}
+    for ref in ("volume", "height", "volume"):  # the cache must not hand one reference's image to the other
+        cfg = JobConfig(topview=tvs, render=RenderSettings(reference=ref))
+        images.setdefault(ref, []).append(LayerPipeline(tp, cam, cfg, cache_dir=tmp_path).reference(tp.n_layers - 1).image)
+    assert np.array_equal(images["volume"][0], images["volume"][1])
+    assert np.count_nonzero(np.abs(images["volume"][0].astype(int) - images["height"][0]) > 40) > 200

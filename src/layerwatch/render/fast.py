@@ -47,6 +47,8 @@ __all__ = ["Rendered", "StackRenderer", "render_layer", "render_stack", "segment
 log = logging.getLogger(__name__)
 
 _GREY = np.array([0.299, 0.587, 0.114])
+#: largest occupancy volume (``render.reference = "volume"``) a renderer keeps; beyond it the height map is used
+VOLUME_MAX_BYTES = 512 * 2**20
 
 
 @dataclass
@@ -150,6 +152,11 @@ class StackRenderer:
             lays = toolpath.layers
             self.volume = OccupancyStack(topview.shape, [la.z for la in lays], [la.height for la in lays],
                                          s.volume_fill_layers)
+            if self.volume.max_nbytes > VOLUME_MAX_BYTES:
+                log.warning("the occupancy volume of %d layers at %dx%d px would take %.0f MB: using the height "
+                            "map reference (lower topview.px_per_mm to use the volume)", len(self.volume.tops),
+                            topview.shape[1], topview.shape[0], self.volume.max_nbytes / 1e6)
+                self.volume = None
         self.reset()
 
     def reset(self) -> None:

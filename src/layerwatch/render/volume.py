@@ -97,6 +97,12 @@ class OccupancyStack:
         self.bits = np.zeros((0, H, (W + 7) // 8), np.uint8)
 
     @property
+    def max_nbytes(self) -> int:
+        """Memory the bits reach once every slot is printed, bytes."""
+        H, W = self.shape
+        return len(self.tops) * H * ((W + 7) // 8)
+
+    @property
     def nbytes(self) -> int:
         """Memory held by the occupancy bits, bytes."""
         return int(self.bits.nbytes)
