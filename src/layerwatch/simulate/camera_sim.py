@@ -10,8 +10,8 @@ none of that code path:
    (all layers so far, not one layer) on a bed-aligned grid (8 px/mm by
    default) with :mod:`layerwatch.simulate.raster`, plus per cell the empty
    interval left under a bead printed over nothing (a bridge, an overhang,
-   the lintel over a window: more than ``2.5`` layers of air under it), which
-   the camera's rays pass through; every bead is a capsule with
+   the lintel over a window: more than ``2.5`` layers of air under it; the
+   tallest one per cell), which the camera's rays pass through; every bead is a capsule with
    an elliptical cross-section, and each bead gets random width (6 %), position
    (0.02 mm) and height (0.01 mm) jitter plus a sinusoidal extrusion-rate
    wobble along its length, so clean layers are never pixel-identical to the
@@ -206,7 +206,9 @@ class PrintSimulator:
     def _record_gaps(self, before: np.ndarray, base: float, lh: float) -> None:
         """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air."""
         air = (self.h > before) & (before < base - _GAP_LAYERS * lh)
-        if air.any():  # one gap per cell: the highest
+        # one gap per cell: the tallest (a window is not lost to a pinhole of the lintel above it)
+        air &= base - before > self.gap[..., 1] - self.gap[..., 0]
+        if air.any():
             self.gap[air, 0] = before[air]
             self.gap[air, 1] = base
 
