@@ -140,7 +140,8 @@ def test_reference_setting_is_validated_and_keys_the_cache():
         RenderSettings(reference="voxels")
     with pytest.raises(ValidationError):
         RenderSettings(volume_fill_layers=-1)
-    h, v = RenderSettings(), RenderSettings(reference="volume")
+    h, v = RenderSettings(reference="height"), RenderSettings()
+    assert v.reference == "volume"
     assert ReferenceCache.key("g", h, TV, 3) != ReferenceCache.key("g", v, TV, 3)
 
 
