@@ -28,7 +28,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 
 import numpy as np  # noqa: E402
 
-from layerwatch.evaluate.harness import clean_false_alarms, tile_fraction  # noqa: E402
+from layerwatch.evaluate.harness import clean_false_alarms, run_evaluation, tile_fraction  # noqa: E402
+from layerwatch.evaluate.summary import at_setting  # noqa: E402
 from layerwatch.examples import PART_CONFIG, PART_GCODE  # noqa: E402
 from layerwatch.gcode import read_toolpath  # noqa: E402
 from layerwatch.pipeline.config import resolve_config  # noqa: E402
@@ -87,6 +88,23 @@ def differing_blocks(tp, cfg, seed, min_share=0.25, grey=20):
     return out
 
 
+def detection(name, tp, cfg, n_layers, seed):
+    """Simulated failures judged with both references: AUROC and IoU per type at the configured setting."""
+    cam = default_camera(cfg.topview.topview())
+    lines = []
+    for ref in ("height", "volume"):
+        c = cfg.model_copy(update={"render": cfg.render.model_copy(update={"reference": ref})})
+        data = run_evaluation(tp, c, cam, n_layers=n_layers, seed=seed)
+        got = at_setting(data, c.analysis.metric, c.analysis.threshold, c.policy.pause_ratio)
+        if got is None:
+            continue
+        cells = [f"{t} {v[1]:.2f} / {v[3]:.2f}" for t, v in got["types"].items()]
+        lines.append(f"| {name} | {ref} | {got['clean_above']}/{got['n_clean']} | {100 * got['max_clean']:.2f} | "
+                     + "; ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prints", type=int, default=3, help="clean prints of window_part per reference")
@@ -94,6 +112,8 @@ def main() -> None:
     ap.add_argument("--margins", type=float, nargs="+", default=[0.0, 5.0],
                     help="footprint_margin_mm values (0: the recommended footprint-only analysis)")
     ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--detection", type=int, default=0,
+                    help="also simulate about N photos with failures per part and reference (0: skip)")
     ap.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
     args = ap.parse_args()
     rows = []
@@ -113,6 +133,14 @@ def main() -> None:
               f"differ ({cfg.analysis.metric}, T_S {cfg.analysis.threshold:.2f})", "",
               "| reference | blocks | mean similarity with the photo | blocks below T_S |", "|---|---|---|---|"]
     lines += [f"| {ref} | {n} | {mean:.3f} | {below:.1f} % |" for ref, (n, mean, below) in blocks.items()]
+    if args.detection:
+        lines += ["", f"Simulated failures (about {args.detection} photos per part and reference, seed 0), configured "
+                  "setting: clean layers above the pause ratio, max clean a%, per type AUROC / mean IoU (>= 5 mm)",
+                  "", "| part | reference | clean above | max clean a% | AUROC / IoU per type |", "|---|---|---|---|---|"]
+        lines += detection("window_part", tp, cfg, args.detection, 0)
+        if args.example_layers:
+            lines += detection("example part", read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config,
+                               args.detection, 0)
     print("\n".join(lines))
     if args.out:
         args.out.write_text("\n".join(lines) + "\n")

@@ -33,6 +33,7 @@ import numpy as np
 from layerwatch.errors import RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.camera_view import view_from_camera
 from layerwatch.render.raster import (
     directional_light,
     raster_capsules,
@@ -280,8 +281,6 @@ class StackRenderer:
 
     def _camera_view(self, img: np.ndarray, center_mm: np.ndarray, z: float, lh: float) -> np.ndarray:
         """The shaded top view ``img`` as the camera at ``center_mm`` sees it through the plane ``Z = z``."""
-        from layerwatch.render.camera_view import view_from_camera
-
         s = self.settings
         walls = {"layer_height_mm": lh, "wall_value": s.wall_light * self._mat,
                  "wall_line_contrast": s.wall_line_contrast, "wall_ambient": s.wall_ambient}
