@@ -13,7 +13,8 @@ differ: which one the photo matches there.
 
 Run::
 
-    PYTHONPATH=src python tools/volume_evidence.py [--prints N] [--example-layers N] [--out docs/evaluation/volume.md]
+    PYTHONPATH=src python tools/volume_evidence.py [--prints N] [--example-layers N] [--gcode FILE ...]
+        [--margins MM ...] [--detection N] [--out table.md]
 """
 
 from __future__ import annotations
@@ -105,10 +106,36 @@ def detection(name, tp, cfg, n_layers, seed):
     return lines
 
 
+def _blocks_lines(name, tp, cfg, seed):
+    blocks = differing_blocks(tp, cfg, seed)
+    lines = ["", f"{name}, one clean print (seed {seed}), whole view: blocks where the two references differ "
+             f"({cfg.analysis.metric}, T_S {cfg.analysis.threshold:.2f})", "",
+             "| reference | blocks | mean similarity with the photo | blocks below T_S |", "|---|---|---|---|"]
+    return lines + [f"| {ref} | {n} | {mean:.3f} | {below:.1f} % |" for ref, (n, mean, below) in blocks.items()]
+
+
+def _parts(args):
+    """``(name, toolpath, config, clean layers)`` of the parts asked for."""
+    parts = []
+    if args.prints:
+        tp = window_part()  # recommended setting, observed square centred on the part (0, 0)
+        parts.append(("window_part", tp, resolve_config(None).config, args.prints * tp.n_layers))
+    if args.example_layers:
+        parts.append(("example part", read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config,
+                      args.example_layers))
+    for path in args.gcode:  # a slicer file: the observed square centred on its part, one print
+        tp = read_toolpath(path)
+        x0, y0, x1, y1 = tp.bounds
+        cfg = resolve_config(None, gcode={"topview": {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2)}}).config
+        parts.append((path.name, tp, cfg, tp.n_layers))
+    return parts
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--prints", type=int, default=3, help="clean prints of window_part per reference")
+    ap.add_argument("--prints", type=int, default=3, help="clean prints of window_part per reference (0: skip it)")
     ap.add_argument("--example-layers", type=int, default=0, help="layers of the example part (0: skip)")
+    ap.add_argument("--gcode", type=Path, nargs="*", default=[], help="slicer files to add (one clean print each)")
     ap.add_argument("--margins", type=float, nargs="+", default=[0.0, 5.0],
                     help="footprint_margin_mm values (0: the recommended footprint-only analysis)")
     ap.add_argument("--seed", type=int, default=100)
@@ -116,31 +143,21 @@ def main() -> None:
                     help="also simulate about N photos with failures per part and reference (0: skip)")
     ap.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
     args = ap.parse_args()
-    rows = []
-    tp = window_part()
-    cfg = resolve_config(None).config  # recommended setting, observed square centred on the part (0, 0)
-    rows += judge("window_part", tp, cfg, args.prints * tp.n_layers, args.seed, args.margins)
-    if args.example_layers:
-        ex = read_toolpath(PART_GCODE)
-        rows += judge("example part", ex, resolve_config(PART_CONFIG).config, args.example_layers, args.seed,
-                      args.margins)
+    parts = _parts(args)
+    rows = [r for name, tp, cfg, n in parts for r in judge(name, tp, cfg, n, args.seed, args.margins)]
     head = ("| part | reference | margin mm | clean layers | prints | single-layer alarms (a% > 2.5 %) | policy notices/pauses "
             "| pauses | max a% | mean a% | 99th pct a% | seconds |\n|" + "---|" * 12)
     lines = [head] + ["| " + " | ".join(f"{v:.2f}" if isinstance(v, float) else str(v) for v in r) + " |"
                       for r in rows]
-    blocks = differing_blocks(tp, cfg, args.seed)
-    lines += ["", f"window_part, one clean print (seed {args.seed}), whole view: blocks where the two references "
-              f"differ ({cfg.analysis.metric}, T_S {cfg.analysis.threshold:.2f})", "",
-              "| reference | blocks | mean similarity with the photo | blocks below T_S |", "|---|---|---|---|"]
-    lines += [f"| {ref} | {n} | {mean:.3f} | {below:.1f} % |" for ref, (n, mean, below) in blocks.items()]
+    for name, tp, cfg, _ in parts:
+        if name != "example part":  # nothing differs much there
+            lines += _blocks_lines(name, tp, cfg, args.seed)
     if args.detection:
         lines += ["", f"Simulated failures (about {args.detection} photos per part and reference, seed 0), configured "
                   "setting: clean layers above the pause ratio, max clean a%, per type AUROC / mean IoU (>= 5 mm)",
                   "", "| part | reference | clean above | max clean a% | AUROC / IoU per type |", "|---|---|---|---|---|"]
-        lines += detection("window_part", tp, cfg, args.detection, 0)
-        if args.example_layers:
-            lines += detection("example part", read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config,
-                               args.detection, 0)
+        for name, tp, cfg, _ in parts:
+            lines += detection(name, tp, cfg, args.detection, 0)
     print("\n".join(lines))
     if args.out:
         args.out.write_text("\n".join(lines) + "\n")
