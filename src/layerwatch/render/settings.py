@@ -33,7 +33,8 @@ class RenderSettings(Section):
         ``view = "top"`` or the Blender backend. Default ``"volume"``: on clean
         prints of a part with a window, a bridge and an overhang it lowered
         single-layer alarms (13 -> 11 of 210 layers; 139 -> 104 with a 5 mm
-        footprint margin), left the example part's a% unchanged, and costs
+        footprint margin; 19 -> 13 of 240 on a sliced 3DBenchy), left the
+        example part's a% unchanged, and costs
         ~1.06x the height map's time (``docs/evaluation/volume.md``,
         ``benchmarks/bench_volume.py``). Beyond 512 MB of occupancy the height
         map is used (logged).
