@@ -9,7 +9,10 @@ G-code (toolpath), camera pose and config are known:
    incremental, memoised in memory and optionally on disk) as the camera sees
    it through the layer's plane (``render.view = "camera"``, the default:
    walls and the parallax of lower layers as in the warped photo, see
-   :mod:`layerwatch.render.camera_view`), and optionally
+   :mod:`layerwatch.render.camera_view`; with ``render.reference = "volume"``
+   the rays run through the layers' occupancy, so windows, bridges and
+   overhangs show what lies behind and under them, see
+   :mod:`layerwatch.render.volume`), and optionally
    blur it by the camera's sampling footprint on that plane
    (:func:`~layerwatch.render.camera_match.match_camera`);
 3. **analyse**: HOG of both images, similarity heatmap, anomaly ratio a%

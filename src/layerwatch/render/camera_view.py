@@ -34,11 +34,15 @@ from numba import njit
 
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["view_from_camera"]
+__all__ = ["SKIP_PX", "bilinear", "ray_setup", "skip_map", "view_from_camera", "wall_light"]
+
+#: half-side (px) of the square over which :func:`skip_map` takes the maximum height
+SKIP_PX = 8
 
 
 @njit(cache=True)
-def _bilinear(img, x, y):
+def bilinear(img, x, y):
+    """Bilinear sample of ``img`` (H, W) at pixel ``(x, y)``, clamped to the image."""
     H, W = img.shape
     x = min(max(x, 0.0), W - 1.0)
     y = min(max(y, 0.0), H - 1.0)
@@ -54,6 +58,18 @@ def _bilinear(img, x, y):
 
 
 @njit(cache=True)
+def wall_light(facing, z, layer_h, wall_value, wall_ambient, line_contrast):
+    """Brightness of a wall point at height ``z`` (mm) whose normal makes cosine ``facing`` with the view.
+
+    ``wall_value * (wall_ambient + (1 - wall_ambient) * facing)``, darkened by
+    ``line_contrast`` on the layer lines (period ``layer_h``).
+    """
+    ph = z / layer_h if layer_h > 0 else 0.0
+    lines = 0.5 * (1.0 + math.cos(2.0 * math.pi * ph))
+    return wall_value * (wall_ambient + (1.0 - wall_ambient) * facing) * (1.0 - line_contrast * lines)
+
+
+@njit(cache=True)
 def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, wall_ambient,
            line_contrast, layer_h, out, hit_z):
     """Follow the camera ray through every top-view pixel into the height map.
@@ -64,7 +80,6 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
     empty space in strides of ``skip_px``; see :func:`view_from_camera`.
     """
     H, W = height.shape
-    two_pi = 2.0 * math.pi
     for v in range(H):
         for u in range(W):
             du = u - cu
@@ -91,7 +106,7 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
                 yi = int(y + 0.5)
                 if xi < 0 or yi < 0 or xi >= W or yi >= H:
                     # left the rendered square: what lies there is bed or unknown
-                    val = _bilinear(shaded, x, y)
+                    val = bilinear(shaded, x, y)
                     hz = 0.0
                     hit = True
                     break
@@ -117,17 +132,15 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
                         facing = 1.0
                         if g > 1e-9:
                             facing = max((gx * du + gy * dv) / (g * L), 0.0)
-                        ph = zz / layer_h if layer_h > 0 else 0.0
-                        lines = 0.5 * (1.0 + math.cos(two_pi * ph))
-                        val = wall_value * (wall_ambient + (1.0 - wall_ambient) * facing) * (1.0 - line_contrast * lines)
+                        val = wall_light(facing, zz, layer_h, wall_value, wall_ambient, line_contrast)
                         hz = zz
                     else:
-                        val = _bilinear(shaded, x, y)
+                        val = bilinear(shaded, x, y)
                         hz = h
                     hit = True
                     break
                 if zz <= 0.0:
-                    val = _bilinear(shaded, x, y)
+                    val = bilinear(shaded, x, y)
                     hz = 0.0
                     hit = True
                     break
@@ -136,7 +149,7 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
                 zz -= dz
                 k += 1
             if not hit:  # max_depth_mm reached: what lies under the ray there
-                val = _bilinear(shaded, x, y)
+                val = bilinear(shaded, x, y)
                 hz = height[min(max(int(y + 0.5), 0), H - 1), min(max(int(x + 0.5), 0), W - 1)]
             out[v, u] = val
             hit_z[v, u] = hz
@@ -193,25 +206,52 @@ def view_from_camera(
     hit_z : ndarray, shape (H, W), float32
         Height of the surface each ray met, mm.
     """
+    c, cu, cv, max_steps = ray_setup(center_mm, topview, z, step_px, max_depth_mm)
+    h = np.ascontiguousarray(height, np.float32)
+    s = np.ascontiguousarray(shaded, np.float32)
+    out = np.empty_like(s)
+    hit = np.empty_like(h)
+    skip = SKIP_PX
+    hmax = skip_map(h, skip)
+    _march(h, hmax, float(skip), s, float(cu), float(cv), float(c[2]), float(z), float(step_px), max_steps,
+           float(wall_value), float(wall_ambient), float(wall_line_contrast), float(layer_height_mm), out, hit)
+    return out, hit
+
+
+def ray_setup(center_mm, topview: TopView, z: float, step_px: float, max_depth_mm: float):
+    """Checked camera centre and the ray march's bounds for the plane ``Z = z``.
+
+    Returns
+    -------
+    c : ndarray, shape (3,)
+        Camera centre, bed mm.
+    cu, cv : float
+        Its position in top-view pixels.
+    max_steps : int
+        Steps that let the flattest ray over the square descend ``max_depth_mm``
+        (or down to the bed).
+
+    Raises
+    ------
+    ValueError
+        The centre is not three finite numbers or does not lie above ``z``.
+    """
     c = np.asarray(center_mm, np.float64).reshape(-1)
     if c.size != 3 or not np.all(np.isfinite(c)):
         raise ValueError("center_mm must be the camera centre (x, y, z) in bed mm")
     if c[2] <= z:
         raise ValueError(f"the camera (z = {c[2]:.1f} mm) must be above the layer plane (z = {z:.1f} mm)")
     cu, cv = topview.to_px(c[:2])
-    h = np.ascontiguousarray(height, np.float32)
-    s = np.ascontiguousarray(shaded, np.float32)
-    out = np.empty_like(s)
-    hit = np.empty_like(h)
-    # steps needed to descend max_depth_mm at the steepest ray over the square
     corners = topview.to_px(topview.corners_mm)
     near = max(float(np.min(np.hypot(corners[:, 0] - cu, corners[:, 1] - cv))), 1.0)
     far = max(float(np.max(np.hypot(corners[:, 0] - cu, corners[:, 1] - cv))), near)
     # descent per step is step_px / L * (cz - z); the smallest descent (largest L) needs most steps
     min_dz = step_px / far * (c[2] - z)
     max_steps = int(min(max_depth_mm, max(z, 0.0) + 1.0) / max(min_dz, 1e-6)) + 2
-    skip = 8
-    hmax = cv2.dilate(h, np.ones((2 * skip + 1, 2 * skip + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    _march(h, hmax, float(skip), s, float(cu), float(cv), float(c[2]), float(z), float(step_px), max_steps,
-           float(wall_value), float(wall_ambient), float(wall_line_contrast), float(layer_height_mm), out, hit)
-    return out, hit
+    return c, float(cu), float(cv), max_steps
+
+
+def skip_map(height: np.ndarray, skip: int = SKIP_PX) -> np.ndarray:
+    """``height`` dilated over squares of half-side ``skip`` px: lets a ray skip empty space."""
+    k = np.ones((2 * skip + 1, 2 * skip + 1), np.uint8)
+    return cv2.dilate(height, k, borderType=cv2.BORDER_REPLICATE)

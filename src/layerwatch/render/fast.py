@@ -33,6 +33,7 @@ import numpy as np
 from layerwatch.errors import RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.camera_view import view_from_camera
 from layerwatch.render.raster import (
     directional_light,
     raster_capsules,
@@ -40,12 +41,15 @@ from layerwatch.render.raster import (
     shade_height,
 )
 from layerwatch.render.settings import RenderSettings
+from layerwatch.render.volume import OccupancyStack, view_through_volume
 
 __all__ = ["Rendered", "StackRenderer", "render_layer", "render_stack", "segment_pixels"]
 
 log = logging.getLogger(__name__)
 
 _GREY = np.array([0.299, 0.587, 0.114])
+#: largest occupancy volume (``render.reference = "volume"``) a renderer keeps; beyond it the height map is used
+VOLUME_MAX_BYTES = 512 * 2**20
 
 
 @dataclass
@@ -143,12 +147,25 @@ class StackRenderer:
         )
         self._bed = self._bed_albedo()
         self._mat = float(np.asarray(s.material_rgb) @ _GREY)
+        #: occupancy of the printed layers (``reference = "volume"``), else ``None``
+        self.volume = None
+        if s.reference == "volume":
+            lays = toolpath.layers
+            self.volume = OccupancyStack(topview.shape, [la.z for la in lays], [la.height for la in lays],
+                                         s.volume_fill_layers)
+            if self.volume.max_nbytes > VOLUME_MAX_BYTES:
+                log.warning("the occupancy volume of %d layers at %dx%d px would take %.0f MB: using the height "
+                            "map reference (lower topview.px_per_mm to use the volume)", len(self.volume.tops),
+                            topview.shape[1], topview.shape[0], self.volume.max_nbytes / 1e6)
+                self.volume = None
         self.reset()
 
     def reset(self) -> None:
         """Forget the accumulated layers."""
         self.height = np.zeros(self.topview.shape, np.float32)
         self.done = -1  # last layer rasterised into self.height
+        if self.volume is not None:
+            self.volume.reset()
 
     def _bed_albedo(self) -> np.ndarray:
         s = self.settings
@@ -171,8 +188,13 @@ class StackRenderer:
         h = layer.height if layer.height > 0 and np.isfinite(layer.height) else 0.2
         hh = np.full(p0.shape[0], min(h, 2.0), np.float64)
         ztop = np.ascontiguousarray(tp.z[sl], np.float64)
+        if mask is None and self.volume is not None:  # the volume needs every layer's footprint
+            mask = np.zeros(self.topview.shape, bool)
         m = np.zeros((1, 1), bool) if mask is None else mask
-        return raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
+        clipped = raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
+        if self.volume is not None:
+            self.volume.add(index, m)
+        return clipped
 
     def render(self, index: int, camera_center_mm: np.ndarray | None = None) -> Rendered:
         """Render layer ``index`` (all layers ``0..index``), reusing earlier work.
@@ -250,17 +272,24 @@ class StackRenderer:
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
         img = albedo * light
         if camera_center_mm is not None:
-            from layerwatch.render.camera_view import view_from_camera
-
-            img, _ = view_from_camera(
-                self.height, img, camera_center_mm, self.topview, z, layer_height_mm=lh,
-                wall_value=s.wall_light * self._mat, wall_line_contrast=s.wall_line_contrast,
-                wall_ambient=s.wall_ambient,
-            )
+            img = self._camera_view(img, camera_center_mm, z, lh)
         if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
             img = cv2.GaussianBlur(img, (0, 0), s.image_blur_px, borderType=cv2.BORDER_REPLICATE)
         image = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return Rendered(image, self.height.copy(), mask, index, float(z), light, int(clipped))
+
+
+    def _camera_view(self, img: np.ndarray, center_mm: np.ndarray, z: float, lh: float) -> np.ndarray:
+        """The shaded top view ``img`` as the camera at ``center_mm`` sees it through the plane ``Z = z``."""
+        s = self.settings
+        walls = {"layer_height_mm": lh, "wall_value": s.wall_light * self._mat,
+                 "wall_line_contrast": s.wall_line_contrast, "wall_ambient": s.wall_ambient}
+        if self.volume is None:
+            return view_from_camera(self.height, img, center_mm, self.topview, z, **walls)[0]
+        return view_through_volume(
+            self.height, img, self.volume, self._bed, center_mm, self.topview, z, hidden_value=self._mat,
+            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening, **walls,
+        )[0]
 
 
 _LAST: dict[str, object] = {}  # the most recent renderer (holds one toolpath alive)

@@ -23,6 +23,25 @@ class RenderSettings(Section):
         scene as that camera sees it through the layer's plane (walls facing
         the camera, parallax of lower layers; :mod:`layerwatch.render.camera_view`),
         i.e. what the warped photo shows; ``"top"``: the orthographic top view.
+    reference : {"height", "volume"}
+        What the camera view is rendered from. ``"height"``: a height map of
+        the printed layers (one surface per pixel: everything under a bead is
+        solid down to the bed); ``"volume"``: a layer-stack occupancy volume
+        (:mod:`layerwatch.render.volume`), so windows through walls,
+        cross-holes, overhangs and bridges appear as the camera sees them.
+        The two are identical on parts without such features; no effect with
+        ``view = "top"`` or the Blender backend. Default ``"volume"``: on clean
+        prints of a part with a window, a bridge and an overhang it lowered
+        single-layer alarms (13 -> 11 of 210 layers; 139 -> 104 with a 5 mm
+        footprint margin; 19 -> 13 of 240 on a sliced 3DBenchy), left the
+        example part's a% unchanged, and costs
+        ~1.06x the height map's time (``docs/evaluation/volume.md``,
+        ``benchmarks/bench_volume.py``). Beyond 512 MB of occupancy the height
+        map is used (logged).
+    volume_fill_layers : int
+        ``reference = "volume"``: vertical gaps of up to this many layers
+        between printed beads of a pixel are closed (the slit under a sparse
+        infill line is not a window).
     material_rgb, bed_rgb : tuple of float
         Linear albedo of the filament and of the bed, each channel in [0, 1].
     light : {"ring", "directional"}
@@ -70,6 +89,8 @@ class RenderSettings(Section):
 
     backend: Literal["fast", "blender"] = "fast"
     view: Literal["camera", "top"] = "camera"
+    reference: Literal["height", "volume"] = "volume"
+    volume_fill_layers: int = Field(2, ge=0, le=20)
     material_rgb: tuple[float, float, float] = (0.85, 0.85, 0.82)
     bed_rgb: tuple[float, float, float] = (0.12, 0.12, 0.13)
     light: Literal["ring", "directional"] = "ring"

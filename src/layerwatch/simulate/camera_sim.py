@@ -8,7 +8,10 @@ none of that code path:
 
 1. **Geometry.** It builds its own 3-D height field of the *whole printed part*
    (all layers so far, not one layer) on a bed-aligned grid (8 px/mm by
-   default) with :mod:`layerwatch.simulate.raster`: every bead is a capsule with
+   default) with :mod:`layerwatch.simulate.raster`, plus per cell the empty
+   interval left under a bead printed over nothing (a bridge, an overhang,
+   the lintel over a window: more than ``2.5`` layers of air under it; the
+   tallest one per cell), which the camera's rays pass through; every bead is a capsule with
    an elliptical cross-section, and each bead gets random width (6 %), position
    (0.02 mm) and height (0.01 mm) jitter plus a sinusoidal extrusion-rate
    wobble along its length, so clean layers are never pixel-identical to the
@@ -58,6 +61,7 @@ from layerwatch.simulate.settings import SimSettings
 __all__ = ["SimFrame", "PrintSimulator", "save_frame", "simulate_layer", "simulate_print"]
 
 
+_GAP_LAYERS = 2.5  # air under a new bead (layers) that makes a gap the rays pass through
 _TILT_ARM_MM = 25.0  # a detached part pivots about a line this far behind its centre
 
 
@@ -124,6 +128,8 @@ class PrintSimulator:
     def _reset(self) -> None:
         self.h = np.zeros(self.grid.shape, np.float32)
         self.mat = np.zeros(self.grid.shape, np.uint8)
+        #: per cell the empty interval (lo, hi) mm under printed material (hi = 0: none)
+        self.gap = np.zeros((*self.grid.shape, 2), np.float32)
         self.hf, self.matf = self.h.copy(), self.mat.copy()  # skirt: never detaches
         self.has_fixed = False
         self.next_layer = 0
@@ -189,10 +195,21 @@ class PrintSimulator:
         rows[:, 9] = rng.uniform(0, 2 * np.pi, n)
         mats = np.full(n, fl.MAT_PART, np.uint8)
         part = ~fx
+        before = self.h.copy()
         stamp_capsules(self.h, self.mat, self.h, rows[part], mats[part], *self.gp)
+        self._record_gaps(before, lay.z - lh, lh)
         if fx.any():
             self.has_fixed = True
             stamp_capsules(self.hf, self.matf, self.hf, rows[fx], mats[fx], *self.gp)
+
+    def _record_gaps(self, before: np.ndarray, base: float, lh: float) -> None:
+        """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air."""
+        air = (self.h > before) & (before < base - _GAP_LAYERS * lh)
+        # one gap per cell: the tallest (a window is not lost to a pinhole of the lintel above it)
+        air &= base - before > self.gap[..., 1] - self.gap[..., 0]
+        if air.any():
+            self.gap[air, 0] = before[air]
+            self.gap[air, 1] = base
 
     def advance(self, index: int) -> None:
         """Deposit layers up to ``index`` (rebuilding when going backwards)."""
@@ -203,7 +220,7 @@ class PrintSimulator:
             self.next_layer += 1
 
     # ----------------------------------------------------------------- frame
-    def _detach(self, rf, h, mat):
+    def _detach(self, rf, h, mat, gap):
         s, ux0, vy0 = self.gp
         G = np.array([[s, 0, ux0], [0, -s, vy0], [0, 0, 1]])
         M = G @ _affine_mm(rf) @ np.linalg.inv(G)
@@ -213,7 +230,9 @@ class PrintSimulator:
         nrm = rf.offset / max(np.linalg.norm(rf.offset), 1e-9)
         lift = rf.tilt * np.maximum(((xy - rf.center) @ nrm) + _TILT_ARM_MM, 0).astype(np.float32)
         hs = np.where(hs > 0, hs + lift, 0).astype(np.float32)
-        return hs, ms
+        gs = cv2.warpAffine(gap, M[:2], h.shape[::-1], flags=cv2.INTER_NEAREST)
+        gs = np.where((gs[..., 1:] > 0) & (hs[..., None] > 0), gs + lift[..., None], 0).astype(np.float32)
+        return hs, ms, gs
 
     def _seen_detached(self, rf, p: np.ndarray, z: float) -> np.ndarray:
         """Where points ``p`` (N, 2) of plane ``z`` appear on that plane after detachment.
@@ -281,7 +300,7 @@ class PrintSimulator:
         self.advance(index)
         tp, tv = self.tp, self.topview
         lay = tp.layers[index]
-        h, mat = self.h.copy(), self.mat.copy()
+        h, mat, gap = self.h.copy(), self.mat.copy(), self.gap
         truth = np.zeros(tv.shape, bool)
         active = []
         nominal = None
@@ -298,7 +317,7 @@ class PrintSimulator:
                 if f.type == "layer_shift":
                     moved = solid_area(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
                 else:
-                    h, mat = self._detach(rf, h, mat)
+                    h, mat, gap = self._detach(rf, h, mat, gap)
                     moved = solid_area(*(self._seen_detached(rf, p, lay.z) for p in nominal[:2]),
                                        nominal[2], tv)
                 truth |= fp ^ moved
@@ -321,7 +340,7 @@ class PrintSimulator:
                 before = h.copy()
                 stamp_capsules(h, mat, before, rows, rf.capsule_mat[: len(rows)], *self.gp)
                 truth |= self._apparent(before, h, lay.z)
-        photo, info = self.cam.shoot(h, mat, index, lay.height)
+        photo, info = self.cam.shoot(h, mat, index, lay.height, gap)
         meta = {
             "layer": index,
             "z": lay.z,

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from layerwatch.errors import ConfigError
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 
-__all__ = ["box_part", "tower_part", "toolpath_gcode"]
+__all__ = ["blocks_part", "box_part", "tower_part", "toolpath_gcode", "window_part"]
 
 
 def _loop(x0, y0, x1, y1):
@@ -222,6 +223,117 @@ def tower_part(
         np.concatenate(starts), np.concatenate(ends), np.array(zs), width=width,
         feature=np.array(feats, np.uint8), layer_height=layer_h, source="<tower_part>",
     )
+
+
+def _block_layer(x0, y0, x1, y1, width, along_x):
+    """One layer of a solid block: a perimeter loop and rectilinear solid infill, (starts, ends, features)."""
+    ext, sol = FEATURES.index("external_perimeter"), FEATURES.index("solid_infill")
+    a, b = _loop(x0 + width / 2, y0 + width / 2, x1 - width / 2, y1 - width / 2)
+    starts, ends, feats = [a], [b], [ext] * 4
+    lo, hi = (y0 + width, y1 - width) if along_x else (x0 + width, x1 - width)
+    s0, s1 = (x0 + width, x1 - width) if along_x else (y0 + width, y1 - width)
+    if hi >= lo and s1 - s0 >= width:
+        for c in np.arange(lo + (hi - lo) % width / 2, hi + 1e-9, width):
+            p, q = ([s0, c], [s1, c]) if along_x else ([c, s0], [c, s1])
+            starts.append([p])
+            ends.append([q])
+            feats.append(sol)
+    return starts, ends, feats
+
+
+def blocks_part(
+    blocks,
+    layer_h: float = 0.2,
+    width: float = 0.45,
+    center: tuple[float, float] = (0.0, 0.0),
+    source: str = "<blocks_part>",
+) -> Toolpath:
+    """A part built from solid axis-aligned blocks, each printed wherever its height range covers a layer.
+
+    Every layer prints each block whose ``(z0, z1]`` contains the layer's
+    top: a perimeter loop and solid rectilinear infill (along X on even
+    layers, along Y on odd ones). A block over empty space is an overhang or
+    a bridge, a gap between blocks of one wall a window: the layers are
+    printed as given, nothing is supported.
+
+    Parameters
+    ----------
+    blocks : sequence of (x0, y0, x1, y1, z0, z1)
+        Blocks relative to ``center``, mm (``x0 < x1``, ``y0 < y1``, ``0 <= z0 < z1``).
+    layer_h, width : float
+        Layer height and bead width, mm.
+    center : (float, float)
+        Offset of the part on the bed, mm.
+    source : str
+        The toolpath's ``source``.
+
+    Returns
+    -------
+    Toolpath
+        Features: external_perimeter, solid_infill.
+
+    Raises
+    ------
+    ConfigError
+        No block, or a block that is empty or not finite.
+    """
+    bl = np.asarray(blocks, np.float64).reshape(-1, 6)
+    ok = np.isfinite(bl).all(1) & (bl[:, 0] < bl[:, 2]) & (bl[:, 1] < bl[:, 3]) & (bl[:, 4] >= 0) & (bl[:, 4] < bl[:, 5])
+    if len(bl) == 0 or not ok.all() or not (layer_h > 0 and width > 0):
+        raise ConfigError("blocks_part needs blocks (x0, y0, x1, y1, z0, z1) with x0 < x1, y0 < y1, 0 <= z0 < z1 "
+                          "and a positive layer height and width.")
+    cx, cy = center
+    starts, ends, zs, feats = [], [], [], []
+    n_layers = int(round(bl[:, 5].max() / layer_h))
+    for k in range(n_layers):
+        z = round((k + 1) * layer_h, 6)
+        for x0, y0, x1, y1, z0, z1 in bl:
+            if z0 + 1e-6 < z <= z1 + 1e-6:
+                s, e, f = _block_layer(cx + x0, cy + y0, cx + x1, cy + y1, width, k % 2 == 0)
+                starts += s
+                ends += e
+                feats += f
+        zs += [z] * (sum(len(s) for s in starts) - len(zs))
+    return Toolpath.from_segments(
+        np.concatenate(starts), np.concatenate(ends), np.array(zs), width=width,
+        feature=np.array(feats, np.uint8), layer_height=layer_h, source=source,
+    )
+
+
+def window_part(center: tuple[float, float] = (0.0, 0.0), layer_h: float = 0.2, width: float = 0.45) -> Toolpath:
+    """A part a height map cannot hold: a hollow box with a window, a bridge and an overhang, 46 x 16 x 14 mm.
+
+    Seen from a camera in front of the printer (-Y), left to right:
+
+    * a **bridge**: two 4 x 6 mm pillars 8 mm apart, 8 mm tall, spanned by a
+      2 mm deck (the camera sees the bed and the far side under it);
+    * a **hollow box** 20 x 16 mm, 14 mm tall, 1.8 mm walls on a 1 mm floor,
+      with an 8 x 5 mm **window** through its front wall from 5 to 10 mm (the
+      camera sees the floor and the back wall inside through it);
+    * an **overhang**: a 4 x 6 mm column 12 mm tall with a 6 mm ledge sticking
+      out towards the camera from 7 to 9 mm (the bed and the column under it).
+
+    Parameters
+    ----------
+    center : (float, float)
+        Offset of the part on the bed, mm (the part spans x -23..23, y -8..8 around it).
+    layer_h, width : float
+        Layer height and bead width, mm.
+
+    Returns
+    -------
+    Toolpath
+    """
+    t = 1.8
+    blocks = [
+        (-23, -3, -19, 3, 0, 8), (-11, -3, -7, 3, 0, 8), (-23, -3, -7, 3, 8, 10),  # bridge
+        (-5, -8, 15, 8, 0, 1),  # box: floor
+        (-5, 8 - t, 15, 8, 1, 14), (-5, -8 + t, -5 + t, 8 - t, 1, 14), (15 - t, -8 + t, 15, 8 - t, 1, 14),
+        (-5, -8, 15, -8 + t, 1, 5), (-5, -8, 1, -8 + t, 5, 10), (9, -8, 15, -8 + t, 5, 10),  # front, window
+        (-5, -8, 15, -8 + t, 10, 14),
+        (19, -2, 23, 4, 0, 12), (19, -8, 23, -2, 7, 9),  # column and ledge
+    ]
+    return blocks_part(blocks, layer_h, width, center, source="<window_part>")
 
 
 _TYPE_NAMES = {"external_perimeter": "External perimeter", "perimeter": "Perimeter", "infill": "Internal infill",

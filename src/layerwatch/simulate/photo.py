@@ -99,8 +99,11 @@ class Photographer:
         self.C = cam.center_mm.astype(np.float64)
         self._key = key + (tvec.tobytes(),)
 
-    def shoot(self, h: np.ndarray, mat: np.ndarray, index: int, layer_h: float):
+    def shoot(self, h: np.ndarray, mat: np.ndarray, index: int, layer_h: float, gap: np.ndarray | None = None):
         """Photo of height field ``h`` (float32 (H, W) mm) with materials ``mat`` (uint8).
+
+        ``gap`` (float32 (H, W, 2)): the empty interval ``(lo, hi)`` mm under
+        printed material per cell (windows, overhangs, bridges); ``None``: none.
 
         Returns ``(photo, info)``: BGR uint8 (h, w, 3) and a dict of the frame's
         light position, exposure and blur.
@@ -147,7 +150,9 @@ class Photographer:
                           st.fill, dref])
         w, hh = self.camera.image_size
         rad = np.empty((hh, w, 3), np.float32)
-        render_view(self.dirs, self.C, h, mat, nrm.astype(np.float32), wn, ao, *self.gp, zmax, bbox,
+        if gap is None:
+            gap = np.zeros((*h.shape, 2), np.float32)
+        render_view(self.dirs, self.C, h, mat, np.ascontiguousarray(gap, np.float32), nrm.astype(np.float32), wn, ao, *self.gp, zmax, bbox,
                     self.albedo, self.spec, light, self.bed_alb,
                     np.asarray(st.background_rgb, float), float(layer_h), rad)
         # camera: exposure and white-balance drift, vignetting, blur, noise, gamma

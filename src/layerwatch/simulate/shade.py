@@ -65,77 +65,30 @@ def _bed_albedo(x, y, bed, bed_rgb, bg_rgb, markers, marker_r, seed, out):
 
 
 @njit(cache=True, inline="always")
-def _clip_to_bbox(C, d0, d1, ta, tb, bbox):
-    """Clip the ray interval ``[ta, tb]`` to the x and y slabs of ``bbox``: ``(ok, ta, tb)``;
-    ``ok`` is False when the ray runs parallel to a slab outside it."""
-    ok = True
-    for ax in range(2):
-        o = C[ax]
-        dd = d0 if ax == 0 else d1
-        lo, hi = bbox[ax], bbox[ax + 2]
-        if abs(dd) < 1e-12:
-            if o < lo or o > hi:
-                ok = False
-        else:
-            t1, t2 = (lo - o) / dd, (hi - o) / dd
-            if t1 > t2:
-                t1, t2 = t2, t1
-            ta = max(ta, t1)
-            tb = min(tb, t2)
-    return ok, ta, tb
+def _solid_at(h, gap, v, u, z, z_prev):
+    """Is height ``z`` of cell ``(v, u)`` material? Below the top ``h`` and not in the cell's gap.
 
-
-@njit(cache=True, inline="always")
-def _spot_shade(nx, ny, nz, px, py, pz, occ, ks, shin, C, light):
-    """Blinn-Phong at a surface point: ``(diffuse, specular)`` so that the radiance is
-    ``albedo * diffuse + specular`` (spot light, overhead fill, ambient darkened by ``occ``)."""
-    lx, ly, lz = light[0] - px, light[1] - py, light[2] - pz
-    dist = np.sqrt(lx * lx + ly * ly + lz * lz)
-    lx, ly, lz = lx / dist, ly / dist, lz / dist
-    vx, vy, vz = C[0] - px, C[1] - py, C[2] - pz
-    vn = np.sqrt(vx * vx + vy * vy + vz * vz)
-    vx, vy, vz = vx / vn, vy / vn, vz / vn
-    hx, hy, hz = lx + vx, ly + vy, lz + vz
-    hn = np.sqrt(hx * hx + hy * hy + hz * hz)
-    ndl = max(nx * lx + ny * ly + nz * lz, 0.0)
-    ndh = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
-    cosang = -(lx * light[3] + ly * light[4] + lz * light[5])
-    spot = min(max((cosang - light[7]) / (light[6] - light[7]), 0.0), 1.0)
-    inten = light[8] * spot * (light[11] / dist) ** 2
-    amb = light[9] * occ + light[10] * max(nz, 0.0) * occ
-    sp = ks * ndh**shin * inten * (1.0 if ndl > 0 else 0.0)
-    return amb + ndl * inten * (0.55 + 0.45 * occ), sp
-
-
-@njit(cache=True, inline="always")
-def _part_surface(gu, gv, d0, d1, pz, mat, nrm, wn, ao, albedo, spec, layer_h, wall, alb):
-    """Surface of the part at grid cell ``(gu, gv)`` hit at height ``pz`` by a ray of horizontal
-    direction ``(d0, d1)``: its albedo into ``alb`` (with layer lines on walls of material 1),
-    and ``(nx, ny, nz, occlusion, ks, shininess)``; a wall's normal is horizontal."""
-    m = mat[gv, gu]
-    for c in range(3):
-        alb[c] = albedo[m, c]
-    if wall:
-        nx, ny = wn[gv, gu, 0], wn[gv, gu, 1]
-        nn = np.sqrt(nx * nx + ny * ny)
-        if nn < 0.2:
-            nx, ny, nn = -d0, -d1, np.sqrt(d0 * d0 + d1 * d1)
-        nx, ny, nz = nx / nn, ny / nn, 0.0
-        if m == 1 and layer_h > 0:
-            lw = 1.0 + 0.12 * np.cos(2.0 * np.pi * pz / layer_h)
-            for c in range(3):
-                alb[c] *= lw
-    else:
-        nx, ny, nz = nrm[gv, gu, 0], nrm[gv, gu, 1], nrm[gv, gu, 2]
-    return nx, ny, nz, ao[gv, gu], spec[m, 0], spec[m, 1]
+    A ray that was above the gap's top at its previous sample (``z_prev``) has
+    crossed the material over the gap: solid (thin skins stay opaque at any step).
+    """
+    if z > h[v, u]:
+        return False
+    lo, hi = gap[v, u, 0], gap[v, u, 1]
+    if lo <= 0.0:  # a gap down to the bed: the ray's last sample on the bed plane is not material
+        lo = -1.0
+    return not (lo < z < hi and z_prev < hi)
 
 
 @njit(cache=True)
 def render_view(
-    dirs, C, h, mat, nrm, wn, ao, s, ux0, vy0, zmax, bbox,
+    dirs, C, h, mat, gap, nrm, wn, ao, s, ux0, vy0, zmax, bbox,
     albedo, spec, light, bed_alb, bg_rgb, layer_h, out,
 ):
     """Ray-cast and shade one camera frame (linear radiance, float32 (h, w, 3)).
+
+    ``gap`` (H, W, 2): per cell the empty interval ``(lo, hi)`` under printed
+    material (a window, the space under an overhang or a bridge; ``hi = 0``:
+    none), which rays pass through.
 
     ``light`` = ``[Lx, Ly, Lz, ax, ay, az, cos_in, cos_out, I, ambient, fill, dref]``;
     ``bbox`` = ``(xmin, ymin, xmax, ymax)`` of cells with height > 0 (mm);
@@ -164,14 +117,28 @@ def render_view(
             if zmax > 0.0:
                 ta = (C[2] - zmax) / (-d2)
                 tb = t_bed
-                ok, ta, tb = _clip_to_bbox(C, d0, d1, ta, tb, bbox)
+                # clip [ta, tb] to the bbox slab in x and y
+                ok = True
+                for ax in range(2):
+                    o = C[ax]
+                    dd = d0 if ax == 0 else d1
+                    lo, hi = bbox[ax], bbox[ax + 2]
+                    if abs(dd) < 1e-12:
+                        if o < lo or o > hi:
+                            ok = False
+                    else:
+                        t1, t2 = (lo - o) / dd, (hi - o) / dd
+                        if t1 > t2:
+                            t1, t2 = t2, t1
+                        ta = max(ta, t1)
+                        tb = min(tb, t2)
                 if ok and ta <= tb:
-                    # the march stays inline: as a helper returning the hit it ran ~30 % slower
                     hs = np.sqrt(d0 * d0 + d1 * d1)
                     dt = step_cells / (s * max(hs, 1e-3))
                     t = ta
                     f_prev = 1e9
                     t_prev = ta
+                    z_prev = 1e9
                     while t <= tb + dt:
                         tt = min(t, tb)
                         x, y, z = C[0] + tt * d0, C[1] + tt * d1, C[2] + tt * d2
@@ -180,23 +147,40 @@ def render_view(
                         if 0 <= u < Wg and 0 <= v < Hg:
                             hh = h[v, u]
                             f = z - hh
-                            if f <= 0.0 and hh > 0.0:
+                            if f <= 0.0 and hh > 0.0 and _solid_at(h, gap, v, u, z, z_prev):
                                 th = tt
                                 if f_prev < 1e8:
                                     th = t_prev + (tt - t_prev) * f_prev / (f_prev - f)
                                 px, py, pz = C[0] + th * d0, C[1] + th * d1, C[2] + th * d2
                                 gu, gv = u, v
                                 hit = True
-                                wall = (-f) > 2.0 * dt * (-d2)
+                                z_up = z + 2.0 * dt * (-d2)  # entered through a side: solid just above too
+                                wall = _solid_at(h, gap, v, u, z_up, z_up)
                                 break
                             f_prev = f
                         t_prev = tt
+                        z_prev = z
                         if t > tb:
                             break
                         t += dt
             if hit:
-                nx, ny, nz, occ, ks, shin = _part_surface(gu, gv, d0, d1, pz, mat, nrm, wn, ao, albedo, spec,
-                                                          layer_h, wall, alb)
+                m = mat[gv, gu]
+                for c in range(3):
+                    alb[c] = albedo[m, c]
+                if wall:
+                    nx, ny = wn[gv, gu, 0], wn[gv, gu, 1]
+                    nn = np.sqrt(nx * nx + ny * ny)
+                    if nn < 0.2:
+                        nx, ny, nn = -d0, -d1, np.sqrt(d0 * d0 + d1 * d1)
+                    nx, ny, nz = nx / nn, ny / nn, 0.0
+                    if m == 1 and layer_h > 0:
+                        lw = 1.0 + 0.12 * np.cos(2.0 * np.pi * pz / layer_h)
+                        for c in range(3):
+                            alb[c] *= lw
+                else:
+                    nx, ny, nz = nrm[gv, gu, 0], nrm[gv, gu, 1], nrm[gv, gu, 2]
+                occ = ao[gv, gu]
+                ks, shin = spec[m, 0], spec[m, 1]
             else:
                 px, py, pz = C[0] + t_bed * d0, C[1] + t_bed * d1, 0.0
                 for c in range(3):
@@ -206,9 +190,23 @@ def render_view(
                 v = int(vy0 - s * py + 0.5)
                 occ = ao[v, u] if (0 <= u < Wg and 0 <= v < Hg) else 1.0
                 ks, shin = spec[0, 0], spec[0, 1]
-            diffuse, sp = _spot_shade(nx, ny, nz, px, py, pz, occ, ks, shin, C, light)
+            lx, ly, lz = light[0] - px, light[1] - py, light[2] - pz
+            dist = np.sqrt(lx * lx + ly * ly + lz * lz)
+            lx, ly, lz = lx / dist, ly / dist, lz / dist
+            vx, vy, vz = C[0] - px, C[1] - py, C[2] - pz
+            vn = np.sqrt(vx * vx + vy * vy + vz * vz)
+            vx, vy, vz = vx / vn, vy / vn, vz / vn
+            hx, hy, hz = lx + vx, ly + vy, lz + vz
+            hn = np.sqrt(hx * hx + hy * hy + hz * hz)
+            ndl = max(nx * lx + ny * ly + nz * lz, 0.0)
+            ndh = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
+            cosang = -(lx * light[3] + ly * light[4] + lz * light[5])
+            spot = min(max((cosang - light[7]) / (light[6] - light[7]), 0.0), 1.0)
+            inten = light[8] * spot * (light[11] / dist) ** 2
+            amb = light[9] * occ + light[10] * max(nz, 0.0) * occ
+            sp = ks * ndh**shin * inten * (1.0 if ndl > 0 else 0.0)
             for c in range(3):
-                out[i, j, c] = alb[c] * diffuse + sp
+                out[i, j, c] = alb[c] * (amb + ndl * inten * (0.55 + 0.45 * occ)) + sp
 
 
 @njit(cache=True)
