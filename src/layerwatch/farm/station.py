@@ -1,0 +1,309 @@
+"""One printer of a farm: its connector, camera, pipeline and monitor, on its own thread.
+
+A :class:`Station` turns a :class:`~layerwatch.farm.config.PrinterSpec` into a
+running :class:`~layerwatch.farm.monitor.FarmMonitor` and keeps the printer's
+card (:meth:`Station.summary`) from what the monitor sees, so the dashboard
+never waits on a printer host. Everything that can go wrong with one printer
+(unreadable or bad G-code, a camera that cannot be opened, a host that does
+not answer, a crash in set-up) becomes that printer's ``state = "error"`` with
+a one-line message, and set-up is retried with backoff; the other stations
+never notice.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.errors import ConfigError, LayerwatchError, PrinterError
+from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.farm.config import PrinterSpec
+from layerwatch.farm.monitor import FarmMonitor, PoolPipeline
+from layerwatch.farm.pool import WorkerPool
+from layerwatch.farm.remote import JobContext
+from layerwatch.farm.simcam import SimFrames
+from layerwatch.farm.virtual import PacedVirtualPrinter
+from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.monitor.cameras import SimCamera, open_camera
+from layerwatch.monitor.notify import Notifier
+from layerwatch.monitor.printers.base import PrinterStatus, parse_trigger
+from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+from layerwatch.pipeline.config import JobConfig, observed_square, resolve_config
+from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.step import LayerPipeline
+
+__all__ = ["Station"]
+
+log = logging.getLogger("layerwatch.farm")
+
+#: a% values kept per printer for the sparkline
+SPARK = 60
+
+
+class _Watched:
+    """The printer connector as the monitor sees it, with each status answer kept for the card."""
+
+    def __init__(self, printer: Any, station: Station) -> None:
+        self._printer, self._station = printer, station
+
+    def status(self) -> PrinterStatus:
+        try:
+            st = self._printer.status()
+        except LayerwatchError as exc:
+            self._station.fault(f"printer unreachable: {exc}")
+            raise
+        self._station.seen(st)
+        return st
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._printer, name)
+
+
+class Station:
+    """Run and describe one farm printer.
+
+    Parameters
+    ----------
+    spec : PrinterSpec
+    pool : WorkerPool
+        The farm's shared workers.
+    history : History
+        Where jobs, layers and events are recorded (shared by the farm).
+    sims : SimFrames
+        Simulated photos shared by the farm's ``camera = "sim"`` printers.
+    queue_frames : int
+        Photos a printer may have waiting for a worker.
+    retry_s : tuple of float
+        First and largest wait between set-up attempts after an error, s.
+    """
+
+    def __init__(self, spec: PrinterSpec, pool: WorkerPool, history: Any, sims: SimFrames, *,
+                 queue_frames: int = 2, retry_s: tuple[float, float] = (2.0, 60.0)) -> None:
+        self.spec, self.pool, self.history, self.sims = spec, pool, history, sims
+        self.queue_frames = int(queue_frames)
+        self.retry_s = retry_s
+        self.stop_event = threading.Event()
+        self.monitor: FarmMonitor | None = None
+        self.printer: Any = None
+        self._lock = threading.Lock()
+        self._card: dict[str, Any] = {"state": "starting", "message": None, "job": None, "job_id": None,
+                                      "layer": None, "layers": None, "ratio": None, "alarm": None}
+        self._ratios: deque[float] = deque(maxlen=SPARK)
+        self.thumb: bytes | None = None
+        self._thread = threading.Thread(target=self._run, name=f"layerwatch-farm-{spec.name}", daemon=True)
+
+    # ------------------------------------------------------------ the card
+    def _set(self, **kw: Any) -> None:
+        with self._lock:
+            self._card.update(kw)
+
+    def fault(self, message: str) -> None:
+        """This printer is in error (one line); the card shows it until the printer answers again."""
+        self._set(state="error", message=message)
+
+    def seen(self, status: PrinterStatus) -> None:
+        """The printer answered: its state (and the layer it reports) go to the card."""
+        with self._lock:
+            if self._card["state"] == "error" and self._card["message"].startswith("camera"):
+                return  # a camera fault stays shown until a photo is analysed again
+            self._card.update(state={"finished": "idle", "cancelled": "idle"}.get(status.state, status.state),
+                              message=None)
+
+    def observe(self, res: LayerResult, thumb: bytes | None) -> None:
+        """A layer was recorded (called by the monitor's lane)."""
+        with self._lock:
+            self._card["layer"] = res.layer
+            if res.status == "error":
+                kind = "camera" if "camera" in (res.message or "") or "frame" in (res.message or "") else "analysis"
+                self._card.update(state="error", message=f"{kind}: {res.message}")
+            elif self._card["state"] == "error":
+                self._card.update(state="printing", message=None)
+            if res.status == "ok":
+                self._card["ratio"] = float(res.anomaly_ratio)
+                self._ratios.append(round(float(res.anomaly_ratio), 4))
+            if res.decision in ("pause", "cancel", "notify"):
+                self._card["alarm"] = {"action": res.decision, "layer": res.layer, "reason": res.decision_reason}
+            if thumb is not None:
+                self.thumb = thumb
+
+    def summary(self) -> dict[str, Any]:
+        """The printer's card: name, state, message, job, job_id, layer, layers, ratio (last a%),
+        ratios (the last :data:`SPARK`), alarm, dropped and late frames, printer URL without its query."""
+        with self._lock:
+            card = dict(self._card)
+            card["ratios"] = list(self._ratios)
+        mon = self.monitor
+        card.update(name=self.spec.name, printer=self.spec.safe_printer, camera=self.spec.camera.split("?", 1)[0],
+                    dropped=mon.dropped if mon else 0, late=mon.late if mon else 0, thumb=self.thumb is not None)
+        return card
+
+    # ------------------------------------------------------------ set-up
+    def _config(self, toolpath: Toolpath) -> JobConfig:
+        """Job settings: as ``layerwatch monitor`` resolves them, with the printer's ``settings`` as flags.
+
+        The job file is ``config``, else the bundled example's when no G-code is given either;
+        without a job file the observed square is centred on the part.
+        """
+        spec = self.spec
+        path = spec.config or (PART_CONFIG if spec.gcode is None and not spec.printer.startswith("virtual:") else None)
+        derived = observed_square(toolpath.bounds) if path is None else None
+        return resolve_config(path, gcode=derived, flags=spec.settings).config
+
+    def _gcode(self) -> tuple[Path, bytes]:
+        """The job's G-code file and its bytes."""
+        path = self.spec.gcode or PART_GCODE
+        if self.spec.printer.startswith("virtual:"):
+            path = Path(self.spec.printer[8:])
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise ConfigError(f"cannot read G-code {path}: {exc.strerror}; check the gcode key.") from None
+        return path, data
+
+    def _played(self, data: bytes, cfg: JobConfig) -> bytes:
+        """The G-code a virtual printer replays: with snapshot triggers (inserted when it has none)."""
+        if not self.spec.is_virtual or any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
+            return data
+        return insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
+
+    def _camera(self, cfg: JobConfig, gcode: bytes, toolpath) -> tuple[Any, CameraModel]:
+        spec = self.spec
+        if spec.camera == "sim":
+            frames = self.sims.get(gcode, toolpath, cfg, spec.failure, spec.onset, spec.seed)
+            model = CameraModel.load(spec.camera_model) if spec.camera_model else frames.located
+            return SimCamera(frames.frame, settle_s=spec.settle_s), model
+        model = CameraModel.load(spec.camera_model)
+        if not model.has_pose:
+            if spec.bed_photo is None:
+                raise ConfigError(f"printer {spec.name!r}: camera_model has no bed pose; add bed_photo "
+                                  "(a photo of the bed with its markers) or calibrate the pose.")
+            import cv2
+
+            from layerwatch.geometry.pose import locate_bed
+
+            photo = cv2.imread(str(spec.bed_photo), cv2.IMREAD_COLOR)
+            if photo is None:
+                raise ConfigError(f"printer {spec.name!r}: bed_photo {spec.bed_photo} is not an image.")
+            model = locate_bed(model, photo, cfg.markers, cfg.topview.topview())
+        return open_camera(spec.camera, settle_s=spec.settle_s), model
+
+    def _printer(self, played: bytes, name: str) -> Any:
+        if self.spec.is_virtual:
+            printer = PacedVirtualPrinter(played, self.spec.layer_seconds, name=name)
+            printer.start()
+            return printer
+        if self.spec.printer.startswith("octoprint://"):
+            return OctoPrintPrinter(self.spec.printer)
+        return MoonrakerPrinter(self.spec.printer)
+
+    def _build(self) -> FarmMonitor:
+        path, data = self._gcode()
+        toolpath = read_toolpath(data)
+        if toolpath.n_layers == 0:
+            raise ConfigError(f"G-code {path.name} has no printed layers; check the gcode key.")
+        cfg = self._config(toolpath)
+        played = self._played(data, cfg)
+        camera, model = self._camera(cfg, data, toolpath)
+        pipe = LayerPipeline(toolpath, model, cfg)
+        self.printer = self._printer(played, path.name)
+        job = self.history.start_job(self.spec.name, path, config=cfg)
+        ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg)
+        self._set(job=path.name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
+        self._ratios.clear()
+        return FarmMonitor(_Watched(self.printer, self), camera, PoolPipeline(self.pool, pipe, ctx),
+                           PausePolicy(cfg.policy), notifier=Notifier(cfg.notify), history=self.history,
+                           job_id=job, wait_for_verdict=self.spec.wait_for_verdict or cfg.policy.wait_for_verdict,
+                           queue_frames=self.queue_frames, observe=self.observe)
+
+    # ------------------------------------------------------------ running
+    def start(self) -> None:
+        """Start the station's thread."""
+        self._thread.start()
+
+    def _run(self) -> None:
+        wait = self.retry_s[0]
+        while not self.stop_event.is_set():
+            try:
+                self.monitor = self._build()
+            except (LayerwatchError, OSError, ValueError) as exc:
+                self._close_printer()
+                self.fault(f"set-up failed: {exc}")
+                log.warning("printer %s: set-up failed (%s); retrying in %g s", self.spec.name, exc, wait)
+                self.stop_event.wait(wait)
+                wait = min(wait * 2, self.retry_s[1])
+                continue
+            except Exception as exc:  # noqa: BLE001 - a bug in one printer's set-up must not stop the farm
+                log.exception("printer %s: set-up crashed", self.spec.name)
+                self._close_printer()
+                self.fault(f"set-up crashed ({type(exc).__name__}: {exc}); see the service log")
+                self.stop_event.wait(self.retry_s[1])
+                continue
+            self._watch(self.monitor)
+            return
+
+    def _watch(self, mon: FarmMonitor) -> None:
+        """Run the monitor until the job ends or the farm stops; the card keeps the outcome."""
+        if self.stop_event.is_set():  # stop() ran while the monitor was being built
+            mon.stop_event.set()
+        try:
+            report = mon.run(poll_s=0.2)
+            mon.new_generation("job ended")
+            self._set(outcome=report.outcome)
+            if report.outcome in ("done", "cancelled", "stopped"):
+                self._set(state="idle")
+        except Exception as exc:  # noqa: BLE001 - a monitor bug stays with this printer
+            log.exception("printer %s: monitor crashed", self.spec.name)
+            self.fault(f"monitor crashed ({type(exc).__name__}: {exc}); see the service log")
+        finally:
+            self._close_printer()
+
+    def _close_printer(self) -> None:
+        if self.printer is not None:
+            try:
+                self.printer.close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                log.exception("printer %s: close failed", self.spec.name)
+
+    def stop(self) -> None:
+        """Ask the station to stop (its monitor finishes the layer in hand)."""
+        self.stop_event.set()
+        if self.monitor is not None:
+            self.monitor.stop_event.set()
+
+    def join(self, timeout: float | None = None) -> None:
+        """Wait for the station's thread."""
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------ buttons
+    def _need_printer(self) -> Any:
+        if self.printer is None:
+            raise PrinterError(f"printer {self.spec.name!r} is not connected ({self._card['message'] or 'starting'}).")
+        return self.printer
+
+    def pause(self) -> None:
+        """Pause the job (dashboard button)."""
+        self._need_printer().pause()
+
+    def resume(self) -> None:
+        """Resume the job; photos taken before this never pause it (dashboard button)."""
+        if self.monitor is not None:
+            self.monitor.new_generation("resume from the dashboard")
+        self._need_printer().resume()
+
+    def cancel(self) -> None:
+        """Cancel the job (dashboard button)."""
+        self._need_printer().cancel()
+
+    def status(self) -> dict[str, Any]:
+        """The printer's card (:meth:`summary`), for the dashboard's printer routes."""
+        return self.summary()
