@@ -113,8 +113,8 @@ class Station:
     def seen(self, status: PrinterStatus) -> None:
         """The printer answered: its state (and the layer it reports) go to the card."""
         with self._lock:
-            if self._card["state"] == "error" and self._card["message"].startswith("camera"):
-                return  # a camera fault stays shown until a photo is analysed again
+            if self._card["state"] == "error" and not self._card["message"].startswith("printer unreachable"):
+                return  # a camera or analysis fault stays shown until a photo is analysed again
             self._card.update(state={"finished": "idle", "cancelled": "idle"}.get(status.state, status.state),
                               message=None)
 
@@ -123,7 +123,7 @@ class Station:
         with self._lock:
             self._card["layer"] = res.layer
             if res.status == "error":
-                kind = "camera" if "camera" in (res.message or "") or "frame" in (res.message or "") else "analysis"
+                kind = "camera" if res.photo_ms is None else "analysis"  # no photo: the camera failed
                 self._card.update(state="error", message=f"{kind}: {res.message}")
             elif self._card["state"] == "error":
                 self._card.update(state="printing", message=None)
@@ -257,9 +257,10 @@ class Station:
         try:
             report = mon.run(poll_s=0.2)
             mon.new_generation("job ended")
-            self._set(outcome=report.outcome)
-            if report.outcome in ("done", "cancelled", "stopped"):
-                self._set(state="idle")
+            with self._lock:
+                self._card["outcome"] = report.outcome
+                if report.outcome in ("done", "cancelled", "stopped") and self._card["state"] != "error":
+                    self._card["state"] = "idle"
         except Exception as exc:  # noqa: BLE001 - a monitor bug stays with this printer
             log.exception("printer %s: monitor crashed", self.spec.name)
             self.fault(f"monitor crashed ({type(exc).__name__}: {exc}); see the service log")
