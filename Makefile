@@ -27,6 +27,7 @@ check: lint types
 
 bench: $(STAMP)
 	$(PY) -m pytest benchmarks -p no:cacheprovider -s -o python_files="bench_*.py"
+	$(PY) benchmarks/farm_capacity.py --quick
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
