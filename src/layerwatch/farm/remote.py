@@ -27,7 +27,10 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.step import LayerPipeline
 
-__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "PIPELINES_PER_WORKER", "THUMB_WIDTH"]
+__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH"]
+
+#: references a farm pipeline keeps in memory: the layer being judged and the one before (memory per printer)
+MEMO = 2
 
 #: pipelines a Dask worker process keeps (one per job it analyses)
 PIPELINES_PER_WORKER = 1024
@@ -59,7 +62,7 @@ class JobContext:
 
     def pipeline(self) -> LayerPipeline:
         """A new pipeline for this job."""
-        return LayerPipeline(self.toolpath, self.camera, self.config)
+        return LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
 
 
 @dataclass

@@ -39,7 +39,6 @@ from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
 from layerwatch.pipeline.config import JobConfig, observed_square, resolve_config
 from layerwatch.pipeline.policy import PausePolicy
-from layerwatch.pipeline.step import LayerPipeline
 
 __all__ = ["Station"]
 
@@ -213,10 +212,10 @@ class Station:
         cfg = self._config(toolpath)
         played = self._played(data, cfg)
         camera, model = self._camera(cfg, data, toolpath)
-        pipe = LayerPipeline(toolpath, model, cfg)
         self.printer = self._printer(played, path.name)
         job = self.history.start_job(self.spec.name, path, config=cfg)
         ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg)
+        pipe = ctx.pipeline()
         self._set(job=path.name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
         self._ratios.clear()
         return FarmMonitor(_Watched(self.printer, self), camera, PoolPipeline(self.pool, pipe, ctx),
