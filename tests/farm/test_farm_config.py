@@ -55,7 +55,7 @@ def test_good_farm_file_reads_every_key(tmp_path):
     ('printer = "prusa://x"', ["'p02'", "printer", "octoprint://"]),
     ('camera = "rtsp://cam"', ["'p02'", "camera"]),
     ('camera = "http://cam/snap"', ["'p02'", "camera_model"]),
-    ('printer = "octoprint://h:80?key=SECRET"', ["'p02'", "gcode"]),
+    ('printer = "octoprint://h:80?key=SECRET"\ncamera = "ftp://x"', ["'p02'", "camera", "'ftp://x'"]),
     ('settings = { policy = { pause_ratio = nan } }', ["'p02'", "policy.pause_ratio", "finite"]),
     ('settings = { bogus = { a = 1 } }', ["'p02'", "bogus"]),
     ('gcode = "missing.gcode"', ["'p02'", "gcode", "no such file"]),

@@ -57,7 +57,8 @@ class PrinterSpec:
     camera : str
         ``"sim"``, a snapshot/stream URL, ``"file:DIR"`` or ``"/dev/videoN"``.
     gcode, camera_model, bed_photo, config : Path or None
-        The job's G-code (default: the bundled example part), camera intrinsics/pose
+        The job's G-code (a virtual printer's default: the bundled example part; a real
+        printer without it picks up every job its host starts and downloads its G-code), camera intrinsics/pose
         (``camera.toml``), a photo of the bed with its markers (gives the pose when the
         model has none), the job settings file.
     layer_seconds : float
@@ -95,6 +96,11 @@ class PrinterSpec:
     def is_virtual(self) -> bool:
         """The printer is layerwatch's own virtual printer."""
         return self.printer == "virtual" or self.printer.startswith("virtual:")
+
+    @property
+    def follows_jobs(self) -> bool:
+        """A real printer without ``gcode``: the service picks up each job the host starts."""
+        return not self.is_virtual and self.gcode is None
 
     @property
     def safe_printer(self) -> str:
@@ -215,8 +221,6 @@ def _printer(raw: Any, index: int, base: Path) -> PrinterSpec:
     if spec.camera != "sim" and spec.camera_model is None:
         raise ConfigError(f"{w('camera_model')} is needed with camera {spec.camera.split('?', 1)[0]!r}; "
                           "make one with `layerwatch calibrate`.")
-    if not spec.is_virtual and spec.gcode is None:
-        raise ConfigError(f"{w('gcode')} is needed with printer {spec.safe_printer!r} (the job's G-code).")
     return spec
 
 

@@ -12,12 +12,15 @@ never notice.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 import time
 from collections import deque
 from pathlib import Path
 from typing import Any
+
+import cv2
 
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import ConfigError, LayerwatchError, PrinterError
@@ -30,9 +33,13 @@ from layerwatch.farm.simcam import SimFrames
 from layerwatch.farm.virtual import PacedVirtualPrinter
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.gcode.reader import load_bytes
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.pose import locate_bed
 from layerwatch.monitor.cameras import SimCamera, open_camera
+from layerwatch.monitor.hosts import PrintJob, job_host
+from layerwatch.monitor.jobs import JobWatcher
 from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import PrinterStatus, parse_trigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
@@ -67,6 +74,25 @@ class _Watched:
         return getattr(self._printer, name)
 
 
+class _WatchedHost:
+    """A job host whose polls keep the card's reachability (``current()``), otherwise the host itself."""
+
+    def __init__(self, host: Any, station: Station) -> None:
+        self._host, self._station = host, station
+
+    def current(self) -> Any:
+        try:
+            out = self._host.current()
+        except LayerwatchError as exc:
+            self._station.fault(f"printer unreachable: {exc}")
+            raise
+        self._station.reachable()
+        return out
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._host, name)
+
+
 class Station:
     """Run and describe one farm printer.
 
@@ -98,6 +124,7 @@ class Station:
                                       "layer": None, "layers": None, "ratio": None, "alarm": None}
         self._ratios: deque[float] = deque(maxlen=SPARK)
         self.thumb: bytes | None = None
+        self._watcher: JobWatcher | None = None
         self._thread = threading.Thread(target=self._run, name=f"layerwatch-farm-{spec.name}", daemon=True)
 
     # ------------------------------------------------------------ the card
@@ -116,6 +143,12 @@ class Station:
                 return  # a camera or analysis fault stays shown until a photo is analysed again
             self._card.update(state={"finished": "idle", "cancelled": "idle"}.get(status.state, status.state),
                               message=None)
+
+    def reachable(self) -> None:
+        """The host answered a job poll: an outage shown on the card is over."""
+        with self._lock:
+            if self._card["state"] == "error" and self._card["message"].startswith("printer unreachable"):
+                self._card.update(state="idle" if self.monitor is None else "printing", message=None)
 
     def observe(self, res: LayerResult, thumb: bytes | None) -> None:
         """A layer was recorded (called by the monitor's lane)."""
@@ -185,10 +218,6 @@ class Station:
             if spec.bed_photo is None:
                 raise ConfigError(f"printer {spec.name!r}: camera_model has no bed pose; add bed_photo "
                                   "(a photo of the bed with its markers) or calibrate the pose.")
-            import cv2
-
-            from layerwatch.geometry.pose import locate_bed
-
             photo = cv2.imread(str(spec.bed_photo), cv2.IMREAD_COLOR)
             if photo is None:
                 raise ConfigError(f"printer {spec.name!r}: bed_photo {spec.bed_photo} is not an image.")
@@ -204,24 +233,69 @@ class Station:
             return OctoPrintPrinter(self.spec.printer)
         return MoonrakerPrinter(self.spec.printer)
 
-    def _build(self) -> FarmMonitor:
-        path, data = self._gcode()
+    def _job(self, name: str, data: bytes) -> tuple[Toolpath, JobConfig]:
+        """The toolpath and settings of a job's G-code (``ConfigError`` when it prints nothing)."""
         toolpath = read_toolpath(data)
         if toolpath.n_layers == 0:
-            raise ConfigError(f"G-code {path.name} has no printed layers; check the gcode key.")
-        cfg = self._config(toolpath)
-        played = self._played(data, cfg)
+            raise ConfigError(f"G-code {name} has no printed layers; check the gcode key or the job's file.")
+        return toolpath, self._config(toolpath)
+
+    def _build(self) -> FarmMonitor:
+        """The monitor of the configured G-code (``gcode`` key, or the example part on a virtual printer)."""
+        path, data = self._gcode()
+        toolpath, cfg = self._job(path.name, data)
         camera, model = self._camera(cfg, data, toolpath)
-        self.printer = self._printer(played, path.name)
-        job = self.history.start_job(self.spec.name, path, config=cfg)
+        self.printer = self._printer(self._played(data, cfg), path.name)
+        return self._monitor(str(path), data, toolpath, cfg, camera, model)
+
+    def _monitor(self, path: str, data: bytes, toolpath: Toolpath, cfg: JobConfig, camera: Any,
+                 model: CameraModel) -> FarmMonitor:
+        """A history job and the :class:`FarmMonitor` of one job on :attr:`printer`."""
+        job = self.history.start_job(self.spec.name, path, hashlib.sha256(data).hexdigest(), config=cfg)
         ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg)
-        pipe = ctx.pipeline()
-        self._set(job=path.name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
-        self._ratios.clear()
-        return FarmMonitor(_Watched(self.printer, self), camera, PoolPipeline(self.pool, pipe, ctx),
-                           PausePolicy(cfg.policy), notifier=Notifier(cfg.notify), history=self.history,
-                           job_id=job, wait_for_verdict=self.spec.wait_for_verdict or cfg.policy.wait_for_verdict,
-                           queue_frames=self.queue_frames, observe=self.observe)
+        self._set(job=Path(path).name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
+        with self._lock:
+            self._ratios.clear()
+        self.monitor = FarmMonitor(_Watched(self.printer, self), camera, PoolPipeline(self.pool, ctx.pipeline(), ctx),
+                                   PausePolicy(cfg.policy), notifier=Notifier(cfg.notify), history=self.history,
+                                   job_id=job, wait_for_verdict=self.spec.wait_for_verdict or cfg.policy.wait_for_verdict,
+                                   queue_frames=self.queue_frames, observe=self.observe)
+        return self.monitor
+
+    # ------------------------------------------------------------ job pick-up (real printers without `gcode`)
+    def _follow(self) -> None:
+        """Pick up every job the host starts (:class:`~layerwatch.monitor.jobs.JobWatcher`) until stopped."""
+        self.printer = self._printer(b"", "")
+        self._watcher = JobWatcher(_WatchedHost(job_host(self.printer), self), self._start_job, self._reject,
+                                   on_end=self._ended, poll_s=1.0)
+        if self.stop_event.is_set():
+            return
+        self._set(state="idle", message="waiting for a job")
+        self._watcher.run()
+
+    def _start_job(self, job: PrintJob, gcode: bytes) -> FarmMonitor:
+        """The watcher saw a job start and downloaded its G-code: build its monitor."""
+        data, _ = load_bytes(gcode)
+        toolpath, cfg = self._job(job.name, data)
+        camera, model = self._camera(cfg, data, toolpath)
+        return self._monitor(job.path, data, toolpath, cfg, camera, model)
+
+    def _reject(self, job: PrintJob, message: str) -> None:
+        """A job that is not analysed (not prepared, unreadable): a history row with the reason, and the card."""
+        jid = self.history.start_job(self.spec.name, job.path, part=job.name)
+        self.history.add_event(jid, "not_analysed", message, {"file": job.path})
+        self.history.end_job(jid, "not analysed")
+        self._set(job=job.name, job_id=jid, message=f"job not analysed: {message}")
+
+    def _ended(self, job: PrintJob, monitor: FarmMonitor) -> None:
+        """A followed job ended: its verdicts can no longer act; the printer waits for the next job."""
+        monitor.new_generation("job ended")
+        if monitor.job_id is not None and monitor.report.outcome != "idle":
+            self.history.end_job(monitor.job_id, monitor.report.outcome)
+        with self._lock:
+            self._card["outcome"] = monitor.report.outcome
+            if self._card["state"] != "error":
+                self._card["state"] = "idle"
 
     # ------------------------------------------------------------ running
     def start(self) -> None:
@@ -232,7 +306,10 @@ class Station:
         wait = self.retry_s[0]
         while not self.stop_event.is_set():
             try:
-                self.monitor = self._build()
+                if self.spec.follows_jobs:
+                    self._follow()
+                    return
+                self._build()
             except (LayerwatchError, OSError, ValueError) as exc:
                 self._close_printer()
                 self.fault(f"set-up failed: {exc}")
@@ -276,6 +353,8 @@ class Station:
     def stop(self) -> None:
         """Ask the station to stop (its monitor finishes the layer in hand)."""
         self.stop_event.set()
+        if self._watcher is not None:
+            self._watcher.stop_event.set()
         if self.monitor is not None:
             self.monitor.stop_event.set()
 
