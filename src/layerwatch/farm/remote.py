@@ -29,8 +29,8 @@ from layerwatch.pipeline.step import LayerPipeline
 
 __all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH"]
 
-#: references a farm pipeline keeps in memory: the layer being judged and the one before (memory per printer)
-MEMO = 2
+#: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it); memory per printer
+MEMO = 1
 
 #: pipelines a Dask worker process keeps (one per job it analyses)
 PIPELINES_PER_WORKER = 1024
@@ -112,6 +112,7 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int) -> Verdict:
     res = pipe.process(photo, layer)
     top = pipe.last_top if res.status == "ok" else None
     thumb = _thumbnail(pipe, top, res) if top is not None and res.heatmap is not None else None
+    pipe.last_top = pipe.last_valid = None  # the verdict carries the top view; a farm keeps hundreds of pipelines
     return Verdict(res, top, thumb)
 
 
