@@ -189,6 +189,45 @@ def baseline(scene: Scene, layers: int) -> tuple[float, float]:
     return per, rss_mb()
 
 
+def ramp(runner: Runner, rng: np.random.Generator, n: int, step: float, win: float, fast_share: float,
+         t_start: float) -> tuple[int, float, float]:
+    """Add printers (x ``step`` per window of ``win`` farm seconds) until the latency p99 passes 2 s.
+
+    Returns
+    -------
+    (int, float, float)
+        The most printers that kept p99 <= 2 s, their MB per printer and p99, s.
+    """
+    client = runner.client
+    printers: list[Printer] = []
+    best = (0, 0.0, float("nan"))
+    t = 0.0
+    mem0 = rss_mb()
+    work0 = worker_mb(client) if client is not None else 0.0
+    while True:
+        while len(printers) < n:  # new jobs start at random times in the coming window, layer 0 first
+            period = 10.0 if rng.random() < fast_share else 60.0
+            p = Printer(len(printers), period, t + rng.random() * period)  # uniform phase: steady state
+            runner.attach(p)
+            printers.append(p)
+        for p in printers:
+            p.free_t = max(p.free_t, t)
+        lat = window(printers, runner, t, t + win)
+        t += win
+        p99 = float(np.percentile(lat, 99)) if lat else float("nan")
+        mem = (rss_mb() - mem0) / len(printers) if client is None else worker_mb(client, work0) / len(printers)
+        print(f"N={len(printers):5d} frames={len(lat):5d} p50={np.percentile(lat, 50):.3f}s p99={p99:.3f}s "
+              f"MB/printer={mem:.2f} elapsed={time.perf_counter() - t_start:.0f}s", flush=True)
+        if p99 > P99_LIMIT_S and best[0] == 0 and n > 10:  # the first step was already too many: start lower
+            printers.clear()
+            n = max(10, n // 2)
+            continue
+        if p99 > P99_LIMIT_S:
+            return best
+        best = (len(printers), mem, p99)
+        n = int(n * step) + 1
+
+
 def main(argv: list[str] | None = None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="short windows (finishes in under 3 minutes)")
@@ -224,37 +263,9 @@ def main(argv: list[str] | None = None) -> str:
         client = distributed.Client(cluster)
         workers = a.dask
     runner = Runner(scene, client, workers)
-    rng = np.random.default_rng(a.seed)
-    printers: list[Printer] = []
-    n = max(10, int(0.7 * workers / (rate * per_frame)))  # ramp from 70 % of the estimate of one frame's cost
-    best = (0, 0.0, float("nan"))
-    t = 0.0
-    mem0 = rss_mb()
-    work0 = worker_mb(client) if client is not None else 0.0
+    n0 = max(10, int(0.7 * workers / (rate * per_frame)))  # ramp from 70 % of the estimate of one frame's cost
     try:
-        while True:
-            while len(printers) < n:  # new jobs start at random times in the coming window, layer 0 first
-                k = len(printers)
-                period = 10.0 if rng.random() < a.fast_share else 60.0
-                p = Printer(k, period, t + rng.random() * period)  # uniform phase: steady state
-                runner.attach(p)
-                printers.append(p)
-            for p in printers:
-                p.free_t = max(p.free_t, t)
-            lat = window(printers, runner, t, t + win)
-            t += win
-            p99 = float(np.percentile(lat, 99)) if lat else float("nan")
-            mem = (rss_mb() - mem0) / len(printers) if client is None else worker_mb(client, work0) / len(printers)
-            print(f"N={len(printers):5d} frames={len(lat):5d} p50={np.percentile(lat, 50):.3f}s p99={p99:.3f}s "
-                  f"MB/printer={mem:.2f} elapsed={time.perf_counter() - t_start:.0f}s", flush=True)
-            if p99 > P99_LIMIT_S and best[0] == 0 and n > 10:  # the first step was already too many: start lower
-                printers.clear()
-                n = max(10, n // 2)
-                continue
-            if p99 > P99_LIMIT_S:
-                break
-            best = (len(printers), mem, p99)
-            n = int(n * step) + 1
+        best = ramp(runner, np.random.default_rng(a.seed), n0, step, win, a.fast_share, t_start)
         speedup = None
         if client is not None:
             speedup = dask_speedup(scene, client, a.dask)
