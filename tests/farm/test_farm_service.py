@@ -85,3 +85,39 @@ def test_one_failure_pauses_only_its_printer_and_faults_stay_with_their_printer(
     assert c.post("/api/printers/fail/resume").status_code == 200
     assert any(a["action"] == "resume" and a["target"] == "printer fail" for a in h.audit())
     _wait(f, lambda c: c["fail"]["state"] in ("printing", "idle", "paused") and c["fail"]["layer"] > cards["fail"]["layer"])
+
+
+def test_serve_farm_command_answers_api_printers_and_stops_on_sigint(tmp_path):
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    import httpx
+
+    (tmp_path / "farm.toml").write_text('[[printers]]\nname = "a"\nlayer_seconds = 0.5\n'
+                                        '[[printers]]\nname = "b"\nlayer_seconds = 0.5\n')
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.Popen([sys.executable, "-m", "layerwatch", "serve", "--db", str(tmp_path / "h.db"),
+                             "--port", str(port), "--farm", str(tmp_path / "farm.toml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+    try:
+        rows, t0 = [], time.monotonic()
+        while time.monotonic() - t0 < 120:
+            try:
+                rows = httpx.get(f"http://127.0.0.1:{port}/api/printers", timeout=2).json()
+                if [r["state"] for r in rows] == ["printing", "printing"] and all(r["layer"] is not None for r in rows):
+                    break
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.5)
+        assert [r["name"] for r in rows] == ["a", "b"] and all(r["state"] == "printing" for r in rows), rows
+        assert httpx.get(f"http://127.0.0.1:{port}/farm", timeout=2).status_code == 200
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out = proc.communicate(timeout=60)[0].decode()
+    assert proc.returncode == 0, out[-2000:]
