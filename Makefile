@@ -10,7 +10,7 @@ OUT ?= demo-out
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[web,notify,test]'
+	$(PY) -m pip install --quiet -e '.[web,notify,dask,test]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -27,6 +27,7 @@ check: lint types
 
 bench: $(STAMP)
 	$(PY) -m pytest benchmarks -p no:cacheprovider -s -o python_files="bench_*.py"
+	$(PY) benchmarks/farm_capacity.py --quick
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

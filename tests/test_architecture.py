@@ -17,7 +17,7 @@ import layerwatch
 ROOT = Path(layerwatch.__file__).parent
 LAYERS = [("errors", "settings_base", "examples", "__init__"), ("gcode", "geometry"),
           ("render", "analysis", "simulate"), ("pipeline",), ("monitor", "evaluate", "storage"),
-          ("cli", "web", "__main__")]
+          ("farm",), ("cli", "web", "__main__")]
 LAYER_OF = {name: k for k, names in enumerate(LAYERS) for name in names}
 
 

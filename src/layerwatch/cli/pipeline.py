@@ -45,14 +45,10 @@ def job_settings(config: Path | None, gcode: Path | None, tp=None, *, paper: boo
     (``--paper-settings``). Returns the :class:`~layerwatch.pipeline.config.ResolvedConfig`.
     """
     from layerwatch.examples import PART_CONFIG
-    from layerwatch.pipeline.config import resolve_config
+    from layerwatch.pipeline.config import observed_square, resolve_config
 
     path = config if config is not None else (PART_CONFIG if gcode is None else None)
-    derived = None
-    if path is None and tp is not None:
-        x0, y0, x1, y1 = tp.bounds
-        side = max(90.0, max(x1 - x0, y1 - y0) + 30.0)
-        derived = {"topview": {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side}}
+    derived = observed_square(tp.bounds) if path is None and tp is not None else None
     return resolve_config(path, recommended=not paper, gcode=derived, flags=flags)
 
 

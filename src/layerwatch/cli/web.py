@@ -88,6 +88,9 @@ def serve(
     allowed_host: Annotated[list[str] | None, typer.Option("--allowed-host", help="Host name the dashboard answers to besides loopback names (repeatable), e.g. printer.local.")] = None,
     ssl_certfile: Annotated[Path | None, typer.Option("--ssl-certfile", exists=True, dir_okay=False, help="Serve HTTPS with this certificate (PEM); session cookies become Secure.")] = None,
     ssl_keyfile: Annotated[Path | None, typer.Option("--ssl-keyfile", exists=True, dir_okay=False, help="Private key of --ssl-certfile (PEM).")] = None,
+    farm: Annotated[Path | None, typer.Option("--farm", exists=True, dir_okay=False, help="farm.toml: watch every [[printers]] table of it (see docs/farm.md).")] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help="With --farm: run the per-layer work on this Dask scheduler (tcp://host:8786, or 'local'); default: local threads.")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", parser=Finite(1, 256, integer=True), help="With --farm: shared analysis workers (default: the farm file's, else 2).")] = None,
 ) -> None:
     """Serve the dashboard (FastAPI + uvicorn); see docs/security.md for running it on a network."""
     from layerwatch.cli import console
@@ -107,17 +110,39 @@ def serve(
         if created:
             console.print(f"[bold yellow]access token (shown once, stored in {token_file}):[/] {token}")
         console.print(f"log in at {scheme}://{host}:{port}/login with the token")
-    printers = {}
+    if farm is None and (scheduler is not None or workers is not None):
+        raise ConfigError("--scheduler and --workers apply to a farm; add --farm farm.toml.")
+    fleet = _farm(farm, h, scheduler, workers) if farm is not None else None
+    printers = dict(fleet.printers) if fleet is not None else {}
     if virtual:
         from layerwatch.web.virtual import virtual_printer
 
         printers["virtual"] = virtual_printer()
     app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent,
                      allowed_hosts=allowed_host or None, token_file=token_file)
-    console.print(f"dashboard on {scheme}://{host}:{port}/")
-    uvicorn.run(app, host=host, port=port, log_level="warning",
-                ssl_certfile=str(ssl_certfile) if ssl_certfile else None,
-                ssl_keyfile=str(ssl_keyfile) if ssl_keyfile else None)
+    console.print(f"dashboard on {scheme}://{host}:{port}/" + (f" (farm: {len(printers)} printers)" if fleet else ""))
+    try:
+        if fleet is not None:
+            fleet.start()
+        uvicorn.run(app, host=host, port=port, log_level="warning",
+                    ssl_certfile=str(ssl_certfile) if ssl_certfile else None,
+                    ssl_keyfile=str(ssl_keyfile) if ssl_keyfile else None)
+    finally:
+        if fleet is not None:
+            fleet.stop()
+
+
+def _farm(path: Path, history, scheduler: str | None, workers: int | None):
+    """The farm of ``path`` (validated: one line naming the printer and key, exit 2), not started yet."""
+    import logging
+
+    from layerwatch.farm import Farm, load_farm
+
+    cfg = load_farm(path)
+    if scheduler is not None and not (scheduler == "local" or scheduler.startswith(("tcp://", "tls://"))):
+        raise ConfigError(f"--scheduler {scheduler!r} is not a Dask scheduler address; use tcp://host:8786 or local.")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    return Farm(cfg, history, scheduler=scheduler, workers=workers)
 
 
 def register(app: typer.Typer) -> None:

@@ -51,8 +51,8 @@ from layerwatch.pipeline.watch_settings import FaultSettings, HostSettings
 from layerwatch.render.settings import RenderSettings
 from layerwatch.settings_base import Section
 
-__all__ = ["JobConfig", "RECOMMENDED", "SOURCES", "ResolvedConfig", "load_config", "recommended_config",
-           "resolve_config"]
+__all__ = ["JobConfig", "RECOMMENDED", "SOURCES", "ResolvedConfig", "load_config", "observed_square",
+           "recommended_config", "resolve_config"]
 
 #: value sources, lowest precedence first
 SOURCES = ("default", "recommended", "dashboard", "gcode", "file", "flag")
@@ -124,6 +124,19 @@ def _read_toml(path: str | Path) -> dict:
         return tomllib.loads(p.read_text(encoding="utf-8", errors="replace"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML ({exc}); fix the file.") from None
+
+
+def observed_square(bounds: tuple[float, float, float, float]) -> dict[str, dict[str, Any]]:
+    """The ``gcode`` settings layer: the observed square centred on the part, 30 mm wider (at least 90 mm).
+
+    Parameters
+    ----------
+    bounds : (x0, y0, x1, y1)
+        The part's extent on the bed, mm (``Toolpath.bounds``).
+    """
+    x0, y0, x1, y1 = bounds
+    side = max(90.0, max(x1 - x0, y1 - y0) + 30.0)
+    return {"topview": {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side}}
 
 
 def resolve_config(

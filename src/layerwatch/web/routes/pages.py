@@ -61,11 +61,22 @@ def index(ctx: Ctx, request: Request) -> HTMLResponse:
         newest = ctx.history.last_job_id()
     except StorageError:
         newest = None  # the page shows the API's 503 itself
+    if newest is not None:
+        page = page.replace("<body>", f'<body data-newest="{int(newest)}">', 1)
+    return _page(ctx, request, page)
+
+
+@router.get("/farm", include_in_schema=False)
+def farm(ctx: Ctx, request: Request) -> HTMLResponse:
+    """The farm view: a card per printer (state, job, layer, overlay, a% sparkline, alarm, buttons)."""
+    return _page(ctx, request, (STATIC / "farm.html").read_text(encoding="utf-8"))
+
+
+def _page(ctx: Dashboard, request: Request, page: str) -> Response:
+    """``page`` with the session's CSRF token in its ``<meta name="csrf-token">`` (and the session cookie)."""
     session, cookie = _session(ctx, request)
     csrf = ctx.door.sessions.csrf(session)
     page = page.replace('<meta name="csrf-token" content="">', f'<meta name="csrf-token" content="{csrf}">', 1)
-    if newest is not None:
-        page = page.replace("<body>", f'<body data-newest="{int(newest)}">', 1)
     return _with_cookie(ctx, request, HTMLResponse(page, headers={"Cache-Control": "no-store"}), cookie)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, HTTPException, Request, Response
 
 from layerwatch.web.context import Ctx, Dashboard, audit
 from layerwatch.web.redact import jsonable
@@ -27,9 +27,35 @@ def _live_job(ctx: Dashboard, printer: str) -> int | None:
     return next((j["id"] for j in ctx.history.jobs() if j["printer"] == printer and j["outcome"] is None), None)
 
 
-@router.get("", summary="Known printers and their state")
+def _card(name: str, printer: Any) -> dict[str, Any]:
+    """One printer's row: a farm station's own card, else what its ``status()`` says."""
+    summary = getattr(printer, "summary", None)
+    if summary is not None:
+        return {**jsonable(summary()), "name": name}
+    st = _status(printer)
+    if "error" in st:
+        return {"name": name, "state": "error", "message": st["error"], "job": None, "layer": None,
+                "ratio": None, "alarm": None, "status": st}
+    return {"name": name, "state": st.get("state"), "message": None, "job": st.get("file"), "layer": st.get("layer"),
+            "ratio": None, "alarm": None, "status": st}
+
+
+@router.get("", summary="Known printers and their state",
+            description="Each row: `name`, `state` (printing, paused, idle, error, ...), `message` (why, in error), "
+                        "`job`, `layer`, `ratio` (last a%); farm printers add `job_id`, `layers`, `ratios` "
+                        "(sparkline), `alarm` (last notify/pause: action, layer, reason), `dropped`, `late`, `thumb`.")
 def printer_list(ctx: Ctx) -> list[dict[str, Any]]:
-    return [{"name": name, "status": _status(p)} for name, p in ctx.printers.items()]
+    return [_card(name, p) for name, p in ctx.printers.items()]
+
+
+@router.get("/{name}/thumb.png", summary="Overlay thumbnail of the printer's last analysed layer (farm printers)",
+            response_class=Response, responses={200: {"content": {"image/png": {}}}})
+def printer_thumb(ctx: Ctx, name: str) -> Response:
+    p = ctx.printers.get(name)
+    thumb = getattr(p, "thumb", None) if p is not None else None
+    if thumb is None:
+        raise HTTPException(404, f"no overlay for printer {name!r} yet")
+    return Response(thumb, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
 @router.post("/{name}/{action}", summary="pause / resume / cancel / acknowledge")

@@ -103,7 +103,7 @@ async function loadPrinters() {
   const ps = await api("/api/printers");
   if (!ps.length) { $("printer-list").textContent = "no printers connected"; return; }
   $("printer-list").innerHTML = ps.map((p) => {
-    const st = p.status && (p.status.state || p.status.error) || "unknown";
+    const st = p.state || (p.status && (p.status.state || p.status.error)) || "unknown";
     return `<div class="printer" data-printer="${esc(p.name)}"><span class="name">${esc(p.name)} · <span class="state ${esc(st)}" data-testid="state">${esc(st)}</span></span>` +
       ["acknowledge", "pause", "resume", "cancel"].map((a) => `<button class="${a}" data-action="${a}">${a}</button>`).join("") + "</div>";
   }).join("");

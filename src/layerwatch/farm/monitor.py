@@ -1,0 +1,163 @@
+"""The monitor of one farm printer: :class:`~layerwatch.monitor.service.Monitor` on the farm's pool.
+
+:class:`FarmMonitor` is the monitor loop unchanged (triggers, camera, policy,
+pause, alerts, history, operator resume and acknowledgements), with three
+differences:
+
+* its analysis executor is a :class:`~layerwatch.farm.pool.FrameLane`: at most
+  ``queue_frames`` photos wait; when the farm's workers fall behind, the
+  oldest is dropped and a ``frame_dropped`` event records its layer;
+* its pipeline is a :class:`PoolPipeline`: the per-layer compute runs on the
+  farm's shared :class:`~layerwatch.farm.pool.WorkerPool` (threads or Dask);
+* each photo is stamped with the monitor's *generation*; an operator
+  acknowledge or resume, and the end of the job, start a new one. A verdict on
+  a photo of an older generation (it arrived late) is recorded, with a
+  ``late_verdict`` event, but never fed to the policy, so it can neither pause
+  nor cancel: the operator has looked at the print since that photo, or the
+  job it belongs to is over. The check and the pause request hold one lock,
+  so a resume cannot slip between them.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.errors import LayerwatchError
+from layerwatch.farm.pool import FrameLane, WorkerPool
+from layerwatch.farm.remote import JobContext, Verdict, analyse_on, analyse_remote
+from layerwatch.monitor.printers.base import SnapshotTrigger
+from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.step import LayerPipeline
+
+__all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger"]
+
+log = logging.getLogger("layerwatch.farm")
+
+
+@dataclass(frozen=True)
+class StampedTrigger(SnapshotTrigger):
+    """A snapshot trigger with the monitor generation it was taken in."""
+
+    generation: int = 0
+
+
+class PoolPipeline:
+    """The pipeline a farm monitor calls: the compute goes to the shared pool.
+
+    Parameters
+    ----------
+    pool : WorkerPool
+    pipeline : LayerPipeline
+        The job's pipeline here (runs the work on local threads; gives the
+        top view and footprints for alert overlays in both modes).
+    context : JobContext, optional
+        The job for Dask workers (required when the pool is distributed).
+    """
+
+    def __init__(self, pool: WorkerPool, pipeline: LayerPipeline, context: JobContext | None = None) -> None:
+        self.pool, self.local = pool, pipeline
+        self.context = pool.scatter(context) if pool.distributed else None
+        self.topview = pipeline.topview
+        self.last_top: np.ndarray | None = None
+        self.last_thumb: bytes | None = None
+
+    def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
+        """:meth:`LayerPipeline.process` on a pool worker (blocks this printer's lane, not the others)."""
+        if self.context is not None:
+            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index)
+        else:
+            v = self.pool.run(analyse_on, self.local, photo, layer_index)
+        self.last_top, self.last_thumb = v.top, v.thumb
+        return v.result
+
+    def reference(self, index: int):
+        """The reference of layer ``index`` (rendered here; only alert overlays ask for it)."""
+        return self.local.reference(index)
+
+
+class FarmMonitor(Monitor):
+    """A :class:`Monitor` on a shared pool with a bounded lane and late-verdict guard (module notes).
+
+    Parameters
+    ----------
+    *args, **kwargs
+        As for :class:`Monitor` (``pipeline`` a :class:`PoolPipeline`); not ``wait_for_verdict``
+        with a lane smaller than needed: a waiting printer has one frame at a time anyway.
+    queue_frames : int
+        Photos that may wait for a worker.
+    observe : callable, optional
+        ``observe(result, thumb)`` after each recorded layer (the farm's printer card).
+    """
+
+    def __init__(self, *args: Any, queue_frames: int = 2,
+                 observe: Callable[[LayerResult, bytes | None], None] | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._pool.shutdown(wait=False)  # replaced by the bounded lane
+        self._pool = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
+        self.generation = 0
+        self.dropped = self.late = 0
+        self.observe = observe
+        self._gate = threading.RLock()
+
+    def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
+        """Stamp the trigger with the current generation, then take and queue the photo."""
+        stamped = StampedTrigger(trigger.layer, trigger.z, trigger.source, trigger.time, self.generation)
+        return super().handle_trigger(stamped)
+
+    def new_generation(self, why: str) -> None:
+        """Photos taken before now can no longer pause (an operator action, or the job ended)."""
+        with self._gate:
+            self.generation += 1
+        log.info("generation %d (%s)", self.generation, why)
+
+    def acknowledge(self, source: str = "resume") -> None:
+        """The operator accepted the print as it is: a new generation, then the policy's acknowledge."""
+        self.new_generation(f"acknowledged ({source})")
+        super().acknowledge(source)
+
+    def _event(self, kind: str, message: str, data: dict) -> None:
+        if self.history is None or self.job_id is None:
+            return
+        try:
+            self.history.add_event(self.job_id, kind, message, data)
+        except LayerwatchError as exc:
+            log.warning("history write failed: %s", exc)
+
+    def _dropped(self, args: tuple) -> None:
+        """A pending photo was dropped from the full lane (``args``: the analysis call's arguments)."""
+        trigger = args[0]
+        self.dropped += 1
+        self._event("frame_dropped", f"layer {trigger.layer} not analysed: the workers are saturated "
+                    f"(the {self._pool.capacity} newest photos are kept)", {"layer": trigger.layer})
+
+    def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        with self._gate:
+            gen = getattr(trigger, "generation", self.generation)
+            if gen == self.generation:
+                out = super()._finish(trigger, res, top)
+            else:
+                out = self._late(trigger, res)
+        if self.observe is not None:
+            self.observe(out, getattr(self.pipeline, "last_thumb", None) if out.status == "ok" else None)
+        return out
+
+    def _late(self, trigger: SnapshotTrigger, res: LayerResult) -> LayerResult:
+        """Record a verdict of an older generation without acting on it."""
+        self.late += 1
+        res.decision, res.decision_reason = "none", (
+            f"late verdict on layer {trigger.layer}: the operator acted or the job ended since the photo; not acted on")
+        self.report.results.append(res)
+        if self.history is not None and self.job_id is not None:
+            try:
+                self.history.add_layer(self.job_id, res)
+            except LayerwatchError as exc:
+                log.warning("history write failed: %s", exc)
+        self._event("late_verdict", res.decision_reason, {"layer": trigger.layer})
+        return res

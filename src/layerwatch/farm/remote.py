@@ -1,0 +1,135 @@
+"""The per-layer task a farm hands to its workers: one photo through the job's pipeline.
+
+:func:`analyse_on` runs :meth:`LayerPipeline.process <layerwatch.pipeline.step.LayerPipeline.process>`
+(reference rendering, warp, analysis: the one per-layer step) and draws the
+small overlay thumbnail the farm dashboard shows. On local threads the
+printer's own pipeline is passed; on a Dask cluster :func:`analyse_remote`
+receives a :class:`JobContext` (scattered once per job) and keeps one
+pipeline per job in each worker process (:data:`PIPELINES_PER_WORKER`, least
+recently used dropped), so references stay incremental and memoised there.
+The records are the same either way: the same code runs on the same inputs.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from layerwatch.analysis.overlay import overlay_image
+from layerwatch.analysis.result import LayerResult
+from layerwatch.errors import LayerwatchError
+from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
+
+__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH"]
+
+#: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it); memory per printer
+MEMO = 1
+
+#: pipelines a Dask worker process keeps (one per job it analyses)
+PIPELINES_PER_WORKER = 1024
+#: width of the overlay thumbnail, px
+THUMB_WIDTH = 160
+
+_pipelines: OrderedDict[str, LayerPipeline] = OrderedDict()
+_lock = threading.Lock()
+
+
+@dataclass(frozen=True)
+class JobContext:
+    """What a worker needs to build a job's pipeline.
+
+    Attributes
+    ----------
+    key : str
+        Unique per job (printer name and job id); names the worker's pipeline.
+    toolpath : Toolpath
+    camera : CameraModel
+        With its bed pose.
+    config : JobConfig
+    """
+
+    key: str
+    toolpath: Toolpath
+    camera: CameraModel
+    config: JobConfig
+
+    def pipeline(self) -> LayerPipeline:
+        """A new pipeline for this job."""
+        return LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
+
+
+@dataclass
+class Verdict:
+    """A worker's answer for one photo.
+
+    Attributes
+    ----------
+    result : LayerResult
+        The pipeline's record.
+    top : ndarray, shape (H, W), uint8, or None
+        Grey top view of an analysed photo (for alert overlays).
+    thumb : bytes or None
+        PNG of the overlay (failing regions over the top view), :data:`THUMB_WIDTH` px wide.
+    """
+
+    result: LayerResult
+    top: np.ndarray | None = None
+    thumb: bytes | None = None
+
+
+def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes | None:
+    """PNG bytes of the overlay of ``res`` over ``top``, :data:`THUMB_WIDTH` px wide (``None`` if it cannot be drawn)."""
+    try:
+        rgb = overlay_image(top, res, pipe.topview, pipe.reference(res.layer).footprint)
+    except (LayerwatchError, ValueError) as exc:  # the record counts, the picture is a nicety
+        res.message = res.message or f"no overlay: {exc}"
+        return None
+    h, w = rgb.shape[:2]
+    small = cv2.resize(rgb, (THUMB_WIDTH, max(1, round(h * THUMB_WIDTH / w))), interpolation=cv2.INTER_AREA)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+    return png.tobytes() if ok else None
+
+
+def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int) -> Verdict:
+    """The per-layer step on ``pipe`` and the overlay thumbnail of its result.
+
+    Parameters
+    ----------
+    pipe : LayerPipeline
+        The job's pipeline (one caller at a time).
+    photo : ndarray, uint8, shape (h, w, 3)
+        Camera frame, BGR.
+    layer : int
+        0-based layer index.
+    """
+    res = pipe.process(photo, layer)
+    top = pipe.last_top if res.status == "ok" else None
+    thumb = _thumbnail(pipe, top, res) if top is not None and res.heatmap is not None else None
+    pipe.last_top = pipe.last_valid = None  # the verdict carries the top view; a farm keeps hundreds of pipelines
+    return Verdict(res, top, thumb)
+
+
+def _pipeline_for(ctx: JobContext) -> LayerPipeline:
+    with _lock:
+        pipe = _pipelines.get(ctx.key)
+        if pipe is not None:
+            _pipelines.move_to_end(ctx.key)
+            return pipe
+    pipe = ctx.pipeline()
+    with _lock:
+        pipe = _pipelines.setdefault(ctx.key, pipe)
+        while len(_pipelines) > PIPELINES_PER_WORKER:
+            _pipelines.popitem(last=False)
+    return pipe
+
+
+def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int) -> Verdict:
+    """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task)."""
+    return analyse_on(_pipeline_for(ctx), photo, layer)

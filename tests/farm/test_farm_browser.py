@@ -1,0 +1,116 @@
+"""The farm view in Debian chromium: 20 virtual printers, one injected failure pauses exactly that printer.
+
+Screenshots go to ``docs/screenshots/`` when ``LAYERWATCH_SCREENSHOTS=1``,
+otherwise to the test's temporary folder.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+from pathlib import Path
+
+import pytest
+
+from layerwatch.farm import Farm, parse_farm
+from layerwatch.storage.history import History
+
+CHROMIUM = Path("/usr/bin/chromium")
+pytestmark = [
+    pytest.mark.browser, pytest.mark.slow,
+    pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian chromium (/usr/bin/chromium) is not installed"),
+    pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+]
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+        "--no-first-run", "--disable-sync"]
+FAILING = "p07"
+
+
+@pytest.fixture
+def farm_server(tmp_path):
+    uvicorn = pytest.importorskip("uvicorn")
+    import httpx
+
+    from layerwatch.web.app import create_app
+
+    printers = [{"name": f"p{i:02d}", "layer_seconds": 2.0} for i in range(1, 21)]
+    printers[6].update(failure="spaghetti", onset=8)
+    assert printers[6]["name"] == FAILING
+    h = History(tmp_path / "h.db")
+    farm = Farm(parse_farm({"farm": {"workers": 2, "queue_frames": 2}, "printers": printers}, tmp_path), h)
+    app = create_app(h, printers=farm.printers, poll_s=0.5)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    sock.bind(("127.0.0.1", 0))
+    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
+    th = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
+    th.start()
+    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+    for _ in range(200):
+        try:
+            if httpx.get(url + "/api/printers", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            th.join(0.05)
+    farm.start()
+    yield url, farm, h
+    farm.stop()
+    srv.should_exit = True
+    th.join(10)
+    sock.close()
+    h.close()
+
+
+@pytest.fixture
+def shots(tmp_path):
+    if os.environ.get("LAYERWATCH_SCREENSHOTS") == "1":
+        out = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
+        out.mkdir(parents=True, exist_ok=True)
+        return out
+    return tmp_path
+
+
+def test_twenty_printers_one_failure_pauses_exactly_that_one(farm_server, shots):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    sync_api.expect.set_options(timeout=150_000)
+    url, farm, h = farm_server
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1250})
+            page.goto(url + "/farm")
+            page.wait_for_selector("body[data-ready='1']")
+            sync_api.expect(page.locator(".farm-card")).to_have_count(20)
+            failing = page.locator(f".farm-card[data-printer='{FAILING}']")
+            sync_api.expect(failing.locator("[data-testid=state]")).to_have_text("paused")  # live: no reload
+            sync_api.expect(failing.locator("[data-testid=alarm]")).to_contain_text("pause")
+            cards = {c["name"]: c for c in farm.summaries()}
+            others = [n for n in cards if n != FAILING]
+            assert all(cards[n]["state"] == "printing" for n in others), {n: cards[n]["state"] for n in others}
+            assert all(farm.stations[n].printer.pause_count == 0 for n in others)
+            assert farm.stations[FAILING].printer.pause_count == 1
+            # the other 19 keep printing: their layers advance after the pause
+            before = {n: cards[n]["layer"] for n in others}
+            page.wait_for_timeout(4500)
+            after = {c["name"]: c for c in farm.summaries()}
+            assert all(after[n]["layer"] > before[n] for n in others), (before, {n: after[n]["layer"] for n in others})
+            for n in (FAILING, "p01"):  # overlay thumbnails arrive
+                page.wait_for_function(
+                    "(n) => { const i = document.querySelector(`.farm-card[data-printer='${n}'] img.thumb`);"
+                    " return i && i.naturalWidth > 0; }", arg=n)
+            assert page.locator(".farm-card.state-paused").count() == 1
+            page.screenshot(path=str(shots / "farm-20-printers-one-paused.png"), full_page=True)
+            # buttons: resume the paused printer (CSRF header from the page, audit-logged)
+            failing.locator("button[data-action='resume']").click()
+            sync_api.expect(failing.locator("[data-testid=state]")).to_have_text("printing")
+            assert any(a["action"] == "resume" and a["target"] == f"printer {FAILING}" for a in h.audit())
+            failing.locator("button[data-action='acknowledge']").click()
+            page.wait_for_function("() => true")
+            # click-through to the printer's job page
+            job_id = farm.summaries()[6]["job_id"]
+            failing.locator("[data-testid=job]").click()
+            page.wait_for_url(f"**/#job={job_id}")
+            page.wait_for_selector("body[data-ready='1']")
+            sync_api.expect(page.locator("#job-select")).to_have_value(str(job_id))
+        finally:
+            browser.close()
