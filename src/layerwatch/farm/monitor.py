@@ -104,7 +104,7 @@ class FarmMonitor(Monitor):
         self.generation = 0
         self.dropped = self.late = 0
         self.observe = observe
-        self._gate = threading.RLock()
+        self._generation_lock = threading.RLock()
 
     def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
         """Stamp the trigger with the current generation, then take and queue the photo."""
@@ -113,7 +113,7 @@ class FarmMonitor(Monitor):
 
     def new_generation(self, why: str) -> None:
         """Photos taken before now can no longer pause (an operator action, or the job ended)."""
-        with self._gate:
+        with self._generation_lock:
             self.generation += 1
         log.info("generation %d (%s)", self.generation, why)
 
@@ -138,7 +138,7 @@ class FarmMonitor(Monitor):
                     f"(the {self._pool.capacity} newest photos are kept)", {"layer": trigger.layer})
 
     def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
-        with self._gate:
+        with self._generation_lock:
             gen = getattr(trigger, "generation", self.generation)
             if gen == self.generation:
                 out = super()._finish(trigger, res, top)

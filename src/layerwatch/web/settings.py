@@ -50,7 +50,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "topview.height_mm": (1.0, 1000.0, "mm"), "topview.center_mm": MM,
     "markers.positions_mm": MM, "markers.diameter_mm": (0.5, 50.0, "mm"),
     "markers.camera_azimuth_deg": (-360.0, 360.0, "deg"), "markers.max_pose_error_px": (0.1, 100.0, "px"),
-    "render.material_rgb": (0.0, 1.0, ""), "render.bed_rgb": (0.0, 1.0, ""),
+    "render.volume_fill_layers": (0, 20, "layers"), "render.material_rgb": (0.0, 1.0, ""), "render.bed_rgb": (0.0, 1.0, ""),
     "render.light_azimuth_deg": (-360.0, 360.0, "deg"), "render.light_elevation_deg": (0.0, 90.0, "deg"),
     "render.ambient": (0.0, 1.0, ""), "render.layers_visible_below": (0, 1000, "layers"),
     "render.depth_darkening": (0.0, 1.0, ""), "render.relief": (0.01, 20.0, ""), "render.smooth_px": (0.0, 5.0, "px"),
