@@ -150,7 +150,8 @@ def stack(sim, tmp_path_factory):
     camera = SnapshotServer(sim.frames)
     base = tmp_path_factory.mktemp("octoprint-plugin")
     try:
-        with octoprint_server(base, {"classicwebcam": {"snapshot": camera.url, "snapshotTimeout": 3}}) as (url, key):
+        # _config_version: the Classic Webcam would otherwise "migrate" (blank) its settings from the legacy webcam.*
+        with octoprint_server(base, {"classicwebcam": {"_config_version": 1, "snapshot": camera.url, "snapshotTimeout": 3}}) as (url, key):
             s = Stack(url, key, base, camera)
             s.post("/api/connection", {"command": "connect", "port": "VIRTUAL", "baudrate": 115200}).raise_for_status()
             until(lambda: s.get("/api/connection")["current"]["state"] == "Operational", 60, "the virtual printer")
@@ -211,8 +212,10 @@ def test_prepared_job_is_held_for_each_photo_analysed_and_paused(stack, sim):
     # the printer got nothing after a trigger before that layer's photo was served
     sent = _sent_times(stack.base / "logs" / "serial.log", r"M118 E1 layerwatch snapshot layer=(?P<layer>\d+) ")
     served = stack.camera.served
-    for layer in range(stop[0] + 1):
+    for layer in range(stop[0]):
         assert served[layer] is not None and sent[layer] >= served[layer] - 0.002, (layer, sent[layer], served[layer])
+    # the verdict came during the stop layer's hold (wait_for_verdict): paused there, at the park spot
+    assert max(sent) <= stop[0] and (stop[0] not in sent or sent[stop[0]] >= served[stop[0]] - 0.002), sorted(sent)
     for layer in LATE_S:
         print(f"layer {layer}: photo served {served[layer] - t0:.2f} s, next line sent {sent[layer] - t0:.2f} s "
               f"(held {holds[layer]['held_ms']:.0f} ms)")

@@ -84,6 +84,9 @@ class LayerwatchPlugin(
         return [{"type": "tab", "name": "layerwatch", "custom_bindings": True},
                 {"type": "settings", "name": "layerwatch", "custom_bindings": False}]
 
+    def is_template_autoescaped(self) -> bool:
+        return True  # the templates hold no Jinja values, only knockout bindings
+
     def get_assets(self) -> dict[str, list[str]]:
         return {"js": ["js/layerwatch.js"]}
 
