@@ -235,20 +235,23 @@ def test_dead_camera_hold_times_out_and_the_print_goes_on(stack, sim):
     try:
         url = f"http://127.0.0.1:{dead.getsockname()[1]}/snapshot"
         stack.post("/api/settings", {"plugins": {"classicwebcam": {"snapshot": url, "snapshotTimeout": 3}}}).raise_for_status()
-        stack.plugin_settings(job_config=str(sim.job_frame), hold_timeout_s=DEAD_HOLD_S)
+        stack.plugin_settings(camera_model=str(sim.camera_model), bed_photo=str(sim.bed_photo), job_config=str(sim.job_frame),
+                              hold_timeout_s=DEAD_HOLD_S, pause_ratio="", camera="")
         t0 = time.monotonic()
         stack.print_file("lw-dead-camera.gcode", sim.short_gcode)
-        until(lambda: stack.state()["status"] == "done", 120, "the print to finish")
+        until(lambda: stack.state()["status"] in ("done", "error"), 120, "the print to finish")
         took = time.monotonic() - t0
     finally:
         dead.close()
     st = stack.state()
+    assert st["status"] == "done", st["message"]  # watched (not refused at set-up) and finished
     holds = st["holds"]
     assert [h["layer"] for h in holds] == [0, 1, 2, 3], holds
     timed_out = [h for h in holds if h["outcome"] == "timeout"]
     assert timed_out and all(h["held"] and 1000 * DEAD_HOLD_S <= h["held_ms"] < 1000 * DEAD_HOLD_S + 1500 for h in timed_out), holds
     assert all(h["outcome"] in ("timeout", "skipped") for h in holds), holds  # never released by a frame
     assert st["pauses"] == 0 and stack.job_state() == "Operational"
-    assert took < 4 * (DEAD_HOLD_S + 3) + 30, took
+    # what the dead camera cost the print: at most the time-out per layer (the virtual printer's own pace varies)
+    assert sum(h["held_ms"] for h in holds) <= 4 * (1000 * DEAD_HOLD_S + 1500), holds
     print(f"\ndead camera: {len(timed_out)} holds timed out after {[h['held_ms'] for h in timed_out]} ms, "
           f"{sum(h['outcome'] == 'skipped' for h in holds)} skipped (photo still pending); print done in {took:.1f} s")
