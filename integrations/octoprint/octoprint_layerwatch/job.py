@@ -7,7 +7,8 @@ camera model (locating the bed in ``bed_photo`` when the model has no pose)
 and builds :class:`layerwatch.pipeline.step.LayerPipeline`. Each trigger then
 goes through :class:`layerwatch.monitor.service.Monitor` (photo, analysis on its
 own worker thread, :class:`~layerwatch.pipeline.policy.PausePolicy`, pause or
-cancel through OctoPrint), exactly as ``layerwatch monitor`` does; the latest
+cancel through OctoPrint, alerts to the job file's ``[notify]`` targets), exactly
+as ``layerwatch monitor`` does; the latest
 result and its overlay go to the plugin's tab.
 
 This module does not import OctoPrint: the host's pause/cancel and the
@@ -32,6 +33,7 @@ from layerwatch.gcode import read_toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.pose import locate_bed
 from layerwatch.monitor.cameras import Camera, decode_image, open_camera
+from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
@@ -190,7 +192,7 @@ class JobWatch:
         source = open_camera(o["camera"]) if o["camera"] else BytesCamera(self.snapshot, "OctoPrint's webcam")
         self._camera = _HeldCamera(source)
         pipe = LayerPipeline(toolpath, cam, cfg)
-        return PluginMonitor(self.host, self._camera, pipe, PausePolicy(cfg.policy),
+        return PluginMonitor(self.host, self._camera, pipe, PausePolicy(cfg.policy), notifier=Notifier(cfg.notify),
                              wait_for_verdict=cfg.policy.wait_for_verdict, on_result=self.on_result)
 
     def take(self, trigger: SnapshotTrigger, expired: Callable[[], bool]) -> None:
