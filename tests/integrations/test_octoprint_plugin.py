@@ -74,12 +74,15 @@ class Sim:
     job_frame: Path  # job config: example part, hold until the frame only
     gcode: bytes  # prepared, N_LAYERS layers
     short_gcode: bytes  # prepared, 4 layers
+    m240_gcode: bytes  # prepared with the m240 profile (M118 trigger, no @ line), 5 layers
     frames: list[bytes]
 
 
 def _cut(prepared: bytes, n: int) -> bytes:
-    cut = prepared.find(f"layerwatch snapshot layer={n} ".encode())
-    return prepared[: prepared.rfind(b"\n", 0, prepared.rfind(b"\n", 0, cut))] + b"\n"
+    """The first ``n`` layers of ``prepared``: up to the start of layer ``n``'s snapshot block."""
+    cut = prepared.rfind(b"; layerwatch snapshot block:", 0, prepared.find(f"layerwatch snapshot layer={n} ".encode()))
+    assert cut > 0
+    return prepared[:cut]
 
 
 @pytest.fixture(scope="module")
@@ -105,9 +108,11 @@ def sim(tmp_path_factory) -> Sim:
     (d / "job-wait.toml").write_text(base + "\n[policy]\nwait_for_verdict = true\n")
     (d / "job-frame.toml").write_text(base)
     # the octoprint profile's block; the dwell after the trigger kept short (the plugin holds the queue instead)
-    prepared = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint", "settle_ms": 100}), cfg.printer)
+    snap = cfg.snapshot.model_copy(update={"profile": "octoprint", "settle_ms": 100})
+    prepared = insert_snapshots(data, snap, cfg.printer)
+    m240 = insert_snapshots(data, snap.model_copy(update={"profile": "m240"}), cfg.printer)
     return Sim(d / "camera.toml", d / "bed.png", d / "job-wait.toml", d / "job-frame.toml",
-               _cut(prepared, N_LAYERS), _cut(prepared, 4), frames)
+               _cut(prepared, N_LAYERS), _cut(prepared, 4), _cut(m240, 5), frames)
 
 
 @dataclasses.dataclass
@@ -136,6 +141,11 @@ class Stack:
     def state(self) -> dict:
         return self.get("/api/plugin/layerwatch")
 
+    def finished(self, name: str) -> bool:
+        """The plugin has seen the print of ``name`` end (or refused to watch it)."""
+        st = self.state()
+        return st["job"] == name and st["status"] in ("done", "error")
+
     def job_state(self) -> str:
         return self.get("/api/job")["state"]
 
@@ -160,14 +170,24 @@ def stack(sim, tmp_path_factory):
         camera.close()
 
 
-def _sent_times(serial_log: Path, pattern: str) -> dict[int, float]:
-    """``layer -> time.time()`` of the first ``Send:`` line matching ``pattern`` (with ``(?P<layer>\\d+)``)."""
-    out: dict[int, float] = {}
-    rx = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) - Send: .*" + pattern)
+def _released_at(serial_log: Path, held_line_sent: bool, since: float) -> dict[int, float]:
+    """``layer -> time.time()`` the first line after each trigger's hold was sent to the printer (job started at ``since``).
+
+    With the ``@`` trigger (never sent itself) that is the block's ``M118`` line; with an ``M118``
+    trigger (``held_line_sent``: the hook sees it as it is sent) it is the line after it.
+    """
+    sends = []
+    rx = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) - Send: (.*)$")
     for line in serial_log.read_text(errors="replace").splitlines():
         m = rx.match(line)
-        if m and int(m["layer"]) not in out:
-            out[int(m["layer"])] = datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+        if m and datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp() >= since - 0.002:
+            sends.append((datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp(), m[2]))
+    out: dict[int, float] = {}
+    for i, (_, text) in enumerate(sends):
+        m = re.search(r"M118 E1 layerwatch snapshot layer=(\d+) ", text)
+        j = i + 1 if held_line_sent else i
+        if m and int(m[1]) not in out and j < len(sends):
+            out[int(m[1])] = sends[j][0]
     return out
 
 
@@ -210,7 +230,7 @@ def test_prepared_job_is_held_for_each_photo_analysed_and_paused(stack, sim):
     for layer, late in LATE_S.items():
         assert holds[layer]["held_ms"] >= 1000 * late, holds[layer]
     # the printer got nothing after a trigger before that layer's photo was served
-    sent = _sent_times(stack.base / "logs" / "serial.log", r"M118 E1 layerwatch snapshot layer=(?P<layer>\d+) ")
+    sent = _released_at(stack.base / "logs" / "serial.log", held_line_sent=False, since=t0)
     served = stack.camera.served
     for layer in range(stop[0]):
         assert served[layer] is not None and sent[layer] >= served[layer] - 0.002, (layer, sent[layer], served[layer])
@@ -228,6 +248,26 @@ def test_prepared_job_is_held_for_each_photo_analysed_and_paused(stack, sim):
     until(lambda: stack.job_state() == "Operational", 60, "the job to cancel")
 
 
+def test_m118_trigger_of_the_other_profiles_is_held_too(stack, sim):
+    """A file prepared with ``--profile m240`` (``M118`` + ``M240``, no ``@`` line) is held at its ``M118``."""
+    stack.plugin_settings(camera_model=str(sim.camera_model), bed_photo=str(sim.bed_photo), job_config=str(sim.job_frame),
+                          hold_timeout_s=HOLD_S, pause_ratio="", camera="")
+    stack.camera.served.clear()  # frames of layers 0.. again, layers 3 and 4 late
+    t0 = time.time()
+    stack.print_file("lw-m240.gcode", sim.m240_gcode)
+    until(lambda: stack.finished("lw-m240.gcode"), 180, "the print to finish")
+    st = stack.state()
+    assert st["status"] == "done", st["message"]
+    holds = {h["layer"]: h for h in st["holds"]}
+    assert sorted(holds) == [0, 1, 2, 3, 4] and all(h["held"] and h["outcome"] == "frame" for h in holds.values()), holds
+    released = _released_at(stack.base / "logs" / "serial.log", held_line_sent=True, since=t0)
+    served = stack.camera.served
+    for layer in range(5):
+        assert released[layer] >= served[layer] - 0.002, (layer, released[layer], served[layer])
+    assert holds[3]["held_ms"] >= 1000 * LATE_S[3]
+    assert st["layers"] == 5 and st["pauses"] == 0
+
+
 def test_dead_camera_hold_times_out_and_the_print_goes_on(stack, sim):
     dead = socket.socket()
     dead.bind(("127.0.0.1", 0))
@@ -239,7 +279,7 @@ def test_dead_camera_hold_times_out_and_the_print_goes_on(stack, sim):
                               hold_timeout_s=DEAD_HOLD_S, pause_ratio="", camera="")
         t0 = time.monotonic()
         stack.print_file("lw-dead-camera.gcode", sim.short_gcode)
-        until(lambda: stack.state()["status"] in ("done", "error"), 120, "the print to finish")
+        until(lambda: stack.finished("lw-dead-camera.gcode"), 120, "the print to finish")
         took = time.monotonic() - t0
     finally:
         dead.close()
