@@ -209,6 +209,15 @@ def test_plugin_loads_and_its_settings_save(stack, sim):
         assert key in stack.state()["settings_error"], (bad, stack.state()["settings_error"])
     stack.plugin_settings(pause_ratio="")
     assert stack.state()["settings_error"] is None
+    # the tab and the settings page are in the UI a logged-in user gets, with their view model
+    with httpx.Client(base_url=stack.url, timeout=30) as web:
+        web.get("/")
+        web.post("/api/login", json={"user": "lwadmin", "pass": "lw-test-pw", "remember": False},
+                 headers={"X-CSRF-Token": web.cookies.get("csrf_token_P" + stack.url.rsplit(":", 1)[1], "")}).raise_for_status()
+        page = web.get("/").text
+        assert 'id="layerwatch_tab"' in page and "settings.plugins.layerwatch.hold_timeout_s" in page
+        js = web.get("/plugin/layerwatch/static/js/layerwatch.js")
+        assert js.status_code == 200 and "LayerwatchViewModel" in js.text
 
 
 def test_prepared_job_is_held_for_each_photo_analysed_and_paused(stack, sim):
