@@ -95,3 +95,4 @@ def test_paper_settings_mean_the_same_for_the_monitor_and_analyze(job_file):
     assert cfg == offline.config and cfg.analysis.metric == "cosine" and cfg.policy.pause_ratio == 0.05
     assert sources["analysis"] == "file" and sources["markers"] == "default"
     assert monitor_config(job_file)[0] == job_settings(job_file, None).config  # and without the flag
+

@@ -18,5 +18,5 @@ for f in "$conf/camera.toml" "$conf/layerwatch.toml"; do
         exit 2
     fi
 done
-exec layerwatch monitor --printer "$LAYERWATCH_PRINTER" --camera "$LAYERWATCH_CAMERA" \
-    --camera-model "$conf/camera.toml" --config "$conf/layerwatch.toml" --history "${LAYERWATCH_DB:-/data/history.db}"
+exec layerwatch monitor --follow --printer "$LAYERWATCH_PRINTER" --camera "$LAYERWATCH_CAMERA" \
+    --camera-model "$conf/camera.toml" --config "$conf/layerwatch.toml" --history "${LAYERWATCH_DB:-/data/history.db}" --keep-mb "${LAYERWATCH_KEEP_MB:-2000}"

@@ -8,6 +8,8 @@ with code 2. Anything else escaping is a bug.
 
 from __future__ import annotations
 
+import importlib
+
 __all__ = [
     "LayerwatchError",
     "ConfigError",
@@ -92,8 +94,6 @@ def require(module: str, extra: str, purpose: str):
     purpose : str
         What the user was trying to do, used in the message.
     """
-    import importlib
-
     try:
         return importlib.import_module(module)
     except ImportError as exc:  # pragma: no cover - depends on environment

@@ -194,6 +194,7 @@ def _lines_for(path, cmd, fx, rng: random.Random) -> list[list[str]]:
         base + ["--bogus=1"],
         [*path, "--no-such-option", "x"],
         base + ["extra-argument"] * 4,
+        base + ["-Z"],  # unknown short option
     ]
     for k in range(n):  # typo in each level of the verb
         bad = list(path)
@@ -241,6 +242,7 @@ _HEAVY = (
     "layerwatch.monitor.service.Monitor.run",
     "layerwatch.evaluate.harness.run_evaluation",
     "layerwatch.evaluate.demo.run_demo",
+    "layerwatch.cli.demo.run_demo",  # imported by name at the verb module's top
     "layerwatch.simulate.simulate_print",
     "layerwatch.render.backend.render_layers",
     "uvicorn.run",

@@ -31,7 +31,7 @@ USAGE_MISTAKES = [
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--every", "0"], "'--every': '0' is out of range"),
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--lift", "nan"], "'--lift': 'nan' is not finite"),
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--retract", "-1"], "'--retract': '-1' is out of range"),
-    (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--park", "nan,nan"], "--park 'nan,nan': 'nan' is not finite"),
+    (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--park", "nan,nan"], "--park 'nan,nan': the coordinates must be finite"),
     (["gcode", "prepare", EX, "-o", "OUT/p.gcode", "--volume", "220,inf,250"], "--volume"),
     (["gcode", "prepare", EX, "-o", "/dev/null/p.gcode"], "'/dev/null' does not exist"),
     (["compare", "PNG"], "Missing argument 'reference'"),
@@ -141,7 +141,7 @@ def test_a_bug_is_exit_70_with_a_crash_file(capsys, monkeypatch, tmp_path):
     def broken(*_a, **_k):
         raise ZeroDivisionError("boom")
 
-    monkeypatch.setattr("layerwatch.gcode.read_toolpath", broken)
+    monkeypatch.setattr("layerwatch.cli.gcode.read_toolpath", broken)
     code, _, err = _run(["gcode", "info", EX], capsys, monkeypatch, tmp_path)
     assert code == 70 and len(err) == 1 and err[0].startswith("internal error: ZeroDivisionError: boom")
     crash = list(tmp_path.glob("layerwatch-crash-*.txt"))

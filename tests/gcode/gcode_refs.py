@@ -11,7 +11,12 @@ _spec = importlib.util.spec_from_file_location(
 )
 _root = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_root)
-shared_gcode_files = _root.shared_gcode_files
+
+
+def shared_gcode_files() -> list[Path]:
+    """Every file in ../shared/data/gcode, whatever its extension (.gcode, .bgcode, FlashPrint's .g ...)."""
+    d = _root.SHARED_DATA / "gcode"
+    return sorted(p for p in d.glob("*") if p.is_file() and p.suffix.lower() not in {".md", ".txt"}) if d.is_dir() else []
 
 
 def reference_extrusion(text: str) -> tuple[float, int]:

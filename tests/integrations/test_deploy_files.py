@@ -26,7 +26,7 @@ import yaml
 from layerwatch.cli import app
 
 REPO = Path(__file__).resolve().parents[2]
-UNIT = REPO / "integrations" / "systemd" / "layerwatch.service"
+UNIT = REPO / "integrations" / "systemd" / "layerwatch-monitor.service"
 DOCKERFILE = REPO / "Dockerfile"
 ENTRYPOINT = REPO / "integrations" / "docker" / "entrypoint.sh"
 HEALTH = REPO / "integrations" / "docker" / "healthcheck.py"
@@ -173,9 +173,9 @@ def test_entry_point_runs_monitor_from_the_environment(tmp_path):
     res = _entry(env)
     assert res.returncode == 0, res.stderr
     args = (tmp_path / "args").read_text().splitlines()
-    assert args == ["monitor", "--printer", "moonraker://printer.local:7125", "--camera", "http://cam/?action=snapshot",
+    assert args == ["monitor", "--follow", "--printer", "moonraker://printer.local:7125", "--camera", "http://cam/?action=snapshot",
                     "--camera-model", f"{conf}/camera.toml", "--config", f"{conf}/layerwatch.toml",
-                    "--history", str(tmp_path / "h.db")]
+                    "--history", str(tmp_path / "h.db"), "--keep-mb", "2000"]
     assert _flags(args) <= _options("monitor")
 
 

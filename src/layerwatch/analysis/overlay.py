@@ -67,7 +67,7 @@ def anomalous_blocks(result: LayerResult) -> np.ndarray:
     return anom
 
 
-def block_tiles(values: np.ndarray, shape: tuple[int, int], cell_px: int, block_cells: int, fill=0) -> np.ndarray:
+def block_tiles(values: np.ndarray, shape: tuple[int, ...], cell_px: int, block_cells: int, fill=0) -> np.ndarray:
     """Paint per-block values onto their tiles in an (H, W) image.
 
     Block ``(i, j)`` owns the ``cell_px`` square centred on the block (see

@@ -166,10 +166,13 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
         sig = float(settings.presmooth_px)
         g_top = cv2.GaussianBlur(np.asarray(g_top, np.float32), (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
         g_ref = cv2.GaussianBlur(np.asarray(g_ref, np.float32), (0, 0), sig, borderType=cv2.BORDER_REPLICATE)
-    args = {"cell_px": settings.cell_px, "block_cells": settings.block_cells, "bins": settings.bins,
-            "block_norm": settings.block_norm, "gamma": settings.gamma}
-    h_top, e_top = hog_blocks(g_top, **args, return_energy=True)
-    h_ref, e_ref = hog_blocks(g_ref, **args, return_energy=True)
+
+    def hog(grey):
+        return hog_blocks(grey, cell_px=settings.cell_px, block_cells=settings.block_cells, bins=settings.bins,
+                          block_norm=settings.block_norm, gamma=settings.gamma, return_energy=True)
+
+    h_top, e_top = hog(g_top)
+    h_ref, e_ref = hog(g_ref)
     # featureless photo; reference featureless or only faintly textured (flat_tolerance >= 1, validated)
     flat = (e_top < settings.min_gradient) & (e_ref < settings.flat_tolerance * settings.min_gradient)
     h_top[flat] = 0.0  # featureless in both: identical (similarity 1)

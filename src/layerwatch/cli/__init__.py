@@ -35,7 +35,7 @@ __all__ = ["app", "main", "console", "err_console", "PROG"]
 
 PROG = "layerwatch"
 
-app = typer.Typer(
+_app = typer.Typer(
     name=PROG,
     help="Watch a 3D print layer by layer and stop it early when it fails.",
     no_args_is_help=True,
@@ -43,6 +43,37 @@ app = typer.Typer(
     add_completion=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
+
+#: verb -> the module under ``layerwatch.cli`` that registers it (in the order ``--help`` lists them).
+#: A command line loads only its verb's module, so ``layerwatch gcode info`` never imports the
+#: renderer, OpenCV or the dashboard; ``tests/cli`` checks this table against the full app.
+VERBS: dict[str, str] = {
+    "gcode": "gcode", "calibrate": "geometry", "warp": "geometry", "markers": "markers",
+    "render": "render", "compare": "analysis", "analyze": "pipeline", "simulate": "pipeline",
+    "evaluate": "pipeline", "monitor": "monitor", "history": "web", "report": "web", "serve": "web",
+    "demo": "demo", "config": "config", "klipper-config": "klipper",
+}
+_registered: list[str] = []
+
+
+def _register(*modules: str) -> None:
+    """Register the verbs of ``modules`` (names under ``layerwatch.cli``) on the root app, once each."""
+    for name in modules:
+        if name not in _registered:
+            importlib.import_module(f"layerwatch.cli.{name}").register(_app)
+            _registered.append(name)
+
+
+def _register_all() -> None:
+    _register(*dict.fromkeys(VERBS.values()))
+
+
+def __getattr__(name: str):
+    """``layerwatch.cli.app``: the root Typer app with every verb registered (tests, docs, plugins)."""
+    if name == "app":
+        _register_all()
+        return _app
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 console, err_console = Console(), Console(stderr=True)
@@ -56,7 +87,7 @@ def _print_version(value: bool) -> None:
         raise typer.Exit(0)
 
 
-@app.callback()
+@_app.callback()
 def _root(
     version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
                                  help="Print the version and exit."),
@@ -64,35 +95,28 @@ def _root(
     """Watch a 3D print layer by layer and stop it early when it fails."""
 
 
-def _register_all() -> None:
-    from layerwatch.cli import (
-        analysis,
-        config,
-        demo,
-        gcode,
-        geometry,
-        markers,
-        monitor,
-        pipeline,
-        render,
-        web,
-    )
 
-    for module in (gcode, geometry, markers, render, analysis, pipeline, monitor, web, demo, config):
-        module.register(app)
+def command(verb: str | None = None):
+    """The click command tree of the root app, with help texts made literal.
 
-
-_register_all()
-
-@functools.cache
-def command():
-    """The click command tree of :data:`app`, built once, with help texts made literal.
+    ``verb`` (the first word of a command line) registers only the module of that verb
+    (see :data:`VERBS`); ``None`` or an unknown word registers every verb (help, usage errors).
 
     Typer renders help with rich markup, which swallows ``[topview]``-like text; every
     command and parameter help is escaped so it prints as written, and each numeric
     option's help ends with its accepted range (from its :class:`~layerwatch.cli.params.Finite`).
     """
-    group = typer.main.get_command(app)
+    if verb in VERBS:
+        _register(VERBS[verb])
+    else:
+        _register_all()
+    return _built(tuple(_registered))
+
+
+@functools.cache
+def _built(_modules: tuple[str, ...]):
+    """The click group of the app as registered with ``_modules`` (built once per set)."""
+    group = typer.main.get_command(_app)
     _literal_help(group, getattr(group, "rich_markup_mode", None) == "rich")
     return group
 
@@ -157,9 +181,9 @@ def _usage_error(exc) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run ``layerwatch ARGV`` (default ``sys.argv[1:]``) and return the exit code (0, 1, 2 or 70)."""
     click_errors, aborts = _click_exceptions()
+    args = sys.argv[1:] if argv is None else list(argv)
     try:
-        rv = command().main(args=sys.argv[1:] if argv is None else list(argv), prog_name=PROG,
-                            standalone_mode=False)
+        rv = command(args[0] if args else None).main(args=args, prog_name=PROG, standalone_mode=False)
     except LayerwatchError as exc:
         _error_line("error:", str(exc))
         return 2

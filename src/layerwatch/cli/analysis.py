@@ -85,7 +85,7 @@ def compare(
     foot = _read_image(mask, "mask", mask=True) if mask is not None else np.ones(top.shape, dtype=bool)
     h, w = top.shape
     ppm = cfg.topview.px_per_mm
-    topview = TopView(px_per_mm=ppm, width_mm=w / ppm, height_mm=h / ppm, center_mm=tuple(cfg.topview.center_mm))
+    topview = TopView(px_per_mm=ppm, width_mm=w / ppm, height_mm=h / ppm, center_mm=cfg.topview.center_mm)
     if topview.shape != (h, w):  # pragma: no cover - rounding guard
         raise AnalysisError(f"cannot build a {w}x{h} px top view at {ppm} px/mm; adjust --px-per-mm.")
     res = analyze_layer(top, ref, foot, topview, cfg.analysis, all_metrics=all_metrics)

@@ -9,7 +9,9 @@ from typing import Annotated
 
 import typer
 
-from layerwatch.cli.pipeline import PAPER_HELP
+from layerwatch.cli import console
+from layerwatch.cli.pipeline import PAPER_HELP, _toolpath, job_settings
+from layerwatch.errors import ConfigError
 
 __all__ = ["register", "parse_set"]
 
@@ -24,8 +26,6 @@ def parse_set(items: list[str] | None) -> dict[str, dict]:
     ConfigError
         An item is not ``SECTION.KEY=VALUE``.
     """
-    from layerwatch.errors import ConfigError
-
     out: dict[str, dict] = {}
     for item in items or []:
         name, sep, text = item.partition("=")
@@ -55,9 +55,6 @@ def show(
     The job file is resolved as ``analyze`` and ``evaluate`` do: ``-c``, else the bundled example's job
     file when no ``--gcode`` is given.
     """
-    from layerwatch.cli import console
-    from layerwatch.cli.pipeline import _toolpath, job_settings
-
     tp = _toolpath(gcode) if gcode is not None and config is None else None
     resolved = job_settings(config, gcode, tp, paper=paper, flags=parse_set(set_))
     values = resolved.config.model_dump(mode="json")

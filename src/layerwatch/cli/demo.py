@@ -6,8 +6,16 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from layerwatch.cli import console
 from layerwatch.cli.params import SEED, WRITE_DIR, Finite
+from layerwatch.errors import ConfigError
+from layerwatch.evaluate.demo import run_demo
+from layerwatch.simulate import FAILURE_TYPES
+from layerwatch.storage import History
+from layerwatch.web.report import build_report
 
 __all__ = ["register"]
 
@@ -21,16 +29,6 @@ def demo(
     keep_going: Annotated[bool, typer.Option("--keep-going", help="Do not stop at the pause; simulate every layer.")] = False,
 ) -> None:
     """Simulate the bundled example part with a failure part-way; stop where a printer would pause."""
-    from rich.markup import escape
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError
-    from layerwatch.evaluate.demo import run_demo
-    from layerwatch.simulate import FAILURE_TYPES
-    from layerwatch.storage import History
-    from layerwatch.web.report import build_report
-
     if failure not in FAILURE_TYPES:
         raise ConfigError(f"unknown --failure {failure!r}; use one of {', '.join(FAILURE_TYPES)}.")
     cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())

@@ -67,7 +67,7 @@ def calibrate(
         read_photo,
     )
     from layerwatch.geometry.camera import CameraModel
-    from layerwatch.pipeline.config import load_config
+    from layerwatch.pipeline.config import resolve_config
 
     if not board and markers is None:
         raise CalibrationError("nothing to do: pass --board PHOTOS... and/or --markers BED_PHOTO.")
@@ -93,7 +93,7 @@ def calibrate(
         if model is None:
             model = approximate_intrinsics((photo.shape[1], photo.shape[0]), hfov)
             console.print(f"[yellow]no board or --camera: intrinsics guessed from a {hfov:g} deg field of view (approximate)[/]")
-        cfg = load_config(config)
+        cfg = resolve_config(config).config
         tv = cfg.topview.topview()
         model = locate_bed(model, photo, cfg.markers, tv)
         png = output.with_suffix(".png")
@@ -119,13 +119,13 @@ def warp(
     from layerwatch.errors import WarpError
     from layerwatch.geometry.camera import CameraModel
     from layerwatch.geometry.warp import TopViewWarper
-    from layerwatch.pipeline.config import load_config
+    from layerwatch.pipeline.config import resolve_config
 
     img = cv2.imread(str(photo), cv2.IMREAD_COLOR) if photo.is_file() else None
     if img is None:
         raise WarpError(f"cannot read the photo {photo}; pass a PNG or JPEG file.")
     cam = CameraModel.load(camera)
-    tv = load_config(config).topview.topview()
+    tv = resolve_config(config).config.topview.topview()
     top, valid = TopViewWarper(cam, tv).warp(img, z)
     if not cv2.imwrite(str(output), top):
         raise WarpError(f"cannot write {output}; check the folder exists and the suffix is .png or .jpg.")

@@ -7,7 +7,10 @@ from typing import Annotated
 
 import typer
 
+from layerwatch.cli import console
 from layerwatch.cli.params import Finite
+from layerwatch.errors import ConfigError
+from layerwatch.geometry.marker_sheet import parse_pair, plan_layout, write_sheet
 
 __all__ = ["register"]
 
@@ -31,10 +34,6 @@ def markers(
                                                     "topview and markers sections of this layout (new file).")] = None,
 ) -> None:
     """Write a printable marker sheet (1:1) for `layerwatch calibrate --markers`, with each mark's bed coordinates."""
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError
-    from layerwatch.geometry.marker_sheet import parse_pair, plan_layout, write_sheet
-
     if config_out is not None and config_out.exists():
         raise ConfigError(f"--config-out {config_out} already exists; add the lines printed by this command to it "
                           "by hand or choose a new file name.")

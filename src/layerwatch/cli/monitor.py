@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from layerwatch.cli.params import SEED, WRITE_DB, Finite
+from layerwatch.cli.params import SEED, WRITE_DB, WRITE_DIR, Finite
 from layerwatch.cli.pipeline import PAPER_HELP
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
@@ -126,7 +126,7 @@ def open_printer(spec: str, gcode: bytes | None = None):
 def monitor(
     printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port?key=KEY | moonraker://host:port | virtual[:FILE]")] = "virtual",
     camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | sim")] = "sim",
-    gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: bundled example).")] = None,
+    gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: downloaded from the OctoPrint/Moonraker host; the bundled example for virtual).")] = None,
     camera_model: Annotated[Path | None, typer.Option("--camera-model", exists=True, dir_okay=False, help="camera.toml with intrinsics and pose.")] = None,
     config: Annotated[Path | None, typer.Option("--config", exists=True, dir_okay=False, help="Job config TOML (policy, notify...).")] = None,
     history: Annotated[Path | None, typer.Option("--history", parser=WRITE_DB, help="SQLite history file to record the job in; settings saved there by the dashboard apply (under --config keys).")] = None,
@@ -136,9 +136,13 @@ def monitor(
     onset: Annotated[int, typer.Option("--onset", parser=Finite(1, 100_000, integer=True), help="sim camera: first failed layer.")] = 15,
     seed: Annotated[int, typer.Option("--seed", parser=SEED, help="sim camera: seed.")] = 1,
     paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
+    follow: Annotated[bool, typer.Option("--follow", "--service", help="Keep running: pick up every job the OctoPrint/Moonraker host starts, with its own G-code.")] = False,
+    images: Annotated[Path | None, typer.Option("--images", parser=WRITE_DIR, help="Folder for each layer's images (default: beside --history).")] = None,
+    keep_mb: Annotated[float | None, typer.Option("--keep-mb", parser=Finite(1, 10_000_000, unit="MB"), help="Keep at most this many MB of images; oldest jobs' images deleted first.")] = None,
+    keep_jobs: Annotated[int | None, typer.Option("--keep-jobs", parser=Finite(1, 1_000_000, integer=True), help="Keep the images of at most this many jobs.")] = None,
+    park_tolerance: Annotated[float, typer.Option("--park-tolerance", parser=Finite(0, 50, unit="mm"), help="Reject frames taken with the head farther than this from the park spot, mm (0: no check).")] = 1.0,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
-    import dataclasses
     import logging
 
     from layerwatch.cli import console
@@ -146,8 +150,6 @@ def monitor(
     from layerwatch.examples import PART_GCODE
     from layerwatch.gcode import read_toolpath
     from layerwatch.gcode.postprocess import insert_snapshots
-    from layerwatch.geometry.camera import CameraModel
-    from layerwatch.monitor.cameras import SimCamera, open_camera
     from layerwatch.monitor.notify import Notifier
     from layerwatch.monitor.printers.base import parse_trigger
     from layerwatch.monitor.service import Monitor
@@ -161,7 +163,7 @@ def monitor(
     # settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults
     from layerwatch.storage.history import History
 
-    job_file = config if config else (PART_CONFIG if gcode is None else None)
+    job_file = config if config else (PART_CONFIG if gcode is None and printer.startswith("virtual") else None)
     if history is not None:
         with History(history) as saved:
             cfg, sources = monitor_config(job_file, saved, paper=paper)
@@ -170,28 +172,28 @@ def monitor(
     logging.getLogger("layerwatch.monitor").info(
         "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
         job_file or "none", history or "none")
+    if images is not None:  # an unusable --images folder is refused now (one line, exit 2), not at the first layer
+        images.mkdir(parents=True, exist_ok=True)
+    if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
+        from layerwatch.monitor.follow import CameraSpec, run_follow
+
+        done = run_follow(open_printer(printer), cfg, CameraSpec(camera, camera_model, settle, failure, onset, seed),
+                          history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
+                          park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
+                          max_jobs=None if follow else 1)
+        console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
+        raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
+    if follow:
+        raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
     gpath = gcode or PART_GCODE
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)
     if printer.startswith("virtual") and not any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
-    tv = cfg.topview.topview()
-    if camera == "sim":
-        from layerwatch.geometry.pose import locate_bed
-        from layerwatch.simulate import Failure, PrintSimulator, default_camera
+    from layerwatch.monitor.follow import CameraSpec, job_camera
 
-        truth = default_camera(tv)
-        fails = [Failure(failure, onset=onset, seed=seed)] if failure else []
-        sim = PrintSimulator(toolpath, truth, tv, fails, seed=seed)
-        cam_src = SimCamera(lambda i: sim.frame(min(i, toolpath.n_layers - 1)).photo, settle_s=settle)
-        cam_model = (CameraModel.load(camera_model) if camera_model else
-                     locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), sim.frame(0).photo, cfg.markers, tv))
-    else:
-        if camera_model is None:
-            raise ConfigError("--camera-model camera.toml is needed with a real camera; make one with `layerwatch calibrate`.")
-        cam_src = open_camera(camera, settle_s=settle)
-        cam_model = CameraModel.load(camera_model)
+    cam_src, cam_model = job_camera(CameraSpec(camera, camera_model, settle, failure, onset, seed), toolpath, cfg)
     prn = open_printer(printer, data)
     hist = job = None
     if history is not None:

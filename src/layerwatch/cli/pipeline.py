@@ -125,7 +125,8 @@ def simulate(
         try:
             kind, rest = spec.split("@", 1)
             onset, _, size = rest.partition(":")
-            fails.append(Failure(kind.strip(), onset=int(onset), **({"size_mm": float(size)} if size else {})))
+            fails.append(Failure(kind.strip(), onset=int(onset), size_mm=float(size)) if size else
+                         Failure(kind.strip(), onset=int(onset)))
         except ValueError:
             raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM]; e.g. spaghetti@15.") from None
     tp = _toolpath(gcode)

@@ -57,6 +57,16 @@ def _part_bounds(toolpath) -> tuple[float, float, float, float]:
     return (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
 
 
+def _observed_square(topview, toolpath, centred: bool):
+    """``topview``, or (no job file) the same square centred on the part's extrusions."""
+    if not centred:
+        return topview
+    from layerwatch.geometry.topview import TopView
+
+    x0, y0, x1, y1 = _part_bounds(toolpath)
+    return TopView(topview.px_per_mm, topview.width_mm, topview.height_mm, ((x0 + x1) / 2, (y0 + y1) / 2))
+
+
 def render(
     file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="G-code file (.gcode/.bgcode).")],
     layers: Annotated[str | None, typer.Option("--layers", "-l", help="Layers: 10:20 (end excluded), 5, 1,4,9, ::10 or all.")] = None,
@@ -80,7 +90,7 @@ def render(
 
     from layerwatch.cli import console
     from layerwatch.errors import ConfigError, GcodeError, RenderError
-    from layerwatch.pipeline.config import load_config
+    from layerwatch.pipeline.config import resolve_config
     from layerwatch.render.backend import render_layers
     from layerwatch.render.cache import ReferenceCache, file_hash
     from layerwatch.render.mask import gcode_mask
@@ -89,8 +99,8 @@ def render(
         raise GcodeError(f"G-code file {file} not found; check the path.")
     if backend not in (None, "fast", "blender"):
         raise ConfigError(f"unknown --backend {backend!r}; use fast or blender.")
-    cfg = load_config(config)
-    settings = cfg.render if backend is None else cfg.render.model_copy(update={"backend": backend})
+    cfg = resolve_config(config, flags={"render": {"backend": backend}} if backend else None).config
+    settings = cfg.render
     if settings.backend == "blender":
         from layerwatch.render.blender import find_blender
 
@@ -107,12 +117,7 @@ def render(
     if toolpath.n_layers == 0:
         raise RenderError(f"{file} has no extruding moves to render; check it is sliced G-code.")
     idx = parse_layers(layers, toolpath.n_layers)
-    topview = cfg.topview.topview()
-    if config is None:  # centre the observed square on the part
-        from layerwatch.geometry.topview import TopView
-
-        x0, y0, x1, y1 = _part_bounds(toolpath)
-        topview = TopView(topview.px_per_mm, topview.width_mm, topview.height_mm, ((x0 + x1) / 2, (y0 + y1) / 2))
+    topview = _observed_square(cfg.topview.topview(), toolpath, centred=config is None)
     try:
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

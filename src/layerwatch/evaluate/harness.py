@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -33,6 +34,7 @@ from layerwatch.analysis.metrics import similarity_all
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import anomaly_ratio, block_hogs, grow_regions, growth_reach
 from layerwatch.analysis.settings import METRIC_NAMES
+from layerwatch.errors import AnalysisError
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
@@ -142,7 +144,7 @@ def tile_fraction(mask: np.ndarray, n: int, m: int, cell_px: int, block_cells: i
 
 
 def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 3,
-                clean_share: float = 0.4) -> list[tuple[object, list[int]]]:
+                clean_share: float = 0.4) -> list[tuple[Scenario, list[int]]]:
     """Scenarios and the layers to photograph in each, about ``n_layers`` frames in all.
 
     Returns
@@ -187,9 +189,10 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
     """
     settings = pipe.config.analysis
     ref = pipe.reference(res.layer)
-    valid = pipe.last_valid
-    h_t, h_r = block_hogs(pipe.last_top, ref.image, settings)
-    considered = res.mask
+    top, valid, considered = pipe.last_top, pipe.last_valid, res.mask
+    if top is None or considered is None:
+        raise AnalysisError(f"layer {res.layer} was not analysed ({res.status}); nothing to sweep.")
+    h_t, h_r = block_hogs(top, ref.image, settings)
     c, b = settings.cell_px, settings.block_cells
     sims = similarity_all(h_t, h_r, METRIC_NAMES)
     grow = float(settings.grow_threshold)
@@ -200,7 +203,8 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
     T = THRESHOLDS
     a = np.zeros((len(METRIC_NAMES), len(T)), np.float32)
     iou = None
-    truth_tiles = truth_px = None
+    truth_full = np.zeros((n, m))  # failed layers: tile area of the failed region per block, px
+    truth_tiles, truth_px = truth_full[considered], 0.0
     reach = considered  # where a drawn region may grow (analyze_layer's grow_margin_mm)
     if frame.truth_area is not None:
         iou = np.zeros_like(a)
@@ -233,10 +237,9 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
             iou[k] = np.where(union > 0, inter / np.maximum(union, 1e-9), 1.0)
     clean_high = (0, 0, 0)
     if frame.truth_area is None:
-        on_print = tile_fraction(ref.footprint, n, m, c, b) >= 0.5
-        on_print &= considered
+        on_print = (tile_fraction(ref.footprint, n, m, c, b) >= 0.5) & considered
         cos = sims["cosine"]
-        flat = ~(h_t.any(axis=2) | h_r.any(axis=2))  # featureless in both: similarity 1 by rule
+        flat = np.logical_not(h_t.any(axis=2) | h_r.any(axis=2))  # featureless in both: similarity 1 by rule
         clean_high = (int(np.count_nonzero(cos[on_print] > 0.7)), int(np.count_nonzero(on_print)),
                       int(np.count_nonzero(flat[on_print])))
     if regions is not None:
@@ -310,7 +313,7 @@ def run_evaluation(
     pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
     done = 0
     for k, (scen, layers) in enumerate(plan):
-        sim = PrintSimulator(toolpath, camera, tv, scen, seed=seed * 1000 + k)
+        sim = PrintSimulator(toolpath, camera, tv, scen.failures, seed=seed * 1000 + k)
         size = scen.failures[0].size_mm if scen.failures else 0.0
         for i in layers:
             frame = sim.frame(i)
@@ -361,7 +364,7 @@ def clean_false_alarms(
     policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),
                                                        "consecutive_layers": int(consecutive)})
     prints = max(1, int(round(n_layers / toolpath.n_layers)))
-    out = {"layers": 0, "prints": prints, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
+    out: dict[str, Any] = {"layers": 0, "prints": prints, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0, "max_a": 0.0, "a": []}
     done = 0
     for k in range(prints):
         sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from layerwatch.evaluate.stats import roc_curve
+from layerwatch.evaluate.stats import false_alarm_rate, roc_curve
 from layerwatch.evaluate.summary import Summary
 
 __all__ = ["write_report", "rich_table"]
@@ -111,8 +111,6 @@ def _fmt(v, pct=False, nd=2):
 
 def _rate_row(target: str, count: int, n: int, detail: str, bound_digits: int = 1) -> str:
     """A targets-table row for ``count`` events in ``n`` clean layers against <= 1 per 1000 (with its 95 % bound)."""
-    from layerwatch.evaluate.stats import false_alarm_rate
-
     rate, up = false_alarm_rate(count, n)
     met = "yes" if up <= 1 else ("consistent" if count == 0 else "no")
     return f"| {target} | <= 1 | {rate:.1f} ({detail}; 95 % upper bound {up:.{bound_digits}f}) | {met} |"

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -103,8 +104,8 @@ class ResultsFolder:
 
     def stack(self, size: int = 220) -> Path | None:
         """Draw ``stack.png`` from the stored top views (None when there are none)."""
-        tops = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((self.root / "tops").glob("layer_*.png"))]
-        tops = [t for t in tops if t is not None]
+        read = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((self.root / "tops").glob("layer_*.png"))]
+        tops = [np.asarray(t) for t in read if t is not None]
         if not tops:
             return None
         img = layer_stack(tops, size=size, spacing_px=max(2, min(8, 600 // max(len(tops), 1))))
@@ -117,14 +118,14 @@ class ResultsFolder:
     def summary(self, results: dict[int, LayerResult], paused_at: int | None, reason: str = "",
                 extra: dict | None = None) -> dict:
         """Write ``summary.json`` and ``summary.md``; returns the summary dict."""
-        rows = []
+        rows: list[dict[str, Any]] = []
         for layer in sorted(results):
-            r = results[layer]
+            res = results[layer]
             rows.append({
-                "layer": layer, "z": r.z, "status": r.status,
-                "anomaly_ratio": None if r.status != "ok" else round(float(r.anomaly_ratio), 4),
-                "regions": len(r.regions), "message": r.message,
-                "ms": round(float(r.timings_ms.get("total", 0.0)), 1),
+                "layer": layer, "z": res.z, "status": res.status,
+                "anomaly_ratio": None if res.status != "ok" else round(float(res.anomaly_ratio), 4),
+                "regions": len(res.regions), "message": res.message,
+                "ms": round(float(res.timings_ms.get("total", 0.0)), 1),
             })
         summary = {
             "layers": rows,

@@ -24,6 +24,7 @@ Petsiuk & Pearce (2022), Fig. 14; Hanley & McNeil (1982) for AUC = U / (P N).
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import beta, rankdata
 
 __all__ = ["roc_auc", "roc_curve", "discriminative_power", "iou", "false_alarm_rate"]
 
@@ -41,8 +42,6 @@ def roc_auc(positives, negatives) -> float:
     float
         AUC in [0, 1]; NaN when either group is empty.
     """
-    from scipy.stats import rankdata
-
     p = np.asarray(positives, np.float64).ravel()
     n = np.asarray(negatives, np.float64).ravel()
     p, n = p[np.isfinite(p)], n[np.isfinite(n)]
@@ -90,8 +89,6 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def false_alarm_rate(alarms: int, n_clean: int) -> tuple[float, float]:
     """``(rate, upper95)`` false alarms per 1000 clean layers (one-sided 95 % Clopper-Pearson bound)."""
-    from scipy.stats import beta
-
     if n_clean <= 0:
         return float("nan"), float("nan")
     rate = 1000.0 * alarms / n_clean

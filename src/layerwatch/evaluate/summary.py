@@ -15,11 +15,13 @@ Clopper-Pearson bound on the false-alarm rate the sample size allows.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
 from layerwatch.evaluate.harness import EvalData
 from layerwatch.evaluate.stats import discriminative_power, false_alarm_rate, roc_auc
+from layerwatch.simulate import FAILURE_TYPES
 
 __all__ = ["IOU_MIN_SIZE_MM", "Summary", "at_setting", "summarize"]
 
@@ -96,8 +98,6 @@ def _auc_breakdowns(recs: list, a: np.ndarray, kinds: np.ndarray, types: tuple[s
 
 def summarize(data: EvalData) -> Summary:
     """Compute every figure of the report from the records."""
-    from layerwatch.simulate import FAILURE_TYPES
-
     recs = data.records
     metrics, T = data.metrics, data.thresholds
     A = np.stack([r.a for r in recs]) if recs else np.zeros((0, len(metrics), len(T)))
@@ -142,12 +142,12 @@ def summarize(data: EvalData) -> Summary:
             tpr[m, k] = (f > pause[m]).mean()
             sel = (kinds == t) & big
             if sel.any():
-                per_t = np.mean([recs[i].iou[m] for i in np.flatnonzero(sel)], axis=0)
+                per_t = np.mean([cast(np.ndarray, recs[i].iou)[m] for i in np.flatnonzero(sel)], axis=0)
                 iou[m, k] = float(per_t[j])
                 iou_best[m, k] = float(per_t.max())
             sel = (kinds == t) & np.array([r.iou is not None for r in recs])
             if sel.any():
-                iou_all[m, k] = float(np.mean([recs[i].iou[m, j] for i in np.flatnonzero(sel)]))
+                iou_all[m, k] = float(np.mean([cast(np.ndarray, recs[i].iou)[m, j] for i in np.flatnonzero(sel)]))
     order = np.lexsort((-np.array([worst[m, best_t[m]] for m in range(M)]),
                         -np.array([det[m, best_t[m]] for m in range(M)])))
     rec = int(order[0]) if M else 0
@@ -199,8 +199,6 @@ def at_setting(data: EvalData, metric: str, threshold: float, pause_ratio: float
         AUROC, share above the pause ratio, mean IoU of failures >= 5 mm or nan)}`` under ``types``;
         None when the measure or T_S was not scored.
     """
-    from layerwatch.simulate import FAILURE_TYPES
-
     if metric not in data.metrics or not data.records:
         return None
     hit = np.flatnonzero(np.isclose(data.thresholds, threshold))

@@ -36,7 +36,8 @@ def arc_geometry(x0, y0, x1, y1, ccw, has_ij, has_r, i_off, j_off, r, chord_tol)
         Centre, start/end radius (mm), start angle and signed sweep (rad;
         a full circle when start == end in I/J form).
     k : int
-        Number of chords, so that each chord's sagitta <= ``chord_tol``.
+        Number of chords, so that each chord's sagitta <= ``chord_tol`` (the kernel
+        bounds it further by the arc's length, see ``kernel._arc_chords``).
     """
     dxy = math.hypot(x1 - x0, y1 - y0)
     if has_ij:
@@ -59,7 +60,10 @@ def arc_geometry(x0, y0, x1, y1, ccw, has_ij, has_r, i_off, j_off, r, chord_tol)
             sweep += 2.0 * math.pi
     elif sweep >= -1e-12:
         sweep -= 2.0 * math.pi
+    if not (math.isfinite(r0) and math.isfinite(r1) and math.isfinite(sweep)):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1
     k = 1
     if r0 > 1e-9 and chord_tol < r0:
-        k = int(math.ceil(abs(sweep) / (2.0 * math.acos(1.0 - chord_tol / r0))))
-    return True, cx, cy, r0, r1, a0, sweep, max(1, min(k, 100000))
+        step = 2.0 * math.acos(1.0 - chord_tol / r0)  # 0 when r0 >> chord_tol (|I| ~ 1e15)
+        k = int(math.ceil(min(abs(sweep) / step, 1e6))) if step > 1e-12 else 1000000
+    return True, cx, cy, r0, r1, a0, sweep, max(1, min(k, 1000000))

@@ -11,6 +11,7 @@ import struct
 import zlib
 
 from layerwatch.errors import GcodeError
+from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
 
 __all__ = ["decode_bgcode"]
 
@@ -20,16 +21,16 @@ _ENCODING = {0: "none", 1: "MeatPack", 2: "MeatPack with comments"}
 
 
 def _decode_block(payload: bytes, comp: int, enc: int, usize: int) -> bytes | None:
-    from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
-
     if comp == 0:
         raw = payload
     elif comp == 1:
-        try:
-            raw = zlib.decompress(payload)
+        try:  # never more than the block says it holds (a damaged or hostile block cannot balloon)
+            raw = zlib.decompressobj().decompress(payload, max(usize, 1))
         except zlib.error:
             return None
     elif comp in (2, 3):
+        if usize > 8 * len(payload) + 64:  # heatshrink expands at most 8x (9 bits per literal byte)
+            return None
         raw = heatshrink_decode(payload, usize, 11 if comp == 2 else 12, 4)
     else:
         return None
@@ -42,40 +43,63 @@ def _decode_block(payload: bytes, comp: int, enc: int, usize: int) -> bytes | No
     return None
 
 
+def _u(fmt: str, data: bytes, at: int, name: str) -> tuple:
+    """``struct.unpack_from`` that names a damaged container instead of raising ``struct.error``."""
+    if at < 0 or at + struct.calcsize(fmt) > len(data):
+        raise GcodeError(f"{name}: binary G-code truncated or damaged at byte {at}; export the file again.")
+    return struct.unpack_from(fmt, data, at)
+
+
+def _metadata_lines(payload: bytes, comp: int) -> list[bytes]:
+    """INI-style ``key=value`` metadata as ``; key=value`` comment lines (unreadable blocks: none)."""
+    try:
+        meta = zlib.decompressobj().decompress(payload, 1 << 22) if comp else payload[: 1 << 22]
+    except zlib.error:
+        return []
+    return [b"; " + ln for ln in meta.splitlines() if ln.strip()]
+
+
 def decode_bgcode(data: bytes, name: str = "<memory>") -> bytes:
-    """The concatenated G-code text of a ``.bgcode`` file, as bytes."""
+    """The concatenated G-code text of a ``.bgcode`` file, as bytes.
+
+    The file, printer and print metadata blocks (types 0, 3, 4: producer, filament
+    used, ...) come first as ``; key=value`` comments, the slicer's settings
+    (type 2) last, as PrusaSlicer places them in its ASCII export.
+
+    Raises
+    ------
+    GcodeError
+        Not a ``.bgcode``, truncated or damaged blocks, or an encoding layerwatch
+        does not read.
+    """
     if len(data) < 10 or data[:4] != b"GCDE":
         raise GcodeError(f"{name}: not a binary G-code file (no GCDE header).")
-    _version, checksum_type = struct.unpack_from("<IH", data, 4)
+    _version, checksum_type = _u("<IH", data, 4, name)
     crc = 4 if checksum_type == 1 else 0
     i, out, head, tail = 10, [], [], []
     while i < len(data):
-        if i + 8 > len(data):
-            raise GcodeError(f"{name}: truncated binary G-code at byte {i}; export the file again.")
-        btype, comp, usize = struct.unpack_from("<HHI", data, i)
+        btype, comp, usize = _u("<HHI", data, i, name)
         i += 8
         csize = usize
         if comp:
-            csize = struct.unpack_from("<I", data, i)[0]
+            csize = _u("<I", data, i, name)[0]
             i += 4
         plen = 6 if btype == 5 else 2
-        enc = struct.unpack_from("<H", data, i)[0] if i + 2 <= len(data) else 0
+        enc = _u("<H", data, i, name)[0] if btype == _GCODE_BLOCK else 0
+        if i + plen + csize > len(data):
+            raise GcodeError(f"{name}: binary G-code block at byte {i} runs past the end of the file "
+                             "(truncated download?); export the file again.")
         payload = data[i + plen : i + plen + csize]
         i += plen + csize + crc
-        if btype in (0, 2) and comp in (0, 1):  # file / slicer metadata (INI lines) as comments
-            try:
-                meta = zlib.decompress(payload) if comp else payload
-            except zlib.error:
-                meta = b""
-            lines = [b"; " + ln for ln in meta.splitlines() if ln.strip()]
-            (head if btype == 0 else tail).extend(lines)
+        if btype in (0, 2, 3, 4) and comp in (0, 1):
+            (tail if btype == 2 else head).extend(_metadata_lines(payload, comp))
         if btype != _GCODE_BLOCK:
             continue
         text = _decode_block(payload, comp, enc, usize)
         if text is None:
             raise GcodeError(
                 f"{name}: binary G-code uses {_COMPRESSION.get(comp, comp)} compression and "
-                f"{_ENCODING.get(enc, enc)} encoding, which layerwatch does not read; "
+                f"{_ENCODING.get(enc, enc)} encoding, which layerwatch does not read (or the block is damaged); "
                 "export ASCII G-code instead (PrusaSlicer: Printer Settings > General > Binary G-code off)."
             )
         out.append(text)

@@ -1,70 +1,93 @@
 """Numba state machine: G-code bytes -> extruding segments, in one pass.
 
-The kernel lexes the ``uint8`` buffer (no ``str`` copy) and runs the modal
+The kernel lexes the ``uint8`` buffer (no ``str`` copy; :mod:`.lexer`) and runs the modal
 machine as it goes (G90/G91, M82/M83, G92, G20/G21, G0-G3, G10/G11, G28,
-T, F, M101/M103). It emits flat arrays of extruding segments, the lines of
-travel moves, the byte offsets of ``;`` comments that may be slicer tags
-(decoded in Python by :mod:`layerwatch.gcode.tags`) and, for the
-post-processor, the modal state at requested "probe" lines.
+T, F, M101/M103, M200 D volumetric E, M221 flow). It emits flat arrays of
+extruding segments, the lines of travel moves, the byte offsets of ``;``
+comments that may be slicer tags (decoded in Python by
+:mod:`layerwatch.gcode.tags`), filament totals and, for the post-processor,
+the modal state at requested "probe" lines.
 
 Conventions: ``phys = logical + offset`` per axis (G92 changes the offset),
 positions in mm (G20 scales by 25.4), E relative when ``M83`` or ``G91``
-(Klipper/Marlin semantics: G91 makes E relative too; G90 keeps M83).
+(Klipper/Marlin semantics: G91 makes E relative too; G90 keeps M83). E words
+are filament length unless volumetric (``M200 D<d>`` with d > 0, or the
+caller's ``e_area_init`` for UltiGCode), then mm³, divided by the filament
+cross-section. ``M221 S<p> [T<t>]`` scales what the printer feeds (``seg_e``
+and the "fed" totals) but not the "commanded" totals, which are what slicers
+state as "filament used".
+
+The machine state lives in one float64 array (indices ``MS_*``), the words of
+the current line in two arrays indexed by letter; each step is a small
+function (the hot ones inlined by numba). The lexer (:mod:`.lexer`) and the
+arc geometry (:mod:`.arcs`) are compiled into this module's code, so the
+on-disk cache is keyed on all three files (:mod:`layerwatch.gcode.jit_cache`).
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numba as nb
 import numpy as np
 
+from layerwatch.gcode import jit_cache
 from layerwatch.gcode.arcs import arc_geometry
+from layerwatch.gcode.lexer import (
+    BAD_BYTES,
+    BAD_WORD,
+    MAX_G,
+    N_WORDS,
+    W_A,
+    W_D,
+    W_E,
+    W_F,
+    W_I,
+    W_J,
+    W_R,
+    W_S,
+    W_T,
+    W_X,
+    W_Y,
+    W_Z,
+    count_g_lines,
+    lex_line,
+)
 
-# stats slots
+# before any njit function below is loaded from disk: drop cached code built from other sources
+jit_cache.ensure_fresh(Path(__file__).resolve().parent / "__pycache__", "kernel",
+                       jit_cache.cache_key(jit_cache.KERNEL_SOURCES))
+
+# ---- stats slots (int64)
 ST_LINES, ST_SEG, ST_TRAVEL, ST_CMT, ST_BAD, ST_FIRST_BAD, ST_UNKNOWN, ST_ABSURD = 0, 1, 2, 3, 4, 5, 6, 7
 ST_FIRST_ABSURD, ST_TOOLON, ST_ARCS, ST_ARC_BAD, ST_FIRST_ARC_BAD, ST_NONL, ST_FWRETRACT = 8, 9, 10, 11, 12, 13, 14
-N_STATS = 16
+ST_VOLUMETRIC, ST_ARC_CAPPED, ST_FIRST_ARC_CAPPED, ST_FLOW_SET, ST_MALFORMED, ST_FIRST_MALFORMED = 15, 16, 17, 18, 19, 20
+N_STATS = 22
+# ---- filament totals (float64, mm of filament)
+FS_XY_CMD, FS_CMD_HIGH, FS_FED_HIGH, FS_EONLY_FED, FS_XY_FED = 0, 1, 2, 3, 4
+N_FSTATS = 5
 #: probe state columns: logical x, y, z, offsets x, y, z, e, feed (mm/min), abs_xyz, e_rel_flag, tool, inch,
 #: tool-on (M101 dialect, 1 when the extruder is switched on)
 N_PROBE = 13
 ABSURD_MM = 1.0e5
-#: first characters of ';' comments worth handing to the tag decoder
-_TAG_FIRST = np.zeros(256, np.bool_)
-for _c in b"LlZzTtFfCcBb'Ee":
-    _TAG_FIRST[_c] = True
+#: at most this many chords per arc, and in the whole file ARC_BUDGET_BASE + ARC_BUDGET_PER_BYTE x its
+#: size (then 16 per arc): memory stays proportional to the file whatever its radii
+ARC_MAX_CHORDS = 2048
+ARC_BUDGET_BASE = 200_000
+ARC_BUDGET_PER_BYTE = 8
+ARC_MIN_CHORD_MM = 0.02
 
+# ---- machine state slots (float64)
+MS_LX, MS_LY, MS_LZ, MS_OX, MS_OY, MS_OZ, MS_E, MS_FEED = 0, 1, 2, 3, 4, 5, 6, 7
+MS_ABS, MS_EREL, MS_SCALE, MS_TOOL, MS_TOOLON, MS_TOOLON_MODE, MS_MOTION, MS_EAREA = 8, 9, 10, 11, 12, 13, 14, 15
+MS_CMD, MS_CMD_HIGH, MS_FED, MS_FED_HIGH, MS_ARC_CHORDS, MS_ARC_BUDGET = 16, 17, 18, 19, 20, 21
+MS_FLOW = 24  # + tool index, 16 tools
+N_TOOLS = 16
+N_MS = MS_FLOW + N_TOOLS
+# ---- what a line does
+ACT_NONE, ACT_HOME, ACT_SETPOS, ACT_MOVE = 0, 1, 2, 3
 
-@nb.njit(cache=True, inline="always")
-def _is_digit(c):
-    return 48 <= c <= 57
-
-
-@nb.njit(cache=True)
-def _parse_num(buf, i, n):
-    """Parse a decimal number at ``buf[i:]`` (no exponent: ``E`` is an axis); returns (value, next_i, ok)."""
-    while i < n and (buf[i] == 32 or buf[i] == 9):
-        i += 1
-    sign = 1.0
-    if i < n and (buf[i] == 45 or buf[i] == 43):
-        if buf[i] == 45:
-            sign = -1.0
-        i += 1
-    val = 0.0
-    nd = 0
-    while i < n and _is_digit(buf[i]):
-        val = val * 10.0 + (buf[i] - 48)
-        i += 1
-        nd += 1
-    if i < n and buf[i] == 46:
-        i += 1
-        scale = 0.1
-        while i < n and _is_digit(buf[i]):
-            val += (buf[i] - 48) * scale
-            scale *= 0.1
-            i += 1
-            nd += 1
-    return sign * val, i, nd > 0
 
 
 @nb.njit(cache=True)
@@ -82,7 +105,285 @@ def _grow_1(a, k):
 
 
 @nb.njit(cache=True)
-def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a state machine is one big loop
+def _apply_g(ms, g, stats):
+    """Modal effect of one G word; returns (action, motion or -1, non-motion flag)."""
+    gi = int(g + 1e-6) if 0 <= g < 1e6 else 9999
+    if gi <= 3 and abs(g - gi) < 1e-6:
+        ms[MS_MOTION] = gi
+        return ACT_MOVE, gi, False
+    if gi == 90:
+        ms[MS_ABS] = 1.0
+    elif gi == 91:
+        ms[MS_ABS] = 0.0
+    elif gi == 20:
+        ms[MS_SCALE] = 25.4
+    elif gi == 21:
+        ms[MS_SCALE] = 1.0
+    elif gi == 28:
+        return ACT_HOME, -1, False
+    elif gi == 92:
+        return ACT_SETPOS, -1, False
+    elif gi == 10 or gi == 11:
+        stats[ST_FWRETRACT] += 1
+        return ACT_NONE, -1, True
+    elif not (gi == 17 or gi == 94):  # G4, G29, G31, G53 ...: their axis words are not a move
+        if not (gi == 4 or gi == 29 or gi == 53 or gi == 40 or gi == 80):
+            stats[ST_UNKNOWN] += 1
+        return ACT_NONE, -1, True
+    return ACT_NONE, -1, False
+
+
+@nb.njit(cache=True)
+def _apply_m(ms, m, val, has, stats):
+    """Modal effect of an M code (E mode, tool-on dialect, volumetric E, flow)."""
+    if m == 82:
+        ms[MS_EREL] = 0.0
+    elif m == 83:
+        ms[MS_EREL] = 1.0
+    elif m == 101:
+        ms[MS_TOOLON] = 1.0
+        ms[MS_TOOLON_MODE] = 1.0
+    elif m == 103:
+        ms[MS_TOOLON] = 0.0
+    elif m == 200 and has[W_D] and math.isfinite(val[W_D]):
+        d = val[W_D]
+        ms[MS_EAREA] = math.pi * d * d / 4.0 if 0.5 <= d <= 5.0 else 0.0
+        if ms[MS_EAREA] > 0:
+            stats[ST_VOLUMETRIC] = 1
+    elif m == 221 and has[W_S] and math.isfinite(val[W_S]) and 0.0 <= val[W_S] <= 1000.0:
+        t = int(val[W_T]) if has[W_T] and 0 <= val[W_T] < N_TOOLS else int(ms[MS_TOOL])
+        ms[MS_FLOW + t] = val[W_S] / 100.0
+        stats[ST_FLOW_SET] += 1
+
+
+@nb.njit(cache=True, inline="always")
+def _line_action(ms, val, has, gcodes, ng, mcode, stats):
+    """Apply the line's modal words; returns (action, motion of the move)."""
+    act = ACT_NONE
+    lmotion = -1
+    nonmotion = False
+    for k in range(ng):
+        a, mo, nm = _apply_g(ms, gcodes[k], stats)
+        if a != ACT_NONE and (act == ACT_NONE or act == ACT_MOVE):
+            act = a
+        if mo >= 0:
+            lmotion = mo
+        nonmotion = nonmotion or nm
+    if mcode >= 0:
+        _apply_m(ms, mcode, val, has, stats)
+    if has[W_T] and mcode != 221:
+        t = val[W_T]
+        if 0 <= t < 255:
+            ms[MS_TOOL] = int(t)
+    if has[W_F] and val[W_F] > 0:
+        ms[MS_FEED] = val[W_F] * ms[MS_SCALE]
+    if act == ACT_HOME or act == ACT_SETPOS:
+        return act, -1
+    axes = has[W_X] or has[W_Y] or has[W_Z] or has[W_E] or has[W_A]
+    arc_words = has[W_I] or has[W_J] or has[W_R]
+    if (lmotion >= 0 or not nonmotion) and axes:
+        return ACT_MOVE, lmotion if lmotion >= 0 else int(ms[MS_MOTION])
+    if (lmotion == 2 or lmotion == 3) and arc_words:
+        return ACT_MOVE, lmotion
+    return ACT_NONE, -1
+
+
+@nb.njit(cache=True)
+def _home(ms, has):
+    """G28: the named axes (all when none) to 0 with their offsets cleared."""
+    all_axes = not (has[W_X] or has[W_Y] or has[W_Z])
+    for w, lo, oo in ((W_X, MS_LX, MS_OX), (W_Y, MS_LY, MS_OY), (W_Z, MS_LZ, MS_OZ)):
+        if all_axes or has[w]:
+            ms[lo] = 0.0
+            ms[oo] = 0.0
+
+
+@nb.njit(cache=True)
+def _set_position(ms, val, has):
+    """G92: logical positions set, physical ones kept (offsets absorb the change)."""
+    sc = ms[MS_SCALE]
+    if not (has[W_X] or has[W_Y] or has[W_Z] or has[W_E]):
+        for lo, oo in ((MS_LX, MS_OX), (MS_LY, MS_OY), (MS_LZ, MS_OZ)):
+            ms[oo] += ms[lo]
+            ms[lo] = 0.0
+        ms[MS_E] = 0.0
+    for w, lo, oo in ((W_X, MS_LX, MS_OX), (W_Y, MS_LY, MS_OY), (W_Z, MS_LZ, MS_OZ)):
+        if has[w] and math.isfinite(val[w]):
+            ms[oo] += ms[lo] - val[w] * sc
+            ms[lo] = val[w] * sc
+    if has[W_E] and math.isfinite(val[W_E]):
+        ms[MS_E] = val[W_E] * sc
+
+
+@nb.njit(cache=True, inline="always")
+def _advance_axes(ms, val, has):
+    """Move the logical X/Y/Z and E; returns the filament length commanded (mm, volumetric converted)."""
+    sc = ms[MS_SCALE]
+    absolute = ms[MS_ABS] > 0
+    for w, lo in ((W_X, MS_LX), (W_Y, MS_LY), (W_Z, MS_LZ)):
+        if has[w] and math.isfinite(val[w]):
+            ms[lo] = val[w] * sc if absolute else ms[lo] + val[w] * sc
+    w_e = W_E if has[W_E] else W_A  # A: an alias of E in some dialects
+    if not has[w_e] or not math.isfinite(val[w_e]):
+        return 0.0
+    de = val[w_e] * sc if (ms[MS_EREL] > 0 or not absolute) else val[w_e] * sc - ms[MS_E]
+    ms[MS_E] += de
+    return de / ms[MS_EAREA] if ms[MS_EAREA] > 0 else de
+
+
+@nb.njit(cache=True, inline="always")
+def _account_filament(ms, fs, de, flow, xy_move):
+    """Commanded and fed filament: high-water marks of the cumulative E (retract/deretract pairs count once)."""
+    ms[MS_CMD] += de
+    ms[MS_FED] += de * flow
+    if ms[MS_CMD] > ms[MS_CMD_HIGH]:
+        ms[MS_CMD_HIGH] = ms[MS_CMD]
+    if ms[MS_FED] > ms[MS_FED_HIGH]:
+        if not xy_move:
+            fs[FS_EONLY_FED] += ms[MS_FED] - ms[MS_FED_HIGH]
+        ms[MS_FED_HIGH] = ms[MS_FED]
+
+
+@nb.njit(cache=True)
+def _arc_chords(ms, k, sweep, r0, r1):
+    """Chord count bounded by the arc's length (``ARC_MIN_CHORD_MM``), ``ARC_MAX_CHORDS`` and the file budget."""
+    length = abs(sweep) * max(r0, r1)
+    cap = min(ARC_MAX_CHORDS, 1 + int(min(length, 1e9) / ARC_MIN_CHORD_MM))
+    if ms[MS_ARC_CHORDS] > ms[MS_ARC_BUDGET]:
+        cap = min(cap, 16)
+    k2 = max(1, min(k, cap))
+    ms[MS_ARC_CHORDS] += k2
+    return k2, k2 < k
+
+
+@nb.njit(cache=True, inline="always")
+def _push_seg(segf, segi, ns, x0, y0, x1, y1, z, e, line, tool):
+    """Append one segment, growing the buffers when full; returns the buffers."""
+    if ns >= segf.shape[0]:
+        segf = _grow_f(segf, 16)
+        segi = _grow_f(segi, 16)
+    segf[ns, 0] = x0
+    segf[ns, 1] = y0
+    segf[ns, 2] = x1
+    segf[ns, 3] = y1
+    segf[ns, 4] = z
+    segf[ns, 5] = e
+    segi[ns, 0] = line
+    segi[ns, 1] = tool
+    return segf, segi
+
+
+@nb.njit(cache=True)
+def _emit_arc(segf, segi, ns, p, arc, k, de, line, tool):
+    """Linearise an extruding arc into ``k`` chords. ``p`` = (x0, y0, z0, x1, y1, z1),
+    ``arc`` = (cx, cy, r0, r1, a0, sweep); Z and E are shared evenly (helical arcs)."""
+    x0, y0, z0, x1, y1, z1 = p
+    cx, cy, r0, r1, a0, sweep = arc
+    px = x0
+    py = y0
+    for q in range(1, k + 1):
+        t = q / k
+        rr = r0 + (r1 - r0) * t
+        if q == k:
+            qx = x1
+            qy = y1
+        else:
+            qx = cx + rr * math.cos(a0 + sweep * t)
+            qy = cy + rr * math.sin(a0 + sweep * t)
+        segf, segi = _push_seg(segf, segi, ns, px, py, qx, qy, z0 + (z1 - z0) * t, de / k, line, tool)
+        ns += 1
+        px = qx
+        py = qy
+    return segf, segi, ns
+
+
+@nb.njit(cache=True)
+def _flag(stats, count_slot, first_slot, line):
+    if stats[count_slot] == 0:
+        stats[first_slot] = line
+    stats[count_slot] += 1
+
+
+@nb.njit(cache=True, inline="always")
+def _move(ms, fs, val, has, mo, chord_tol, segf, segi, ns, line, stats):
+    """Execute a G0-G3 move; returns (segf, segi, ns, travelled) where ``travelled`` says a
+    non-extruding XY move happened (its line goes to the travel list)."""
+    x0 = ms[MS_LX] + ms[MS_OX]
+    y0 = ms[MS_LY] + ms[MS_OY]
+    z0 = ms[MS_LZ] + ms[MS_OZ]
+    de = _advance_axes(ms, val, has)
+    x1 = ms[MS_LX] + ms[MS_OX]
+    y1 = ms[MS_LY] + ms[MS_OY]
+    z1 = ms[MS_LZ] + ms[MS_OZ]
+    tool = int(ms[MS_TOOL])
+    flow = ms[MS_FLOW + tool] if tool < N_TOOLS else 1.0
+    dxy = math.hypot(x1 - x0, y1 - y0)
+    absurd = not (abs(x1) <= ABSURD_MM and abs(y1) <= ABSURD_MM and abs(z1) <= ABSURD_MM and abs(de) <= ABSURD_MM
+                  and abs(x0) <= ABSURD_MM and abs(y0) <= ABSURD_MM and abs(z0) <= ABSURD_MM)
+    if absurd:  # not drawn: the geometry stays finite and on Earth
+        _flag(stats, ST_ABSURD, ST_FIRST_ABSURD, line)
+        return segf, segi, ns, False
+    arc = mo == 2 or mo == 3
+    _account_filament(ms, fs, de, flow, dxy > 1e-12 or arc)
+    extruding = de > 1e-9 or (ms[MS_TOOLON_MODE] > 0 and ms[MS_TOOLON] > 0 and not has[W_E])
+    fed = de * flow if de > 1e-9 else 0.0
+    if arc:
+        stats[ST_ARCS] += 1
+        sc = ms[MS_SCALE]
+        ok, cx, cy, r0, r1, a0, sweep, k = arc_geometry(
+            x0, y0, x1, y1, mo == 3, has[W_I] or has[W_J], has[W_R],
+            val[W_I] * sc if has[W_I] else 0.0, val[W_J] * sc if has[W_J] else 0.0,
+            val[W_R] * sc if has[W_R] else 0.0, chord_tol,
+        )
+        if ok and not (r0 <= ABSURD_MM and r1 <= ABSURD_MM):
+            ok = False
+        if not ok:
+            _flag(stats, ST_ARC_BAD, ST_FIRST_ARC_BAD, line)
+        else:
+            if not extruding:
+                return segf, segi, ns, dxy > 0 or abs(sweep) > 0
+            k, capped = _arc_chords(ms, k, sweep, r0, r1)
+            if capped:
+                _flag(stats, ST_ARC_CAPPED, ST_FIRST_ARC_CAPPED, line)
+            fs[FS_XY_CMD] += de
+            fs[FS_XY_FED] += fed
+            segf, segi, ns = _emit_arc(segf, segi, ns, (x0, y0, z0, x1, y1, z1), (cx, cy, r0, r1, a0, sweep),
+                                       k, fed, line, tool)
+            return segf, segi, ns, False
+    if dxy <= 1e-12:
+        return segf, segi, ns, False
+    if not extruding:
+        return segf, segi, ns, True
+    fs[FS_XY_CMD] += max(de, 0.0)
+    fs[FS_XY_FED] += fed
+    segf, segi = _push_seg(segf, segi, ns, x0, y0, x1, y1, z1, fed, line, tool)
+    return segf, segi, ns + 1, False
+
+
+@nb.njit(cache=True)
+def _record_probe(probe_state, row, ms):
+    """Modal state at the start of a probed line (columns: see ``N_PROBE``)."""
+    for col, slot in enumerate((MS_LX, MS_LY, MS_LZ, MS_OX, MS_OY, MS_OZ, MS_E, MS_FEED, MS_ABS, MS_EREL, MS_TOOL)):
+        probe_state[row, col] = ms[slot]
+    probe_state[row, 11] = 1.0 if ms[MS_SCALE] != 1.0 else 0.0
+    probe_state[row, 12] = 1.0 if (ms[MS_TOOLON_MODE] > 0 and ms[MS_TOOLON] > 0) else 0.0
+
+
+@nb.njit(cache=True)
+def _new_state(e_rel_init, e_area_init, n_bytes):
+    ms = np.zeros(N_MS, np.float64)
+    ms[MS_ARC_BUDGET] = ARC_BUDGET_BASE + ARC_BUDGET_PER_BYTE * n_bytes
+    ms[MS_ABS] = 1.0
+    ms[MS_EREL] = 1.0 if e_rel_init else 0.0
+    ms[MS_SCALE] = 1.0
+    ms[MS_MOTION] = 1.0
+    ms[MS_EAREA] = e_area_init
+    ms[MS_FLOW : MS_FLOW + N_TOOLS] = 1.0
+    return ms
+
+
+@nb.njit(cache=True)
+def run_kernel(buf, probes, chord_tol, e_rel_init=False, e_area_init=0.0):
     """Lex and execute ``buf``.
 
     Parameters
@@ -95,359 +396,86 @@ def run_kernel(buf, probes, chord_tol, e_rel_init=False):  # noqa: C901 - a stat
         Maximum chord error when linearising arcs, mm.
     e_rel_init : bool
         Start in relative-E mode (files that never say M82/M83 but assume M83).
+    e_area_init : float
+        Filament cross-section, mm², when E is volume from the start (UltiGCode); 0 for lengths.
 
     Returns
     -------
-    seg_a, seg_b : (S, 2) float64  segment start / end XY (physical mm)
-    seg_z, seg_e : (S,) float64  Z (mm) and filament (mm)
-    seg_line : (S,) int64 ; seg_tool : (S,) uint8
+    segf : (S, 6) float64  x0, y0, x1, y1 (physical mm), z (mm), e (filament fed, mm)
+    segi : (S, 2) int64  source line, tool
     travel_line : (T,) int64
     cmt : (C, 2) int64  byte offset of the ';' and its line
     probe_state : (P, N_PROBE) float64
     stats : (N_STATS,) int64
+    fstats : (N_FSTATS,) float64  filament totals, mm
     """
     n = buf.shape[0]
-    # capacity: lines that start with G (arcs grow the arrays on demand)
-    cap = 16
-    at_start = True
-    for k in range(n):
-        c = buf[k]
-        if c == 10:
-            at_start = True
-        elif at_start and c != 32 and c != 9:
-            if c == 71 or c == 103:
-                cap += 1
-            at_start = False
-    seg_a = np.empty((cap, 2), np.float64)
-    seg_b = np.empty((cap, 2), np.float64)
-    seg_z = np.empty(cap, np.float64)
-    seg_e = np.empty(cap, np.float64)
-    seg_line = np.empty(cap, np.int64)
-    seg_tool = np.empty(cap, np.uint8)
+    cap = count_g_lines(buf)
+    segf = np.empty((cap, 6), np.float64)
+    segi = np.empty((cap, 2), np.int64)
     travel_line = np.empty(cap // 4 + 16, np.int64)
     cmt = np.empty((64, 2), np.int64)
     probe_state = np.full((probes.shape[0], N_PROBE), np.nan)
     stats = np.zeros(N_STATS, np.int64)
-    ns = 0
-    nt = 0
-    nc = 0
-    npb = 0
-    # modal state
-    lx = 0.0
-    ly = 0.0
-    lz = 0.0
-    ox = 0.0
-    oy = 0.0
-    oz = 0.0
-    e = 0.0
-    feed = 0.0
-    abs_xyz = True
-    e_rel = e_rel_init
-    scale = 1.0
-    tool = 0
-    tool_on = False
-    toolon_mode = False
-    motion = 1
+    fs = np.zeros(N_FSTATS, np.float64)
+    ms = _new_state(e_rel_init, e_area_init, n)
+    val = np.zeros(N_WORDS, np.float64)
+    has = np.zeros(N_WORDS, np.bool_)
+    gcodes = np.zeros(MAX_G, np.float64)
+    ns = nt = nc = npb = 0
     line = 1
     i = 0
     while i <= n:
         while npb < probes.shape[0] and probes[npb] <= line:
             if probes[npb] == line:
-                probe_state[npb, 0] = lx
-                probe_state[npb, 1] = ly
-                probe_state[npb, 2] = lz
-                probe_state[npb, 3] = ox
-                probe_state[npb, 4] = oy
-                probe_state[npb, 5] = oz
-                probe_state[npb, 6] = e
-                probe_state[npb, 7] = feed
-                probe_state[npb, 8] = 1.0 if abs_xyz else 0.0
-                probe_state[npb, 9] = 1.0 if e_rel else 0.0
-                probe_state[npb, 10] = tool
-                probe_state[npb, 11] = 1.0 if scale != 1.0 else 0.0
-                probe_state[npb, 12] = 1.0 if (toolon_mode and tool_on) else 0.0
+                _record_probe(probe_state, npb, ms)
             npb += 1
         if i == n:
             break
-        # ---- lex one line
-        lmotion = -1
-        home = False
-        setpos = False
-        hx = hy = hz = he = hi = hj = hr = False
-        vx = vy = vz = ve = vi = vj = vr = 0.0
-        first = True
-        bad = False
-        nonmotion = False
-        while i < n and buf[i] != 10:
-            c = buf[i]
-            if c == 59:  # ';'
-                j = i + 1
-                while j < n and (buf[j] == 32 or buf[j] == 9):
-                    j += 1
-                if j < n and _TAG_FIRST[buf[j]]:
-                    if nc >= cmt.shape[0]:
-                        cmt = _grow_f(cmt, 64)
-                    cmt[nc, 0] = i
-                    cmt[nc, 1] = line
-                    nc += 1
-                while i < n and buf[i] != 10:
-                    i += 1
-                break
-            if c == 40:  # '(' comment
-                while i < n and buf[i] != 10 and buf[i] != 41:
-                    i += 1
-                if i < n and buf[i] == 41:
-                    i += 1
-                continue
-            if c == 32 or c == 9 or c == 13:
-                i += 1
-                continue
-            if c == 42:  # '*' checksum: rest of line
-                while i < n and buf[i] != 10:
-                    i += 1
-                break
-            if 97 <= c <= 122:
-                c -= 32
-            if 65 <= c <= 90:
-                if first and i + 1 < n and ((65 <= buf[i + 1] <= 90) or (97 <= buf[i + 1] <= 122) or buf[i + 1] == 95):
-                    # extended command (Klipper macro, ...): keep, ignore
-                    stats[ST_UNKNOWN] += 1
-                    while i < n and buf[i] != 10:
-                        i += 1
-                    break
-                first = False
-                v, i2, ok = _parse_num(buf, i + 1, n)
-                i = i2
-                if not ok:  # a bare axis letter (G28 X) names the axis
-                    if c == 88:
-                        hx = True
-                    elif c == 89:
-                        hy = True
-                    elif c == 90:
-                        hz = True
-                    continue
-                if c == 71:  # G
-                    g = int(v + 1e-6)
-                    if g <= 3 and abs(v - g) < 1e-6:
-                        lmotion = g
-                        motion = g
-                    elif g == 90:
-                        abs_xyz = True
-                    elif g == 91:
-                        abs_xyz = False
-                    elif g == 20:
-                        scale = 25.4
-                    elif g == 21:
-                        scale = 1.0
-                    elif g == 28:
-                        home = True
-                    elif g == 92:
-                        setpos = True
-                    elif g == 10 or g == 11:
-                        stats[ST_FWRETRACT] += 1
-                        nonmotion = True
-                    elif g == 17 or g == 94:
-                        pass
-                    else:  # G4, G29, G31, G53 ...: their axis words are not a move
-                        nonmotion = True
-                        if not (g == 4 or g == 29 or g == 53 or g == 40 or g == 80):
-                            stats[ST_UNKNOWN] += 1
-                elif c == 77:  # M
-                    m = int(v + 1e-6)
-                    if m == 82:
-                        e_rel = False
-                    elif m == 83:
-                        e_rel = True
-                    elif m == 101:
-                        tool_on = True
-                        toolon_mode = True
-                    elif m == 103:
-                        tool_on = False
-                    else:
-                        # other M codes may carry strings (M117/M118 ...): skip the rest
-                        while i < n and buf[i] != 10 and buf[i] != 59:
-                            i += 1
-                elif c == 84:  # T
-                    tool = int(v) if 0 <= v < 255 else tool
-                elif c == 88:
-                    hx = True
-                    vx = v
-                elif c == 89:
-                    hy = True
-                    vy = v
-                elif c == 90:
-                    hz = True
-                    vz = v
-                elif c == 69 or c == 65:  # E (A as an alias used by some dialects)
-                    he = True
-                    ve = v
-                elif c == 70:
-                    if v > 0:
-                        feed = v * scale
-                elif c == 73:
-                    hi = True
-                    vi = v
-                elif c == 74:
-                    hj = True
-                    vj = v
-                elif c == 82:
-                    hr = True
-                    vr = v
-                continue
-            if c >= 128 or c < 32:
-                bad = True
-            i += 1
-        if bad:
-            if stats[ST_BAD] == 0:
-                stats[ST_FIRST_BAD] = line
-            stats[ST_BAD] += 1
-        # ---- execute
-        if home:
-            all_axes = not (hx or hy or hz)
-            if all_axes or hx:
-                lx = 0.0
-                ox = 0.0
-            if all_axes or hy:
-                ly = 0.0
-                oy = 0.0
-            if all_axes or hz:
-                lz = 0.0
-                oz = 0.0
-        elif setpos:
-            if not (hx or hy or hz or he):
-                ox += lx
-                oy += ly
-                oz += lz
-                lx = ly = lz = e = 0.0
-            if hx:
-                ox += lx - vx * scale
-                lx = vx * scale
-            if hy:
-                oy += ly - vy * scale
-                ly = vy * scale
-            if hz:
-                oz += lz - vz * scale
-                lz = vz * scale
-            if he:
-                e = ve * scale
-        elif (lmotion >= 0 or not nonmotion) and (hx or hy or hz or he) or ((lmotion == 2 or lmotion == 3) and (hi or hj or hr)):
-            mo = lmotion if lmotion >= 0 else motion
-            x0 = lx + ox
-            y0 = ly + oy
-            z0 = lz + oz
-            if hx:
-                lx = vx * scale if abs_xyz else lx + vx * scale
-            if hy:
-                ly = vy * scale if abs_xyz else ly + vy * scale
-            if hz:
-                lz = vz * scale if abs_xyz else lz + vz * scale
-            de = 0.0
-            if he:
-                if e_rel or not abs_xyz:
-                    de = ve * scale
-                else:
-                    de = ve * scale - e
-                e += de
-            x1 = lx + ox
-            y1 = ly + oy
-            z1 = lz + oz
-            if abs(x1) > ABSURD_MM or abs(y1) > ABSURD_MM or abs(z1) > ABSURD_MM or abs(de) > ABSURD_MM:
-                if stats[ST_ABSURD] == 0:
-                    stats[ST_FIRST_ABSURD] = line
-                stats[ST_ABSURD] += 1
-            extruding = de > 1e-9 or (toolon_mode and tool_on and not he)
-            if not extruding:
-                de = 0.0
-            dxy = math.hypot(x1 - x0, y1 - y0)
-            if mo == 2 or mo == 3:
-                stats[ST_ARCS] += 1
-                ok, cx, cy, r0, r1, a0, sweep, k = arc_geometry(
-                    x0, y0, x1, y1, mo == 3, hi or hj, hr, vi * scale, vj * scale, vr * scale, chord_tol
-                )
-                if not ok:
-                    if stats[ST_ARC_BAD] == 0:
-                        stats[ST_FIRST_ARC_BAD] = line
-                    stats[ST_ARC_BAD] += 1
-                    mo = 1
-                else:
-                    if extruding:
-                        while ns + k >= seg_z.shape[0]:
-                            seg_a = _grow_f(seg_a, k)
-                            seg_b = _grow_f(seg_b, k)
-                            seg_z = _grow_1(seg_z, k)
-                            seg_e = _grow_1(seg_e, k)
-                            seg_line = _grow_1(seg_line, k)
-                            seg_tool = _grow_1(seg_tool, k)
-                        px = x0
-                        py = y0
-                        for q in range(1, k + 1):
-                            t = q / k
-                            rr = r0 + (r1 - r0) * t
-                            if q == k:
-                                qx = x1
-                                qy = y1
-                            else:
-                                qx = cx + rr * math.cos(a0 + sweep * t)
-                                qy = cy + rr * math.sin(a0 + sweep * t)
-                            seg_a[ns, 0] = px
-                            seg_a[ns, 1] = py
-                            seg_b[ns, 0] = qx
-                            seg_b[ns, 1] = qy
-                            seg_z[ns] = z0 + (z1 - z0) * t
-                            seg_e[ns] = de / k
-                            seg_line[ns] = line
-                            seg_tool[ns] = tool
-                            ns += 1
-                            px = qx
-                            py = qy
-                    elif dxy > 0 or abs(sweep) > 0:
-                        if nt >= travel_line.shape[0]:
-                            travel_line = _grow_1(travel_line, 16)
-                        travel_line[nt] = line
-                        nt += 1
-            if mo < 2:
-                if extruding and dxy > 1e-12:
-                    if ns >= seg_z.shape[0]:
-                        seg_a = _grow_f(seg_a, 16)
-                        seg_b = _grow_f(seg_b, 16)
-                        seg_z = _grow_1(seg_z, 16)
-                        seg_e = _grow_1(seg_e, 16)
-                        seg_line = _grow_1(seg_line, 16)
-                        seg_tool = _grow_1(seg_tool, 16)
-                    seg_a[ns, 0] = x0
-                    seg_a[ns, 1] = y0
-                    seg_b[ns, 0] = x1
-                    seg_b[ns, 1] = y1
-                    seg_z[ns] = z1
-                    seg_e[ns] = de
-                    seg_line[ns] = line
-                    seg_tool[ns] = tool
-                    ns += 1
-                elif dxy > 1e-12:
-                    if nt >= travel_line.shape[0]:
-                        travel_line = _grow_1(travel_line, 16)
-                    travel_line[nt] = line
-                    nt += 1
+        i, ng, mcode, cmt_at, bad, extended = lex_line(buf, i, n, val, has, gcodes)
+        if cmt_at >= 0:
+            if nc >= cmt.shape[0]:
+                cmt = _grow_f(cmt, 64)
+            cmt[nc, 0] = cmt_at
+            cmt[nc, 1] = line
+            nc += 1
+        if extended:
+            stats[ST_UNKNOWN] += 1
+        if bad & BAD_BYTES:
+            _flag(stats, ST_BAD, ST_FIRST_BAD, line)
+        if bad & BAD_WORD:
+            _flag(stats, ST_MALFORMED, ST_FIRST_MALFORMED, line)
+        act, mo = _line_action(ms, val, has, gcodes, ng, mcode, stats)
+        if act == ACT_HOME:
+            _home(ms, has)
+        elif act == ACT_SETPOS:
+            _set_position(ms, val, has)
+        elif act == ACT_MOVE:
+            segf, segi, ns, travelled = _move(ms, fs, val, has, mo, chord_tol, segf, segi, ns, line, stats)
+            if travelled:
+                if nt >= travel_line.shape[0]:
+                    travel_line = _grow_1(travel_line, 16)
+                travel_line[nt] = line
+                nt += 1
         if i < n:  # at '\n'
             i += 1
-            line += 1
         else:  # last line had no newline
             stats[ST_NONL] = 1
-            line += 1
-    if toolon_mode:
+        line += 1
+    _finish_stats(stats, fs, ms, line, ns, nt, nc)
+    if ns < 0.9 * segf.shape[0]:  # give back the slack (a copy only when it is large)
+        segf = segf[:ns].copy()
+        segi = segi[:ns].copy()
+    return segf[:ns], segi[:ns], travel_line[:nt], cmt[:nc], probe_state, stats, fs
+
+
+@nb.njit(cache=True)
+def _finish_stats(stats, fs, ms, line, ns, nt, nc):
+    if ms[MS_TOOLON_MODE] > 0:
         stats[ST_TOOLON] = 1
     stats[ST_LINES] = line - 1
     stats[ST_SEG] = ns
     stats[ST_TRAVEL] = nt
     stats[ST_CMT] = nc
-    if ns < 0.9 * seg_z.shape[0]:  # give back the slack (a copy only when it is large)
-        seg_a = seg_a[:ns].copy()
-        seg_b = seg_b[:ns].copy()
-        seg_z = seg_z[:ns].copy()
-        seg_e = seg_e[:ns].copy()
-        seg_line = seg_line[:ns].copy()
-        seg_tool = seg_tool[:ns].copy()
-    return (
-        seg_a[:ns], seg_b[:ns], seg_z[:ns], seg_e[:ns], seg_line[:ns], seg_tool[:ns],
-        travel_line[:nt], cmt[:nc], probe_state, stats,
-    )
+    fs[FS_CMD_HIGH] = ms[MS_CMD_HIGH]
+    fs[FS_FED_HIGH] = ms[MS_FED_HIGH]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -10,9 +11,13 @@ import numpy as np
 
 from layerwatch.errors import GcodeError
 from layerwatch.gcode import kernel as K
+from layerwatch.gcode.generators import detect_generator
+from layerwatch.gcode.gx import MAGIC as GX_MAGIC
+from layerwatch.gcode.gx import decode_gx
 from layerwatch.gcode.layers import assign_layers
-from layerwatch.gcode.tags import decode_tags, detect_slicer
-from layerwatch.gcode.toolpath import Layer, Toolpath
+from layerwatch.gcode.statements import Statements, read_statements
+from layerwatch.gcode.tags import decode_tags
+from layerwatch.gcode.toolpath import FEATURES, Layer, Toolpath, part_mask
 
 __all__ = ["read_toolpath", "load_bytes", "run", "CHORD_TOL_MM"]
 
@@ -21,7 +26,15 @@ CHORD_TOL_MM = 0.01
 _LH = re.compile(
     rb"(?:;\s*layer_height\s*=|;\s*layerHeight\s*[=:,]|<layerThickness>|;Layer height:)\s*([\d.]+)"
 )
-_FD = re.compile(rb";\s*filament_diameter\s*=\s*([\d.]+)")
+
+
+def _finite(raw: bytes) -> float | None:
+    """A finite float from header bytes such as ``b"0.2"``; None for ``b"1.2.3"`` and the like."""
+    try:
+        v = float(raw)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) else None
 
 
 def load_bytes(source: str | Path | bytes | bytearray | memoryview) -> tuple[bytes, str]:
@@ -38,13 +51,16 @@ def load_bytes(source: str | Path | bytes | bytearray | memoryview) -> tuple[byt
         except OSError as exc:
             raise GcodeError(f"{name}: cannot read ({exc.strerror}); check permissions.") from exc
     if data[:4] == b"GCDE":
-        from layerwatch.gcode.bgcode import decode_bgcode
+        from layerwatch.gcode.bgcode import decode_bgcode  # numba codecs: compiled only for .bgcode
 
         data = decode_bgcode(data, name)
+    elif data[: len(GX_MAGIC)] == GX_MAGIC:
+        data = decode_gx(data, name)
     if not data or data.isspace():
         raise GcodeError(f"{name}: the file is empty; slice the model again and export G-code.")
     head = data[:65536]
-    if b"\x00" in head or sum(c < 9 or 13 < c < 32 for c in head[:4096]) > 16:
+    codes = np.frombuffer(head[:4096], np.uint8)
+    if b"\x00" in head or int(np.count_nonzero((codes < 9) | ((codes > 13) & (codes < 32)))) > 16:
         pos = head.find(b"\x00")
         raise GcodeError(
             f"{name}: binary data at byte {max(pos, 0)}, not G-code text; export ASCII G-code from the slicer."
@@ -60,17 +76,28 @@ def guess_relative_e(data: bytes) -> bool:
     """True when a file never sets the E mode yet its E values are relative (e.g. Kiri:Moto)."""
     if _MODE.search(data):
         return False
-    vals = np.array([float(v) for v in _EVAL.findall(data[:262144])[:4000] if v not in (b"-", b".")])
+    vals = np.array([v for v in map(_finite, _EVAL.findall(data[:262144])[:4000]) if v is not None])
     return vals.size > 20 and float(np.mean(np.diff(vals) > 0)) < 0.5
 
 
-def kernel_outputs(data: bytes, probes: np.ndarray | None = None) -> tuple:
+def volumetric_area(st: Statements, filament_diameter: float) -> float:
+    """Filament cross-section (mm²) when the file's E words are volumes from the start, else 0.
+
+    Cura's UltiGCode flavour (Ultimaker 2) writes E in mm³; RepRapFirmware's
+    ``M200 D<d>`` switches to volumes inside the file (handled by the kernel).
+    """
+    if st.flavor and st.flavor.lower() == "ultigcode":
+        return float(np.pi * filament_diameter**2 / 4.0)
+    return 0.0
+
+
+def kernel_outputs(data: bytes, probes: np.ndarray | None = None, e_area: float = 0.0) -> tuple:
     """Raw kernel outputs for ``data`` (see :func:`layerwatch.gcode.kernel.run_kernel`)."""
     buf = np.frombuffer(data, dtype=np.uint8)
     if probes is None:
         probes = np.zeros(0, np.int64)
     return K.run_kernel(
-        buf, np.ascontiguousarray(probes, np.int64), CHORD_TOL_MM, guess_relative_e(data)
+        buf, np.ascontiguousarray(probes, np.int64), CHORD_TOL_MM, guess_relative_e(data), float(e_area)
     )
 
 
@@ -82,9 +109,8 @@ def run(data: bytes, probes: np.ndarray | None = None) -> tuple:
     seg : (S, 6) float64  x0, y0, x1, y1, z, e
     seg_line, seg_tool, travel_line, cmt, probe_state, stats : see the kernel
     """
-    a, b, z, e, line, tool, travel, cmt, probe, stats = kernel_outputs(data, probes)
-    seg = np.column_stack([a, b, z, e]) if z.size else np.zeros((0, 6))
-    return seg, line, tool, travel, cmt, probe, stats
+    segf, segi, travel, cmt, probe, stats, _fs = kernel_outputs(data, probes)
+    return segf, segi[:, 0].copy(), segi[:, 1].astype(np.uint8), travel, cmt, probe, stats
 
 
 def _line_text(data: bytes, line: int, limit: int = 60) -> str:
@@ -145,6 +171,129 @@ def _layer_thickness(lz: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | Non
     return out
 
 
+def _kernel_warnings(data: bytes, short: str, st: np.ndarray) -> list[str]:
+    """One ``file:line: text`` warning per kind of problem the kernel counted."""
+    kinds = (
+        (K.ST_BAD, K.ST_FIRST_BAD, "line(s) with non-text bytes; those bytes were ignored"),
+        (K.ST_MALFORMED, K.ST_FIRST_MALFORMED,
+         "line(s) with a malformed number or stray character; what could not be read was ignored"),
+        (K.ST_ABSURD, K.ST_FIRST_ABSURD,
+         f"move(s) beyond {K.ABSURD_MM:g} mm (absurd coordinates; check units); not drawn"),
+        (K.ST_ARC_BAD, K.ST_FIRST_ARC_BAD,
+         "arc(s) without a usable centre (no I/J or R, or an absurd radius) drawn as straight lines"),
+        (K.ST_ARC_CAPPED, K.ST_FIRST_ARC_CAPPED,
+         f"arc(s) linearised with fewer chords than the {CHORD_TOL_MM:g} mm tolerance asks "
+         "(chord count bounded by the arc's length and the file's budget)"),
+    )
+    out = [
+        f"{short}:{st[first]}: {_line_text(data, st[first])}: {st[count]} {text}"
+        for count, first, text in kinds
+        if st[count]
+    ]
+    last = data[data.rfind(b"\n") + 1 :].lstrip().upper()
+    if st[K.ST_NONL] and re.match(rb"G0?[0-3](?![0-9])", last):
+        out.append(
+            f"{short}:{st[K.ST_LINES]}: {_line_text(data, st[K.ST_LINES])}: the file ends mid-move; "
+            "it may be truncated (export or copy it again)"
+        )
+    return out
+
+
+def _filament_diameter(given: float | None, st: Statements) -> float:
+    """The caller's diameter, else the file's, else 2.85 mm for UltiGCode and 1.75 mm otherwise."""
+    if given is not None:
+        if not (math.isfinite(given) and 0.5 <= given <= 5.0):
+            raise GcodeError(f"filament diameter {given!r} mm is out of range; pass 1.75 or 2.85 (0.5 .. 5 mm).")
+        return float(given)
+    if st.filament_diameter is not None:
+        return st.filament_diameter
+    return 2.85 if (st.flavor or "").lower() == "ultigcode" else 1.75
+
+
+def _features(tags, seg_line: np.ndarray, seg_z: np.ndarray, detection: str, bounds: np.ndarray) -> np.ndarray:
+    """Feature code per segment: the slicer's tags; moves before the first layer starts
+    (start G-code purge and prime lines) are ``purge``."""
+    n = seg_line.shape[0]
+    if tags.feature_lines.size:
+        fi = np.searchsorted(tags.feature_lines, seg_line, side="right") - 1
+        feature = tags.feature_codes[np.maximum(fi, 0)]
+        feature[fi < 0] = 0
+    else:
+        feature = np.zeros(n, np.uint8)
+    purge = np.zeros(n, bool)
+    if detection.startswith("tags") and tags.layer_lines.size:
+        purge = seg_line < tags.layer_lines[0]
+    elif detection == "z" and len(bounds) > 1:  # prime lines above layer 0, merged into it by assign_layers
+        z0 = seg_z[bounds[0] : bounds[1]]
+        on_layer = np.flatnonzero(np.abs(z0 - z0.min()) < 1e-4)
+        purge[: on_layer[0] if on_layer.size else 0] = True
+    feature[purge] = FEATURES.index("purge")
+    return feature
+
+
+def _layer_boxes(seg_a, seg_b, seg_e, feature, bounds):
+    """Per-layer part box (L, 2) lo/hi (not-part features left out unless alone) and extrusion (L,).
+
+    All segments are reduced per layer at once; only the layers that hold skirt, brim, purge
+    or wipe-tower segments are redone on their part segments.
+    """
+    idx = bounds[:-1]
+    lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
+    hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
+    part = part_mask(feature)
+    if not part.all():
+        mixed = np.flatnonzero(np.add.reduceat((~part).astype(np.int64), idx) > 0)
+        for k in mixed:
+            a, b = bounds[k], bounds[k + 1]
+            keep = part[a:b]
+            if keep.any():  # a layer of skirt or purge only keeps the box of what is there
+                pa, pb = seg_a[a:b][keep], seg_b[a:b][keep]
+                lo[k] = np.minimum(pa.min(axis=0), pb.min(axis=0))
+                hi[k] = np.maximum(pa.max(axis=0), pb.max(axis=0))
+    return lo, hi, np.add.reduceat(seg_e, idx)
+
+
+def _heights(lz, lo, hi, bounds) -> np.ndarray:
+    heights = _layer_thickness(lz, lo, hi, bounds)
+    good = heights[heights > 0.01]
+    fallback_h = float(np.median(good)) if good.size else 0.2
+    heights = np.where(heights > 0.01, heights, fallback_h)
+    if len(heights) and lz[0] > 0:
+        heights[0] = min(lz[0], 2.0) if lz[0] > 0.01 else fallback_h
+    return heights
+
+
+def _line_ranges(tags, detection, seg_line, bounds, n_lines):
+    """First and stop source line of each layer, (L,) int64 each."""
+    nl = len(bounds) - 1
+    first = bounds[:-1]
+    if detection.startswith("tags") and nl:
+        tl = tags.layer_lines
+        j = np.searchsorted(tl, seg_line[first], side="right") - 1
+        starts = np.where(j >= 0, tl[np.maximum(j, 0)], seg_line[first])
+    else:
+        starts = np.concatenate([[1], seg_line[first[1:] - 1] + 1]) if nl else np.zeros(0, np.int64)
+    starts = np.asarray(starts, np.int64)
+    if nl:
+        starts[0] = 1
+        starts = np.maximum.accumulate(starts)
+    stops = np.append(starts[1:], n_lines + 1) if nl else starts
+    return starts, stops
+
+
+def _layers(lz, heights, bounds, starts, stops, lo, hi, ext, n_trav) -> tuple[Layer, ...]:
+    return tuple(
+        Layer(
+            index=k, z=float(lz[k]), height=float(heights[k]),
+            seg_start=int(bounds[k]), seg_stop=int(bounds[k + 1]),
+            line_start=int(starts[k]), line_stop=int(stops[k]),
+            bounds=(float(lo[k, 0]), float(lo[k, 1]), float(hi[k, 0]), float(hi[k, 1])),
+            extrusion_mm=float(ext[k]), n_travel=int(n_trav[k]),
+        )
+        for k in range(len(lz))
+    )
+
+
 def read_toolpath(
     source: str | Path | bytes,
     *,
@@ -156,136 +305,63 @@ def read_toolpath(
     Parameters
     ----------
     source : str, Path or bytes
-        A ``.gcode``/``.bgcode`` file or its bytes.
+        A ``.gcode``/``.bgcode``/``.gx`` file or its bytes.
     filament_diameter : float, optional
-        Filament diameter in mm; default from the file header, else 1.75.
+        Filament diameter in mm; default from the file header, else 2.85 for
+        UltiGCode and 1.75 otherwise. Converts volumetric E to lengths.
     progress : callable(done_bytes, total_bytes), optional
         Called as parsing advances.
 
     Returns
     -------
     Toolpath
-        Segments in bed mm; ``detection`` says how layers were found.
+        Segments in bed mm; ``detection`` says how layers were found;
+        ``statements`` what the file says about itself.
 
     Raises
     ------
     GcodeError
-        Empty, binary or unreadable input (message names the file and the fix).
+        Empty, binary, damaged or unreadable input (message names the file and the fix).
     """
     data, name = load_bytes(source)
     total = len(data)
     if progress:
         progress(0, total)
-    seg_a, seg_b, seg_z, seg_e, seg_line, seg_tool, travel_line, cmt, _probe, st = kernel_outputs(data)
+    statements = read_statements(data)
+    diameter = _filament_diameter(filament_diameter, statements)
+    segf, segi, travel_line, cmt, _probe, st, fst = kernel_outputs(data, e_area=volumetric_area(statements, diameter))
     if progress:
         progress(int(total * 0.9), total)
-    warnings: list[str] = []
     short = Path(name).name
-    if st[K.ST_BAD]:
-        warnings.append(
-            f"{short}:{st[K.ST_FIRST_BAD]}: {_line_text(data, st[K.ST_FIRST_BAD])}: "
-            f"{st[K.ST_BAD]} line(s) with non-text bytes; those bytes were ignored"
-        )
-    if st[K.ST_ABSURD]:
-        warnings.append(
-            f"{short}:{st[K.ST_FIRST_ABSURD]}: {_line_text(data, st[K.ST_FIRST_ABSURD])}: "
-            f"{st[K.ST_ABSURD]} move(s) beyond {K.ABSURD_MM:g} mm (absurd coordinates; check units)"
-        )
-    if st[K.ST_ARC_BAD]:
-        warnings.append(
-            f"{short}:{st[K.ST_FIRST_ARC_BAD]}: {_line_text(data, st[K.ST_FIRST_ARC_BAD])}: "
-            f"{st[K.ST_ARC_BAD]} arc(s) without I/J or R drawn as straight lines"
-        )
-    last = data[data.rfind(b"\n") + 1 :].lstrip().upper()
-    if st[K.ST_NONL] and re.match(rb"G0?[0-3](?![0-9])", last):
-        warnings.append(
-            f"{short}:{st[K.ST_LINES]}: {_line_text(data, st[K.ST_LINES])}: the file ends mid-move; "
-            "it may be truncated (export or copy it again)"
-        )
+    warnings = _kernel_warnings(data, short, st)
+    seg_a, seg_b = np.ascontiguousarray(segf[:, 0:2]), np.ascontiguousarray(segf[:, 2:4])
+    seg_z, seg_e, seg_line = segf[:, 4].copy(), segf[:, 5].copy(), segi[:, 0].copy()
+    del segf
     tags = decode_tags(data, cmt)
-    head = data[:8192]
-    slicer = detect_slicer(head)
-    if filament_diameter is None:
-        m = _FD.search(data[-65536:]) or _FD.search(head)
-        filament_diameter = float(m.group(1).split(b",")[0]) if m else 1.75
-        if not 0.5 <= filament_diameter <= 5:
-            filament_diameter = 1.75
-    m = _LH.search(head) or _LH.search(data[-65536:])
-    lh_hint = float(m.group(1)) if m else None
-    bounds, lz, detection, w2 = assign_layers(
-        seg_z, seg_line, tags.layer_lines, tags.layer_z, tags.style, lh_hint, seg_b
-    )
+    m = _LH.search(data[:8192]) or _LH.search(data[-65536:])
+    lh_hint = _finite(m.group(1)) if m else None
+    bounds, lz, detection, w2 = assign_layers(seg_z, seg_line, tags.layer_lines, tags.layer_z, tags.style,
+                                              lh_hint, seg_b)
     warnings += w2
-    n = seg_z.shape[0]
-    if n == 0:
+    if seg_z.shape[0] == 0:
         warnings.append(f"{short}: no extruding moves found (not a 3D-printer file, or E is never used)")
-    nl = len(lz)
+    feature = _features(tags, seg_line, seg_z, detection, bounds)
     lo = hi = ext = None
-    if nl:  # layer bounding boxes and extrusion, for the thickness below and the Layer records
-        idx = bounds[:-1]
-        lo = np.minimum(np.minimum.reduceat(seg_a, idx, axis=0), np.minimum.reduceat(seg_b, idx, axis=0))
-        hi = np.maximum(np.maximum.reduceat(seg_a, idx, axis=0), np.maximum.reduceat(seg_b, idx, axis=0))
-        ext = np.add.reduceat(seg_e, idx)
-    heights = _layer_thickness(lz, lo, hi, bounds)
-    good = heights[heights > 0.01]
-    fallback_h = float(np.median(good)) if good.size else 0.2
-    heights = np.where(heights > 0.01, heights, fallback_h)
-    if len(heights) and lz[0] > 0:
-        heights[0] = min(lz[0], 2.0) if lz[0] > 0.01 else fallback_h
-    counts = np.diff(bounds)
-    seg_h = np.repeat(heights.astype(np.float32), counts)
-    if tags.feature_lines.size:
-        fi = np.searchsorted(tags.feature_lines, seg_line, side="right") - 1
-        feature = tags.feature_codes[np.maximum(fi, 0)]
-        feature[fi < 0] = 0
-        del fi
-    else:
-        feature = np.zeros(n, np.uint8)
-    n_lines = int(st[K.ST_LINES])
-    first = bounds[:-1]
-    if detection.startswith("tags") and len(lz):
-        tl = tags.layer_lines
-        j = np.searchsorted(tl, seg_line[first], side="right") - 1
-        starts = np.where(j >= 0, tl[np.maximum(j, 0)], seg_line[first])
-    else:
-        starts = np.concatenate([[1], seg_line[first[1:] - 1] + 1]) if len(lz) else np.zeros(0, np.int64)
     if len(lz):
-        starts[0] = 1
-        starts = np.maximum.accumulate(starts)
-    layers = starts
-    starts = np.asarray(layers, np.int64)
-    stops = np.append(starts[1:], n_lines + 1) if nl else starts
+        lo, hi, ext = _layer_boxes(seg_a, seg_b, seg_e, feature, bounds)
+    heights = _heights(lz, lo, hi, bounds)
+    starts, stops = _line_ranges(tags, detection, seg_line, bounds, int(st[K.ST_LINES]))
     n_trav = np.searchsorted(travel_line, stops) - np.searchsorted(travel_line, starts)
-    layer_objs = [
-        Layer(
-            index=k,
-            z=float(lz[k]),
-            height=float(heights[k]),
-            seg_start=int(bounds[k]),
-            seg_stop=int(bounds[k + 1]),
-            line_start=int(starts[k]),
-            line_stop=int(stops[k]),
-            bounds=(float(lo[k, 0]), float(lo[k, 1]), float(hi[k, 0]), float(hi[k, 1])),
-            extrusion_mm=float(ext[k]),
-            n_travel=int(n_trav[k]),
-        )
-        for k in range(nl)
-    ]
+    generator = detect_generator(data[:65536])
     tp = Toolpath(
-        start=seg_a,
-        end=seg_b,
-        z=seg_z,
-        e=seg_e,
-        width=_bead_width(seg_a, seg_b, seg_e, seg_h, filament_diameter),
-        feature=feature,
-        tool=seg_tool,
-        line=seg_line,
-        layers=tuple(layer_objs),
-        detection=detection,
-        filament_diameter=float(filament_diameter),
-        source=name,
-        slicer=slicer,
-        warnings=warnings,
+        start=seg_a, end=seg_b, z=seg_z, e=seg_e,
+        width=_bead_width(seg_a, seg_b, seg_e, np.repeat(heights.astype(np.float32), np.diff(bounds)), diameter),
+        feature=feature, tool=segi[:, 1].astype(np.uint8), line=seg_line,
+        layers=_layers(lz, heights, bounds, starts, stops, lo, hi, ext, n_trav) if len(lz) else (),
+        detection=detection, filament_diameter=diameter, source=name, slicer=generator.name,
+        warnings=warnings, generator=generator, statements=statements,
+        filament_commanded_mm=float(fst[K.FS_XY_CMD]), filament_fed_mm=float(fst[K.FS_FED_HIGH]),
+        volumetric=bool(st[K.ST_VOLUMETRIC]) or volumetric_area(statements, diameter) > 0,
     )
     if progress:
         progress(total, total)

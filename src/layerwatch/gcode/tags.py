@@ -6,7 +6,7 @@ this module decodes those few lines with regular expressions.
 Layer tag styles, by slicer: PrusaSlicer/SuperSlicer/Orca ``;LAYER_CHANGE``
 (+ ``;Z:``), Cura/ideaMaker ``;LAYER:n``, Simplify3D ``; layer N, Z = z``,
 Bambu ``; CHANGE_LAYER`` (+ ``; Z_HEIGHT:``), KISSlicer ``; BEGIN_LAYER_OBJECT z=``,
-FlashPrint ``;layer:z``, and a bare ``;Z:z`` as the last resort.
+FlashPrint ``;layer:<thickness>`` (Z from the moves), and a bare ``;Z:z`` as the last resort.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 
 from layerwatch.gcode.toolpath import feature_code
 
-__all__ = ["TagScan", "decode_tags", "feature_from_name", "detect_slicer"]
+__all__ = ["TagScan", "decode_tags", "feature_from_name"]
 
 _NUM = r"([-+]?\d*\.?\d+)"
 #: (style name, regex, group of z or None); order = priority when several styles are present
@@ -28,7 +28,8 @@ LAYER_STYLES: tuple[tuple[str, re.Pattern, int | None], ...] = (
     ("cura", re.compile(rb"^;LAYER:\s*(-?\d+)\s*$"), None),
     ("simplify3d", re.compile(rb"^;\s*layer\s+\d+,\s*Z\s*=\s*" + _NUM.encode()), 1),
     ("kisslicer", re.compile(rb"^;\s*BEGIN_LAYER_OBJECT\s+z=" + _NUM.encode()), 1),
-    ("flashprint", re.compile(rb"^;layer:" + _NUM.encode() + rb"\s*$"), 1),
+    # FlashPrint's number is the layer's thickness, not its Z: Z comes from the moves
+    ("flashprint", re.compile(rb"^;layer:" + _NUM.encode() + rb"\s*$"), None),
     ("z-comment", re.compile(rb"^;Z:" + _NUM.encode() + rb"\s*$"), 1),
 )
 _ZVAL = re.compile(rb"^;\s*(?:Z:|Z_HEIGHT:)\s*" + _NUM.encode())
@@ -43,9 +44,15 @@ _FEATURE = (
 def feature_from_name(name: str) -> int:
     """Map a slicer's feature label to a code of :data:`~layerwatch.gcode.toolpath.FEATURES`."""
     s = name.lower().replace("-", " ").replace("_", " ")
-    if "wipe" in s:
+    if "tower" in s:  # wipe tower, prime tower
+        key = "wipe_tower"
+    elif "purge" in s or "prime" in s or "flush" in s:
+        key = "purge"
+    elif "wipe" in s:
         key = "wipe"
-    elif "skirt" in s or "brim" in s:
+    elif "brim" in s:
+        key = "brim"
+    elif "skirt" in s:
         key = "skirt"
     elif "support" in s:
         key = "support"
@@ -156,30 +163,3 @@ def decode_tags(data: bytes, cmt: np.ndarray) -> TagScan:
             scan.layer_z = z
             break
     return scan
-
-
-_SLICERS = (
-    (rb"PrusaSlicer", "PrusaSlicer"),
-    (rb"SuperSlicer", "SuperSlicer"),
-    (rb"OrcaSlicer", "OrcaSlicer"),
-    (rb"BambuStudio", "BambuStudio"),
-    (rb"Cura_SteamEngine", "Cura"),
-    (rb"Simplify3D", "Simplify3D"),
-    (rb"ideaMaker", "ideaMaker"),
-    (rb"KISSlicer", "KISSlicer"),
-    (rb"Kiri:Moto", "Kiri:Moto"),
-    (rb"IceSL", "IceSL"),
-    (rb"Miracle-Grue", "Miracle-Grue"),
-    (rb"Slic3r", "Slic3r"),
-    (rb"FlashPrint", "FlashPrint"),
-    (rb"FullControl", "FullControl"),
-    (rb"skeinforge|<version> \d", "Skeinforge"),
-)
-
-
-def detect_slicer(head: bytes) -> str | None:
-    """Name of the slicer that wrote a file, from its first few kB."""
-    for pat, name in _SLICERS:
-        if re.search(pat, head):
-            return name
-    return None

@@ -15,7 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FEATURES", "Layer", "Toolpath", "feature_code"]
+from layerwatch.gcode.generators import Generator
+from layerwatch.gcode.statements import Statements
+
+__all__ = ["FEATURES", "NOT_PART", "Layer", "Toolpath", "feature_code", "part_mask"]
 
 #: Feature types a slicer may name; the index is the code stored in ``Toolpath.feature``.
 FEATURES: tuple[str, ...] = (
@@ -30,7 +33,12 @@ FEATURES: tuple[str, ...] = (
     "skirt",
     "wipe",
     "other",
+    "purge",
+    "brim",
+    "wipe_tower",
 )
+#: features that are not the part: its bounds and footprint leave them out (references still draw them)
+NOT_PART: tuple[str, ...] = ("skirt", "purge", "brim", "wipe_tower")
 
 
 def feature_code(name: str) -> int:
@@ -39,6 +47,11 @@ def feature_code(name: str) -> int:
         return FEATURES.index(name)
     except ValueError:
         return 0
+
+
+def part_mask(feature: np.ndarray) -> np.ndarray:
+    """True for segments of the part itself (not skirt, brim, purge line or wipe tower), shape (S,)."""
+    return ~np.isin(feature, [FEATURES.index(f) for f in NOT_PART])
 
 
 @dataclass(frozen=True)
@@ -59,8 +72,9 @@ class Layer:
     line_start, line_stop : int
         1-based source line range ``[line_start, line_stop)`` of the layer.
     bounds : tuple of float
-        ``(xmin, ymin, xmax, ymax)`` of the extruding segments, mm; NaN when
-        the layer has no extrusion.
+        ``(xmin, ymin, xmax, ymax)`` of the part's extruding segments (skirt,
+        brim, purge lines and wipe tower left out; all segments when the layer
+        has nothing else), mm; NaN when the layer has no extrusion.
     extrusion_mm : float
         Filament length extruded in this layer, mm.
     n_travel : int
@@ -117,6 +131,21 @@ class Toolpath:
         Slicer named in the file header, if any.
     warnings : list of str
         Non-fatal problems found while parsing (``file:line: text``).
+    generator : Generator or None
+        Program that wrote the file (name, version, header line).
+    statements : Statements or None
+        What the file states about itself (layer count, filament, boxes).
+    filament_commanded_mm : float
+        Filament the E words of extruding XY moves ask for, mm (what slicers
+        state as "filament used"; M221 not applied).
+    filament_fed_mm : float
+        Filament the printer feeds over the whole file, mm: the high-water
+        mark of the cumulative E with M221 applied, so flushes and primes
+        (E-only moves) count and retract/unretract pairs count once.
+    filament_area_mm2 : float
+        Filament cross-section, mm² (volume = length x area).
+    volumetric : bool
+        The file's E words are volumes (UltiGCode, ``M200 D``), converted to lengths.
     """
 
     start: np.ndarray
@@ -133,6 +162,15 @@ class Toolpath:
     source: str = "<memory>"
     slicer: str | None = None
     warnings: list[str] = field(default_factory=list)
+    generator: Generator | None = None
+    statements: Statements | None = None
+    filament_commanded_mm: float = float("nan")
+    filament_fed_mm: float = float("nan")
+    volumetric: bool = False
+
+    @property
+    def filament_area_mm2(self) -> float:
+        return float(np.pi * self.filament_diameter**2 / 4.0)
 
     @property
     def n_layers(self) -> int:
@@ -161,10 +199,14 @@ class Toolpath:
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
-        """``(xmin, ymin, xmax, ymax)`` of all extrusion, mm (NaN if none)."""
+        """``(xmin, ymin, xmax, ymax)`` of the part's extrusion (skirt, brim, purge, wipe tower
+        left out unless nothing else is there), mm (NaN if none)."""
         if self.n_segments == 0:
             return (float("nan"),) * 4
-        pts = np.concatenate([self.start, self.end])
+        keep = part_mask(self.feature)
+        if not keep.any():
+            keep[:] = True
+        pts = np.concatenate([self.start[keep], self.end[keep]])
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 

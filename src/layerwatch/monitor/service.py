@@ -19,6 +19,7 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -148,8 +149,8 @@ class Monitor:
 
     def _overlay(self, res: LayerResult, top: np.ndarray | None) -> np.ndarray | str | None:
         """The failing regions over the photo's top view for an alert (RGB), or a saved overlay's path."""
-        if res.images.get("overlay"):
-            return res.images["overlay"]
+        if res.images.get("overlay"):  # stored by StoringPipeline, relative to its image folder
+            return str(Path(getattr(self.pipeline, "image_root", ""), res.images["overlay"]))
         if top is None or res.heatmap is None:
             return None
         try:

@@ -171,8 +171,8 @@ def resolve_config(
             raise ConfigError(f"{path}: invalid setting {_format_validation(exc)}.") from None
         kind = {"flag": "command-line", "gcode": "G-code derived"}.get(origin, origin)
         raise ConfigError(f"invalid {kind} setting {_format_validation(exc)}.") from None
-    for section, model in JobConfig.model_fields.items():
-        for key in model.annotation.model_fields:
+    for section, part in cfg:
+        for key in type(part).model_fields:
             sources.setdefault(f"{section}.{key}", "default")
     return ResolvedConfig(cfg, sources, None if path is None else Path(path))
 

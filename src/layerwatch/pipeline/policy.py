@@ -28,7 +28,7 @@ Petsiuk & Pearce (2022), eq. (5) for ``a%``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -143,7 +143,8 @@ class Decision:
         return self.action in ("pause", "cancel")
 
 
-def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+def _overlap(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Bounding boxes ``(x0, y0, x1, y1)`` overlap (touching counts)."""
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 
@@ -161,7 +162,7 @@ class PausePolicy:
         self._streak = 0
         self._prev_regions: list[Region] = []
         self._last_regions: list[Region] = []
-        self._acked: list[tuple[tuple[float, float, float, float], float]] = []
+        self._acked: list[tuple[tuple[float, ...], float]] = []
         self._halted = False
         self._last_ratio = 0.0
         self._acked_ratio = 0.0
@@ -173,7 +174,7 @@ class PausePolicy:
         return self._halted
 
     @property
-    def acknowledged(self) -> list[tuple[tuple[float, float, float, float], float]]:
+    def acknowledged(self) -> list[tuple[tuple[float, ...], float]]:
         """Accepted regions as ``(bbox_mm (x0, y0, x1, y1), area_mm2)``; they count again only if they grow."""
         return list(self._acked)
 

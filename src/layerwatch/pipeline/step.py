@@ -87,7 +87,13 @@ class Reference:
 
 
 class LayerPipeline:
-    """Analyse camera photos of a print layer by layer.
+    """Analyse camera photos of a print layer by layer: the job context and the per-layer step.
+
+    It holds what a job fixes (the toolpath, the posed camera, the observed
+    square of the bed as a :class:`~layerwatch.geometry.topview.TopView`, the
+    resolved :class:`~layerwatch.pipeline.config.JobConfig`) and the state
+    that outlives one photo (the reference renderer and its memo/cache, the
+    last top view, the frame gate's previous photo).
 
     Parameters
     ----------
@@ -164,7 +170,7 @@ class LayerPipeline:
 
     def _render(self, index: int):
         c = self.view_center_mm
-        if self._cache is None:
+        if self._cache is None or self._hash is None:
             return self.renderer.render(index, c)
         kind = "ref" if c is None else "cam:" + ",".join(f"{v:.3f}" for v in c)
         key = self._cache.key(self._hash, self.config.render, self.topview, index, kind=kind)

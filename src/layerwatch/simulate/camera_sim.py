@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 
 from layerwatch.errors import CalibrationError, ConfigError
-from layerwatch.gcode.toolpath import FEATURES, Toolpath
+from layerwatch.gcode.toolpath import Toolpath, part_mask
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.simulate import failures as fl
@@ -59,7 +59,6 @@ __all__ = ["SimFrame", "PrintSimulator", "save_frame", "simulate_layer", "simula
 
 
 _TILT_ARM_MM = 25.0  # a detached part pivots about a line this far behind its centre
-_SKIRT = FEATURES.index("skirt")
 
 
 def _clip_disc(p0, p1, c, R):
@@ -142,7 +141,7 @@ class PrintSimulator:
         p0, p1 = tp.start[sl].copy(), tp.end[sl].copy()
         w = tp.width[sl].astype(np.float64)
         scale = np.ones(len(p0))
-        fx = tp.feature[sl] == _SKIRT
+        fx = ~part_mask(tp.feature[sl])  # skirt, brim, purge lines, wipe tower: not attached to the part
         removed = {}
         for k, rf in enumerate(self.failures):
             if rf.type in ("infill_defect", "thin_wall") and rf.failure.active(i):

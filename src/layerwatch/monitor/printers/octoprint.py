@@ -86,6 +86,8 @@ class OctoPrintPrinter(Printer):
         self._thread: threading.Thread | None = None
         self._last_layer: int | None = None
         self._ws_ready = threading.Event()
+        #: ``listener(message)`` for every decoded websocket message (e.g. the M114 reply of parked.py)
+        self.listeners: list = []
         if push:
             self._thread = threading.Thread(target=self._ws_loop, name="octoprint-ws", daemon=True)
             self._thread.start()
@@ -152,6 +154,8 @@ class OctoPrintPrinter(Printer):
             msg = json.loads(raw)
         except ValueError:
             return
+        for listener in list(self.listeners) if isinstance(msg, dict) else ():
+            listener(msg)
         for trig in parse_octoprint_message(msg if isinstance(msg, dict) else {}, self.name):
             if trig.layer != self._last_layer:
                 self._last_layer = trig.layer
