@@ -1,0 +1,100 @@
+"""A real OctoPrint (the CI's .venv-octoprint) with its virtual printer, for the plugin tests.
+
+:func:`octoprint_server` writes a fresh basedir (config, admin user, API key), starts
+``octoprint serve`` on a free port and stops it afterwards. Missing OctoPrint or plugin:
+skip locally, fail under ``CI=true`` (``.ci/run`` installs both).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+VENV = Path(os.environ.get("LAYERWATCH_OCTOPRINT_VENV", ROOT / ".venv-octoprint"))
+OCTO = VENV / "bin" / "octoprint"
+
+
+def require_plugin() -> None:
+    """Skip (fail under CI=true) unless OctoPrint and the layerwatch plugin are installed in :data:`VENV`."""
+    msg = None
+    if not OCTO.exists():
+        msg = f"OctoPrint not installed at {VENV}; run .ci/install-octoprint"
+    elif subprocess.run([str(VENV / "bin" / "python"), "-c", "import octoprint_layerwatch.plugin"],
+                        capture_output=True, timeout=120).returncode != 0:
+        msg = f"the layerwatch OctoPrint plugin is not installed in {VENV}; run .ci/install-octoprint"
+    if msg is not None:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg + " (CI=true: .ci/run must have installed it)")
+        pytest.skip(msg)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def until(fn: Callable[[], object], deadline_s: float, what: str, every_s: float = 0.2):
+    """Poll ``fn`` until it returns something truthy (HTTP errors count as "not yet"); fail after ``deadline_s``."""
+    end = time.monotonic() + deadline_s
+    last = None
+    while time.monotonic() < end:
+        try:
+            last = fn()
+            if last:
+                return last
+        except (httpx.HTTPError, KeyError, ValueError):
+            pass
+        time.sleep(every_s)
+    pytest.fail(f"timed out waiting for {what} (last: {last!r})")
+
+
+@contextlib.contextmanager
+def octoprint_server(base: Path, plugins: dict | None = None) -> Iterator[tuple[str, str]]:
+    """Serve a fresh OctoPrint from ``base``; yields ``(url, api_key)``.
+
+    ``plugins``: more ``plugins.<id>`` settings. ``serial.log`` is on (``base/logs/serial.log``
+    has every line sent, with its time); the virtual printer answers at once (``throttle`` 1 ms).
+    """
+    key = secrets.token_hex(16).upper()
+    config = {
+        "server": {"firstRun": False, "onlineCheck": {"enabled": False}, "pluginBlacklist": {"enabled": False}},
+        "api": {"key": key},
+        "serial": {"log": True},
+        "devel": {"virtualPrinter": {"enabled": True, "okAfterResend": False, "throttle": 0.001}},
+        "plugins": {"tracking": {"enabled": False}, "announcements": {"enabled": False},
+                    "softwareupdate": {"checks": {}}, **(plugins or {})},
+    }
+    (base / "config.yaml").write_text(json.dumps(config, indent=1))  # JSON is YAML
+    subprocess.run([str(OCTO), "--basedir", str(base), "user", "add", "--password", "lw-test-pw", "--admin", "lwadmin"],
+                   check=True, capture_output=True, timeout=120)
+    port = free_port()
+    log = open(base / "serve.log", "w")
+    proc = subprocess.Popen([str(OCTO), "serve", "--iknowwhatimdoing", "--basedir", str(base), "--host", "127.0.0.1",
+                             "--port", str(port)], stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        until(lambda: httpx.get(url + "/api/version", headers={"X-Api-Key": key}, timeout=2).status_code == 200,
+              120, "OctoPrint to serve")
+        yield url, key
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+        if proc.returncode not in (0, -15):
+            sys.stdout.write((base / "serve.log").read_text()[-3000:])
