@@ -167,3 +167,24 @@ def test_frame_problem_names_each_defect():
     assert "float64" in frame_problem(_good(1).astype(float))
     assert "shape" in frame_problem(np.zeros((20, 20, 4), np.uint8))
     assert "4x4" in frame_problem(np.zeros((4, 4, 3), np.uint8))
+
+
+class HoldingPrinter(VirtualPrinter):
+    """A virtual printer that records when the monitor ends each photo hold (Klipper's LAYERWATCH_SNAPSHOT)."""
+
+    def __init__(self, gcode: bytes):
+        super().__init__(gcode)
+        self.released: list[int] = []
+
+    def photo_done(self, trigger):
+        self.released.append(trigger.layer)
+
+
+@pytest.mark.parametrize("kind", ["CameraError", "None"])
+def test_every_hold_is_released_after_the_photo_also_when_the_camera_fails(kind):
+    frames = lambda layer: CAMERA_FAULTS[kind](layer) if layer in FAULTY else _good(layer)  # noqa: E731
+    printer = HoldingPrinter(_gcode())
+    mon = Monitor(printer, SimCamera(frames), PausingPipeline(), PausePolicy(PolicySettings(skip_first_layers=0)),
+                  wait_for_verdict=True)
+    mon.run(poll_s=0.001)
+    assert printer.released == list(range(N_LAYERS))  # one release per layer, in order, faults included

@@ -15,7 +15,8 @@ import httpx
 import pytest
 from moonraker_stack import MoonrakerStack, require_installed, until
 
-from layerwatch.gcode.klipper_macros import ack_script
+from layerwatch.monitor.printers.base import SnapshotTrigger
+from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 
 pytestmark = pytest.mark.moonraker
 
@@ -53,6 +54,8 @@ def print_and_wait(stack, name: str, host: bool) -> list[int]:
     acked: list[int] = []
     done = threading.Event()
 
+    client = MoonrakerPrinter(stack.url, push=False)  # the monitor's own connector ends each hold
+
     def host_loop():
         while not done.is_set():
             store = httpx.get(stack.url + "/server/gcode_store", params={"count": 100}, timeout=5).json()
@@ -60,8 +63,7 @@ def print_and_wait(stack, name: str, host: bool) -> list[int]:
                 m = re.search(r"layerwatch snapshot layer=(\d+)", item["message"])
                 if m and int(m.group(1)) not in acked and item["time"] > started:
                     acked.append(int(m.group(1)))
-                    httpx.post(stack.url + "/printer/gcode/script", params={"script": ack_script(acked[-1])},
-                               timeout=30)
+                    client.photo_done(SnapshotTrigger(acked[-1], 0.0, "moonraker"))  # what the monitor sends
             time.sleep(0.05)
 
     started = time.time()
@@ -74,6 +76,7 @@ def print_and_wait(stack, name: str, host: bool) -> list[int]:
     done.set()
     if host:
         thread.join(10)
+    client.close()
     return acked
 
 

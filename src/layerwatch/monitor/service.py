@@ -166,6 +166,7 @@ class Monitor:
             problem = frame_problem(photo)
         except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a crash
             problem = f"camera error: {type(exc).__name__}: {exc}"
+        self._photo_done(trigger)
         if problem is not None:
             res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT, message=problem)
             if self.wait_for_verdict:
@@ -177,6 +178,13 @@ class Monitor:
             return self._analyse(trigger, photo, t_photo)
         self._futures.append(self._pool.submit(self._analyse, trigger, photo, t_photo))
         return None
+
+    def _photo_done(self, trigger: SnapshotTrigger) -> None:
+        """Release the printer's hold for the photo (Klipper), with or without a usable frame."""
+        try:
+            self.printer.photo_done(trigger)
+        except Exception:  # noqa: BLE001 - the hold ends by its own time-out; keep watching
+            log.exception("could not tell the printer the photo of layer %d was taken", trigger.layer)
 
     def _gate(self, trigger: SnapshotTrigger, photo: np.ndarray) -> LayerResult | None:
         """The camera-fault gate: a ``camera_fault`` record for a frame unfit for analysis, else None."""

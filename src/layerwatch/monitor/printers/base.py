@@ -285,6 +285,15 @@ class Printer(ABC):
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         """Send G-code line(s) to the printer."""
 
+    def photo_done(self, trigger: SnapshotTrigger) -> None:
+        """Tell the printer the photo of ``trigger`` was taken (or could not be), so a hold ends now.
+
+        The default does nothing: a printer that dwells for a fixed time at the park spot
+        (the ``octoprint`` profile's ``G4``) needs no answer. Klipper's
+        ``LAYERWATCH_SNAPSHOT`` hold waits for one (:class:`MoonrakerPrinter`).
+        """
+        return None
+
     def close(self) -> None:
         """Release connections and threads (idempotent)."""
         return None

@@ -20,12 +20,14 @@ from collections.abc import Iterable
 from typing import Any
 from urllib.parse import urlsplit
 
-from layerwatch.errors import PrinterError
+from layerwatch.errors import LayerwatchError, PrinterError
+from layerwatch.gcode.klipper_macros import ack_script
 from layerwatch.monitor.printers.base import (
     WS_MAX_FRAME_BYTES,
     WS_RETRY_S,
     Printer,
     PrinterStatus,
+    SnapshotTrigger,
     http_request,
     parse_trigger,
 )
@@ -35,6 +37,9 @@ from layerwatch.monitor.printers.replies import RateLimitedLog, field, reply_jso
 __all__ = ["MoonrakerPrinter", "SUBSCRIBE", "clean_objects"]
 
 log = logging.getLogger("layerwatch.monitor.moonraker")
+
+#: Klippy's object name of the hold macro (``layerwatch klipper-config``)
+HOLD_MACRO_OBJECT = "gcode_macro LAYERWATCH_SNAPSHOT"
 
 #: JSON-RPC request sent after the websocket opens
 SUBSCRIBE = {"jsonrpc": "2.0", "method": "printer.objects.subscribe",
@@ -139,6 +144,7 @@ class MoonrakerPrinter(Printer):
         self._warn = RateLimitedLog(log)
         self._http = httpx.Client(base_url=self.base, timeout=timeout_s, headers={"X-Api-Key": key} if key else {})
         self._objects: dict[str, dict[str, Any]] = {}
+        self._hold_macro: bool | None = None  # has printer.cfg the LAYERWATCH_SNAPSHOT hold? (asked once)
         self._last_layer: int | None = None
         self._stop = threading.Event()
         self._ws_ready = threading.Event()
@@ -197,6 +203,21 @@ class MoonrakerPrinter(Printer):
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         script = lines if isinstance(lines, str) else "\n".join(lines)
         self._req("POST", "/printer/gcode/script", params={"script": script})
+
+    def photo_done(self, trigger: SnapshotTrigger) -> None:
+        """End the ``klipper`` profile's hold for this layer (``layerwatch klipper-config`` macros):
+        ``SET_GCODE_VARIABLE MACRO=LAYERWATCH_SNAPSHOT VARIABLE=taken VALUE=<layer>``; Klippy runs it
+        between two of the hold's short ``LAYERWATCH_WAIT`` steps. Without the macros in printer.cfg
+        nothing is sent (the macro's presence is asked once); a failure is logged, never raised."""
+        try:
+            if self._hold_macro is None:
+                objects = field(self._req("GET", "/printer/objects/list"), "objects", list, "Moonraker objects")
+                self._hold_macro = HOLD_MACRO_OBJECT in objects
+            if self._hold_macro:
+                self.send_gcode(ack_script(trigger.layer))
+        except LayerwatchError as exc:
+            log.warning("could not end the hold of layer %d (the print goes on after its time-out): %s",
+                        trigger.layer, exc)
 
     # -- JSON-RPC push ---------------------------------------------------------------
     def _merge(self, objects: dict[str, dict[str, Any]]) -> None:
