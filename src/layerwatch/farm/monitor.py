@@ -71,7 +71,7 @@ class PoolPipeline:
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """:meth:`LayerPipeline.process` on a pool worker (blocks this printer's lane, not the others)."""
         if self.context is not None:
-            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index)
+            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, key=self.context.key)
         else:
             v = self.pool.run(analyse_on, self.local, photo, layer_index)
         self.last_top, self.last_thumb = v.top, v.thumb

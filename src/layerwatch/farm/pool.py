@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import zlib
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -149,6 +150,8 @@ class WorkerPool:
         self._client = client
         self._slots = threading.BoundedSemaphore(self.workers)
         self._threads: ThreadPoolExecutor | None = None
+        self._pinned: dict[str, str] = {}  # job key -> Dask worker address
+        self._pin_lock = threading.Lock()
         if client is None and scheduler is not None:
             distributed = require("distributed", "dask", "a farm on a Dask cluster")
             if scheduler == "local":
@@ -176,8 +179,13 @@ class WorkerPool:
             return value
         return self._client.scatter(value, broadcast=True, hash=False)
 
-    def run(self, fn: Callable, *args: Any) -> Any:
+    def run(self, fn: Callable, *args: Any, key: str | None = None) -> Any:
         """``fn(*args)`` on a worker; blocks the calling (printer lane) thread until it returns.
+
+        ``key`` (a job's :attr:`JobContext.key`) pins the work to one Dask worker, the same for
+        every frame of that job: its pipeline keeps per-job state between layers (the scene
+        channel's expected appearance, the renderer's layer stack), so a job's frames must not
+        be spread over workers. A job whose worker left is moved to another (its state restarts).
 
         Raises
         ------
@@ -187,7 +195,22 @@ class WorkerPool:
         if self._threads is not None:
             return self._threads.submit(fn, *args).result()
         with self._slots:  # at most `workers` frames in flight on the cluster
-            return self._client.submit(fn, *args, pure=False).result()
+            if key is None:
+                return self._client.submit(fn, *args, pure=False).result()
+            return self._client.submit(fn, *args, pure=False, workers=[self._worker_for(key)],
+                                       allow_other_workers=False).result()
+
+    def _worker_for(self, key: str) -> str:
+        """The Dask worker address that runs every frame of job ``key`` (stable while it lives)."""
+        alive = sorted(self._client.scheduler_info()["workers"])
+        if not alive:
+            raise RuntimeError("the Dask cluster has no worker")
+        with self._pin_lock:
+            worker = self._pinned.get(key)
+            if worker not in alive:
+                worker = alive[zlib.crc32(key.encode()) % len(alive)]
+                self._pinned[key] = worker
+            return worker
 
     def close(self) -> None:
         """Stop the local threads or the client (and its cluster) this pool started."""
