@@ -28,6 +28,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.text import Text
 
+from layerwatch import __version__
 from layerwatch.cli.params import finite_of
 from layerwatch.errors import LayerwatchError
 
@@ -81,7 +82,6 @@ console, err_console = Console(), Console(stderr=True)
 
 def _print_version(value: bool) -> None:
     if value:
-        from layerwatch import __version__
 
         console.print(f"{PROG} {__version__}", markup=False, highlight=False)
         raise typer.Exit(0)

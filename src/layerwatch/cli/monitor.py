@@ -7,9 +7,28 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from pydantic import ValidationError
 
+from layerwatch.cli import console
 from layerwatch.cli.params import SEED, WRITE_DB, WRITE_DIR, Finite
 from layerwatch.cli.pipeline import BED_HELP, PAPER_HELP, scene_baseline
+from layerwatch.errors import ConfigError
+from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
+from layerwatch.monitor.notify import Notifier
+from layerwatch.monitor.printers.base import parse_trigger
+from layerwatch.monitor.printers.keys import read_key_file, redact_url, resolve_key, split_url_key
+from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+from layerwatch.monitor.printers.virtual import VirtualPrinter
+from layerwatch.monitor.service import Monitor
+from layerwatch.pipeline.config import JobConfig, recommended_config, resolve_config
+from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.storage.history import History
+from layerwatch.web.app import SETTINGS_KEY
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
@@ -38,12 +57,6 @@ def dashboard_settings(history) -> dict[str, dict]:
     ConfigError
         The saved settings no longer validate (e.g. saved by another layerwatch version).
     """
-    from pydantic import ValidationError
-
-    from layerwatch.errors import ConfigError
-    from layerwatch.pipeline.config import JobConfig
-    from layerwatch.web.app import SETTINGS_KEY
-
     saved = history.setting(SETTINGS_KEY)
     if saved is None:
         return {}
@@ -55,7 +68,6 @@ def dashboard_settings(history) -> dict[str, dict]:
         msg = " ".join(str(err["msg"]).split())
         raise ConfigError(f"{history.path}: the dashboard's saved setting {where} is invalid ({msg}); save the "
                           "settings again in the dashboard (layerwatch serve --db ...) or drop --history.") from None
-    from layerwatch.pipeline.config import recommended_config
 
     base = recommended_config().model_dump(mode="json")
     out: dict[str, dict] = {}
@@ -94,8 +106,6 @@ def monitor_config(path: Path | None, history=None, *, paper: bool = False):
     ConfigError
         Unreadable or invalid file or saved settings (one line naming the fix).
     """
-    from layerwatch.pipeline.config import resolve_config
-
     dash = dashboard_settings(history) if history is not None else {}
     dash.pop("host", None)  # printer credentials come from the job file, the environment or a key file only
     resolved = resolve_config(path, recommended=not paper, dashboard=dash)
@@ -109,9 +119,6 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
     ``LAYERWATCH_MOONRAKER_KEY``), the job file's ``[host]`` section (``host``: :class:`HostSettings`), or,
     with a warning, a ``?key=`` in ``spec`` (see :func:`~layerwatch.monitor.printers.keys.resolve_key`).
     """
-    from layerwatch.errors import ConfigError
-    from layerwatch.monitor.printers.keys import redact_url, resolve_key, split_url_key
-
     kind = spec.split("://", 1)[0] if "://" in spec else ""
     if kind in ("octoprint", "moonraker"):
         file = key_file or (Path(host.key_file) if host is not None and host.key_file else None)
@@ -120,15 +127,9 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
         logging.getLogger("layerwatch.monitor").info("%s API key from: %s", kind, source)
         url = split_url_key(spec)[0]
         if kind == "octoprint":
-            from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
-
             return OctoPrintPrinter(url, key)
-        from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
-
         return MoonrakerPrinter(url, key)
     if spec == "virtual" or spec.startswith("virtual:"):
-        from layerwatch.monitor.printers.virtual import VirtualPrinter
-
         path = spec[8:]
         data = Path(path).read_bytes() if path else gcode
         if data is None:
@@ -161,26 +162,10 @@ def monitor(
     bed_photo: Annotated[Path | None, typer.Option("--bed-photo", exists=True, dir_okay=False, help=BED_HELP)] = None,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
-    import logging
-
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError
-    from layerwatch.examples import PART_GCODE
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.gcode.postprocess import insert_snapshots
-    from layerwatch.monitor.notify import Notifier
-    from layerwatch.monitor.printers.base import parse_trigger
-    from layerwatch.monitor.printers.keys import read_key_file, redact_url
-    from layerwatch.monitor.service import Monitor
-    from layerwatch.pipeline.policy import PausePolicy
-    from layerwatch.pipeline.step import LayerPipeline
-
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
-    from layerwatch.examples import PART_CONFIG
 
     # per key: the job file (--config; no --config and no --gcode: the example part's job file) > the
     # settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults
-    from layerwatch.storage.history import History
 
     job_file = config if config else (PART_CONFIG if gcode is None and printer.startswith("virtual") else None)
     if history is not None:
@@ -198,8 +183,6 @@ def monitor(
     if images is not None:  # an unusable --images folder is refused now (one line, exit 2), not at the first layer
         images.mkdir(parents=True, exist_ok=True)
     if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
-        from layerwatch.monitor.follow import CameraSpec, run_follow
-
         done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, CameraSpec(camera, camera_model, settle, failure, onset, seed),
                           history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
                           park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
@@ -214,7 +197,6 @@ def monitor(
     if printer.startswith("virtual") and not any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
-    from layerwatch.monitor.follow import CameraSpec, job_camera
 
     cam_src, cam_model = job_camera(CameraSpec(camera, camera_model, settle, failure, onset, seed), toolpath, cfg)
     prn = open_printer(printer, data, key_file=key_file, host=cfg.host)
