@@ -23,7 +23,7 @@ from layerwatch.monitor.printers.keys import read_key_file, redact_url, resolve_
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
 from layerwatch.monitor.printers.virtual import VirtualPrinter
-from layerwatch.monitor.service import Monitor
+from layerwatch.monitor.service import Monitor, MonitorReport
 from layerwatch.pipeline.config import JobConfig, recommended_config, resolve_config
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.step import LayerPipeline
@@ -163,11 +163,30 @@ def monitor(
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
-
-    # per key: the job file (--config; no --config and no --gcode: the example part's job file) > the
-    # settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults
-
     job_file = config if config else (PART_CONFIG if gcode is None and printer.startswith("virtual") else None)
+    cfg = _settings(job_file, history, paper)
+    _check_inputs(printer, key_file, images)
+    spec = CameraSpec(camera, camera_model, settle, failure, onset, seed)
+    if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
+        done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, spec,
+                          history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
+                          park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
+                          max_jobs=None if follow else 1)
+        console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
+        raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
+    if follow:
+        raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
+    rep = _watch_one(printer, gcode or PART_GCODE, cfg, spec, key_file=key_file, history=history,
+                     wait_for_verdict=wait_for_verdict, bed_photo=bed_photo, poll=poll, camera=camera)
+    _print_report(rep)
+
+
+def _settings(job_file: Path | None, history: Path | None, paper: bool) -> JobConfig:
+    """The job's settings, logged with where each came from.
+
+    Per key: the job file (--config; no --config and no --gcode: the example part's job file) > the
+    settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults.
+    """
     if history is not None:
         with History(history) as saved:
             cfg, sources = monitor_config(job_file, saved, paper=paper)
@@ -176,29 +195,31 @@ def monitor(
     logging.getLogger("layerwatch.monitor").info(
         "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
         job_file or "none", history or "none")
-    if key_file is not None:  # a key file that is empty, not a key or readable by everyone: one line now
+    return cfg
+
+
+def _check_inputs(printer: str, key_file: Path | None, images: Path | None) -> None:
+    """Refuse now (one line, exit 2), not at the first layer: a key file for the virtual printer or one
+    that is empty, not a key or readable by everyone; an unusable --images folder."""
+    if key_file is not None:
         if printer.startswith("virtual"):
             raise ConfigError("--key-file is for octoprint:// and moonraker:// printers; the virtual printer needs no key.")
         read_key_file(key_file)
-    if images is not None:  # an unusable --images folder is refused now (one line, exit 2), not at the first layer
+    if images is not None:
         images.mkdir(parents=True, exist_ok=True)
-    if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
-        done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, CameraSpec(camera, camera_model, settle, failure, onset, seed),
-                          history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
-                          park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
-                          max_jobs=None if follow else 1)
-        console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
-        raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
-    if follow:
-        raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
-    gpath = gcode or PART_GCODE
+
+
+def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, key_file: Path | None,
+               history: Path | None, wait_for_verdict: bool, bed_photo: Path | None, poll: float,
+               camera: str) -> MonitorReport:
+    """Monitor one job whose G-code is ``gpath`` (local file) until it ends; the printer and history closed after."""
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)
     if printer.startswith("virtual") and not any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
 
-    cam_src, cam_model = job_camera(CameraSpec(camera, camera_model, settle, failure, onset, seed), toolpath, cfg)
+    cam_src, cam_model = job_camera(spec, toolpath, cfg)
     prn = open_printer(printer, data, key_file=key_file, host=cfg.host)
     hist = job = None
     if history is not None:
@@ -211,11 +232,15 @@ def monitor(
                   faults=cfg.faults, frame_quality=cfg.frame_quality)
     console.print(f"monitoring {redact_url(printer)} with camera {redact_url(camera)} ({toolpath.n_layers} layers)")
     try:
-        rep = mon.run(install_signals=True, poll_s=poll)
+        return mon.run(install_signals=True, poll_s=poll)
     finally:
         prn.close()
         if hist is not None:
             hist.close()
+
+
+def _print_report(rep: MonitorReport) -> None:
+    """One summary line per job, the faults (never a pause), each stop and the trigger-to-pause latencies."""
     lat = rep.latencies_ms
     console.print(f"{len(rep.results)} layers analysed, {rep.pauses} pause(s), {rep.alerts} alert(s); outcome {rep.outcome}")
     if rep.camera_faults or rep.printer_faults:
