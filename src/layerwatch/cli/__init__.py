@@ -1,8 +1,8 @@
 """The ``layerwatch`` command line.
 
 Each verb group lives in its own module (``cli/gcode.py``, ``cli/geometry.py``
-...) exposing ``register(app)``. Heavy imports happen inside the commands so
-``layerwatch --help`` stays fast.
+...) exposing ``register(app)``. A command line imports only its verb's module
+(:data:`VERBS`), so ``layerwatch --help`` and ``layerwatch gcode info`` stay fast.
 
 :func:`main` is the one entry point (the ``layerwatch`` script and ``python -m
 layerwatch`` both call it). Its exit codes: 0 done, 1 the job failed or nothing

@@ -108,6 +108,8 @@ def _beside(res, photo_top: Path, bed_photo: Path | None, foot, topview, cfg) ->
         raise AnalysisError(f"bed photo {bed_photo} does not exist; pass the empty bed's top view (layerwatch warp).")
     top = cv2.imread(str(photo_top), cv2.IMREAD_COLOR)
     bed = cv2.imread(str(bed_photo), cv2.IMREAD_COLOR)
+    if top is None:
+        raise AnalysisError(f"photo {photo_top} is not a readable image; pass a PNG or JPEG top view (layerwatch warp).")
     if bed is None:
         raise AnalysisError(f"bed photo {bed_photo} is not a readable image; pass a PNG or JPEG file.")
     if bed.shape != top.shape:

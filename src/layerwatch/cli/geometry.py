@@ -96,6 +96,7 @@ def calibrate(
         console.print(f"bed pose: reprojection error {model.errors['pose_px']:.2f} px, camera at "
                       f"({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) mm; markers drawn in {png}")
         model = _keep_bed_photo(model, markers, photo, output)
+    assert model is not None  # --board or --markers (one is required above) set it
     model.save(output)
     console.print(f"camera model written to {output}")
 

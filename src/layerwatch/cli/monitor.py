@@ -28,7 +28,7 @@ from layerwatch.pipeline.config import JobConfig, recommended_config, resolve_co
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.storage.history import History
-from layerwatch.web.app import SETTINGS_KEY
+from layerwatch.web.settings import SETTINGS_KEY
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import cv2
 import typer
@@ -139,8 +139,12 @@ def simulate(
             kind, rest = spec.split("@", 1)
             rest, slash, place = rest.partition("/")
             onset, _, size = rest.partition(":")
-            fails.append(Failure(kind.strip(), onset=int(onset), **({"size_mm": float(size)} if size else {}),
-                                 **({"place": place.strip()} if slash else {})))
+            opts: dict[str, Any] = {}  # only what the spec names: Failure's defaults otherwise
+            if size:
+                opts["size_mm"] = float(size)
+            if slash:
+                opts["place"] = place.strip()
+            fails.append(Failure(kind.strip(), onset=int(onset), **opts))
         except ValueError:
             raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM][/beside]; e.g. spaghetti@15.") from None
     tp = _toolpath(gcode)

@@ -17,7 +17,6 @@ from layerwatch.cli.params import WRITE_DB, WRITE_DIR, Finite
 from layerwatch.errors import ConfigError, require
 from layerwatch.farm import Farm, load_farm
 from layerwatch.storage.history import History
-from layerwatch.web.app import create_app
 from layerwatch.web.report import build_report
 from layerwatch.web.token import is_loopback, load_or_create_token
 from layerwatch.web.virtual import virtual_printer
@@ -93,6 +92,11 @@ def serve(
 ) -> None:
     """Serve the dashboard (FastAPI + uvicorn); see docs/security.md for running it on a network."""
     uvicorn = require("uvicorn", "web", "The dashboard server")
+    require("fastapi", "web", "The dashboard")
+    from layerwatch.web.app import (
+        create_app,  # optional extra: FastAPI (`web`); history/report work without it
+    )
+
     _check_tls(ssl_certfile, ssl_keyfile)
     dbp = db or default_db()
     h = _open(dbp)
