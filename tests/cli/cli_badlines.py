@@ -241,10 +241,12 @@ def bad_lines(root: Path, seed: int = 19) -> list[list[str]]:
 _HEAVY = (
     "layerwatch.monitor.service.Monitor.run",
     "layerwatch.evaluate.harness.run_evaluation",
+    "layerwatch.cli.pipeline.run_evaluation",  # imported by name at the verb module's top
     "layerwatch.evaluate.demo.run_demo",
     "layerwatch.cli.demo.run_demo",  # imported by name at the verb module's top
     "layerwatch.simulate.simulate_print",
     "layerwatch.render.backend.render_layers",
+    "layerwatch.cli.render.render_layers",  # imported by name at the verb module's top
     "uvicorn.run",
 )
 

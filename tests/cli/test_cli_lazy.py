@@ -34,3 +34,17 @@ def test_gcode_info_does_not_load_the_renderer_opencv_or_the_dashboard():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "", f"loaded by `gcode info`: {out.stdout.strip()}"
+
+
+def test_history_works_without_loading_the_web_extra(tmp_path):
+    """``history`` and ``report`` need no FastAPI: only ``serve`` imports the dashboard app (optional ``web`` extra)."""
+    code = (
+        "import sys, io, contextlib\n"
+        "from layerwatch.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        f"    assert main(['history', '--db', {str(tmp_path / 'h.db')!r}]) == 0\n"
+        "print(','.join(m for m in ('fastapi', 'starlette', 'uvicorn', 'layerwatch.web.app') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "", f"loaded by `history`: {out.stdout.strip()}"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import Executor
 
 import numpy as np
 import pytest
@@ -125,3 +126,20 @@ def test_verdict_of_an_ended_job_never_pauses(tmp_path):
     mon.close()
     assert printer.pause_count == 0 and mon.late == 1
     h.close()
+
+
+def test_lane_is_an_executor_with_keyword_arguments_and_cancel_futures():
+    gate = threading.Event()
+    lane = FrameLane(3)
+    assert isinstance(lane, Executor)
+    first = lane.submit(lambda: gate.wait(10))
+    time.sleep(0.05)  # the first call is running
+    kw = lane.submit(lambda a, *, b: a + b, 1, b=2)
+    later = lane.submit(lambda: "never")
+    lane.shutdown(wait=False, cancel_futures=True)
+    assert kw.cancelled() and later.cancelled() and lane.pending == 0
+    gate.set()
+    assert first.result(timeout=10) is True
+    lane2 = FrameLane(1)
+    assert lane2.submit(lambda a, *, b: a + b, 1, b=2).result(timeout=10) == 3
+    lane2.shutdown()

@@ -1,8 +1,8 @@
 """The ``layerwatch`` command line.
 
 Each verb group lives in its own module (``cli/gcode.py``, ``cli/geometry.py``
-...) exposing ``register(app)``. Heavy imports happen inside the commands so
-``layerwatch --help`` stays fast.
+...) exposing ``register(app)``. A command line imports only its verb's module
+(:data:`VERBS`), so ``layerwatch --help`` and ``layerwatch gcode info`` stay fast.
 
 :func:`main` is the one entry point (the ``layerwatch`` script and ``python -m
 layerwatch`` both call it). Its exit codes: 0 done, 1 the job failed or nothing
@@ -28,6 +28,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.text import Text
 
+from layerwatch import __version__
 from layerwatch.cli.params import finite_of
 from layerwatch.errors import LayerwatchError
 
@@ -81,7 +82,6 @@ console, err_console = Console(), Console(stderr=True)
 
 def _print_version(value: bool) -> None:
     if value:
-        from layerwatch import __version__
 
         console.print(f"{PROG} {__version__}", markup=False, highlight=False)
         raise typer.Exit(0)

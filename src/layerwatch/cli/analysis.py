@@ -5,22 +5,26 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import cv2
+import numpy as np
 import typer
+from rich.table import Table
 
+from layerwatch.analysis.overlay import write_overlay
+from layerwatch.analysis.scene_change import changed_beside
+from layerwatch.analysis.scoring import analyze_layer, grey_u8
+from layerwatch.cli import console
 from layerwatch.cli.params import WRITE_FILE, Finite
 from layerwatch.cli.pipeline import PAPER_HELP
+from layerwatch.errors import AnalysisError
+from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.config import resolve_config
 
 __all__ = ["register"]
 
 
 def _read_image(path: Path, what: str, mask: bool = False):
     """The image at ``path``, grey as the per-layer step reads a top view; ``mask``: non-zero pixels, bool."""
-    import cv2
-    import numpy as np
-
-    from layerwatch.analysis.scoring import grey_u8
-    from layerwatch.errors import AnalysisError
-
     if not path.is_file():
         raise AnalysisError(f"{what} {path} does not exist; pass an image file (PNG/JPEG).")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -67,14 +71,6 @@ def compare(
     Settings come from the same resolver as ``analyze`` (defaults, the recommended settings unless
     ``--paper-settings``, ``-c job.toml``, then these options), so a pair ``analyze`` wrote reports the same a%.
     """
-    import numpy as np
-
-    from layerwatch.analysis.overlay import write_overlay
-    from layerwatch.analysis.scoring import analyze_layer
-    from layerwatch.errors import AnalysisError
-    from layerwatch.geometry.topview import TopView
-    from layerwatch.pipeline.config import resolve_config
-
     cfg = resolve_config(config, recommended=not paper, flags=_flags(
         analysis__metric=metric, analysis__threshold=threshold, analysis__cell_px=cell_px,
         analysis__footprint_margin_mm=margin_mm, analysis__presmooth_px=presmooth_px,
@@ -99,19 +95,12 @@ def compare(
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(res.to_json(indent=1))
-    from layerwatch.cli import console
 
     console.print(f"overlay written to {out}  ({res.timings_ms['total']:.0f} ms)")
 
 
 def _beside(res, photo_top: Path, bed_photo: Path | None, foot, topview, cfg) -> None:
     """``--bed-photo``: the single-photo scene check beside the footprint into ``res`` (or say it is missing)."""
-    import cv2
-
-    from layerwatch.analysis.scene_change import changed_beside
-    from layerwatch.cli import console
-    from layerwatch.errors import AnalysisError
-
     if bed_photo is None:
         console.print("[dim]no --bed-photo: what lies beside the footprint is not compared with the empty bed[/]")
         return
@@ -119,6 +108,8 @@ def _beside(res, photo_top: Path, bed_photo: Path | None, foot, topview, cfg) ->
         raise AnalysisError(f"bed photo {bed_photo} does not exist; pass the empty bed's top view (layerwatch warp).")
     top = cv2.imread(str(photo_top), cv2.IMREAD_COLOR)
     bed = cv2.imread(str(bed_photo), cv2.IMREAD_COLOR)
+    if top is None:
+        raise AnalysisError(f"photo {photo_top} is not a readable image; pass a PNG or JPEG top view (layerwatch warp).")
     if bed is None:
         raise AnalysisError(f"bed photo {bed_photo} is not a readable image; pass a PNG or JPEG file.")
     if bed.shape != top.shape:
@@ -132,10 +123,6 @@ def _beside(res, photo_top: Path, bed_photo: Path | None, foot, topview, cfg) ->
 
 def _print_result(res, has_mask: bool) -> None:
     """a%, the failing regions and (when scored) all twelve measures, as tables."""
-    from rich.table import Table
-
-    from layerwatch.cli import console
-
     console.print(
         f"[bold]a% = {100 * res.anomaly_ratio:.1f}%[/]  ({res.metric} < {res.threshold:.2f}; "
         f"{res.n_anomalous}/{res.n_blocks} blocks; S_A = {res.anomalous_area_mm2:.1f} mm², "

@@ -82,8 +82,6 @@ def info(
     """Print what the reader finds next to what the file states, with a warning where they disagree."""
     tp = _read_with_progress(file, filament_diameter)
     if tp.n_layers == 0 and not _has_moves(file):  # no move at all: not G-code (CNC files are still described)
-        from layerwatch.errors import GcodeError
-
         raise GcodeError(f"{file.name} has no G-code moves: not a G-code file; pass the file your slicer exported.")
     doc = info_dict(tp)
     if as_json:

@@ -2,19 +2,35 @@
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 from pathlib import Path
 from typing import Annotated
 
+import cv2
+import numpy as np
 import typer
+from rich.progress import Progress
 
+from layerwatch.cli import console
 from layerwatch.cli.params import WRITE_FILE, Finite
+from layerwatch.errors import CalibrationError, WarpError
+from layerwatch.geometry.calibration import (
+    BoardSpec,
+    approximate_intrinsics,
+    calibrate_intrinsics,
+    read_photo,
+)
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.pose import locate_bed
+from layerwatch.geometry.synthetic import project_points
+from layerwatch.geometry.warp import TopViewWarper
+from layerwatch.pipeline.config import resolve_config
 
 __all__ = ["register"]
 
 
 def _board_size(text: str) -> tuple[int, int]:
-    from layerwatch.errors import CalibrationError
-
     try:
         c, r = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -24,11 +40,6 @@ def _board_size(text: str) -> tuple[int, int]:
 
 def _draw_markers(photo, cam, topview):
     """Photo with the projected observed square (green) and markers (red circles)."""
-    import cv2
-    import numpy as np
-
-    from layerwatch.geometry.synthetic import project_points
-
     img = photo.copy()
     c = topview.corners_mm
     t = np.linspace(0, 1, 30)[:, None]
@@ -56,27 +67,12 @@ def calibrate(
     output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Camera model to write (.toml or .json).")] = Path("camera.toml"),
 ) -> None:
     """Write a camera model: intrinsics from board photos and/or bed pose from a marker photo."""
-    import cv2
-
-    from layerwatch.cli import console
-    from layerwatch.errors import CalibrationError
-    from layerwatch.geometry.calibration import (
-        BoardSpec,
-        approximate_intrinsics,
-        calibrate_intrinsics,
-        read_photo,
-    )
-    from layerwatch.geometry.camera import CameraModel
-    from layerwatch.pipeline.config import resolve_config
-
     if not board and markers is None:
         raise CalibrationError("nothing to do: pass --board PHOTOS... and/or --markers BED_PHOTO.")
     model = None
     if board:
         if not photos:
             raise CalibrationError("--board needs photos of the board, e.g. `layerwatch calibrate --board photos/*.jpg`.")
-        from rich.progress import Progress
-
         cols, rows = _board_size(board_size)
         spec = BoardSpec("charuco" if charuco else "chessboard", cols, rows, square_mm)
         with Progress(console=console, transient=True) as prog:
@@ -87,8 +83,6 @@ def calibrate(
     elif camera is not None:
         model = CameraModel.load(camera)
     if markers is not None:
-        from layerwatch.geometry.pose import locate_bed
-
         photo = read_photo(markers)
         if model is None:
             model = approximate_intrinsics((photo.shape[1], photo.shape[0]), hfov)
@@ -102,6 +96,7 @@ def calibrate(
         console.print(f"bed pose: reprojection error {model.errors['pose_px']:.2f} px, camera at "
                       f"({c[0]:.0f}, {c[1]:.0f}, {c[2]:.0f}) mm; markers drawn in {png}")
         model = _keep_bed_photo(model, markers, photo, output)
+    assert model is not None  # --board or --markers (one is required above) set it
     model.save(output)
     console.print(f"camera model written to {output}")
 
@@ -112,11 +107,6 @@ def _keep_bed_photo(model, markers: Path, photo, output: Path):
     Only a photo of the model's own resolution is kept (the scene channel
     compares frames pixel by pixel); otherwise the model is returned unchanged with a note.
     """
-    import dataclasses
-    import shutil
-
-    from layerwatch.cli import console
-
     if (photo.shape[1], photo.shape[0]) != tuple(model.image_size):
         console.print(f"[yellow]bed photo not kept:[/] it is {photo.shape[1]}x{photo.shape[0]}, the camera model "
                       f"{model.image_size[0]}x{model.image_size[1]}; take it at the monitoring resolution")
@@ -136,14 +126,6 @@ def warp(
     output: Annotated[Path, typer.Option("-o", "--output", parser=WRITE_FILE, help="Top-view PNG to write.")] = Path("top.png"),
 ) -> None:
     """Warp a photo into the top view of the plane at height Z."""
-    import cv2
-
-    from layerwatch.cli import console
-    from layerwatch.errors import WarpError
-    from layerwatch.geometry.camera import CameraModel
-    from layerwatch.geometry.warp import TopViewWarper
-    from layerwatch.pipeline.config import resolve_config
-
     img = cv2.imread(str(photo), cv2.IMREAD_COLOR) if photo.is_file() else None
     if img is None:
         raise WarpError(f"cannot read the photo {photo}; pass a PNG or JPEG file.")

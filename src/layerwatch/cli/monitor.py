@@ -7,9 +7,28 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from pydantic import ValidationError
 
+from layerwatch.cli import console
 from layerwatch.cli.params import SEED, WRITE_DB, WRITE_DIR, Finite
 from layerwatch.cli.pipeline import BED_HELP, PAPER_HELP, scene_baseline
+from layerwatch.errors import ConfigError
+from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
+from layerwatch.monitor.notify import Notifier
+from layerwatch.monitor.printers.base import parse_trigger
+from layerwatch.monitor.printers.keys import read_key_file, redact_url, resolve_key, split_url_key
+from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
+from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+from layerwatch.monitor.printers.virtual import VirtualPrinter
+from layerwatch.monitor.service import Monitor, MonitorReport
+from layerwatch.pipeline.config import JobConfig, recommended_config, resolve_config
+from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.storage.history import History
+from layerwatch.web.settings import SETTINGS_KEY
 
 __all__ = ["register", "monitor_config", "dashboard_settings"]
 
@@ -38,12 +57,6 @@ def dashboard_settings(history) -> dict[str, dict]:
     ConfigError
         The saved settings no longer validate (e.g. saved by another layerwatch version).
     """
-    from pydantic import ValidationError
-
-    from layerwatch.errors import ConfigError
-    from layerwatch.pipeline.config import JobConfig
-    from layerwatch.web.app import SETTINGS_KEY
-
     saved = history.setting(SETTINGS_KEY)
     if saved is None:
         return {}
@@ -55,7 +68,6 @@ def dashboard_settings(history) -> dict[str, dict]:
         msg = " ".join(str(err["msg"]).split())
         raise ConfigError(f"{history.path}: the dashboard's saved setting {where} is invalid ({msg}); save the "
                           "settings again in the dashboard (layerwatch serve --db ...) or drop --history.") from None
-    from layerwatch.pipeline.config import recommended_config
 
     base = recommended_config().model_dump(mode="json")
     out: dict[str, dict] = {}
@@ -94,8 +106,6 @@ def monitor_config(path: Path | None, history=None, *, paper: bool = False):
     ConfigError
         Unreadable or invalid file or saved settings (one line naming the fix).
     """
-    from layerwatch.pipeline.config import resolve_config
-
     dash = dashboard_settings(history) if history is not None else {}
     dash.pop("host", None)  # printer credentials come from the job file, the environment or a key file only
     resolved = resolve_config(path, recommended=not paper, dashboard=dash)
@@ -109,9 +119,6 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
     ``LAYERWATCH_MOONRAKER_KEY``), the job file's ``[host]`` section (``host``: :class:`HostSettings`), or,
     with a warning, a ``?key=`` in ``spec`` (see :func:`~layerwatch.monitor.printers.keys.resolve_key`).
     """
-    from layerwatch.errors import ConfigError
-    from layerwatch.monitor.printers.keys import redact_url, resolve_key, split_url_key
-
     kind = spec.split("://", 1)[0] if "://" in spec else ""
     if kind in ("octoprint", "moonraker"):
         file = key_file or (Path(host.key_file) if host is not None and host.key_file else None)
@@ -120,15 +127,9 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
         logging.getLogger("layerwatch.monitor").info("%s API key from: %s", kind, source)
         url = split_url_key(spec)[0]
         if kind == "octoprint":
-            from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
-
             return OctoPrintPrinter(url, key)
-        from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
-
         return MoonrakerPrinter(url, key)
     if spec == "virtual" or spec.startswith("virtual:"):
-        from layerwatch.monitor.printers.virtual import VirtualPrinter
-
         path = spec[8:]
         data = Path(path).read_bytes() if path else gcode
         if data is None:
@@ -161,28 +162,31 @@ def monitor(
     bed_photo: Annotated[Path | None, typer.Option("--bed-photo", exists=True, dir_okay=False, help=BED_HELP)] = None,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
-    import logging
-
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError
-    from layerwatch.examples import PART_GCODE
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.gcode.postprocess import insert_snapshots
-    from layerwatch.monitor.notify import Notifier
-    from layerwatch.monitor.printers.base import parse_trigger
-    from layerwatch.monitor.printers.keys import read_key_file, redact_url
-    from layerwatch.monitor.service import Monitor
-    from layerwatch.pipeline.policy import PausePolicy
-    from layerwatch.pipeline.step import LayerPipeline
-
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
-    from layerwatch.examples import PART_CONFIG
-
-    # per key: the job file (--config; no --config and no --gcode: the example part's job file) > the
-    # settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults
-    from layerwatch.storage.history import History
-
     job_file = config if config else (PART_CONFIG if gcode is None and printer.startswith("virtual") else None)
+    cfg = _settings(job_file, history, paper)
+    _check_inputs(printer, key_file, images)
+    spec = CameraSpec(camera, camera_model, settle, failure, onset, seed)
+    if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
+        done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, spec,
+                          history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
+                          park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
+                          max_jobs=None if follow else 1)
+        console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
+        raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
+    if follow:
+        raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
+    rep = _watch_one(printer, gcode or PART_GCODE, cfg, spec, key_file=key_file, history=history,
+                     wait_for_verdict=wait_for_verdict, bed_photo=bed_photo, poll=poll, camera=camera)
+    _print_report(rep)
+
+
+def _settings(job_file: Path | None, history: Path | None, paper: bool) -> JobConfig:
+    """The job's settings, logged with where each came from.
+
+    Per key: the job file (--config; no --config and no --gcode: the example part's job file) > the
+    settings saved in the dashboard (--history) > the evaluation's recommended settings > built-in defaults.
+    """
     if history is not None:
         with History(history) as saved:
             cfg, sources = monitor_config(job_file, saved, paper=paper)
@@ -191,32 +195,31 @@ def monitor(
     logging.getLogger("layerwatch.monitor").info(
         "settings from: %s (file %s, dashboard %s)", " ".join(f"{k}={v}" for k, v in sources.items()),
         job_file or "none", history or "none")
-    if key_file is not None:  # a key file that is empty, not a key or readable by everyone: one line now
+    return cfg
+
+
+def _check_inputs(printer: str, key_file: Path | None, images: Path | None) -> None:
+    """Refuse now (one line, exit 2), not at the first layer: a key file for the virtual printer or one
+    that is empty, not a key or readable by everyone; an unusable --images folder."""
+    if key_file is not None:
         if printer.startswith("virtual"):
             raise ConfigError("--key-file is for octoprint:// and moonraker:// printers; the virtual printer needs no key.")
         read_key_file(key_file)
-    if images is not None:  # an unusable --images folder is refused now (one line, exit 2), not at the first layer
+    if images is not None:
         images.mkdir(parents=True, exist_ok=True)
-    if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
-        from layerwatch.monitor.follow import CameraSpec, run_follow
 
-        done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, CameraSpec(camera, camera_model, settle, failure, onset, seed),
-                          history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
-                          park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
-                          max_jobs=None if follow else 1)
-        console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
-        raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
-    if follow:
-        raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
-    gpath = gcode or PART_GCODE
+
+def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, key_file: Path | None,
+               history: Path | None, wait_for_verdict: bool, bed_photo: Path | None, poll: float,
+               camera: str) -> MonitorReport:
+    """Monitor one job whose G-code is ``gpath`` (local file) until it ends; the printer and history closed after."""
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)
     if printer.startswith("virtual") and not any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
-    from layerwatch.monitor.follow import CameraSpec, job_camera
 
-    cam_src, cam_model = job_camera(CameraSpec(camera, camera_model, settle, failure, onset, seed), toolpath, cfg)
+    cam_src, cam_model = job_camera(spec, toolpath, cfg)
     prn = open_printer(printer, data, key_file=key_file, host=cfg.host)
     hist = job = None
     if history is not None:
@@ -229,11 +232,15 @@ def monitor(
                   faults=cfg.faults, frame_quality=cfg.frame_quality)
     console.print(f"monitoring {redact_url(printer)} with camera {redact_url(camera)} ({toolpath.n_layers} layers)")
     try:
-        rep = mon.run(install_signals=True, poll_s=poll)
+        return mon.run(install_signals=True, poll_s=poll)
     finally:
         prn.close()
         if hist is not None:
             hist.close()
+
+
+def _print_report(rep: MonitorReport) -> None:
+    """One summary line per job, the faults (never a pause), each stop and the trigger-to-pause latencies."""
     lat = rep.latencies_ms
     console.print(f"{len(rep.results)} layers analysed, {rep.pauses} pause(s), {rep.alerts} alert(s); outcome {rep.outcome}")
     if rep.camera_faults or rep.printer_faults:

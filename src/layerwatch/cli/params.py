@@ -23,6 +23,8 @@ from pathlib import Path
 
 import typer
 
+from layerwatch.errors import ConfigError
+
 __all__ = ["Finite", "SEED", "finite_of", "Writable", "WRITE_FILE", "WRITE_DIR", "WRITE_DB", "scheduler_address", "numbers"]
 
 _INT = re.compile(r"[+-]?\d+")
@@ -211,8 +213,6 @@ def numbers(text: str, count: int, option: str, each: Finite, example: str) -> t
     ConfigError
         Wrong count, not numbers, not finite or out of range; the message names the option.
     """
-    from layerwatch.errors import ConfigError
-
     if not text.strip():
         return None
     parts = text.split(",")

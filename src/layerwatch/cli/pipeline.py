@@ -3,30 +3,37 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
+import cv2
 import typer
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from layerwatch.cli import console, err_console
 from layerwatch.cli.params import SEED, WRITE_DIR, Finite
+from layerwatch.errors import CalibrationError, ConfigError, GcodeError
+from layerwatch.evaluate.harness import clean_false_alarms, run_evaluation
+from layerwatch.evaluate.offline import run_offline
+from layerwatch.evaluate.report import rich_table, write_report
+from layerwatch.evaluate.summary import at_setting, summarize
+from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.gcode import read_toolpath
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.pipeline.config import observed_square, resolve_config
+from layerwatch.pipeline.scene import load_bed_photo
+from layerwatch.simulate import Failure, PrintSimulator, default_camera, save_frame
 
 __all__ = ["register"]
 
 
 def _progress():
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from layerwatch.cli import console
-
     cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     return Progress(*cols, console=console, transient=True)
 
 
 def _toolpath(gcode: Path | None):
     """The job's toolpath (default: the bundled example part)."""
-    from layerwatch.errors import GcodeError
-    from layerwatch.examples import PART_GCODE
-    from layerwatch.gcode import read_toolpath
-
     if gcode is not None and not gcode.is_file():
         raise GcodeError(f"G-code file {gcode} not found; check the path.")
     tp = read_toolpath(gcode or PART_GCODE)
@@ -44,9 +51,6 @@ def job_settings(config: Path | None, gcode: Path | None, tp=None, *, paper: boo
     the part (source ``gcode``). ``paper`` leaves out the recommended settings
     (``--paper-settings``). Returns the :class:`~layerwatch.pipeline.config.ResolvedConfig`.
     """
-    from layerwatch.examples import PART_CONFIG
-    from layerwatch.pipeline.config import observed_square, resolve_config
-
     path = config if config is not None else (PART_CONFIG if gcode is None else None)
     derived = observed_square(tp.bounds) if path is None and tp is not None else None
     return resolve_config(path, recommended=not paper, gcode=derived, flags=flags)
@@ -67,11 +71,6 @@ def scene_baseline(cfg, camera, bed_photo: Path | None):
 
     ``None`` when the channel is off (``--paper-settings``) or there is no usable bed photo.
     """
-    from rich.markup import escape
-
-    from layerwatch.cli import console
-    from layerwatch.pipeline.scene import load_bed_photo
-
     if not cfg.scene.enabled:
         if bed_photo is not None:
             console.print("[yellow]note:[/] the scene channel is off ([scene] enabled = false); --bed-photo is not used")
@@ -97,13 +96,6 @@ def analyze(
 
     Exits 1 when no photo could be analysed.
     """
-    from rich.markup import escape
-
-    from layerwatch.cli import console, err_console
-    from layerwatch.errors import CalibrationError
-    from layerwatch.evaluate.offline import run_offline
-    from layerwatch.geometry.camera import CameraModel
-
     if not camera.is_file():
         raise CalibrationError(f"camera file {camera} not found; run `layerwatch calibrate` first.")
     tp = _toolpath(gcode)
@@ -141,20 +133,18 @@ def simulate(
     config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([topview]).")] = None,
 ) -> None:
     """Simulate camera photos of a print (with failures and ground-truth masks) and the empty bed (bed.png)."""
-    import cv2
-
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError
-    from layerwatch.simulate import Failure, PrintSimulator, default_camera, save_frame
-
     fails = []
     for spec in failure or []:
         try:
             kind, rest = spec.split("@", 1)
             rest, slash, place = rest.partition("/")
             onset, _, size = rest.partition(":")
-            fails.append(Failure(kind.strip(), onset=int(onset), **({"size_mm": float(size)} if size else {}),
-                                 **({"place": place.strip()} if slash else {})))
+            opts: dict[str, Any] = {}  # only what the spec names: Failure's defaults otherwise
+            if size:
+                opts["size_mm"] = float(size)
+            if slash:
+                opts["place"] = place.strip()
+            fails.append(Failure(kind.strip(), onset=int(onset), **opts))
         except ValueError:
             raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM][/beside]; e.g. spaghetti@15.") from None
     tp = _toolpath(gcode)
@@ -192,12 +182,6 @@ def evaluate(
                                           "and spaghetti placed on the bed beside the part.")] = 0.0,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
-    from layerwatch.cli import console
-    from layerwatch.evaluate.harness import run_evaluation
-    from layerwatch.evaluate.report import rich_table, write_report
-    from layerwatch.evaluate.summary import at_setting, summarize
-    from layerwatch.simulate import default_camera
-
     tp = _toolpath(gcode)
     flags = {"analysis": {"footprint_margin_mm": margin}} if margin is not None else None
     cfg = job_settings(config, gcode, tp, paper=paper, flags=flags).config
@@ -210,8 +194,6 @@ def evaluate(
     notes = [f"{e}" for e in data.errors]
     clean_run = None
     if clean_layers:  # whole clean prints under the setting a job runs with (what the monitor would do)
-        from layerwatch.evaluate.harness import clean_false_alarms
-
         with _progress() as bar:
             task = bar.add_task("clean prints (false alarms)", total=clean_layers)
             clean_run = clean_false_alarms(tp, cfg, cam, clean_layers, float(cfg.policy.pause_ratio),

@@ -5,9 +5,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import cv2
+import numpy as np
 import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from layerwatch.cli import console
 from layerwatch.cli.params import WRITE_DIR, Finite, scheduler_address
+from layerwatch.errors import ConfigError, GcodeError, RenderError
+from layerwatch.gcode import read_toolpath
+from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.config import resolve_config
+from layerwatch.render.backend import render_layers
+from layerwatch.render.blender import find_blender
+from layerwatch.render.cache import ReferenceCache, file_hash
+from layerwatch.render.mask import gcode_mask
 
 __all__ = ["register", "parse_layers"]
 
@@ -21,8 +33,6 @@ def parse_layers(spec: str | None, n_layers: int) -> list[int]:
     RenderError
         Unparseable spec or indices outside ``0..n_layers-1``.
     """
-    from layerwatch.errors import RenderError
-
     if spec is None or spec.strip().lower() in {"", "all"}:
         return list(range(n_layers))
     out: list[int] = []
@@ -48,8 +58,6 @@ def parse_layers(spec: str | None, n_layers: int) -> list[int]:
 
 def _part_bounds(toolpath) -> tuple[float, float, float, float]:
     """Bounds of the part, mm: layers above the first (skips purge lines), else all."""
-    import numpy as np
-
     b = np.array([la.bounds for la in toolpath.layers[1:]], dtype=float).reshape(-1, 4)
     b = b[np.isfinite(b).all(axis=1)]
     if len(b) == 0:
@@ -61,7 +69,6 @@ def _observed_square(topview, toolpath, centred: bool):
     """``topview``, or (no job file) the same square centred on the part's extrusions."""
     if not centred:
         return topview
-    from layerwatch.geometry.topview import TopView
 
     x0, y0, x1, y1 = _part_bounds(toolpath)
     return TopView(topview.px_per_mm, topview.width_mm, topview.height_mm, ((x0 + x1) / 2, (y0 + y1) / 2))
@@ -79,22 +86,6 @@ def render(
     cache: Annotated[Path | None, typer.Option("--cache", parser=WRITE_DIR, help="Reference cache folder (render once, reuse).")] = None,
 ) -> None:
     """Render reference images (top view) of G-code layers to PNGs."""
-    import cv2
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeRemainingColumn,
-    )
-
-    from layerwatch.cli import console
-    from layerwatch.errors import ConfigError, GcodeError, RenderError
-    from layerwatch.pipeline.config import resolve_config
-    from layerwatch.render.backend import render_layers
-    from layerwatch.render.cache import ReferenceCache, file_hash
-    from layerwatch.render.mask import gcode_mask
-
     if not file.is_file():
         raise GcodeError(f"G-code file {file} not found; check the path.")
     if backend not in (None, "fast", "blender"):
@@ -102,13 +93,7 @@ def render(
     cfg = resolve_config(config, flags={"render": {"backend": backend}} if backend else None).config
     settings = cfg.render
     if settings.backend == "blender":
-        from layerwatch.render.blender import find_blender
-
         find_blender()
-    try:
-        from layerwatch.gcode import read_toolpath
-    except ImportError:  # pragma: no cover - parser not installed
-        raise GcodeError("the G-code reader is not available in this install; reinstall layerwatch.") from None
 
     cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*cols, console=console, transient=True) as bar:

@@ -2,15 +2,24 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import ssl
+import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.table import Table
 
+from layerwatch.cli import console
 from layerwatch.cli.params import WRITE_DB, WRITE_DIR, Finite
-from layerwatch.errors import ConfigError
+from layerwatch.errors import ConfigError, require
+from layerwatch.farm import Farm, load_farm
+from layerwatch.storage.history import History
+from layerwatch.web.report import build_report
+from layerwatch.web.token import is_loopback, load_or_create_token
+from layerwatch.web.virtual import virtual_printer
 
 __all__ = ["register", "default_db"]
 
@@ -25,19 +34,11 @@ DbOpt = Annotated[Path | None, typer.Option("--db", parser=WRITE_DB, help="Histo
 
 
 def _open(db: Path | None):
-    from layerwatch.storage.history import History
-
     return History(db or default_db())
 
 
 def history(db: DbOpt = None) -> None:
     """List the jobs in the history database."""
-    import time
-
-    from rich.table import Table
-
-    from layerwatch.cli import console
-
     with _open(db) as h:
         jobs = h.jobs()
     table = Table(title=f"{len(jobs)} job(s)")
@@ -57,9 +58,6 @@ def report(
     images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder the stored image paths are relative to (default: beside the database).")] = None,
 ) -> None:
     """Write a self-contained HTML report of one job."""
-    from layerwatch.cli import console
-    from layerwatch.web.report import build_report
-
     with _open(db) as h:
         path = build_report(h, job, out, image_root=images)
     console.print(f"report written to [bold]{path}[/]")
@@ -93,12 +91,12 @@ def serve(
     workers: Annotated[int | None, typer.Option("--workers", parser=Finite(1, 256, integer=True), help="With --farm: shared analysis workers (default: the farm file's, else 2).")] = None,
 ) -> None:
     """Serve the dashboard (FastAPI + uvicorn); see docs/security.md for running it on a network."""
-    from layerwatch.cli import console
-    from layerwatch.errors import require
-    from layerwatch.web.app import create_app
-    from layerwatch.web.token import is_loopback, load_or_create_token
-
     uvicorn = require("uvicorn", "web", "The dashboard server")
+    require("fastapi", "web", "The dashboard")
+    from layerwatch.web.app import (
+        create_app,  # optional extra: FastAPI (`web`); history/report work without it
+    )
+
     _check_tls(ssl_certfile, ssl_keyfile)
     dbp = db or default_db()
     h = _open(dbp)
@@ -115,8 +113,6 @@ def serve(
     fleet = _farm(farm, h, scheduler, workers) if farm is not None else None
     printers = dict(fleet.printers) if fleet is not None else {}
     if virtual:
-        from layerwatch.web.virtual import virtual_printer
-
         printers["virtual"] = virtual_printer()
     app = create_app(h, printers=printers, token=token, image_root=images or dbp.parent,
                      allowed_hosts=allowed_host or None, token_file=token_file)
@@ -134,10 +130,6 @@ def serve(
 
 def _farm(path: Path, history, scheduler: str | None, workers: int | None):
     """The farm of ``path`` (validated: one line naming the printer and key, exit 2), not started yet."""
-    import logging
-
-    from layerwatch.farm import Farm, load_farm
-
     cfg = load_farm(path)
     if scheduler is not None and not (scheduler == "local" or scheduler.startswith(("tcp://", "tls://"))):
         raise ConfigError(f"--scheduler {scheduler!r} is not a Dask scheduler address; use tcp://host:8786 or local.")

@@ -100,7 +100,8 @@ class FarmMonitor(Monitor):
                  observe: Callable[[LayerResult, bytes | None], None] | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._pool.shutdown(wait=False)  # replaced by the bounded lane
-        self._pool = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
+        self._lane = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
+        self._pool = self._lane
         self.generation = 0
         self.dropped = self.late = 0
         self.observe = observe
@@ -122,20 +123,12 @@ class FarmMonitor(Monitor):
         self.new_generation(f"acknowledged ({source})")
         super().acknowledge(source)
 
-    def _event(self, kind: str, message: str, data: dict) -> None:
-        if self.history is None or self.job_id is None:
-            return
-        try:
-            self.history.add_event(self.job_id, kind, message, data)
-        except LayerwatchError as exc:
-            log.warning("history write failed: %s", exc)
-
     def _dropped(self, args: tuple) -> None:
         """A pending photo was dropped from the full lane (``args``: the analysis call's arguments)."""
         trigger = args[0]
         self.dropped += 1
         self._event("frame_dropped", f"layer {trigger.layer} not analysed: the workers are saturated "
-                    f"(the {self._pool.capacity} newest photos are kept)", {"layer": trigger.layer})
+                    f"(the {self._lane.capacity} newest photos are kept)", {"layer": trigger.layer})
 
     def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
         with self._generation_lock:

@@ -27,7 +27,7 @@ import threading
 import zlib
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any
 
 from layerwatch.errors import ConfigError, require
@@ -37,7 +37,7 @@ __all__ = ["FrameLane", "WorkerPool"]
 log = logging.getLogger("layerwatch.farm")
 
 
-class FrameLane:
+class FrameLane(Executor):
     """A single-thread executor with a bounded queue that drops its oldest entry when full.
 
     It has the two methods of :class:`concurrent.futures.Executor` a
@@ -61,15 +61,15 @@ class FrameLane:
         self.capacity = int(capacity)
         self.on_drop = on_drop
         self.dropped = 0
-        self._pending: deque[tuple[Future, Callable, tuple]] = deque()
+        self._pending: deque[tuple[Future, Callable, tuple, dict[str, Any]]] = deque()
         self._cv = threading.Condition()
         self._closed = False
         self._busy = False
         self._thread = threading.Thread(target=self._work, name=name, daemon=True)
         self._thread.start()
 
-    def submit(self, fn: Callable, *args: Any) -> Future:
-        """Queue ``fn(*args)``; drop (and report) the oldest pending call when the lane is full.
+    def submit(self, fn: Callable, /, *args: Any, **kwargs: Any) -> Future:
+        """Queue ``fn(*args, **kwargs)``; drop (and report) the oldest pending call when the lane is full.
 
         Raises
         ------
@@ -84,7 +84,7 @@ class FrameLane:
             if len(self._pending) >= self.capacity:
                 dropped = self._pending.popleft()
                 self.dropped += 1
-            self._pending.append((fut, fn, args))
+            self._pending.append((fut, fn, args, kwargs))
             self._cv.notify()
         if dropped is not None:
             dropped[0].cancel()
@@ -108,21 +108,25 @@ class FrameLane:
                     self._cv.wait()
                 if not self._pending:
                     return
-                fut, fn, args = self._pending.popleft()
+                fut, fn, args, kwargs = self._pending.popleft()
                 self._busy = True
             if fut.set_running_or_notify_cancel():
                 try:
-                    fut.set_result(fn(*args))
+                    fut.set_result(fn(*args, **kwargs))
                 except BaseException as exc:  # noqa: BLE001 - delivered to the future's owner
                     fut.set_exception(exc)
             with self._cv:
                 self._busy = False
                 self._cv.notify_all()
 
-    def shutdown(self, wait: bool = True) -> None:
-        """Accept no more frames; with ``wait``, block until the pending ones ran."""
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Accept no more frames; with ``cancel_futures``, cancel the pending ones; with ``wait``, block until
+        those left ran."""
         with self._cv:
             self._closed = True
+            if cancel_futures:
+                while self._pending:
+                    self._pending.popleft()[0].cancel()
             self._cv.notify_all()
         if wait and self._thread is not threading.current_thread():
             self._thread.join()

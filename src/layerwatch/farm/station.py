@@ -38,7 +38,7 @@ from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.pose import locate_bed
 from layerwatch.monitor.cameras import SimCamera, open_camera
-from layerwatch.monitor.hosts import PrintJob, job_host
+from layerwatch.monitor.hosts import MAX_GCODE_BYTES, JobHost, PrintJob, job_host
 from layerwatch.monitor.jobs import JobWatcher
 from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import PrinterStatus, parse_trigger
@@ -74,13 +74,14 @@ class _Watched:
         return getattr(self._printer, name)
 
 
-class _WatchedHost:
+class _WatchedHost(JobHost):
     """A job host whose polls keep the card's reachability (``current()``), otherwise the host itself."""
 
-    def __init__(self, host: Any, station: Station) -> None:
+    def __init__(self, host: JobHost, station: Station) -> None:  # no HTTP client of its own: ``host``'s
         self._host, self._station = host, station
+        self.kind, self.printer_name = host.kind, host.printer_name
 
-    def current(self) -> Any:
+    def current(self) -> tuple[str, PrintJob | None]:
         try:
             out = self._host.current()
         except LayerwatchError as exc:
@@ -88,6 +89,18 @@ class _WatchedHost:
             raise
         self._station.reachable()
         return out
+
+    def download_path(self, job: PrintJob) -> str:
+        return self._host.download_path(job)
+
+    def position(self) -> tuple[float, float, float] | None:
+        return self._host.position()
+
+    def last_outcome(self, job: PrintJob) -> str | None:
+        return self._host.last_outcome(job)
+
+    def download(self, job: PrintJob, max_bytes: int = MAX_GCODE_BYTES) -> bytes:
+        return self._host.download(job, max_bytes)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._host, name)
@@ -213,6 +226,9 @@ class Station:
             frames = self.sims.get(gcode, toolpath, cfg, spec.failure, spec.onset, spec.seed)
             model = CameraModel.load(spec.camera_model) if spec.camera_model else frames.located
             return SimCamera(frames.frame, settle_s=spec.settle_s), model
+        if spec.camera_model is None:  # the farm file's check requires it; a PrinterSpec built in code may lack it
+            raise ConfigError(f"printer {spec.name!r}: camera_model is needed with camera {spec.camera.split('?', 1)[0]!r}; "
+                              "make one with `layerwatch calibrate`.")
         model = CameraModel.load(spec.camera_model)
         if not model.has_pose:
             if spec.bed_photo is None:
@@ -309,7 +325,7 @@ class Station:
                 if self.spec.follows_jobs:
                     self._follow()
                     return
-                self._build()
+                mon = self._build()
             except (LayerwatchError, OSError, ValueError) as exc:
                 self._close_printer()
                 self.fault(f"set-up failed: {exc}")
@@ -323,7 +339,7 @@ class Station:
                 self.fault(f"set-up crashed ({type(exc).__name__}: {exc}); see the service log")
                 self.stop_event.wait(self.retry_s[1])
                 continue
-            self._watch(self.monitor)
+            self._watch(mon)
             return
 
     def _watch(self, mon: FarmMonitor) -> None:

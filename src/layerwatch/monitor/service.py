@@ -27,7 +27,7 @@ import logging
 import signal
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -138,7 +138,7 @@ class Monitor:
         self.initial_backoff_s = initial_backoff_s
         self.report = MonitorReport()
         self.stop_event = threading.Event()
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
+        self._pool: Executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
         self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-notify")
         self._futures: list[Future] = []
         self._lock = threading.Lock()

@@ -7,6 +7,9 @@ server-sent events at ``/api/stream``. The routers
 checks Host, body size, token, cross-site requests and CSRF in front of all
 of them; :mod:`layerwatch.web.redact` strips secrets from every JSON answer.
 What is checked and why: ``docs/security.md``.
+
+This module needs the optional ``web`` extra (FastAPI/Starlette); code that only needs the
+settings key imports it from :mod:`layerwatch.web.settings`.
 """
 
 from __future__ import annotations
@@ -15,9 +18,18 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from layerwatch.errors import require
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
 from layerwatch.pipeline.config import JobConfig, recommended_config
 from layerwatch.storage.history import History
+from layerwatch.web.context import Dashboard, add_error_handlers
+from layerwatch.web.guard import Door, Guard
+from layerwatch.web.redact import RedactedJSON
+from layerwatch.web.routes import files, jobs, pages
+from layerwatch.web.routes import printers as printer_routes
+from layerwatch.web.routes import settings as settings_routes
+from layerwatch.web.sessions import Sessions, Throttle
 from layerwatch.web.settings import MAX_BODY, SETTINGS_KEY
 from layerwatch.web.token import LOOPBACK_NAMES
 
@@ -92,20 +104,6 @@ def create_app(
     session_s : float
         Lifetime of a login session, s.
     """
-    require("fastapi", "web", "The dashboard")
-    # FastAPI/Starlette are the optional `web` extra: this module stays importable without them
-    # (the monitor reads SETTINGS_KEY from here), so the modules built on them load here
-    from fastapi import FastAPI
-    from fastapi.staticfiles import StaticFiles
-
-    from layerwatch.web.context import Dashboard, add_error_handlers
-    from layerwatch.web.guard import Door, Guard
-    from layerwatch.web.redact import RedactedJSON
-    from layerwatch.web.routes import files, jobs, pages
-    from layerwatch.web.routes import printers as printer_routes
-    from layerwatch.web.routes import settings as settings_routes
-    from layerwatch.web.sessions import Sessions, Throttle
-
     if settings is None:  # what the monitor would run with: the evaluation's recommended settings
         settings = recommended_config()
     door = Door(token, _allowed(token, allowed_hosts), Sessions(lifetime_s=session_s), Throttle())

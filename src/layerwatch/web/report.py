@@ -13,6 +13,8 @@ import io
 import time
 from pathlib import Path
 
+from matplotlib.figure import Figure
+
 from layerwatch.errors import StorageError
 from layerwatch.storage.history import History
 
@@ -31,11 +33,6 @@ def curve_png(layers: list[int], ratios: list[float | None], pause_ratio: float 
     pause_ratio : float or None
         Threshold drawn as a dashed red line (fraction).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(8, 3), dpi=100)
     ax = fig.add_subplot()
     pts = [(layer, 100 * r) for layer, r in zip(layers, ratios, strict=True) if r is not None]

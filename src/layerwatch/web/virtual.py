@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from layerwatch.examples import PART_GCODE
 from layerwatch.monitor.printers.virtual import VirtualPrinter
 
 __all__ = ["virtual_printer"]
@@ -29,7 +30,5 @@ def virtual_printer(gcode: bytes | str | Path | None = None) -> VirtualPrinter:
         The G-code file cannot be read.
     """
     if gcode is None:
-        from layerwatch.examples import PART_GCODE
-
         gcode = PART_GCODE
     return VirtualPrinter(gcode)

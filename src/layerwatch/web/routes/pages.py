@@ -55,7 +55,7 @@ def _with_cookie(ctx: Dashboard, request: Request, response: Response, cookie: s
 
 
 @router.get("/", include_in_schema=False)
-def index(ctx: Ctx, request: Request) -> HTMLResponse:
+def index(ctx: Ctx, request: Request) -> Response:
     page = (STATIC / "index.html").read_text(encoding="utf-8")
     try:  # the newest job's id lets the page fetch its rows together with the job list
         newest = ctx.history.last_job_id()
@@ -67,7 +67,7 @@ def index(ctx: Ctx, request: Request) -> HTMLResponse:
 
 
 @router.get("/farm", include_in_schema=False)
-def farm(ctx: Ctx, request: Request) -> HTMLResponse:
+def farm(ctx: Ctx, request: Request) -> Response:
     """The farm view: a card per printer (state, job, layer, overlay, a% sparkline, alarm, buttons)."""
     return _page(ctx, request, (STATIC / "farm.html").read_text(encoding="utf-8"))
 
