@@ -137,7 +137,7 @@ class Notifier:
 
     def _apprise(self, title, message, level, img, name) -> bool:
         try:
-            import apprise
+            import apprise  # optional extra (layerwatch[notify]): loaded only when apprise URLs are set
         except ImportError:
             log.warning("apprise is not installed; pip install layerwatch[notify]")
             return False

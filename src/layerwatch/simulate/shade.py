@@ -184,8 +184,7 @@ def render_view(
                     out[i, j, c] = bg_rgb[c] * light[9]
                 continue
             t_bed = C[2] / (-d2)
-            hit = False
-            wall = False
+            hit = wall = False
             px = py = pz = 0.0
             gu = gv = -1
             if zmax > 0.0:
@@ -193,10 +192,8 @@ def render_view(
                 if ok and ta <= tb:
                     hs = np.sqrt(d0 * d0 + d1 * d1)
                     dt = step_cells / (s * max(hs, 1e-3))
-                    t = ta
-                    f_prev = 1e9
-                    t_prev = ta
-                    z_prev = 1e9
+                    t = t_prev = ta
+                    f_prev = z_prev = 1e9
                     while t <= tb + dt:
                         tt = min(t, tb)
                         x, y, z = C[0] + tt * d0, C[1] + tt * d1, C[2] + tt * d2
