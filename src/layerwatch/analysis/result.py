@@ -292,8 +292,10 @@ class LayerResult:
         d["outside_regions"] = [_region(r) for r in d.get("outside_regions") or []]
         if isinstance(d.get("scene"), dict):
             sc = d["scene"]
-            d["scene"] = SceneStats(**{k: (tuple(v) if k == "gain" else v) for k, v in sc.items()
-                                       if k in SceneStats.__dataclass_fields__})
+            fields: dict[str, Any] = {k: v for k, v in sc.items() if k in SceneStats.__dataclass_fields__}
+            if "gain" in fields:
+                fields["gain"] = tuple(fields["gain"])
+            d["scene"] = SceneStats(**fields)
         heat = d.pop("heatmap", None)
         mask = d.pop("mask", None)
         for key, value in (d.pop("extra", None) or {}).items():  # rows written before the typed fields

@@ -162,8 +162,8 @@ def top_coords(maps: tuple[np.ndarray, np.ndarray], z: float) -> tuple[np.ndarra
     ``maps`` is :func:`plane_maps`; the result is ready for :func:`cv2.remap`.
     """
     A, B = maps
-    z = np.float32(z)
-    return A[0] + z * B[0], A[1] + z * B[1]
+    z32 = np.float32(z)
+    return A[0] + z32 * B[0], A[1] + z32 * B[1]
 
 
 def predicted_change(
@@ -198,11 +198,12 @@ def predicted_change(
     k = int(round(2 * abs(margin_mm) * topview.px_per_mm)) | 1
     if k > 1:
         se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        fp = cv2.dilate(fp, se) if margin_mm > 0 else cv2.erode(fp, se)
+        fp = np.asarray(cv2.dilate(fp, se) if margin_mm > 0 else cv2.erode(fp, se), np.uint8)
     out = np.zeros(maps[0].shape[1:], np.uint8)
     for z in np.asarray(z_planes, float).ravel():
         mx, my = top_coords(maps, float(z))
-        out |= cv2.remap(fp, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out |= np.asarray(cv2.remap(fp, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+                          np.uint8)
     return out.astype(bool)
 
 
@@ -430,7 +431,7 @@ def changed_beside(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndarray, 
     list of Region
         Changed regions beside the footprint (bed mm), largest first.
     """
-    size = tuple(topview.shape[::-1])
+    size = (topview.shape[1], topview.shape[0])
     a, b = to_working(np.asarray(top), size), to_working(np.asarray(bed_top), size)
     k = int(round(2 * settings.margin_mm * topview.px_per_mm)) | 1
     near = cv2.dilate(np.asarray(footprint, np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0

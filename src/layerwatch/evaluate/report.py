@@ -14,6 +14,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from rich.table import Table
 
 from layerwatch.evaluate.stats import false_alarm_rate, roc_curve
 from layerwatch.evaluate.summary import Summary
@@ -24,9 +27,6 @@ TARGETS = {"auroc": 0.95, "iou": 0.5, "false_alarms_per_1000": 1.0, "clean_block
 
 
 def _fig(w=7.0, h=4.0):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(w, h), dpi=110)
     FigureCanvasAgg(fig)
     return fig
@@ -307,8 +307,6 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
 
 def rich_table(s: Summary):
     """A rich Table of the per-type figures of every measure (best T_S each)."""
-    from rich.table import Table
-
     tab = Table(title="AUROC per failure type (each measure at its best T_S)")
     tab.add_column("measure")
     tab.add_column("T_S", justify="right")

@@ -11,6 +11,7 @@ import numpy as np
 
 from layerwatch.errors import GcodeError
 from layerwatch.gcode import kernel as K
+from layerwatch.gcode.bgcode import decode_bgcode
 from layerwatch.gcode.generators import detect_generator
 from layerwatch.gcode.gx import MAGIC as GX_MAGIC
 from layerwatch.gcode.gx import decode_gx
@@ -51,8 +52,6 @@ def load_bytes(source: str | Path | bytes | bytearray | memoryview) -> tuple[byt
         except OSError as exc:
             raise GcodeError(f"{name}: cannot read ({exc.strerror}); check permissions.") from exc
     if data[:4] == b"GCDE":
-        from layerwatch.gcode.bgcode import decode_bgcode  # numba codecs: compiled only for .bgcode
-
         data = decode_bgcode(data, name)
     elif data[: len(GX_MAGIC)] == GX_MAGIC:
         data = decode_gx(data, name)

@@ -15,13 +15,15 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+import tomli_w
 
-from layerwatch.errors import CalibrationError, ConfigError
+from layerwatch.errors import CalibrationError, ConfigError, WarpError
 
 __all__ = ["CameraModel"]
 
@@ -153,8 +155,6 @@ class CameraModel:
             return self
         rx, ry = w1 / w0, h1 / h0
         if abs(rx - ry) > 0.01 * max(rx, ry):
-            from layerwatch.errors import WarpError
-
             raise WarpError(
                 f"photo is {w1}x{h1} but the camera was calibrated at {w0}x{h0} "
                 "(different aspect ratio: cropped stream?); recalibrate at this resolution."
@@ -217,8 +217,6 @@ class CameraModel:
             folder = path.resolve().parent
             d["bed_photo"] = str(bed.relative_to(folder)) if bed.is_relative_to(folder) else str(bed)
         if path.suffix.lower() == ".toml":
-            import tomli_w
-
             path.write_text(tomli_w.dumps(d))
         else:
             path.write_text(json.dumps(d, indent=2))
@@ -235,8 +233,6 @@ class CameraModel:
         text = path.read_text(errors="replace")
         try:
             if path.suffix.lower() == ".toml":
-                import tomllib
-
                 d = tomllib.loads(text)
             else:
                 d = json.loads(text)

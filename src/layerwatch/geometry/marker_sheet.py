@@ -32,7 +32,11 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Rectangle
 
 from layerwatch.errors import ConfigError
 from layerwatch.geometry.markers import _aruco_dictionary
@@ -236,8 +240,6 @@ def plan_pages(layout: MarkerLayout, paper: str = "a4", tiles: bool = False) -> 
 
 
 def _draw_dot(ax, xy, d) -> None:
-    from matplotlib.patches import Circle, Rectangle
-
     s = DOT_PATCH * d
     ax.add_patch(Rectangle((xy[0] - s / 2, xy[1] - s / 2), s, s, facecolor="black", edgecolor="none"))
     ax.add_patch(Circle(xy, d / 2, facecolor="white", edgecolor="none"))
@@ -245,9 +247,6 @@ def _draw_dot(ax, xy, d) -> None:
 
 def _draw_tag(ax, xy, side, tag_id, dictionary) -> None:
     """ArUco tag ``tag_id`` as vector cells (black where the marker image is 0)."""
-    import cv2
-    from matplotlib.patches import Rectangle
-
     d = _aruco_dictionary(dictionary)
     cells = d.markerSize + 2
     bits = cv2.aruco.generateImageMarker(d, tag_id, cells, borderBits=1)
@@ -259,8 +258,6 @@ def _draw_tag(ax, xy, side, tag_id, dictionary) -> None:
 
 
 def _draw_scale_bar(ax, page: SheetPage) -> None:
-    from matplotlib.patches import Rectangle
-
     x0 = (page.size_mm[0] - SCALE_BAR_MM) / 2
     y0 = MARGIN_MM + 14.0
     ax.add_patch(Rectangle((x0, y0), SCALE_BAR_MM, 2.0, facecolor="black", edgecolor="none"))
@@ -292,8 +289,6 @@ def _draw_text(ax, layout: MarkerLayout, page: SheetPage, n_pages: int) -> None:
 
 def draw_page(layout: MarkerLayout, page: SheetPage, n_pages: int = 1):
     """A matplotlib ``Figure`` of one page at 1:1 (figure inches = page mm / 25.4)."""
-    from matplotlib.figure import Figure
-
     pw, ph = page.size_mm
     fig = Figure(figsize=(pw / 25.4, ph / 25.4))
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
@@ -349,8 +344,6 @@ def write_sheet(layout: MarkerLayout, path: str | Path, *, paper: str = "a4", ti
     written: list[tuple[Path, SheetPage]] = []
     try:
         if fmt == "pdf":
-            from matplotlib.backends.backend_pdf import PdfPages
-
             with PdfPages(out) as pdf:
                 for page in pages:
                     pdf.savefig(draw_page(layout, page, len(pages)))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from layerwatch.errors import ConfigError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.markers import _aruco_dictionary
 
@@ -142,8 +143,6 @@ def _bed_texture(center, extent_mm, px_per_mm, bed_rgb, texture, markers_mm, rad
         tex[::step, :] *= 1.4
         tex[:, ::step] *= 1.4
     elif texture != "plain":
-        from layerwatch.errors import ConfigError
-
         raise ConfigError(f"unknown bed texture {texture!r}; use 'plain', 'pei' or 'grid'.")
     A = np.array([[px_per_mm, 0, n / 2 - 0.5 - px_per_mm * center[0]],
                   [0, -px_per_mm, n / 2 - 0.5 + px_per_mm * center[1]], [0, 0, 1.0]])

@@ -13,6 +13,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
+import httpx
 import numpy as np
 
 from layerwatch.errors import CameraError
@@ -24,8 +26,6 @@ MIN_SIDE = 16
 
 def decode_image(data: bytes, where: str) -> np.ndarray:
     """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) image or raise CameraError."""
-    import cv2
-
     head = data[:64].lstrip().lower()
     if head.startswith((b"<!doctype", b"<html", b"<?xml", b"{")):
         raise CameraError(f"{where} returned a web page, not an image; use the snapshot URL (e.g. ...?action=snapshot).")
@@ -104,8 +104,6 @@ class SnapshotCamera(Camera):
         self.url, self.timeout_s, self.where = url, timeout_s, f"camera {url}"
 
     def _read(self) -> np.ndarray:
-        import httpx
-
         try:
             r = httpx.get(self.url, timeout=self.timeout_s, follow_redirects=True)
         except httpx.HTTPError as exc:
@@ -123,8 +121,6 @@ class MjpegCamera(Camera):
         self.url, self.timeout_s, self.max_bytes, self.where = url, timeout_s, max_bytes, f"stream {url}"
 
     def _read(self) -> np.ndarray:
-        import httpx
-
         buf = b""
         try:
             with httpx.stream("GET", self.url, timeout=self.timeout_s) as r:
@@ -159,11 +155,10 @@ class DeviceCamera(Camera):
 
     def __init__(self, device: int | str = 0, *, flush: int = 3, **kw) -> None:
         super().__init__(**kw)
-        self.device, self.flush, self.where, self._cap = device, flush, f"camera device {device}", None
+        self.device, self.flush, self.where = device, flush, f"camera device {device}"
+        self._cap: cv2.VideoCapture | None = None
 
     def _read(self) -> np.ndarray:
-        import cv2
-
         if self._cap is None or not self._cap.isOpened():
             self._cap = cv2.VideoCapture(self.device)
             if not self._cap.isOpened():
@@ -194,8 +189,6 @@ class FolderCamera(Camera):
         self._seen: set[Path] = set()
 
     def _read(self) -> np.ndarray:
-        import cv2
-
         if not self.folder.is_dir():
             raise CameraError(f"{self.where} does not exist; create it or fix the path.")
         files = sorted((p for p in self.folder.iterdir() if p.suffix.lower() in self.EXT and p not in self._seen),

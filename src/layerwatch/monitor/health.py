@@ -85,11 +85,11 @@ class FaultTracker:
             The episode just became worth a notification (at most once per episode).
         """
         now = self._clock()
-        started = self.current is None
-        if started:
-            self.current = Fault(self.source, time.time(), now)
-            self.episodes += 1
         f = self.current
+        started = f is None
+        if f is None:
+            f = self.current = Fault(self.source, time.time(), now)
+            self.episodes += 1
         f.count += 1
         f.error = error
         due = ((self.grace_s is not None and now - f.started >= self.grace_s)

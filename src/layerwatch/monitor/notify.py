@@ -9,6 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
+import httpx
 import numpy as np
 
 from layerwatch.pipeline.policy import NotifySettings
@@ -101,8 +103,6 @@ class Notifier:
         if image is None:
             return None, None
         if isinstance(image, np.ndarray):
-            import cv2
-
             ok, buf = cv2.imencode(".png", image)
             if not ok:
                 log.warning("notification image of shape %s could not be encoded", image.shape)
@@ -117,8 +117,6 @@ class Notifier:
             return None, None
 
     def _webhook(self, title, message, level, img, name, data) -> bool:
-        import httpx
-
         body = {
             "title": title,
             "message": message,
@@ -127,8 +125,10 @@ class Notifier:
             "image_base64": base64.b64encode(img).decode("ascii") if img else None,
             "image_name": name,
         }
+        url = self.settings.webhook_url
+        assert url is not None  # _send calls the webhook only when a URL is set
         try:
-            r = httpx.post(self.settings.webhook_url, json=body, timeout=10.0)
+            r = httpx.post(url, json=body, timeout=10.0)
             r.raise_for_status()
             return True
         except Exception as exc:  # noqa: BLE001 - never raise into the monitor
@@ -137,7 +137,7 @@ class Notifier:
 
     def _apprise(self, title, message, level, img, name) -> bool:
         try:
-            import apprise
+            import apprise  # optional extra (layerwatch[notify]): loaded only when apprise URLs are set
         except ImportError:
             log.warning("apprise is not installed; pip install layerwatch[notify]")
             return False

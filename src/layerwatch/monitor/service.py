@@ -35,12 +35,15 @@ from typing import Any, Protocol
 import numpy as np
 
 from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame
+from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
+from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
 from layerwatch.pipeline.policy import Decision, PausePolicy
+from layerwatch.pipeline.step import Reference
 
 __all__ = ["Monitor", "MonitorReport", "CAMERA_FAULT", "frame_problem"]
 
@@ -54,7 +57,11 @@ log = logging.getLogger("layerwatch.monitor")
 
 
 class _Pipeline(Protocol):
+    topview: TopView
+
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult: ...
+
+    def reference(self, index: int) -> Reference: ...
 
 
 @dataclass
@@ -245,8 +252,6 @@ class Monitor:
         if top is None or res.heatmap is None:
             return None
         try:
-            from layerwatch.analysis.overlay import overlay_image
-
             foot = self.pipeline.reference(res.layer).footprint
             return overlay_image(top, res, self.pipeline.topview, foot)
         except (LayerwatchError, ValueError, AttributeError) as exc:  # the alert goes out without a picture

@@ -185,7 +185,7 @@ class PausePolicy:
         self._out_streak = 0
         self._prev_outside: list[Region] = []
         self._last_outside: list[Region] = []
-        self._acked_outside: list[tuple[tuple[float, float, float, float], float]] = []
+        self._acked_outside: list[tuple[tuple[float, ...], float]] = []
 
     @property
     def halted(self) -> bool:

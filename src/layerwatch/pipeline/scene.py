@@ -136,7 +136,8 @@ def bed_photo_pose_problem(photo: np.ndarray, camera: CameraModel, tolerance_px:
     if len(dots) < 3:
         return None
     pts = np.c_[np.asarray(camera.markers_mm, float).reshape(-1, 2), np.zeros(len(camera.markers_mm))]
-    uv = cv2.projectPoints(pts, camera.rvec, camera.tvec, camera.K, camera.dist)[0].reshape(-1, 2)
+    rvec, tvec = camera.pose
+    uv = cv2.projectPoints(pts, rvec, tvec, camera.K, camera.dist)[0].reshape(-1, 2)
     tol = tolerance_px if tolerance_px is not None else 0.015 * camera.image_size[0]
     dist = np.linalg.norm(uv[:, None, :] - dots[None, :, :], axis=2).min(axis=1)
     if np.median(dist) > tol:
@@ -235,7 +236,8 @@ class SceneObservation:
         return SceneStats(baseline=self.baseline, threshold=float(c.threshold) if c else 0.0,
                           noise=float(c.noise) if c else 0.0, blocks_scored=int(c.scored.sum()) if c else 0,
                           blocks_changed=int(c.changed.sum()) if c else 0,
-                          gain=tuple(round(float(v), 4) for v in g), ms=round(self.ms, 3))
+                          gain=(round(float(g[0]), 4), round(float(g[1]), 4), round(float(g[2]), 4)),
+                          ms=round(self.ms, 3))
 
 
 class SceneModel:
@@ -320,18 +322,20 @@ class SceneModel:
 
     def _compare(self, obs: SceneObservation, footprints: FootprintFn) -> None:
         st, E = self.settings, self.expected
+        assert E is not None, "_compare runs only with a baseline"
         first = self.body_layer + 1 if self.body_layer < obs.layer else obs.layer
-        obs.predicted = np.zeros(self.observed.shape, bool)
+        predicted = np.zeros(self.observed.shape, bool)
         ledges = self.ledges.copy()
         for j in range(first, obs.layer + 1):
             fp, z0, z1 = footprints(j)
-            band = predicted_change(fp, (z0, z1), self.maps, self.topview, st.margin_mm)
-            obs.predicted |= band
-            ledges = (ledges & ~band) | predicted_change(fp, (z1,), self.maps, self.topview, -st.margin_mm)
-        obs.body, obs.ledges = self.body | obs.predicted, ledges
+            band = predicted_change(fp, np.array([z0, z1]), self.maps, self.topview, st.margin_mm)
+            predicted |= band
+            ledges = (ledges & ~band) | predicted_change(fp, np.array([z1]), self.maps, self.topview,
+                                                         -st.margin_mm)
+        obs.predicted, obs.body, obs.ledges = predicted, self.body | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
-        usable = self.observed & ~obs.predicted & ~walls & ~_saturated(img) & ~_saturated(E)
+        usable = self.observed & ~predicted & ~walls & ~_saturated(img) & ~_saturated(E)
         if self.baseline == "bed photo" and not self._confirmed:
             shift = self._shift(img, E, usable)
             if shift is not None:
@@ -373,6 +377,7 @@ class SceneModel:
         if self.expected is None:
             self.expected, self.baseline = obs.image.copy(), "first photo"
         elif obs.body is not None:
+            assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
             back = self._in_expected_frame(obs)
             take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)
             np.copyto(self.expected, back, where=take[..., None])
@@ -387,7 +392,7 @@ class SceneModel:
     def _quiet(self, obs: SceneObservation) -> np.ndarray:
         """Working-image pixels outside ``P`` of scored blocks that did not change and do not touch a change."""
         c = obs.change
-        if c is None:
+        if c is None or obs.predicted is None:
             return np.zeros(obs.image.shape[:2], bool)
         near = cv2.dilate(c.changed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         quiet = ChangeMap(c.score, c.scored, c.scored & ~c.changed & ~near, c.threshold,
@@ -396,6 +401,7 @@ class SceneModel:
 
     @staticmethod
     def _in_expected_frame(obs: SceneObservation) -> np.ndarray:
+        assert obs.ratio is not None  # set by photometric_fit before any photo is accepted into E
         return obs.image / np.maximum(obs.ratio, 1e-3)
 
     def acknowledge(self) -> int:
@@ -409,9 +415,9 @@ class SceneModel:
         obs = self._last
         if obs is None or obs.change is None or self.expected is None:
             return 0
-        px = obs.change.pixels(obs.image.shape[:2]).astype(np.uint8)
+        blocks = obs.change.pixels(obs.image.shape[:2]).astype(np.uint8)
         b = obs.change.block_px
-        px = cv2.dilate(px, np.ones((2 * b + 1, 2 * b + 1), np.uint8)).astype(bool) & self.observed
+        px = cv2.dilate(blocks, np.ones((2 * b + 1, 2 * b + 1), np.uint8)).astype(bool) & self.observed
         self.expected[px] = self._in_expected_frame(obs)[px]
         obs.change.changed[:] = False
         return int(px.sum())

@@ -332,6 +332,7 @@ class LayerPipeline:
     def _scene_result(self, res: LayerResult, obs: SceneObservation, photo: np.ndarray, z: float,
                       valid: np.ndarray) -> None:
         """The scene channel's outside anomaly into ``res``, then ``E`` takes the layer (analysed photos only)."""
+        assert self.scene is not None  # only called when the scene channel produced ``obs``
         t = time.perf_counter()
         h, w = np.asarray(photo).shape[:2]
         self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)

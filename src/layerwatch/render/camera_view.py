@@ -69,6 +69,27 @@ def wall_light(facing, z, layer_h, wall_value, wall_ambient, line_contrast):
     return wall_value * (wall_ambient + (1.0 - wall_ambient) * facing) * (1.0 - line_contrast * lines)
 
 
+@njit(cache=True, inline="always")
+def _wall_facing(height, xi, yi, du, dv, L):
+    """Cosine between the wall normal at pixel ``(xi, yi)`` and the top-view direction ``(du, dv) / L`` to it.
+
+    The normal is the central-difference gradient of ``height``; a flat
+    neighbourhood (no gradient) counts as facing the camera squarely (1).
+    """
+    H, W = height.shape
+    xm = max(xi - 1, 0)
+    xp = min(xi + 1, W - 1)
+    ym = max(yi - 1, 0)
+    yp = min(yi + 1, H - 1)
+    gx = height[yi, xp] - height[yi, xm]
+    gy = height[yp, xi] - height[ym, xi]
+    g = math.sqrt(gx * gx + gy * gy)
+    facing = 1.0
+    if g > 1e-9:
+        facing = max((gx * du + gy * dv) / (g * L), 0.0)
+    return facing
+
+
 @njit(cache=True)
 def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wall_value, wall_ambient,
            line_contrast, layer_h, out, hit_z):
@@ -122,16 +143,7 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
                     if k > 0 and h - zz > 1.5 * dz:
                         # entered the column through its side: a wall facing the camera,
                         # lit as seen from the camera (cosine of its normal to the view)
-                        xm = max(xi - 1, 0)
-                        xp = min(xi + 1, W - 1)
-                        ym = max(yi - 1, 0)
-                        yp = min(yi + 1, H - 1)
-                        gx = height[yi, xp] - height[yi, xm]
-                        gy = height[yp, xi] - height[ym, xi]
-                        g = math.sqrt(gx * gx + gy * gy)
-                        facing = 1.0
-                        if g > 1e-9:
-                            facing = max((gx * du + gy * dv) / (g * L), 0.0)
+                        facing = _wall_facing(height, xi, yi, du, dv, L)
                         val = wall_light(facing, zz, layer_h, wall_value, wall_ambient, line_contrast)
                         hz = zz
                     else:

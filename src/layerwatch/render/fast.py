@@ -250,7 +250,7 @@ class StackRenderer:
         s = self.settings
         lh = lh if lh > 0 and np.isfinite(lh) else 0.2
         light = np.empty(self.topview.shape, np.float32)
-        surf = self.height
+        surf: np.ndarray = self.height
         if s.smooth_px > 0:
             surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
         shade_height(
@@ -270,7 +270,7 @@ class StackRenderer:
             occl = np.minimum((top - self.height) * np.float32(1.0 / lh), 1.0)
             light *= 1.0 - np.float32(s.cavity) * occl
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
-        img = albedo * light
+        img: np.ndarray = albedo * light
         if camera_center_mm is not None:
             img = self._camera_view(img, camera_center_mm, z, lh)
         if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
@@ -330,10 +330,11 @@ def render_layer(
     with _LOCK:
         ref = _LAST.get("toolpath")
         renderer = _LAST.get("renderer")
-        if ref is None or ref() is not toolpath or _LAST.get("key") != key:
+        if (not isinstance(ref, weakref.ref) or ref() is not toolpath or _LAST.get("key") != key
+                or not isinstance(renderer, StackRenderer)):
             renderer = StackRenderer(toolpath, topview, settings)
             _LAST.update(toolpath=weakref.ref(toolpath), key=key, renderer=renderer)
-        return renderer.render(index)  # type: ignore[union-attr]
+        return renderer.render(index)
 
 
 def render_stack(

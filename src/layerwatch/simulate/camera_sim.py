@@ -101,7 +101,7 @@ class PrintSimulator:
         toolpath: Toolpath,
         camera: CameraModel,
         topview: TopView,
-        failures: Sequence[fl.Failure] = (),
+        failures: Sequence[fl.Failure] | fl.Scenario = (),
         seed: int = 0,
         settings: SimSettings | None = None,
     ) -> None:
@@ -151,6 +151,7 @@ class PrintSimulator:
         removed = {}
         for k, rf in enumerate(self.failures):
             if rf.type in ("infill_defect", "thin_wall") and rf.failure.active(i):
+                assert rf.select is not None  # resolve() selects segments for these types
                 sel = rf.select[sl]
                 ti, to = _clip_disc(p0, p1, rf.center, rf.failure.size_mm / 2)
                 hit = sel & (to > ti) & (scale > 0.99)
@@ -264,8 +265,7 @@ class PrintSimulator:
         H, W = out.shape
         ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
         out[uv[ok, 1], uv[ok, 0]] = 1
-        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
-        return out.astype(bool)
+        return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(bool)
 
     def _rest_height(self, h: np.ndarray, rows: np.ndarray) -> float:
         """Highest surface point under the capsules' bounding box, mm."""
@@ -318,8 +318,8 @@ class PrintSimulator:
                     moved = solid_area(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
                 else:
                     h, mat, gap = self._detach(rf, h, mat, gap)
-                    moved = solid_area(*(self._seen_detached(rf, p, lay.z) for p in nominal[:2]),
-                                       nominal[2], tv)
+                    start, end = (self._seen_detached(rf, p, lay.z) for p in nominal[:2])
+                    moved = solid_area(start, end, nominal[2], tv)
                 truth |= fp ^ moved
         if self.has_fixed:  # the skirt stays on the bed whatever the part does
             top = self.hf > h
@@ -332,6 +332,8 @@ class PrintSimulator:
                 a0, a1, w = self.layer_segments(index)[4][k]
                 truth |= capsule_mask(a0, a1, w / 2.0, tv)
             elif f.type in ("foreign_body", "spaghetti"):
+                # resolve() builds the capsules and their materials for these types
+                assert rf.capsules is not None and rf.capsule_mat is not None
                 rows = rf.capsules.copy()
                 if f.type == "foreign_body":  # rests on the highest point under it
                     rows[:, 5] = self._rest_height(h, rows)

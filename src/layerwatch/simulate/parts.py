@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from layerwatch.errors import ConfigError
@@ -283,7 +285,10 @@ def blocks_part(
         raise ConfigError("blocks_part needs blocks (x0, y0, x1, y1, z0, z1) with x0 < x1, y0 < y1, 0 <= z0 < z1 "
                           "and a positive layer height and width.")
     cx, cy = center
-    starts, ends, zs, feats = [], [], [], []
+    starts: list[Any] = []
+    ends: list[Any] = []
+    zs: list[float] = []
+    feats: list[int] = []
     n_layers = int(round(bl[:, 5].max() / layer_h))
     for k in range(n_layers):
         z = round((k + 1) * layer_h, 6)

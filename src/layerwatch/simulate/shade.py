@@ -79,6 +79,80 @@ def _solid_at(h, gap, v, u, z, z_prev):
     return not (lo < z < hi and z_prev < hi)
 
 
+@njit(cache=True, inline="always")
+def _clip_to_bbox(C, d0, d1, ta, tb, bbox):
+    """Clip the ray interval ``[ta, tb]`` to the x and y slabs of ``bbox``: ``(ok, ta, tb)``.
+
+    ``ok`` is false when the ray runs parallel to a slab outside it.
+    """
+    ok = True
+    for ax in range(2):
+        o = C[ax]
+        dd = d0 if ax == 0 else d1
+        lo, hi = bbox[ax], bbox[ax + 2]
+        if abs(dd) < 1e-12:
+            if o < lo or o > hi:
+                ok = False
+        else:
+            t1, t2 = (lo - o) / dd, (hi - o) / dd
+            if t1 > t2:
+                t1, t2 = t2, t1
+            ta = max(ta, t1)
+            tb = min(tb, t2)
+    return ok, ta, tb
+
+
+@njit(cache=True, inline="always")
+def _part_surface(m, wall, gv, gu, d0, d1, pz, nrm, wn, albedo, layer_h, alb):
+    """Albedo (into ``alb``, 3) and unit normal ``(nx, ny, nz)`` of the part where a ray hit cell ``(gv, gu)``.
+
+    A wall takes the smoothed horizontal gradient ``wn`` as its normal (the
+    reversed ray where that is too weak) and, for the part material
+    (``m == 1``), layer lines of period ``layer_h`` mm in height ``pz``.
+    """
+    for c in range(3):
+        alb[c] = albedo[m, c]
+    if not wall:
+        return nrm[gv, gu, 0], nrm[gv, gu, 1], nrm[gv, gu, 2]
+    nx, ny = wn[gv, gu, 0], wn[gv, gu, 1]
+    nn = np.sqrt(nx * nx + ny * ny)
+    if nn < 0.2:
+        nx, ny, nn = -d0, -d1, np.sqrt(d0 * d0 + d1 * d1)
+    if m == 1 and layer_h > 0:
+        lw = 1.0 + 0.12 * np.cos(2.0 * np.pi * pz / layer_h)
+        for c in range(3):
+            alb[c] *= lw
+    return nx / nn, ny / nn, 0.0
+
+
+@njit(cache=True, inline="always")
+def _shade(C, px, py, pz, nx, ny, nz, occ, ks, shin, alb, light, out, i, j):
+    """Blinn-Phong radiance of the point ``(px, py, pz)`` mm seen from the camera at ``C`` into ``out[i, j]``.
+
+    Spot light (``light[0:3]`` position, ``light[3:6]`` axis, cone cosines
+    ``light[6:8]``, intensity ``light[8]`` at distance ``light[11]``) plus an
+    ambient (``light[9]``) and an overhead fill (``light[10]``), both darkened
+    by the occlusion ``occ``; ``ks``, ``shin``: specular weight and exponent.
+    """
+    lx, ly, lz = light[0] - px, light[1] - py, light[2] - pz
+    dist = np.sqrt(lx * lx + ly * ly + lz * lz)
+    lx, ly, lz = lx / dist, ly / dist, lz / dist
+    vx, vy, vz = C[0] - px, C[1] - py, C[2] - pz
+    vn = np.sqrt(vx * vx + vy * vy + vz * vz)
+    vx, vy, vz = vx / vn, vy / vn, vz / vn
+    hx, hy, hz = lx + vx, ly + vy, lz + vz
+    hn = np.sqrt(hx * hx + hy * hy + hz * hz)
+    ndl = max(nx * lx + ny * ly + nz * lz, 0.0)
+    ndh = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
+    cosang = -(lx * light[3] + ly * light[4] + lz * light[5])
+    spot = min(max((cosang - light[7]) / (light[6] - light[7]), 0.0), 1.0)
+    inten = light[8] * spot * (light[11] / dist) ** 2
+    amb = light[9] * occ + light[10] * max(nz, 0.0) * occ
+    sp = ks * ndh**shin * inten * (1.0 if ndl > 0 else 0.0)
+    for c in range(3):
+        out[i, j, c] = alb[c] * (amb + ndl * inten * (0.55 + 0.45 * occ)) + sp
+
+
 @njit(cache=True)
 def render_view(
     dirs, C, h, mat, gap, nrm, wn, ao, s, ux0, vy0, zmax, bbox,
@@ -110,35 +184,16 @@ def render_view(
                     out[i, j, c] = bg_rgb[c] * light[9]
                 continue
             t_bed = C[2] / (-d2)
-            hit = False
-            wall = False
+            hit = wall = False
             px = py = pz = 0.0
             gu = gv = -1
             if zmax > 0.0:
-                ta = (C[2] - zmax) / (-d2)
-                tb = t_bed
-                # clip [ta, tb] to the bbox slab in x and y
-                ok = True
-                for ax in range(2):
-                    o = C[ax]
-                    dd = d0 if ax == 0 else d1
-                    lo, hi = bbox[ax], bbox[ax + 2]
-                    if abs(dd) < 1e-12:
-                        if o < lo or o > hi:
-                            ok = False
-                    else:
-                        t1, t2 = (lo - o) / dd, (hi - o) / dd
-                        if t1 > t2:
-                            t1, t2 = t2, t1
-                        ta = max(ta, t1)
-                        tb = min(tb, t2)
+                ok, ta, tb = _clip_to_bbox(C, d0, d1, (C[2] - zmax) / (-d2), t_bed, bbox)
                 if ok and ta <= tb:
                     hs = np.sqrt(d0 * d0 + d1 * d1)
                     dt = step_cells / (s * max(hs, 1e-3))
-                    t = ta
-                    f_prev = 1e9
-                    t_prev = ta
-                    z_prev = 1e9
+                    t = t_prev = ta
+                    f_prev = z_prev = 1e9
                     while t <= tb + dt:
                         tt = min(t, tb)
                         x, y, z = C[0] + tt * d0, C[1] + tt * d1, C[2] + tt * d2
@@ -165,20 +220,7 @@ def render_view(
                         t += dt
             if hit:
                 m = mat[gv, gu]
-                for c in range(3):
-                    alb[c] = albedo[m, c]
-                if wall:
-                    nx, ny = wn[gv, gu, 0], wn[gv, gu, 1]
-                    nn = np.sqrt(nx * nx + ny * ny)
-                    if nn < 0.2:
-                        nx, ny, nn = -d0, -d1, np.sqrt(d0 * d0 + d1 * d1)
-                    nx, ny, nz = nx / nn, ny / nn, 0.0
-                    if m == 1 and layer_h > 0:
-                        lw = 1.0 + 0.12 * np.cos(2.0 * np.pi * pz / layer_h)
-                        for c in range(3):
-                            alb[c] *= lw
-                else:
-                    nx, ny, nz = nrm[gv, gu, 0], nrm[gv, gu, 1], nrm[gv, gu, 2]
+                nx, ny, nz = _part_surface(m, wall, gv, gu, d0, d1, pz, nrm, wn, albedo, layer_h, alb)
                 occ = ao[gv, gu]
                 ks, shin = spec[m, 0], spec[m, 1]
             else:
@@ -190,23 +232,7 @@ def render_view(
                 v = int(vy0 - s * py + 0.5)
                 occ = ao[v, u] if (0 <= u < Wg and 0 <= v < Hg) else 1.0
                 ks, shin = spec[0, 0], spec[0, 1]
-            lx, ly, lz = light[0] - px, light[1] - py, light[2] - pz
-            dist = np.sqrt(lx * lx + ly * ly + lz * lz)
-            lx, ly, lz = lx / dist, ly / dist, lz / dist
-            vx, vy, vz = C[0] - px, C[1] - py, C[2] - pz
-            vn = np.sqrt(vx * vx + vy * vy + vz * vz)
-            vx, vy, vz = vx / vn, vy / vn, vz / vn
-            hx, hy, hz = lx + vx, ly + vy, lz + vz
-            hn = np.sqrt(hx * hx + hy * hy + hz * hz)
-            ndl = max(nx * lx + ny * ly + nz * lz, 0.0)
-            ndh = max((nx * hx + ny * hy + nz * hz) / hn, 0.0)
-            cosang = -(lx * light[3] + ly * light[4] + lz * light[5])
-            spot = min(max((cosang - light[7]) / (light[6] - light[7]), 0.0), 1.0)
-            inten = light[8] * spot * (light[11] / dist) ** 2
-            amb = light[9] * occ + light[10] * max(nz, 0.0) * occ
-            sp = ks * ndh**shin * inten * (1.0 if ndl > 0 else 0.0)
-            for c in range(3):
-                out[i, j, c] = alb[c] * (amb + ndl * inten * (0.55 + 0.45 * occ)) + sp
+            _shade(C, px, py, pz, nx, ny, nz, occ, ks, shin, alb, light, out, i, j)
 
 
 @njit(cache=True)

@@ -18,6 +18,8 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import httpx
+
 from layerwatch.errors import PrinterError
 from layerwatch.monitor.printers.replies import MAX_REPLY_BYTES, read_capped
 
@@ -135,8 +137,6 @@ def http_request(http: httpx.Client, method: str, path: str, *, printer: str, cr
         over ``max_bytes``, refused credentials, or any status >= 400 (with the
         server's own message, never its traceback).
     """
-    import httpx
-
     base = str(http.base_url).rstrip("/")
     where = f"{printer} {method} {path}"
     try:

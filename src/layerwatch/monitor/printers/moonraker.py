@@ -20,6 +20,9 @@ from collections.abc import Iterable
 from typing import Any
 from urllib.parse import urlsplit
 
+import httpx
+from websockets.sync.client import connect
+
 from layerwatch.errors import LayerwatchError, PrinterError
 from layerwatch.gcode.klipper_macros import ack_script
 from layerwatch.monitor.printers.base import (
@@ -134,8 +137,6 @@ class MoonrakerPrinter(Printer):
     name = "moonraker"
 
     def __init__(self, url: str, api_key: str | None = None, *, timeout_s: float = 5.0, push: bool = True) -> None:
-        import httpx
-
         super().__init__()
         bare, url_key = split_url_key(url)
         parts = urlsplit(bare)
@@ -266,8 +267,6 @@ class MoonrakerPrinter(Printer):
         return self._ws_ready.wait(timeout)
 
     def _ws_loop(self) -> None:
-        from websockets.sync.client import connect
-
         backoff = WS_RETRY_S[0]
         while not self._stop.is_set():
             try:

@@ -17,6 +17,9 @@ from collections.abc import Iterable
 from typing import Any
 from urllib.parse import urlsplit
 
+import httpx
+from websockets.sync.client import connect
+
 from layerwatch.errors import PrinterError
 from layerwatch.monitor.printers.base import (
     WS_MAX_FRAME_BYTES,
@@ -105,8 +108,6 @@ class OctoPrintPrinter(Printer):
     name = "octoprint"
 
     def __init__(self, url: str, api_key: str | None = None, *, timeout_s: float = 5.0, push: bool = True) -> None:
-        import httpx
-
         super().__init__()
         bare, url_key = split_url_key(url)
         parts = urlsplit(bare)
@@ -158,8 +159,6 @@ class OctoPrintPrinter(Printer):
 
     # -- push ----------------------------------------------------------------
     def _ws_loop(self) -> None:
-        from websockets.sync.client import connect
-
         backoff = WS_RETRY_S[0]
         ws_url = "ws" + self.base[4:] + "/sockjs/websocket"
         while not self._stop.is_set():

@@ -16,7 +16,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 from layerwatch.errors import PrinterError
 
@@ -118,6 +118,10 @@ def field(obj: Any, key: str, kinds: type | tuple[type, ...], where: str, *, opt
     return value
 
 
+@overload
+def text_field(obj: Any, key: str, where: str, *, optional: Literal[False]) -> str: ...
+@overload
+def text_field(obj: Any, key: str, where: str, *, optional: bool = True) -> str | None: ...
 def text_field(obj: Any, key: str, where: str, *, optional: bool = True) -> str | None:
     """A string field (see :func:`field`)."""
     return field(obj, key, str, where, optional=optional)
