@@ -210,10 +210,11 @@ class WorkerPool:
         if not alive:
             raise RuntimeError("the Dask cluster has no worker")
         with self._pin_lock:
-            worker = self._pinned.get(key)
-            if worker not in alive:
-                worker = alive[zlib.crc32(key.encode()) % len(alive)]
-                self._pinned[key] = worker
+            pinned = self._pinned.get(key)
+            if pinned is not None and pinned in alive:
+                return pinned
+            worker: str = alive[zlib.crc32(key.encode()) % len(alive)]
+            self._pinned[key] = worker
             return worker
 
     def close(self) -> None:
