@@ -44,6 +44,7 @@ from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import PrinterStatus, parse_trigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
+from layerwatch.monitor.service import CAMERA_FAULT
 from layerwatch.pipeline.config import JobConfig, observed_square, resolve_config
 from layerwatch.pipeline.policy import PausePolicy
 
@@ -167,7 +168,9 @@ class Station:
         """A layer was recorded (called by the monitor's lane)."""
         with self._lock:
             self._card["layer"] = res.layer
-            if res.status == "error":
+            if res.status == CAMERA_FAULT:  # the camera failed or its frame was unusable (never a pause)
+                self._card.update(state="error", message=f"camera: {res.message}")
+            elif res.status == "error":
                 kind = "camera" if res.photo_ms is None else "analysis"  # no photo: the camera failed
                 self._card.update(state="error", message=f"{kind}: {res.message}")
             elif self._card["state"] == "error":
