@@ -193,7 +193,7 @@ def check_topview(cwd: Path, out: str) -> None:
 def check_example(cwd: Path, out: str) -> None:
     assert (cwd / "part.gcode").is_file()
     assert re.search(r"layers\W+33\b", out)
-    assert re.search(r"bounds X \(mm\)\W+83\.46 \.\. 136\.54", out) and re.search(r"bounds Y \(mm\)\W+73\.46 \.\. 126\.54", out)
+    assert re.search(r"layers\W+33\b", out) and re.search(r"part bounds \(mm\)\W+90\.22, 80\.22, 129\.78, 119\.78", out)
 
 
 def _prepare_knows_the_bed() -> bool:
