@@ -288,7 +288,7 @@ def test_moonraker_jobs_are_picked_up_analysed_parked_and_old_images_pruned(stac
             warnings.simplefilter("ignore")
             from fastapi.testclient import TestClient
 
-        client = TestClient(create_app(svc.history, image_root=tmp_path))
+        client = TestClient(create_app(svc.history, image_root=tmp_path), base_url="http://127.0.0.1")  # a loopback Host
         rel = svc.history.latest_layer(second["id"]).images["overlay"]
         got = client.get("/api/image/" + rel)
         assert got.status_code == 200 and got.content == (tmp_path / rel).read_bytes()

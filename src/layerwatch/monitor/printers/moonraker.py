@@ -211,14 +211,20 @@ class MoonrakerPrinter(Printer):
         between two of the hold's short ``LAYERWATCH_WAIT`` steps. Without the macros in printer.cfg
         nothing is sent (the macro's presence is asked once); a failure is logged, never raised."""
         try:
-            if self._hold_macro is None:
+            if self._hold_macro is None:  # the hold macro of `layerwatch klipper-config`, with its `taken` variable
                 objects = field(self._req("GET", "/printer/objects/list"), "objects", list, "Moonraker objects")
-                self._hold_macro = HOLD_MACRO_OBJECT in objects
+                self._hold_macro = HOLD_MACRO_OBJECT in objects and "taken" in self._macro_variables()
             if self._hold_macro:
                 self.send_gcode(ack_script(trigger.layer))
         except LayerwatchError as exc:
             log.warning("could not end the hold of layer %d (the print goes on after its time-out): %s",
                         trigger.layer, exc)
+
+    def _macro_variables(self) -> dict[str, Any]:
+        """The variables of the hold macro (``variable_*`` in printer.cfg), as Klippy reports them."""
+        status = field(self._req("GET", "/printer/objects/query", params={HOLD_MACRO_OBJECT: ""}),
+                       "status", dict, "Moonraker objects/query")
+        return field(status, HOLD_MACRO_OBJECT, dict, "Moonraker objects/query")
 
     # -- JSON-RPC push ---------------------------------------------------------------
     def _merge(self, objects: dict[str, dict[str, Any]]) -> None:
