@@ -9,6 +9,7 @@ import pytest
 from layerwatch.evaluate.demo import run_demo
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("failure,onset", [("spaghetti", 15), ("layer_shift", 5)])
 def test_demo_pauses_soon_after_onset(tmp_path, failure, onset):
     res = run_demo(tmp_path / "out", layers=onset + 4, failure=failure, onset=onset, seed=1)
@@ -38,6 +39,7 @@ def test_demo_pauses_soon_after_onset(tmp_path, failure, onset):
     assert (tmp_path / "out" / "refs" / f"layer_{res.paused_at:04d}.png").is_file()
 
 
+@pytest.mark.slow
 def test_demo_cli_reports_pause(tmp_path, capsys):
     from layerwatch.cli import main
 

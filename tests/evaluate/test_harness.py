@@ -56,6 +56,7 @@ def test_score_iou_and_a_match_pixel_computation(job):
         assert a[k, j] == pytest.approx(res.anomaly_ratio, abs=1e-6)
 
 
+@pytest.mark.slow
 def test_run_evaluation_small(job, tmp_path):
     tp, cam, cfg, _ = job
     data = run_evaluation(tp, cfg, cam, n_layers=30, seed=1)
@@ -100,6 +101,7 @@ def test_run_evaluation_small(job, tmp_path):
         assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
 
 
+@pytest.mark.slow
 def test_clean_false_alarms_counts(job):
     from layerwatch.evaluate.harness import clean_false_alarms
     from layerwatch.pipeline.config import recommended_config
@@ -156,6 +158,7 @@ def test_surface_under_tells_solid_sparse_and_walls_apart():
     assert surface_under(tp, 5, np.zeros(tv.shape, bool), tv) == "none"  # beside the part
 
 
+@pytest.mark.slow
 def test_a_failure_type_the_part_cannot_take_is_reported_not_a_crash():
     """G-code without perimeters (no feature tags): no thin-wall onset exists; the run goes on without it."""
     from layerwatch.evaluate.harness import plan_frames

@@ -42,6 +42,7 @@ def test_chessboard_calibration_recovers_K(views):
     assert np.abs(a - b).max() < 2.0
 
 
+@pytest.mark.slow
 def test_too_few_usable_views_are_refused(views):
     blank = np.full((480, 640, 3), 128, np.uint8)
     with pytest.raises(CalibrationError, match="found in 2 photo"):

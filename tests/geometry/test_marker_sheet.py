@@ -104,6 +104,7 @@ def test_sheet_on_the_bed_gives_the_camera_pose(tmp_path, kind):
     assert got.errors["pose_px"] < 1.0
 
 
+@pytest.mark.slow
 def test_tiles_put_one_mark_per_page(tmp_path):
     lay = plan_layout((350, 350), side_mm=250)
     with pytest.raises(ConfigError, match="--tiles"):

@@ -132,6 +132,7 @@ def _check_fault_run(rep, pipe, rec, events):
     assert rep.camera_faults == len(FAULTY)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", list(CAMERA_FAULTS))
 def test_camera_faults_are_recorded_alerted_and_never_pause(kind):
     _check_fault_run(*_watch(CAMERA_FAULTS[kind], gate=False))

@@ -6,6 +6,7 @@ from layerwatch.errors import ConfigError, PrinterError
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
 
 
+@pytest.mark.slow
 def test_cli_virtual_sim_pauses_on_injected_failure(tmp_path):
     r = CliRunner().invoke(app, ["monitor", "--printer", "virtual", "--camera", "sim", "--failure", "spaghetti",
                                  "--onset", "15", "--history", str(tmp_path / "h.db")])

@@ -149,6 +149,7 @@ def _check(name, kinds, report, recovery, events):
 FAST_KINDS = ["html_200", "truncated_json", "nan_numbers", "timeout"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["octoprint", "moonraker"])
 def test_monitor_survives_a_few_host_faults(name):
     report, recovery, events, status = _run_faults(name, FAST_KINDS, refused=True)

@@ -80,6 +80,7 @@ def print_and_wait(stack, name: str, host: bool) -> list[int]:
     return acked
 
 
+@pytest.mark.slow
 def test_dead_host_runs_the_hold_out_and_a_live_host_ends_it(stack):
     print_and_wait(stack, "no_host.gcode", host=False)
     st = macro_state(stack)

@@ -61,6 +61,7 @@ def _monitor(tmp_path, gcode, db, *extra):
     return r.output, JobConfig.model_validate(job["config"])
 
 
+@pytest.mark.slow
 def test_saved_dashboard_settings_reach_the_monitor_and_the_file_wins(tmp_path, gcode, caplog):
     db = tmp_path / "history.db"
     # baseline: nothing saved -> recommended settings, the injected spaghetti pauses

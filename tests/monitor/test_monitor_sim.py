@@ -39,6 +39,7 @@ def job():
     return cfg, pipe, prepared[: prepared.rfind(b"\n", 0, cut)], frames
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wait", [True, False])
 def test_failure_pauses_within_two_layers_and_clean_print_never(job, wait):
     cfg, pipe, gcode, frames = job

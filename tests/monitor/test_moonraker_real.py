@@ -105,6 +105,7 @@ def _error_of(fn):
     return None
 
 
+@pytest.mark.slow
 def test_klippy_shutdown_during_print_is_error_not_pause(stack):
     """After M112 print_stats still says "paused"; the connector must report Klippy's shutdown."""
     printer = MoonrakerPrinter(stack.url)
@@ -143,6 +144,7 @@ def _frame(layer):
     return img
 
 
+@pytest.mark.slow
 def test_monitor_pauses_a_real_moonraker_print_and_acknowledges_the_operator_resume(stack):
     printer = MoonrakerPrinter(stack.url)
     pipe = _FlagPipeline(onset=3)

@@ -91,6 +91,7 @@ def _gcode(n_layers=6):
     return ("\n".join(lines) + "\n").encode()
 
 
+@pytest.mark.slow
 @pytest.mark.octoprint
 def test_real_octoprint_triggers_and_pause(octoprint):
     url, key = octoprint

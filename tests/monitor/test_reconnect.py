@@ -90,6 +90,7 @@ def test_outage_backoff_is_exponential_capped_and_resets(caplog):
     assert [r.layer for r in rep.results] == [0, 1, 2, 3] and rep.outcome == "done"
 
 
+@pytest.mark.slow
 @pytest.mark.moonraker
 def test_moonraker_restart_mid_print(tmp_path, caplog):
     require_installed()

@@ -61,6 +61,7 @@ def shots(tmp_path):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_dashboard_buttons_and_screenshots(server, printer, shots):
     sync_api = pytest.importorskip("playwright.sync_api")
     # the event log updates over SSE (1 s poll); a loaded CI machine needs more than the 5 s default
