@@ -1,7 +1,6 @@
 """End-to-end: virtual printer + simulated 1080p camera + the real LayerPipeline + PausePolicy."""
 
 import dataclasses
-import logging
 
 import pytest
 
@@ -21,7 +20,6 @@ def job():
     from layerwatch.pipeline.step import LayerPipeline
     from layerwatch.simulate import Failure, PrintSimulator, default_camera
 
-    logging.getLogger("layerwatch.render").setLevel(logging.ERROR)
     cfg = recommended_config(PART_CONFIG)
     tv = cfg.topview.topview()
     data = PART_GCODE.read_bytes()

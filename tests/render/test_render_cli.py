@@ -6,8 +6,8 @@ import cv2
 import pytest
 from render_parts import square_part
 
-import layerwatch.gcode as gcode_pkg
 from layerwatch.cli import main
+from layerwatch.cli import render as render_cli
 from layerwatch.cli.render import parse_layers
 from layerwatch.errors import RenderError
 
@@ -29,7 +29,7 @@ def test_parse_layers():
 def fake_reader(monkeypatch):
     """Stand-in for the G-code reader: a synthetic square part centred at X110 Y100."""
     part = square_part(4, center=(110.0, 100.0), size=20.0)
-    monkeypatch.setattr(gcode_pkg, "read_toolpath", lambda src, **kw: part, raising=False)
+    monkeypatch.setattr(render_cli, "read_toolpath", lambda src, **kw: part)  # the name the verb module uses
     return part
 
 
