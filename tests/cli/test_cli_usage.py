@@ -212,6 +212,7 @@ def _script() -> str | None:
     return str(beside) if beside.is_file() else shutil.which("layerwatch")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_script() is None, reason="the layerwatch script is not installed")
 @pytest.mark.parametrize("argv", [["--version"], ["renderr"], ["gcode", "prepare", EX, "--every", "nan"], []])
 def test_python_m_and_the_script_behave_the_same(argv):

@@ -80,6 +80,7 @@ def test_scale_bar_is_100_mm(tmp_path):
     assert wide[0][cv2.CC_STAT_WIDTH] / PPM == pytest.approx(SCALE_BAR_MM + 0.3, abs=0.2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["dots", "aruco"])
 def test_sheet_on_the_bed_gives_the_camera_pose(tmp_path, kind):
     """Print (PNG), lay it on a dark bed, photograph at ~45 deg: calibrate's locate_bed recovers the pose."""

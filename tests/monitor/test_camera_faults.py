@@ -181,6 +181,7 @@ class HoldingPrinter(VirtualPrinter):
         self.released.append(trigger.layer)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["CameraError", "None"])
 def test_every_hold_is_released_after_the_photo_also_when_the_camera_fails(kind):
     frames = lambda layer: CAMERA_FAULTS[kind](layer) if layer in FAULTY else _good(layer)  # noqa: E731

@@ -319,6 +319,7 @@ class _Pipe:
         pytest.fail("a frame taken off the park spot must not be analysed")
 
 
+@pytest.mark.slow
 @pytest.mark.moonraker
 def test_frames_taken_off_the_park_spot_are_rejected_and_recorded(stack, tmp_path):
     printer = MoonrakerPrinter(stack.url, push=False)

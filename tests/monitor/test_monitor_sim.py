@@ -54,6 +54,7 @@ def test_failure_pauses_within_two_layers_and_clean_print_never(job, wait):
     assert rep2.pauses == 0 and len(rep2.results) == 20 and vp2.status().state == "finished"
 
 
+@pytest.mark.slow
 def test_pause_alert_carries_the_overlay_of_the_failing_layer(job):
     cfg, pipe, gcode, frames = job
 

@@ -36,6 +36,7 @@ def stack(tmp_path_factory):
         s.stop()
 
 
+@pytest.mark.slow
 def test_real_moonraker_triggers_status_pause_resume_cancel(stack):
     info = MoonrakerPrinter(stack.url, push=False)
     try:
@@ -80,6 +81,7 @@ def test_real_moonraker_triggers_status_pause_resume_cancel(stack):
         printer.close()
 
 
+@pytest.mark.slow
 def test_klippy_restart_is_a_clear_error_then_triggers_flow_again(stack):
     printer = MoonrakerPrinter(stack.url)
     try:

@@ -25,6 +25,7 @@ def example(example_gcode):
     return tp, tv, default_camera(tv, image_size=(640, 360))
 
 
+@pytest.mark.slow
 def test_example_has_thin_walls_and_every_failure_shows(example):
     tp, tv, cam = example
     assert any(thin_wall_segments(tp, i).sum() >= 3 for i in range(10, tp.n_layers))

@@ -115,6 +115,7 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
             browser.close()
 
 
+@pytest.mark.slow
 def test_settings_validated_in_browser(server):
     sync_api = pytest.importorskip("playwright.sync_api")
     url, _, _ = server
@@ -136,6 +137,7 @@ def test_settings_validated_in_browser(server):
             browser.close()
 
 
+@pytest.mark.slow
 def test_report_renders_in_browser(seeded, shots, tmp_path):
     sync_api = pytest.importorskip("playwright.sync_api")
     from layerwatch.web.report import build_report
@@ -164,6 +166,7 @@ ATTACK = """<!doctype html><html><body>
 </script></body></html>"""
 
 
+@pytest.mark.slow
 def test_cross_site_page_cannot_press_the_buttons(server, printer):
     """A page on another site, open in the same browser as the dashboard, posts to it: nothing changes."""
     sync_api = pytest.importorskip("playwright.sync_api")
@@ -187,6 +190,7 @@ def test_cross_site_page_cannot_press_the_buttons(server, printer):
             browser.close()
 
 
+@pytest.mark.slow
 def test_pause_switch_and_audit_log_in_browser(server, printer):
     sync_api = pytest.importorskip("playwright.sync_api")
     sync_api.expect.set_options(timeout=20_000)

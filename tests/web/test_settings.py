@@ -106,6 +106,7 @@ def test_stale_saved_settings_fall_back_to_defaults(tmp_path):
     h.close()
 
 
+@pytest.mark.slow
 def test_settings_survive_restarting_layerwatch_serve(tmp_path):
     """The real CLI server process, stopped and started again on the same database file."""
     import socket
