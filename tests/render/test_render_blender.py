@@ -10,6 +10,7 @@ from render_parts import square_part
 
 from layerwatch.errors import RenderError
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.backend import render_cached
 from layerwatch.render.blender import MissingBlenderError, bead_mesh, render_layer_blender
 from layerwatch.render.cache import ReferenceCache
 from layerwatch.render.settings import RenderSettings
@@ -57,5 +58,5 @@ def test_blender_timeout_leaves_no_cache_entry(tmp_path):
     cache = ReferenceCache(tmp_path)
     s = RenderSettings(backend="blender", blender_samples=4, blender_timeout_s=0.05)
     with pytest.raises(RenderError, match="did not finish"):
-        cache.render_layer(part, 0, TV, s)
+        render_cached(cache, part, 0, TV, s)
     assert not [p for p in tmp_path.rglob("*") if p.is_file()]
