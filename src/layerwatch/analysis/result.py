@@ -44,6 +44,16 @@ class Region:
     outside_fraction : float
         Share of the region outside the layer's footprint (material where
         none should be: spaghetti, detachment, foreign body), in [0, 1].
+    kind : str
+        What failed there, one of
+        :data:`~layerwatch.analysis.failure_kinds.FAILURE_KINDS`; ``""``
+        when the region was not typed.
+    kind_confidence : float
+        Confidence of ``kind``, in [0, 1] (0 when not typed).
+    displacement_mm : tuple of float or None
+        ``(dx, dy)`` in bed mm for a layer shift or a moved/detached part
+        (registration of the printed part against the reference); ``None``
+        otherwise.
     """
 
     area_mm2: float
@@ -53,6 +63,9 @@ class Region:
     mean_similarity: float
     min_similarity: float = 0.0
     outside_fraction: float = 0.0
+    kind: str = ""
+    kind_confidence: float = 0.0
+    displacement_mm: tuple[float, float] | None = None
 
 
 @dataclass
@@ -139,6 +152,10 @@ def _region(r: dict[str, Any]) -> Region:
         mean_similarity=float(r["mean_similarity"]),
         min_similarity=float(r.get("min_similarity", 0.0)),
         outside_fraction=float(r.get("outside_fraction", 0.0)),
+        kind=str(r.get("kind") or ""),
+        kind_confidence=float(r.get("kind_confidence") or 0.0),
+        displacement_mm=None if r.get("displacement_mm") is None else (
+            float(r["displacement_mm"][0]), float(r["displacement_mm"][1])),
     )
 
 
