@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from layerwatch.geometry.topview import TopView
-from layerwatch.render.camera_view import view_from_camera
+from layerwatch.render.camera_view import WallLook, view_from_camera
 
 TV = TopView(10.0, 40.0, 40.0, (0.0, 0.0))  # 10 px/mm, 400 x 400 px, bed (-20..20) mm
 
@@ -24,7 +24,7 @@ def test_wall_band_in_front_of_the_box_and_bed_behind_it():
     height, shaded, (u0, u1, v0, v1) = _box_scene(h)
     # camera in front of the printer (-Y), 45 deg: 100 mm back, 100 mm up (plus the box height)
     cam = np.array([0.0, -100.0, 100.0 + h])
-    img, hit = view_from_camera(height, shaded, cam, TV, h, wall_value=0.5, wall_line_contrast=0.0)
+    img, hit = view_from_camera(height, shaded, cam, TV, h, look=WallLook(wall_value=0.5, wall_line_contrast=0.0))
     u = (u0 + u1) // 2
     # top of the box: seen where it is
     assert img[(v0 + v1) // 2, u] == pytest.approx(1.0)
@@ -77,9 +77,9 @@ def test_a_ray_stopped_by_the_depth_limit_shows_what_lies_under_it_there():
     shaded = np.repeat(rows / TV.shape[0], TV.shape[1], axis=1)  # brightness = row / H
     cam = np.array([0.0, -100.0, 110.0])  # 45 deg onto the plane z = 10 at the centre
     v, u = TV.shape[0] // 2, TV.shape[1] // 2
-    deep, _ = view_from_camera(height, shaded, cam, TV, 10.0, max_depth_mm=30.0)
+    deep, _ = view_from_camera(height, shaded, cam, TV, 10.0, look=WallLook(max_depth_mm=30.0))
     # reaches the bed 10 mm further from the camera (+Y = 100 rows up)
     assert deep[v, u] == pytest.approx((v - 100) / TV.shape[0], abs=3 / TV.shape[0])
-    short, _ = view_from_camera(height, shaded, cam, TV, 10.0, max_depth_mm=2.0)
+    short, _ = view_from_camera(height, shaded, cam, TV, 10.0, look=WallLook(max_depth_mm=2.0))
     # stopped at least 2 mm down: at least 20 rows away from the start, short of the bed
     assert (v - 100) / TV.shape[0] < short[v, u] <= (v - 19) / TV.shape[0]

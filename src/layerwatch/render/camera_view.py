@@ -27,6 +27,7 @@ whose rays are followed here).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -34,7 +35,7 @@ from numba import njit
 
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["SKIP_PX", "bilinear", "ray_setup", "skip_map", "view_from_camera", "wall_light"]
+__all__ = ["DEFAULT_LOOK", "SKIP_PX", "WallLook", "bilinear", "ray_setup", "skip_map", "view_from_camera", "wall_light"]
 
 #: half-side (px) of the square over which :func:`skip_map` takes the maximum height
 SKIP_PX = 8
@@ -167,6 +168,44 @@ def _march(height, hmax, skip_px, shaded, cu, cv, cz, z, step_px, max_steps, wal
             hit_z[v, u] = hz
 
 
+@dataclass(frozen=True)
+class WallLook:
+    """How the camera-view ray march draws walls, and how far it follows a ray.
+
+    Shared by :func:`view_from_camera` and
+    :func:`~layerwatch.render.volume.view_through_volume`.
+
+    Attributes
+    ----------
+    layer_height_mm : float
+        Period of the layer lines drawn on walls, mm.
+    wall_value : float
+        Brightness (0-1) of a wall facing the camera squarely.
+    wall_line_contrast : float
+        Depth of the layer lines on walls, fraction of ``wall_value``.
+    wall_ambient : float
+        Share of ``wall_value`` a wall keeps whatever its orientation; the rest
+        falls with the cosine between its normal and the direction to the
+        camera (a light at the camera, as a ring light round the lens).
+    step_px : float
+        Horizontal step of the ray march, top-view pixels.
+    max_depth_mm : float
+        A ray that has descended this far below ``z`` without a hit shows
+        what lies under it there (tall parts: bounds the work per pixel).
+    """
+
+    layer_height_mm: float = 0.2
+    wall_value: float = 0.55
+    wall_line_contrast: float = 0.2
+    wall_ambient: float = 1.0
+    step_px: float = 0.75
+    max_depth_mm: float = 30.0
+
+
+#: The default :class:`WallLook`.
+DEFAULT_LOOK = WallLook()
+
+
 def view_from_camera(
     height: np.ndarray,
     shaded: np.ndarray,
@@ -174,12 +213,7 @@ def view_from_camera(
     topview: TopView,
     z: float,
     *,
-    layer_height_mm: float = 0.2,
-    wall_value: float = 0.55,
-    wall_line_contrast: float = 0.2,
-    wall_ambient: float = 1.0,
-    step_px: float = 0.75,
-    max_depth_mm: float = 30.0,
+    look: WallLook = DEFAULT_LOOK,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Resample a rendered top view along the camera's rays (see module notes).
 
@@ -195,21 +229,8 @@ def view_from_camera(
         Frame of ``height``/``shaded`` and of the result.
     z : float
         Height of the plane the photo is warped to (the layer's top), mm.
-    layer_height_mm : float
-        Period of the layer lines drawn on walls.
-    wall_value : float
-        Brightness (0-1) of a wall facing the camera squarely.
-    wall_ambient : float
-        Share of ``wall_value`` a wall keeps whatever its orientation; the rest
-        falls with the cosine between its normal and the direction to the
-        camera (a light at the camera, as a ring light round the lens).
-    wall_line_contrast : float
-        Depth of the layer lines on walls, fraction of ``wall_value``.
-    step_px : float
-        Horizontal step of the ray march, top-view pixels.
-    max_depth_mm : float
-        A ray that has descended this far below ``z`` without a hit shows
-        what lies under it there (tall parts: bounds the work per pixel).
+    look : WallLook
+        How walls look and how far rays are marched.
 
     Returns
     -------
@@ -218,15 +239,16 @@ def view_from_camera(
     hit_z : ndarray, shape (H, W), float32
         Height of the surface each ray met, mm.
     """
-    c, cu, cv, max_steps = ray_setup(center_mm, topview, z, step_px, max_depth_mm)
+    c, cu, cv, max_steps = ray_setup(center_mm, topview, z, look.step_px, look.max_depth_mm)
     h = np.ascontiguousarray(height, np.float32)
     s = np.ascontiguousarray(shaded, np.float32)
     out = np.empty_like(s)
     hit = np.empty_like(h)
     skip = SKIP_PX
     hmax = skip_map(h, skip)
-    _march(h, hmax, float(skip), s, float(cu), float(cv), float(c[2]), float(z), float(step_px), max_steps,
-           float(wall_value), float(wall_ambient), float(wall_line_contrast), float(layer_height_mm), out, hit)
+    _march(h, hmax, float(skip), s, float(cu), float(cv), float(c[2]), float(z), float(look.step_px), max_steps,
+           float(look.wall_value), float(look.wall_ambient), float(look.wall_line_contrast),
+           float(look.layer_height_mm), out, hit)
     return out, hit
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from layerwatch.errors import RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
-from layerwatch.render.camera_view import view_from_camera
+from layerwatch.render.camera_view import WallLook, view_from_camera
 from layerwatch.render.raster import (
     directional_light,
     raster_capsules,
@@ -282,13 +282,13 @@ class StackRenderer:
     def _camera_view(self, img: np.ndarray, center_mm: np.ndarray, z: float, lh: float) -> np.ndarray:
         """The shaded top view ``img`` as the camera at ``center_mm`` sees it through the plane ``Z = z``."""
         s = self.settings
-        walls = {"layer_height_mm": lh, "wall_value": s.wall_light * self._mat,
-                 "wall_line_contrast": s.wall_line_contrast, "wall_ambient": s.wall_ambient}
+        look = WallLook(layer_height_mm=lh, wall_value=s.wall_light * self._mat,
+                        wall_line_contrast=s.wall_line_contrast, wall_ambient=s.wall_ambient)
         if self.volume is None:
-            return view_from_camera(self.height, img, center_mm, self.topview, z, **walls)[0]
+            return view_from_camera(self.height, img, center_mm, self.topview, z, look=look)[0]
         return view_through_volume(
-            self.height, img, self.volume, self._bed, center_mm, self.topview, z, hidden_value=self._mat,
-            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening, **walls,
+            self.height, img, self.volume, self._bed, center_mm, self.topview, z, look=look, hidden_value=self._mat,
+            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening,
         )[0]
 
 

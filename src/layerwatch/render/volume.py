@@ -48,7 +48,15 @@ import numpy as np
 from numba import njit
 
 from layerwatch.geometry.topview import TopView
-from layerwatch.render.camera_view import SKIP_PX, bilinear, ray_setup, skip_map, wall_light
+from layerwatch.render.camera_view import (
+    DEFAULT_LOOK,
+    SKIP_PX,
+    WallLook,
+    bilinear,
+    ray_setup,
+    skip_map,
+    wall_light,
+)
 
 __all__ = ["OccupancyStack", "view_through_volume"]
 
@@ -223,15 +231,10 @@ def view_through_volume(
     topview: TopView,
     z: float,
     *,
-    layer_height_mm: float = 0.2,
-    wall_value: float = 0.55,
-    wall_line_contrast: float = 0.2,
-    wall_ambient: float = 1.0,
+    look: WallLook = DEFAULT_LOOK,
     hidden_value: float = 0.7,
     depth_scale_mm: float = 0.6,
     depth_darkening: float = 0.2,
-    step_px: float = 0.75,
-    max_depth_mm: float = 30.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The scene as the camera sees it through the plane ``Z = z``, with what lies in windows and under overhangs.
 
@@ -250,15 +253,14 @@ def view_through_volume(
     topview : TopView
     z : float
         Height of the layer plane, mm.
-    layer_height_mm, wall_value, wall_line_contrast, wall_ambient : float
-        Walls, as in :func:`~layerwatch.render.camera_view.view_from_camera`.
+    look : WallLook
+        Walls and the ray march's step and depth bound, as in
+        :func:`~layerwatch.render.camera_view.view_from_camera`.
     hidden_value : float
         Brightness (0-1) of a flat, lit top surface of the material.
     depth_scale_mm, depth_darkening : float
         A hidden top surface loses ``depth_darkening`` of its brightness at
         ``depth_scale_mm`` (or more) below ``z``, as lower layers do in the top view.
-    step_px, max_depth_mm : float
-        Ray-march step and depth bound, as in ``view_from_camera``.
 
     Returns
     -------
@@ -272,15 +274,15 @@ def view_through_volume(
     ValueError
         The camera centre is not finite or not above ``z``; ``bed`` or ``volume`` do not fit ``height``.
     """
-    c, cu, cv, max_steps = ray_setup(center_mm, topview, z, step_px, max_depth_mm)
+    c, cu, cv, max_steps = ray_setup(center_mm, topview, z, look.step_px, look.max_depth_mm)
     h = np.ascontiguousarray(height, np.float32)
     if bed.shape != h.shape or volume.shape != h.shape:
         raise ValueError(f"bed {bed.shape} and volume {volume.shape} must have the height map's shape {h.shape}")
     s = np.ascontiguousarray(shaded, np.float32)
     out = np.empty_like(s)
     hit = np.empty_like(h)
-    look = np.array([wall_value, wall_ambient, wall_line_contrast, layer_height_mm, hidden_value, depth_scale_mm,
-                     depth_darkening], np.float64)
+    shading = np.array([look.wall_value, look.wall_ambient, look.wall_line_contrast, look.layer_height_mm,
+                        hidden_value, depth_scale_mm, depth_darkening], np.float64)
     _march_volume(h, skip_map(h, SKIP_PX), float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits,
-                  volume.tops, cu, cv, float(c[2]), float(z), float(step_px), max_steps, look, out, hit)
+                  volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit)
     return out, hit
