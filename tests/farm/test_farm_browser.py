@@ -6,32 +6,18 @@ otherwise to the test's temporary folder.
 
 from __future__ import annotations
 
-import os
-import socket
-import threading
-from pathlib import Path
-
 import pytest
 
+from browser_stack import BROWSER_MARKS, launch, screenshot_dir, serve
 from layerwatch.farm import Farm, parse_farm
 from layerwatch.storage.history import History
 
-CHROMIUM = Path("/usr/bin/chromium")
-pytestmark = [
-    pytest.mark.browser, pytest.mark.slow,
-    pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian chromium (/usr/bin/chromium) is not installed"),
-    pytest.mark.filterwarnings("ignore::DeprecationWarning"),
-]
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-        "--no-first-run", "--disable-sync"]
+pytestmark = [*BROWSER_MARKS, pytest.mark.slow]
 FAILING = "p07"
 
 
 @pytest.fixture
 def farm_server(tmp_path):
-    uvicorn = pytest.importorskip("uvicorn")
-    import httpx
-
     from layerwatch.web.app import create_app
 
     printers = [{"name": f"p{i:02d}", "layer_seconds": 2.0} for i in range(1, 21)]
@@ -40,34 +26,18 @@ def farm_server(tmp_path):
     h = History(tmp_path / "h.db")
     farm = Farm(parse_farm({"farm": {"workers": 2, "queue_frames": 2}, "printers": printers}, tmp_path), h)
     app = create_app(h, printers=farm.printers, poll_s=0.5)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-    sock.bind(("127.0.0.1", 0))
-    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-    th = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
-    th.start()
-    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-    for _ in range(200):
+    with serve(app, "/api/printers") as url:
+        farm.start()
         try:
-            if httpx.get(url + "/api/printers", timeout=1).status_code == 200:
-                break
-        except httpx.HTTPError:
-            th.join(0.05)
-    farm.start()
-    yield url, farm, h
-    farm.stop()
-    srv.should_exit = True
-    th.join(10)
-    sock.close()
+            yield url, farm, h
+        finally:
+            farm.stop()
     h.close()
 
 
 @pytest.fixture
 def shots(tmp_path):
-    if os.environ.get("LAYERWATCH_SCREENSHOTS") == "1":
-        out = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
-        out.mkdir(parents=True, exist_ok=True)
-        return out
-    return tmp_path
+    return screenshot_dir(tmp_path)
 
 
 def test_twenty_printers_one_failure_pauses_exactly_that_one(farm_server, shots):
@@ -75,7 +45,7 @@ def test_twenty_printers_one_failure_pauses_exactly_that_one(farm_server, shots)
     sync_api.expect.set_options(timeout=150_000)
     url, farm, h = farm_server
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        browser = launch(pw)
         try:
             page = browser.new_page(viewport={"width": 1400, "height": 1250})
             page.goto(url + "/farm")

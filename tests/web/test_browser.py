@@ -6,59 +6,26 @@ otherwise to the test's temporary folder.
 
 from __future__ import annotations
 
-import os
-import socket
-import threading
-from pathlib import Path
-
 import pytest
 
-CHROMIUM = Path("/usr/bin/chromium")
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian chromium (/usr/bin/chromium) is not installed"),
-    pytest.mark.filterwarnings("ignore::DeprecationWarning"),
-]
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-        "--no-first-run", "--disable-sync"]
+from browser_stack import BROWSER_MARKS, launch, screenshot_dir, serve
+
+pytestmark = BROWSER_MARKS
 
 
 @pytest.fixture
 def server(seeded, printer):
-    uvicorn = pytest.importorskip("uvicorn")
     from layerwatch.web.app import create_app
 
     h, root, ids = seeded
     app = create_app(h, printers={"virtual": printer}, image_root=root, poll_s=0.2)
-    # IPPROTO_TCP as uvicorn binds it itself: asyncio sets TCP_NODELAY only then (else ~40 ms Nagle stalls)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-    th = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
-    th.start()
-    url = f"http://127.0.0.1:{port}"
-    import httpx
-
-    for _ in range(200):
-        try:
-            if httpx.get(url + "/api/jobs", timeout=1).status_code == 200:
-                break
-        except httpx.HTTPError:
-            th.join(0.05)
-    yield url, ids, h
-    srv.should_exit = True
-    th.join(10)
-    sock.close()
+    with serve(app, "/api/jobs") as url:
+        yield url, ids, h
 
 
 @pytest.fixture
 def shots(tmp_path):
-    if os.environ.get("LAYERWATCH_SCREENSHOTS") == "1":
-        out = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
-        out.mkdir(parents=True, exist_ok=True)
-        return out
-    return tmp_path
+    return screenshot_dir(tmp_path)
 
 
 @pytest.mark.slow
@@ -68,7 +35,7 @@ def test_dashboard_buttons_and_screenshots(server, printer, shots):
     sync_api.expect.set_options(timeout=20_000)
     url, ids, h = server
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        browser = launch(pw)
         try:
             page = browser.new_page(viewport={"width": 1280, "height": 1100})
             page.goto(url + "/")
@@ -120,7 +87,7 @@ def test_settings_validated_in_browser(server):
     sync_api = pytest.importorskip("playwright.sync_api")
     url, _, _ = server
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        browser = launch(pw)
         try:
             page = browser.new_page()
             page.goto(url + "/")
@@ -145,7 +112,7 @@ def test_report_renders_in_browser(seeded, shots, tmp_path):
     h, _, ids = seeded
     path = build_report(h, ids["live"], tmp_path / "report")
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        browser = launch(pw)
         try:
             page = browser.new_page(viewport={"width": 1000, "height": 900})
             page.goto(path.as_uri())
@@ -172,7 +139,7 @@ def test_cross_site_page_cannot_press_the_buttons(server, printer):
     sync_api = pytest.importorskip("playwright.sync_api")
     url, ids, h = server
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        browser = launch(pw)
         try:
             ctx = browser.new_context()
             dash = ctx.new_page()
@@ -196,7 +163,7 @@ def test_pause_switch_and_audit_log_in_browser(server, printer):
     sync_api.expect.set_options(timeout=20_000)
     url, _, h = server
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=ARGS)
+        browser = launch(pw)
         try:
             page = browser.new_page()
             page.on("dialog", lambda d: d.accept())

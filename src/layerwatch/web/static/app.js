@@ -1,35 +1,11 @@
-// layerwatch dashboard: vanilla JS, no network beyond this server.
+// layerwatch dashboard: vanilla JS, no network beyond this server (api.js loads first: $, csrf, api, esc, pct).
 "use strict";
-const $ = (id) => document.getElementById(id);
 let jobId = null;
 let jobCount = -1;
-// the session's CSRF token: the server puts it in the page; every POST/PUT/PATCH sends it back
-let csrf = document.querySelector('meta[name="csrf-token"]').content;
-
-async function api(path, opts, retried) {
-  opts = Object.assign({ credentials: "same-origin" }, opts || {});
-  if (opts.method && opts.method !== "GET") {
-    opts.headers = Object.assign({}, opts.headers || {}, { "X-CSRF-Token": csrf });
-  }
-  const r = await fetch(path, opts);
-  if (r.status === 403 && !retried) {  // the session expired or the server restarted: take a new one, once
-    const s = await fetch("/api/session", { credentials: "same-origin" });
-    if (s.ok) { csrf = (await s.json()).csrf; return api(path, opts, true); }
-  }
-  if (!r.ok) {
-    const text = await r.text();
-    let detail = text;
-    try { const d = JSON.parse(text).detail; detail = typeof d === "string" ? d : JSON.stringify(d); } catch (e) { /* not JSON */ }
-    throw new Error(detail || String(r.status));
-  }
-  return r.json();
-}
 function img(el, path) {
   if (path) { el.src = "/api/image/" + path.split("/").map(encodeURIComponent).join("/"); el.style.visibility = "visible"; }
   else { el.removeAttribute("src"); el.style.visibility = "hidden"; }
 }
-function pct(x) { return x == null ? "–" : (100 * x).toFixed(1) + " %"; }
-function esc(s) { const d = document.createElement("span"); d.textContent = String(s); return d.innerHTML; }
 
 async function loadJobs() {
   const jobs = await api("/api/jobs");

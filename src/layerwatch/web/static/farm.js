@@ -1,28 +1,7 @@
-// layerwatch farm view: one card per printer, live (SSE on history changes + a 2 s poll for states).
+// layerwatch farm view (api.js loads first: $, csrf, api, esc, pct): one card per printer, live (SSE on history changes + a 2 s poll for states).
 "use strict";
-const $ = (id) => document.getElementById(id);
-let csrf = document.querySelector('meta[name="csrf-token"]').content;
 const thumbs = {};  // printer -> layer whose overlay is shown
 
-async function api(path, opts, retried) {
-  opts = Object.assign({ credentials: "same-origin" }, opts || {});
-  if (opts.method && opts.method !== "GET") {
-    opts.headers = Object.assign({}, opts.headers || {}, { "X-CSRF-Token": csrf });
-  }
-  const r = await fetch(path, opts);
-  if (r.status === 403 && !retried) {  // the session expired or the server restarted: take a new one, once
-    const s = await fetch("/api/session", { credentials: "same-origin" });
-    if (s.ok) { csrf = (await s.json()).csrf; return api(path, opts, true); }
-  }
-  if (!r.ok) {
-    let detail = await r.text();
-    try { const d = JSON.parse(detail).detail; detail = typeof d === "string" ? d : JSON.stringify(d); } catch (e) { /* text */ }
-    throw new Error(detail || String(r.status));
-  }
-  return r.json();
-}
-function esc(s) { const d = document.createElement("span"); d.textContent = String(s); return d.innerHTML; }
-function pct(x) { return x == null ? "–" : (100 * x).toFixed(1) + " %"; }
 
 function sparkline(values) {
   if (!values || values.length < 2) { return '<svg class="spark" viewBox="0 0 120 28"></svg>'; }
