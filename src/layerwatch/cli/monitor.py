@@ -17,6 +17,7 @@ from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
+from layerwatch.monitor.hosts import HOST_PRINTERS, open_host_printer
 from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import parse_trigger
 from layerwatch.monitor.printers.keys import read_key_file, redact_url, resolve_key, split_url_key
@@ -120,6 +121,8 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
     with a warning, a ``?key=`` in ``spec`` (see :func:`~layerwatch.monitor.printers.keys.resolve_key`).
     """
     kind = spec.split("://", 1)[0] if "://" in spec else ""
+    if kind in HOST_PRINTERS:
+        return open_host_printer(kind, spec, gcode, key_file=key_file, host=host)
     if kind in ("octoprint", "moonraker"):
         file = key_file or (Path(host.key_file) if host is not None and host.key_file else None)
         config_key = host.api_key.get_secret_value() if host is not None and host.api_key else None
@@ -135,12 +138,12 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
         if data is None:
             raise ConfigError("--printer virtual needs a G-code: virtual:FILE or --gcode FILE.")
         return VirtualPrinter(data, name=Path(path).name if path else "virtual.gcode")
-    raise ConfigError(f"unknown --printer {redact_url(spec)!r}; use octoprint://host:port, moonraker://host:port "
-                      "or virtual:FILE.")
+    raise ConfigError(f"unknown --printer {redact_url(spec)!r}; use octoprint://host:port, moonraker://host:port, "
+                      "prusalink://host?user=NAME, bambu://host?serial=SERIAL or virtual:FILE.")
 
 
 def monitor(
-    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port | moonraker://host:port | virtual[:FILE] (API key: --key-file, LAYERWATCH_OCTOPRINT_KEY / LAYERWATCH_MOONRAKER_KEY, or [host] in the job file)")] = "virtual",
+    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port | moonraker://host:port | prusalink://host?user=NAME | bambu://host?serial=SERIAL | virtual[:FILE] (API key, PrusaLink password or Bambu access code: --key-file, LAYERWATCH_<HOST>_KEY, or [host] in the job file)")] = "virtual",
     key_file: Annotated[Path | None, typer.Option("--key-file", exists=True, dir_okay=False, help="File whose first line is the printer host's API key (chmod 600).")] = None,
     camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | sim")] = "sim",
     gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: downloaded from the OctoPrint/Moonraker host; the bundled example for virtual).")] = None,
