@@ -196,8 +196,9 @@ class BambuPrinter(Printer):
         self.push_all()
 
     def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        if self._connected.is_set():  # a refused login keeps its own reason
+            self._disconnect_reason = f"disconnected ({reason})"
         self._connected.clear()
-        self._disconnect_reason = f"disconnected ({reason})"
 
     def _on_message(self, client: Any, userdata: Any, message: Any) -> None:
         try:
