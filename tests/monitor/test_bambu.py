@@ -10,6 +10,7 @@ through them and analyses the next layer.
 
 from __future__ import annotations
 
+import gc
 import subprocess
 import threading
 import time
@@ -234,6 +235,8 @@ def test_monitor_survives_bambu_faults(broker, fake):
         hist.close()
 
 
+# paho-mqtt 2.2 drops the socket of a failed TLS handshake without closing it (collected below)
+@pytest.mark.filterwarnings("ignore::ResourceWarning", "ignore::pytest.PytestUnraisableExceptionWarning")
 def test_a_certificate_from_another_ca_is_refused(broker, fake, tmp_path):
     other = tmp_path / "other.crt"
     subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=other",
@@ -241,5 +244,6 @@ def test_a_certificate_from_another_ca_is_refused(broker, fake, tmp_path):
     url = f"bambu://127.0.0.1:{broker.tls_port}?serial={SERIAL}&ca={other}"
     with BambuPrinter(url, broker.password) as p:
         assert not p.wait_connected(1.0)
-        with pytest.raises(PrinterError, match="unreachable"):
+        with pytest.raises(PrinterError, match="unreachable: no MQTT connection.*certificate"):
             p.status()
+    gc.collect()

@@ -182,6 +182,7 @@ class BambuPrinter(Printer):
                                    prefix="layerwatch-bambu")
         self._client.on_connect = self._on_connect
         self._client.on_disconnect = self._on_disconnect
+        self._client.on_connect_fail = self._on_connect_fail
         self._client.on_message = self._on_message
         self._client.connect_async(self.target.host, self.target.port, keepalive=30)
         self._client.loop_start()
@@ -195,10 +196,16 @@ class BambuPrinter(Printer):
         self._connected.set()
         self.push_all()
 
+    def _on_connect_fail(self, client: Any, userdata: Any) -> None:
+        self._disconnect_reason = ("no MQTT connection (host down, port closed, or a TLS certificate that "
+                                   "?ca= does not verify)")
+
     def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         if self._connected.is_set():  # a refused login keeps its own reason
             self._disconnect_reason = f"disconnected ({reason})"
         self._connected.clear()
+        with self._lock:  # what it said before the break proves nothing now: wait for a fresh report
+            self._last_report = None
 
     def _on_message(self, client: Any, userdata: Any, message: Any) -> None:
         try:
@@ -264,7 +271,8 @@ class BambuPrinter(Printer):
         if age > self.stale_s:
             self.push_all()
         if age > 2 * self.stale_s or "gcode_state" not in state:
-            raise PrinterError(f"{where} has sent no status for {min(age, 1e9):.0f} s; a pushall was requested, "
+            since = "since the connection opened" if last is None else f"for {age:.0f} s"
+            raise PrinterError(f"{where} has sent no status {since}; a pushall was requested, "
                                "check the printer's network.")
         raw = str(state["gcode_state"]).upper()
         text = GCODE_STATES.get(raw, "unknown")
