@@ -38,6 +38,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from layerwatch.errors import ConfigError, LayerwatchError, PrinterError
 from layerwatch.monitor.mqtt import MAX_MESSAGE_BYTES, check_topic_part, mqtt_client, tls_context
+from layerwatch.monitor.printers.bambu_camera import BambuCamera
 from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger
 from layerwatch.monitor.printers.keys import ENV_VARS
 from layerwatch.monitor.printers.replies import RateLimitedLog, parse_json
@@ -178,6 +179,7 @@ class BambuPrinter(Printer):
         self._ack_cv = threading.Condition()
         self._seq = itertools.count(int(time.time()) % 1_000_000)
         self._warn = RateLimitedLog(log)
+        self._access_code = access_code  # for the camera's login
         self._client = mqtt_client(user="bblp", password=access_code, tls=tls_context(self.target.ca_file),
                                    prefix="layerwatch-bambu")
         self._client.on_connect = self._on_connect
@@ -248,7 +250,9 @@ class BambuPrinter(Printer):
 
     def _ack(self, msg: Any) -> None:
         body = msg.get("print") if isinstance(msg, dict) else None
-        seq = body.get("sequence_id") if isinstance(body, dict) else None
+        if not isinstance(body, dict):
+            return
+        seq = body.get("sequence_id")
         if isinstance(seq, (str, int)) and not isinstance(seq, bool) and "result" in body:
             with self._ack_cv:
                 self._acks[str(seq)] = body
@@ -322,6 +326,10 @@ class BambuPrinter(Printer):
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         text = lines if isinstance(lines, str) else "\n".join(lines)
         self._command("gcode_line", text.rstrip("\n") + "\n")
+
+    def camera(self, **kw: Any) -> BambuCamera:
+        """The P1/A1 camera of this printer (TCP 6000, same access code and ``?ca=``); see :mod:`.bambu_camera`."""
+        return BambuCamera(self.target.host, self._access_code, ca_file=self.target.ca_file, **kw)
 
     def wait_connected(self, timeout: float = 10.0) -> bool:
         """Wait until the broker accepted the connection."""
