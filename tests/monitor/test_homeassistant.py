@@ -16,8 +16,10 @@ import cv2
 import numpy as np
 import pytest
 from mqtt_stack import Broker, FakeBambu, need_mqtt
+from typer.testing import CliRunner
 
 from layerwatch.analysis.result import LayerResult
+from layerwatch.cli import app, main
 from layerwatch.errors import ConfigError
 from layerwatch.examples import PART_GCODE
 from layerwatch.monitor.cameras import SimCamera
@@ -186,3 +188,24 @@ def test_broker_url_defaults():
     t = broker_target("mqtts://ha.local?user=layerwatch", default_node="bambu")
     assert (t.host, t.port, t.tls, t.user, t.node, t.prefix) == ("ha.local", 8883, True, "layerwatch", "bambu",
                                                                  "homeassistant")
+
+
+@pytest.mark.slow
+def test_cli_monitor_publishes_to_home_assistant(broker, ha, tmp_path):
+    """``layerwatch monitor --homeassistant``: discovery, the layers as they are analysed, the pause it made."""
+    r = CliRunner().invoke(app, ["monitor", "--printer", "virtual", "--camera", "sim", "--failure", "spaghetti",
+                                 "--onset", "6", "--history", str(tmp_path / "h.db"),
+                                 "--homeassistant", f"mqtt://127.0.0.1:{broker.port}?node=cli_virtual"])
+    assert r.exit_code == 0, r.output
+    assert "1 pause(s)" in r.output
+    _until(lambda: ha.get("homeassistant/switch/cli_virtual/pause/config") is not None, 3, "the switch config")
+    _until(lambda: ha.get("layerwatch/cli_virtual/availability") == b"offline", 3, "offline after the run")
+    st = ha.state("cli_virtual")
+    assert st["state"] == "paused" and st["layer"] >= 6
+    alarm = st["last_alarm"]
+    assert alarm["action"] == "pause" and alarm["layer"] >= 6 and "PAUSE" in r.output
+
+
+def test_cli_rejects_a_bad_broker_url_before_connecting(capsys):
+    assert main(["monitor", "--printer", "virtual", "--homeassistant", "mqtt://h?node=a/b"]) == 2
+    assert "--homeassistant node 'a/b' must be" in capsys.readouterr().err

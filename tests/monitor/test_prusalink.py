@@ -19,8 +19,11 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.cli.monitor import open_printer
 from layerwatch.errors import CameraError, ConfigError, PrinterError
 from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.follow import CameraSpec
 from layerwatch.monitor.health import FaultSettings
+from layerwatch.monitor.hosts import printer_camera
 from layerwatch.monitor.printers.prusalink import PrusaLinkPrinter, ZLayerTracker, prusalink_target
+from layerwatch.monitor.printers.virtual import VirtualPrinter
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.storage.history import History
@@ -183,3 +186,12 @@ def test_monitor_survives_every_prusalink_fault(fake):
         t.join(5)
         p.close()
         hist.close()
+
+
+def test_camera_printer_needs_a_camera_and_a_model(fake, tmp_path):
+    spec = CameraSpec("printer", None, 0.0, None, 1, 1)
+    with _printer(fake) as p:
+        with pytest.raises(ConfigError, match="--camera-model"):
+            printer_camera(p, spec)
+    with VirtualPrinter(b"G1 Z0.2\n") as v, pytest.raises(ConfigError, match="has no camera"):
+        printer_camera(v, spec)

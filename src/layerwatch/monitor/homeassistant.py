@@ -14,7 +14,9 @@ object                  component  what
 ``pause``               switch     on = paused; turning it on pauses, off resumes
 ======================  =========  ==========================================================
 
-States go to ``layerwatch/<node>/state`` as one retained JSON object, the overlay to
+States go to ``layerwatch/<node>/state`` as one retained JSON object (``state``, ``file``,
+``progress``, ``layer``, ``anomaly_percent``, ``decision`` of the last layer, ``last_alarm``:
+action, layer and reason of the latest warning or pause, usable as an attribute), the overlay to
 ``layerwatch/<node>/overlay``, availability (``online``/``offline``, the latter also as the
 connection's last will) to ``layerwatch/<node>/availability``. A switch command
 (``layerwatch/<node>/pause/set``, payload ``ON``/``OFF``) pauses or resumes the printer through
@@ -36,9 +38,10 @@ from urllib.parse import parse_qsl, urlsplit
 from layerwatch.errors import ConfigError, LayerwatchError
 from layerwatch.monitor.mqtt import check_topic_part, mqtt_client, tls_context
 from layerwatch.monitor.printers.base import Printer
+from layerwatch.monitor.printers.keys import resolve_key
 from layerwatch.monitor.printers.replies import RateLimitedLog
 
-__all__ = ["HomeAssistantBridge", "BrokerTarget", "broker_target", "discovery_configs"]
+__all__ = ["HomeAssistantBridge", "BrokerTarget", "broker_target", "discovery_configs", "open_bridge"]
 
 log = logging.getLogger("layerwatch.monitor.homeassistant")
 
@@ -226,7 +229,16 @@ class HomeAssistantBridge:
         ratio = None if res is None or res.status != "ok" else res.anomaly_ratio
         out["anomaly_percent"] = None if ratio is None or not math.isfinite(ratio) else round(100.0 * ratio, 2)
         out["decision"] = None if res is None else (res.decision or None)
+        out["last_alarm"] = self._last_alarm()
         return out
+
+    def _last_alarm(self) -> dict[str, Any] | None:
+        """The latest layer whose decision was not "none": why the printer was paused or warned about."""
+        results = getattr(getattr(self.monitor, "report", None), "results", None) or []
+        for res in reversed(results[-1000:]):
+            if res.decision and res.decision != "none":
+                return {"action": res.decision, "layer": res.layer, "reason": res.decision_reason[:200]}
+        return None
 
     def _last_result(self) -> Any:
         results = getattr(getattr(self.monitor, "report", None), "results", None)
@@ -267,13 +279,17 @@ class HomeAssistantBridge:
         return self._connected.wait(timeout)
 
     def close(self) -> None:
-        """Mark the printer offline, disconnect, and stop the threads (idempotent)."""
+        """Publish the last state, mark the printer offline, disconnect, and stop the threads (idempotent)."""
         if self._stop.is_set():
             return
         self._stop.set()
         self._thread.join(5)
         self._commands.shutdown(wait=True)
         if self._connected.is_set():
+            try:
+                self.publish_state()  # the last word: paused, finished...
+            except Exception:  # noqa: BLE001 - closing anyway
+                log.exception("Home Assistant final state publication failed")
             self._client.publish(self.availability_topic, "offline", qos=1, retain=True).wait_for_publish(2)
         self._client.disconnect()
         self._client.loop_stop()
@@ -283,3 +299,13 @@ class HomeAssistantBridge:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def open_bridge(url: str, printer: Printer, **kw: Any) -> HomeAssistantBridge:
+    """A :class:`HomeAssistantBridge` whose broker password comes from ``LAYERWATCH_MQTT_KEY`` (or, warned, ``?key=``).
+
+    ``**kw`` go to :class:`HomeAssistantBridge` (``monitor``, ``history``, ``job_id``, ``interval_s``).
+    """
+    password, source = resolve_key("mqtt", url)
+    log.info("Home Assistant broker password from: %s", source)
+    return HomeAssistantBridge(url, printer, password=password, **kw)

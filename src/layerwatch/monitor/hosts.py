@@ -25,6 +25,7 @@ import numpy as np
 
 from layerwatch.errors import ConfigError, PrinterError
 from layerwatch.gcode import read_toolpath
+from layerwatch.geometry.camera import CameraModel
 from layerwatch.monitor.printers.bambu import BambuPrinter
 from layerwatch.monitor.printers.base import Printer, error_detail, http_request
 from layerwatch.monitor.printers.keys import resolve_key, split_url_key
@@ -258,7 +259,8 @@ def job_host(printer: Printer) -> JobHost:
 
 
 #: printer URL schemes whose connector follows layers from the host's own status (no trigger echo)
-HOST_PRINTERS = {"prusalink": PrusaLinkPrinter, "bambu": BambuPrinter}
+HOST_PRINTERS: dict[str, type[PrusaLinkPrinter] | type[BambuPrinter]] = {"prusalink": PrusaLinkPrinter,
+                                                                         "bambu": BambuPrinter}
 
 
 def open_host_printer(kind: str, spec: str, gcode: bytes | None = None, *, key_file: Path | None = None,
@@ -289,3 +291,27 @@ def open_host_printer(kind: str, spec: str, gcode: bytes | None = None, *, key_f
     logging.getLogger("layerwatch.monitor").info("%s password/access code from: %s", kind, source)
     layer_z = [layer.z for layer in read_toolpath(gcode).layers] if gcode else None
     return HOST_PRINTERS[kind](split_url_key(spec)[0], secret, layer_z=layer_z)
+
+
+def printer_camera(printer: Printer, spec: Any) -> tuple[Any, CameraModel]:
+    """The printer's own camera (``--camera printer``: PrusaLink's snapshot, a Bambu P1/A1's stream) and its model.
+
+    Parameters
+    ----------
+    printer : Printer
+        A connector with a ``camera(**kw)`` method.
+    spec : CameraSpec
+        ``model`` (camera.toml, required) and ``settle_s``.
+
+    Raises
+    ------
+    ConfigError
+        The connector has no camera, or no ``--camera-model`` was given.
+    """
+    make = getattr(printer, "camera", None)
+    if make is None:
+        raise ConfigError(f"--camera printer: {printer.name} has no camera layerwatch can read; give --camera http://... "
+                          "(a snapshot or MJPEG URL).")
+    if spec.model is None:
+        raise ConfigError("--camera-model camera.toml is needed with a real camera; make one with `layerwatch calibrate`.")
+    return make(settle_s=spec.settle_s), CameraModel.load(spec.model)
