@@ -204,6 +204,9 @@ def test_cli_monitor_publishes_to_home_assistant(broker, ha, tmp_path):
     assert st["state"] == "paused" and st["layer"] >= 6
     alarm = st["last_alarm"]
     assert alarm["action"] == "pause" and alarm["layer"] >= 6 and "PAUSE" in r.output
+    overlay = ha.get("layerwatch/cli_virtual/overlay")  # stored beside the history, as the dashboard reads them
+    assert overlay is not None and overlay.startswith(b"\x89PNG")
+    assert cv2.imdecode(np.frombuffer(overlay, np.uint8), cv2.IMREAD_COLOR).shape[0] > 100
 
 
 def test_cli_rejects_a_bad_broker_url_before_connecting(capsys):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from pydantic import ValidationError
@@ -16,6 +16,7 @@ from layerwatch.errors import ConfigError
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
 from layerwatch.monitor.homeassistant import broker_target, open_bridge
 from layerwatch.monitor.hosts import HOST_PRINTERS, open_host_printer, printer_camera
@@ -243,7 +244,10 @@ def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, k
         hist = History(history)
         job = hist.start_job(redact_url(printer), gpath, config=cfg)
     bed = scene_baseline(cfg, cam_model, bed_photo)  # None: the first accepted photo is the scene's start
-    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg, bed_photo=bed), PausePolicy(cfg.policy),
+    pipe: Any = LayerPipeline(toolpath, cam_model, cfg, bed_photo=bed)
+    if homeassistant and history is not None and job is not None:  # Home Assistant's image: the stored overlays
+        pipe = StoringPipeline(pipe, ArtifactStore(history.resolve().parent), job)
+    mon = Monitor(prn, cam_src, pipe, PausePolicy(cfg.policy),
                   notifier=Notifier(cfg.notify), history=hist, job_id=job,
                   wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict,
                   faults=cfg.faults, frame_quality=cfg.frame_quality)
