@@ -145,7 +145,9 @@ class BambuPrinter(Printer):
     access_code : str
         The LAN access code shown on the printer (Settings > WLAN / LAN only mode).
     stale_s : float
-        A printer silent this long gets a pushall request; silent twice as long is a fault, s.
+        A printer silent this long gets a pushall request; silent twice as long is a fault, s (a
+        printing P1 reports temperatures every few seconds; pushall is costly for it, so not more
+        often than this).
     ack_timeout_s : float
         How long a command waits for the printer's answer, s.
     layer_z : sequence of float, optional
@@ -155,7 +157,7 @@ class BambuPrinter(Printer):
 
     name = "bambu"
 
-    def __init__(self, url: str, access_code: str | None, *, stale_s: float = 20.0, ack_timeout_s: float = 5.0,
+    def __init__(self, url: str, access_code: str | None, *, stale_s: float = 60.0, ack_timeout_s: float = 5.0,
                  layer_z: Sequence[float] | None = None) -> None:
         super().__init__()
         self.target = bambu_target(url)
