@@ -73,7 +73,7 @@ def test_no_job_to_act_on(fake):
 
 def test_layer_triggers_from_polled_z(fake):
     with _printer(fake, confirm_polls=2) as p:
-        heights = [0.2, 0.2, 0.4, 0.4, 0.6, 0.8, 0.6, 0.6, 0.8, 0.8, 1.0, 1.0]  # 0.8 once: a Z-hop
+        heights = [0.2, 0.2, 0.4, 0.4, 0.6, 0.6, 1.0, 0.6, 0.8, 0.8, 1.0, 1.0]  # 1.0 once: a Z-hop
         for z in heights:
             fake.z = z
             p.status()
