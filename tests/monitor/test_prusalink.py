@@ -89,6 +89,8 @@ def test_layer_index_from_the_gcode_layer_tops():
     assert trig is not None and trig.layer == 1
     assert tr.update(0.9, False) is None  # paused: Z moves (park) but no layer is done
     assert tr.update(0.7, True) is None
+    trig = tr.update(0.88, True)  # a live-Z offset of -0.02 mm: still layer 2 finished
+    assert trig is not None and trig.layer == 2
 
 
 def test_camera_snapshot_and_no_snapshot(fake):

@@ -17,7 +17,7 @@ Layer changes: PrusaLink pushes nothing and cannot echo a trigger line, so the c
 follows the printer's Z in every status poll: a layer is taken as done when Z has risen to a
 new height and stayed there for ``confirm_polls`` polls (a Z-hop of a travel move is shorter
 than that). The trigger's layer index counts those rises, or, with ``layer_z`` (the G-code's
-layer tops), is the layer just below the new height. The photo is taken while the next
+layer tops), is the layer whose top is nearest the height just left. The photo is taken while the next
 layer prints (no park hold), so the camera must see the part past the head.
 """
 
@@ -109,7 +109,7 @@ class ZLayerTracker:
         Polls a new, higher Z must last before it counts (a Z-hop of a travel move is shorter).
     layer_z : sequence of float, optional
         Top Z of each layer of the job's G-code, mm, ascending; then the trigger's index is the
-        layer just below the new height. Without it, the n-th rise is layer ``n - 1``.
+        layer whose top is nearest the height just left. Without it, the n-th rise is layer ``n - 1``.
     """
 
     def __init__(self, confirm_polls: int = 2, layer_z: Sequence[float] | None = None) -> None:
@@ -144,9 +144,11 @@ class ZLayerTracker:
             return None
         done_z, self._top, self._candidate, self._seen = self._top, z, None, 0
         self._rises += 1
-        if self.layer_z:
-            index = bisect.bisect_right(self.layer_z, done_z + 1e-3) - 1
-            return SnapshotTrigger(layer=max(index, 0), z=done_z, source="prusalink")
+        if self.layer_z:  # the layer whose top is nearest (a live-Z offset shifts the reported Z a little)
+            i = bisect.bisect_left(self.layer_z, done_z)
+            index = min((j for j in (i - 1, i) if 0 <= j < len(self.layer_z)),
+                        key=lambda j: abs(self.layer_z[j] - done_z))
+            return SnapshotTrigger(layer=index, z=done_z, source="prusalink")
         return SnapshotTrigger(layer=self._rises - 1, z=done_z, source="prusalink")
 
 
