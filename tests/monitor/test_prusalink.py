@@ -14,10 +14,14 @@ import time
 import numpy as np
 import pytest
 from fake_prusalink import FAULTS, FakePrusaLink
+from typer.testing import CliRunner
 
 from layerwatch.analysis.result import LayerResult
+from layerwatch.cli import app
 from layerwatch.cli.monitor import open_printer
 from layerwatch.errors import CameraError, ConfigError, PrinterError
+from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.gcode import read_toolpath
 from layerwatch.monitor.cameras import SimCamera
 from layerwatch.monitor.follow import CameraSpec
 from layerwatch.monitor.health import FaultSettings
@@ -197,3 +201,32 @@ def test_camera_printer_needs_a_camera_and_a_model(fake, tmp_path):
             printer_camera(p, spec)
     with VirtualPrinter(b"G1 Z0.2\n") as v, pytest.raises(ConfigError, match="has no camera"):
         printer_camera(v, spec)
+
+
+@pytest.mark.slow
+def test_cli_monitor_follows_prusalink_layers_by_the_gcode(fake, monkeypatch, tmp_path):
+    """``layerwatch monitor --printer prusalink://... --gcode``: the layers the printer's Z passes, named from the file."""
+    tops = [layer.z for layer in read_toolpath(PART_GCODE.read_bytes()).layers]
+    monkeypatch.setenv("LAYERWATCH_PRUSALINK_KEY", fake.password)
+    fake.z = tops[2]  # the monitor starts during layer 2
+
+    def printer_prints():
+        _until(lambda: ("GET", "/api/v1/status") in fake.requests, 60, "the monitor's first poll")
+        for z in tops[3:8]:
+            time.sleep(1.0)
+            fake.z = z + 0.01  # a live-Z offset
+        time.sleep(1.5)
+        fake.state, fake.progress = "FINISHED", 100.0
+
+    t = threading.Thread(target=printer_prints, daemon=True)
+    t.start()
+    db = tmp_path / "h.db"
+    r = CliRunner().invoke(app, ["monitor", "--printer", fake.url, "--gcode", str(PART_GCODE), "--camera", "sim",
+                                 "--config", str(PART_CONFIG), "--history", str(db)])
+    t.join(10)
+    assert r.exit_code == 0, r.output
+    assert "5 layers analysed, 0 pause(s)" in r.output and "outcome done" in r.output
+    with History(db) as hist:
+        rows = hist.layer_summary(hist.jobs()[0]["id"])
+    assert [(row["layer"], row["status"]) for row in rows] == [(n, "ok") for n in range(2, 7)]
+    assert not any(p.startswith("/api/v1/job/") for _, p in fake.requests)  # never paused or cancelled
