@@ -23,7 +23,12 @@ from layerwatch.cli import app, main
 from layerwatch.errors import ConfigError
 from layerwatch.examples import PART_GCODE
 from layerwatch.monitor.cameras import SimCamera
-from layerwatch.monitor.homeassistant import HomeAssistantBridge, broker_target, discovery_configs
+from layerwatch.monitor.homeassistant import (
+    HistoryResults,
+    HomeAssistantBridge,
+    broker_target,
+    discovery_configs,
+)
 from layerwatch.monitor.printers.bambu import BambuPrinter
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.printers.virtual import VirtualPrinter
@@ -212,3 +217,36 @@ def test_cli_monitor_publishes_to_home_assistant(broker, ha, tmp_path):
 def test_cli_rejects_a_bad_broker_url_before_connecting(capsys):
     assert main(["monitor", "--printer", "virtual", "--homeassistant", "mqtt://h?node=a/b"]) == 2
     assert "--homeassistant node 'a/b' must be" in capsys.readouterr().err
+
+
+def test_follow_mode_reads_the_newest_job_from_the_history(broker, ha, tmp_path):
+    """``--follow``: layers, a%, overlay and alarm as the monitors wrote them to the history (and the image folder)."""
+    (tmp_path / "jobs").mkdir()
+    (tmp_path / "jobs" / "l3.png").write_bytes(OVERLAY)
+    writer = History(tmp_path / "h.db")
+    job = writer.start_job("virtual:http://127.0.0.1:1", "a.gcode")
+    for n in range(4):
+        writer.add_layer(job, LayerResult(layer=n, z=0.2 * (n + 1), anomaly_ratio=0.01 * n, printed_area_mm2=500,
+                                          images={"overlay": "jobs/l3.png"} if n == 3 else {}))
+    writer.add_event(job, "notify", "a% 2.0 above the warn ratio", {"layer": 2})
+    writer.add_event(job, "camera_fault", "frame too dark", {"layer": 3})
+    printer = VirtualPrinter(PART_GCODE.read_bytes(), name="a.gcode")
+    reader = History(tmp_path / "h.db")
+    url = f"mqtt://127.0.0.1:{broker.port}?node=follow"
+    with HomeAssistantBridge(url, printer, results=HistoryResults(reader, tmp_path, "virtual:"), history=reader,
+                             interval_s=0.1) as bridge:
+        assert bridge.wait_connected(5)
+        _until(lambda: (ha.state("follow") or {}).get("layer") == 3, 3, "layer 3 from the history")
+        st = ha.state("follow")
+        assert st["anomaly_percent"] == pytest.approx(3.0)
+        assert st["last_alarm"] == {"action": "notify", "layer": 2, "reason": "a% 2.0 above the warn ratio"}
+        _until(lambda: ha.get("layerwatch/follow/overlay") == OVERLAY, 3, "the stored overlay")
+        ha.press("follow", "ON")
+        _until(lambda: printer.status().state == "paused", 3, "the pause")
+        _until(lambda: any(e["kind"] == "pause" for e in writer.events(job)), 3, "the pause logged on the job")
+        other = writer.start_job("octoprint:http://elsewhere", "b.gcode")  # another printer's newer job
+        writer.add_layer(other, LayerResult(layer=9, z=2.0, anomaly_ratio=0.5, printed_area_mm2=500))
+        time.sleep(0.4)
+        assert ha.state("follow")["layer"] is None  # not this printer's job
+    reader.close()
+    writer.close()

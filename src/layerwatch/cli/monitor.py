@@ -18,7 +18,7 @@ from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
-from layerwatch.monitor.homeassistant import broker_target, open_bridge
+from layerwatch.monitor.homeassistant import HistoryResults, broker_target, open_bridge
 from layerwatch.monitor.hosts import HOST_PRINTERS, open_host_printer, printer_camera
 from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import parse_trigger
@@ -177,7 +177,7 @@ def monitor(
         broker_target(homeassistant)  # a bad URL is a usage error now, not after the printer connected
     if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
         prn = open_printer(printer, key_file=key_file, host=cfg.host)
-        bridge = open_bridge(homeassistant, prn) if homeassistant else None
+        bridge, seen = _follow_bridge(homeassistant, prn, history, images) if homeassistant else (None, None)
         try:
             done = run_follow(prn, cfg, spec, history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
                               park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
@@ -185,6 +185,8 @@ def monitor(
         finally:
             if bridge is not None:
                 bridge.close()
+            if seen is not None:
+                seen.close()
         console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
         raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
     if follow:
@@ -193,6 +195,19 @@ def monitor(
                      wait_for_verdict=wait_for_verdict, bed_photo=bed_photo, poll=poll, camera=camera,
                      homeassistant=homeassistant)
     _print_report(rep)
+
+
+def _follow_bridge(url: str, prn, history: Path | None, images: Path | None):
+    """The Home Assistant bridge of ``--follow`` and the history connection it reads the jobs' layers from (or None)."""
+    if history is None:
+        return open_bridge(url, prn), None
+    seen = History(history)
+    root = images or history.resolve().parent  # where run_follow's ArtifactStore keeps the overlays
+    try:
+        return open_bridge(url, prn, results=HistoryResults(seen, root, f"{prn.name}:"), history=seen), seen
+    except BaseException:
+        seen.close()
+        raise
 
 
 def _settings(job_file: Path | None, history: Path | None, paper: bool) -> JobConfig:

@@ -41,7 +41,8 @@ from layerwatch.monitor.printers.base import Printer
 from layerwatch.monitor.printers.keys import resolve_key
 from layerwatch.monitor.printers.replies import RateLimitedLog
 
-__all__ = ["HomeAssistantBridge", "BrokerTarget", "broker_target", "discovery_configs", "open_bridge"]
+__all__ = ["HomeAssistantBridge", "BrokerTarget", "broker_target", "discovery_configs", "open_bridge", "MonitorResults",
+           "HistoryResults"]
 
 log = logging.getLogger("layerwatch.monitor.homeassistant")
 
@@ -119,6 +120,71 @@ def discovery_configs(node: str, prefix: str = "homeassistant", model: str = "pr
     ])
 
 
+class MonitorResults:
+    """What an in-process :class:`~layerwatch.monitor.service.Monitor` analysed (one watched job)."""
+
+    def __init__(self, monitor: Any) -> None:
+        self.monitor = monitor
+
+    def job_id(self) -> int | None:
+        return getattr(self.monitor, "job_id", None)
+
+    def latest(self) -> Any:
+        """The last analysed layer's :class:`~layerwatch.analysis.result.LayerResult`, or ``None``."""
+        results = self.monitor.report.results
+        return results[-1] if results else None
+
+    def image_root(self) -> Path:
+        """Folder the results' image paths are relative to."""
+        return Path(getattr(self.monitor.pipeline, "image_root", ""))
+
+    def last_alarm(self) -> dict[str, Any] | None:
+        """Action, layer and reason of the latest layer whose decision was not "none"."""
+        for res in reversed(self.monitor.report.results[-1000:]):
+            if res.decision and res.decision != "none":
+                return {"action": res.decision, "layer": res.layer, "reason": res.decision_reason[:200]}
+        return None
+
+
+class HistoryResults:
+    """What the monitors of ``--follow`` wrote to the history: the newest job of the printer, read like the dashboard.
+
+    Parameters
+    ----------
+    history : History
+        An open connection of its own (SQLite serves the monitor's writes and these reads side by side).
+    image_root : Path
+        Folder of the stored images (``--images``, default the history's folder).
+    printer_prefix : str
+        The history's printer label starts with it (``"octoprint:"``); jobs of other printers are ignored.
+    """
+
+    def __init__(self, history: Any, image_root: Path, printer_prefix: str) -> None:
+        self.history, self.root, self.prefix = history, Path(image_root), printer_prefix
+
+    def job_id(self) -> int | None:
+        jid = self.history.last_job_id()
+        job = self.history.job(jid) if jid is not None else None
+        return jid if job is not None and str(job["printer"]).startswith(self.prefix) else None
+
+    def latest(self) -> Any:
+        jid = self.job_id()
+        return None if jid is None else self.history.latest_layer(jid)
+
+    def image_root(self) -> Path:
+        return self.root
+
+    def last_alarm(self) -> dict[str, Any] | None:
+        """The job's latest decision event (an event with a ``layer``, not a camera or printer fault)."""
+        jid = self.job_id()
+        for e in reversed(self.history.events(jid) if jid is not None else []):
+            data = e["data"]
+            if isinstance(data, dict) and isinstance(data.get("layer"), int) and \
+                    not e["kind"].startswith(("camera", "printer")):
+                return {"action": e["kind"], "layer": data["layer"], "reason": str(e["message"])[:200]}
+        return None
+
+
 class HomeAssistantBridge:
     """Publish one printer (and its monitor's results) to Home Assistant; its pause switch drives the printer.
 
@@ -131,20 +197,25 @@ class HomeAssistantBridge:
     password : str, optional
         The broker user's password.
     monitor : Monitor, optional
-        Its ``report.results`` give the layer, a% and overlay (settable later: ``bridge.monitor``).
+        Its ``report.results`` give the layer, a% and overlay (:class:`MonitorResults`).
+    results : MonitorResults or HistoryResults, optional
+        Where the analysed layers come from, instead of ``monitor`` (``--follow``: :class:`HistoryResults`).
     history : History, optional
-        Audit log and job events of switch commands (``job_id``: the monitored job).
+        Audit log and job events of switch commands.
     job_id : int, optional
+        The job the switch commands are logged on (default: the results' current job).
     interval_s : float
         Seconds between two state publications.
     """
 
     def __init__(self, url: str, printer: Printer, *, password: str | None = None, monitor: Any = None,
-                 history: Any = None, job_id: int | None = None, interval_s: float = 5.0) -> None:
+                 results: Any = None, history: Any = None, job_id: int | None = None,
+                 interval_s: float = 5.0) -> None:
         self.target = broker_target(url, default_node=printer.name)
         if not (math.isfinite(interval_s) and 0.05 <= interval_s <= 3600):
             raise ConfigError("Home Assistant publish interval must be 0.05-3600 s.")
-        self.printer, self.monitor, self.history, self.job_id = printer, monitor, history, job_id
+        self.printer, self.history, self._job_id = printer, history, job_id
+        self.results = results if results is not None else (MonitorResults(monitor) if monitor is not None else None)
         self.interval_s = float(interval_s)
         base = f"layerwatch/{self.target.node}"
         self.state_topic, self.overlay_topic = f"{base}/state", f"{base}/overlay"
@@ -191,13 +262,22 @@ class HomeAssistantBridge:
             return
         self._commands.submit(self.command, action)
 
+    def job_id(self) -> int | None:
+        """The job switch commands are logged on."""
+        if self._job_id is not None or self.results is None:
+            return self._job_id
+        try:
+            return self.results.job_id()
+        except LayerwatchError:
+            return None
+
     def command(self, action: str) -> bool:
         """Pause or resume the printer from Home Assistant, audited; whether the printer took it."""
-        target = f"printer {self.printer.name}"
+        target, job_id = f"printer {self.printer.name}", self.job_id()
         if self.history is not None:
             try:
                 self.history.add_audit(action, f"mqtt {self.target.where}", "home assistant", target,
-                                       {"job_id": self.job_id, "topic": self.command_topic})
+                                       {"job_id": job_id, "topic": self.command_topic})
             except LayerwatchError as exc:
                 log.warning("audit write failed: %s", exc)
         try:
@@ -207,9 +287,9 @@ class HomeAssistantBridge:
             ok = False
         else:
             ok = True
-        if self.history is not None and self.job_id is not None:
+        if self.history is not None and job_id is not None:
             try:
-                self.history.add_event(self.job_id, action, f"{action} requested from Home Assistant"
+                self.history.add_event(job_id, action, f"{action} requested from Home Assistant"
                                        + ("" if ok else " (the printer refused it)"), {"printer": self.printer.name})
             except LayerwatchError as exc:
                 log.warning("history write failed: %s", exc)
@@ -217,45 +297,31 @@ class HomeAssistantBridge:
         return ok
 
     # -- publishing --------------------------------------------------------------------
-    def state(self) -> dict[str, Any]:
-        """The state object published to ``layerwatch/<node>/state``."""
+    def state(self, res: Any = None) -> dict[str, Any]:
+        """The state object published to ``layerwatch/<node>/state`` (``res``: the last analysed layer, if any)."""
         try:
             st = self.printer.status()
             out: dict[str, Any] = {"state": st.state, "file": st.file, "progress": st.progress}
         except Exception as exc:  # noqa: BLE001 - an unreachable printer is a state, not a crash
             out = {"state": "unreachable", "file": None, "progress": None, "error": str(exc)[:200]}
-        res = self._last_result()
         out["layer"] = None if res is None else res.layer
         ratio = None if res is None or res.status != "ok" else res.anomaly_ratio
         out["anomaly_percent"] = None if ratio is None or not math.isfinite(ratio) else round(100.0 * ratio, 2)
         out["decision"] = None if res is None else (res.decision or None)
-        out["last_alarm"] = self._last_alarm()
+        out["last_alarm"] = self.results.last_alarm() if self.results is not None else None
         return out
-
-    def _last_alarm(self) -> dict[str, Any] | None:
-        """The latest layer whose decision was not "none": why the printer was paused or warned about."""
-        results = getattr(getattr(self.monitor, "report", None), "results", None) or []
-        for res in reversed(results[-1000:]):
-            if res.decision and res.decision != "none":
-                return {"action": res.decision, "layer": res.layer, "reason": res.decision_reason[:200]}
-        return None
-
-    def _last_result(self) -> Any:
-        results = getattr(getattr(self.monitor, "report", None), "results", None)
-        return results[-1] if results else None
 
     def publish_state(self) -> None:
         """Publish the state now (and the overlay, when a newer one exists)."""
         if not self._connected.is_set():
             return
-        self._client.publish(self.state_topic, json.dumps(self.state()), qos=0, retain=True)
-        res = self._last_result()
+        res = self.results.latest() if self.results is not None else None
+        self._client.publish(self.state_topic, json.dumps(self.state(res)), qos=0, retain=True)
         rel = res.images.get("overlay") if res is not None else None
-        if rel and (res.layer, rel) != self._overlay_sent:
-            self._publish_overlay(res.layer, rel)
+        if self.results is not None and res is not None and rel and (res.layer, rel) != self._overlay_sent:
+            self._publish_overlay(self.results.image_root() / rel, res.layer, rel)
 
-    def _publish_overlay(self, layer: int, rel: str) -> None:
-        path = Path(getattr(self.monitor.pipeline, "image_root", ""), rel)
+    def _publish_overlay(self, path: Path, layer: int, rel: str) -> None:
         try:
             data = path.read_bytes()[:MAX_IMAGE_BYTES + 1]
         except OSError as exc:
@@ -271,6 +337,8 @@ class HomeAssistantBridge:
         while not self._stop.wait(self.interval_s if self._connected.is_set() else 0.1):
             try:
                 self.publish_state()
+            except LayerwatchError as exc:  # the history is busy or gone: try again next time
+                self._warn.warning("publish", "Home Assistant state not published: %s", exc)
             except Exception:  # noqa: BLE001 - the bridge must never take the monitor down
                 log.exception("Home Assistant state publication failed")
 
@@ -304,7 +372,7 @@ class HomeAssistantBridge:
 def open_bridge(url: str, printer: Printer, **kw: Any) -> HomeAssistantBridge:
     """A :class:`HomeAssistantBridge` whose broker password comes from ``LAYERWATCH_MQTT_KEY`` (or, warned, ``?key=``).
 
-    ``**kw`` go to :class:`HomeAssistantBridge` (``monitor``, ``history``, ``job_id``, ``interval_s``).
+    ``**kw`` go to :class:`HomeAssistantBridge` (``monitor`` or ``results``, ``history``, ``job_id``, ``interval_s``).
     """
     password, source = resolve_key("mqtt", url)
     log.info("Home Assistant broker password from: %s", source)

@@ -144,10 +144,10 @@ class ZLayerTracker:
             return None
         done_z, self._top, self._candidate, self._seen = self._top, z, None, 0
         self._rises += 1
-        if self.layer_z:  # the layer whose top is nearest (a live-Z offset shifts the reported Z a little)
-            i = bisect.bisect_left(self.layer_z, done_z)
-            index = min((j for j in (i - 1, i) if 0 <= j < len(self.layer_z)),
-                        key=lambda j: abs(self.layer_z[j] - done_z))
+        tops = self.layer_z
+        if tops:  # the layer whose top is nearest (a live-Z offset shifts the reported Z a little)
+            i = bisect.bisect_left(tops, done_z)
+            index = min((j for j in (i - 1, i) if 0 <= j < len(tops)), key=lambda j: abs(tops[j] - done_z))
             return SnapshotTrigger(layer=index, z=done_z, source="prusalink")
         return SnapshotTrigger(layer=self._rises - 1, z=done_z, source="prusalink")
 
