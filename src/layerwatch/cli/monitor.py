@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from pydantic import ValidationError
@@ -16,7 +16,10 @@ from layerwatch.errors import ConfigError
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.postprocess import insert_snapshots
+from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
+from layerwatch.monitor.homeassistant import HistoryResults, broker_target, open_bridge
+from layerwatch.monitor.hosts import HOST_PRINTERS, open_host_printer, printer_camera
 from layerwatch.monitor.notify import Notifier
 from layerwatch.monitor.printers.base import parse_trigger
 from layerwatch.monitor.printers.keys import read_key_file, redact_url, resolve_key, split_url_key
@@ -120,6 +123,8 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
     with a warning, a ``?key=`` in ``spec`` (see :func:`~layerwatch.monitor.printers.keys.resolve_key`).
     """
     kind = spec.split("://", 1)[0] if "://" in spec else ""
+    if kind in HOST_PRINTERS:
+        return open_host_printer(kind, spec, gcode, key_file=key_file, host=host)
     if kind in ("octoprint", "moonraker"):
         file = key_file or (Path(host.key_file) if host is not None and host.key_file else None)
         config_key = host.api_key.get_secret_value() if host is not None and host.api_key else None
@@ -135,14 +140,14 @@ def open_printer(spec: str, gcode: bytes | None = None, *, key_file: Path | None
         if data is None:
             raise ConfigError("--printer virtual needs a G-code: virtual:FILE or --gcode FILE.")
         return VirtualPrinter(data, name=Path(path).name if path else "virtual.gcode")
-    raise ConfigError(f"unknown --printer {redact_url(spec)!r}; use octoprint://host:port, moonraker://host:port "
-                      "or virtual:FILE.")
+    raise ConfigError(f"unknown --printer {redact_url(spec)!r}; use octoprint://host:port, moonraker://host:port, "
+                      "prusalink://host?user=NAME, bambu://host?serial=SERIAL or virtual:FILE.")
 
 
 def monitor(
-    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port | moonraker://host:port | virtual[:FILE] (API key: --key-file, LAYERWATCH_OCTOPRINT_KEY / LAYERWATCH_MOONRAKER_KEY, or [host] in the job file)")] = "virtual",
+    printer: Annotated[str, typer.Option("--printer", help="octoprint://host:port | moonraker://host:port | prusalink://host?user=NAME | bambu://host?serial=SERIAL | virtual[:FILE] (API key, PrusaLink password or Bambu access code: --key-file, LAYERWATCH_<HOST>_KEY, or [host] in the job file)")] = "virtual",
     key_file: Annotated[Path | None, typer.Option("--key-file", exists=True, dir_okay=False, help="File whose first line is the printer host's API key (chmod 600).")] = None,
-    camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | sim")] = "sim",
+    camera: Annotated[str, typer.Option("--camera", help="http://...snapshot | http://...stream | file:DIR | /dev/videoN | printer (PrusaLink's or a Bambu P1/A1's own camera) | sim")] = "sim",
     gcode: Annotated[Path | None, typer.Option("--gcode", exists=True, dir_okay=False, help="The job's G-code (default: downloaded from the OctoPrint/Moonraker host; the bundled example for virtual).")] = None,
     camera_model: Annotated[Path | None, typer.Option("--camera-model", exists=True, dir_okay=False, help="camera.toml with intrinsics and pose.")] = None,
     config: Annotated[Path | None, typer.Option("--config", exists=True, dir_okay=False, help="Job config TOML (policy, notify...).")] = None,
@@ -160,6 +165,7 @@ def monitor(
     park_tolerance: Annotated[float, typer.Option("--park-tolerance", parser=Finite(0, 50, unit="mm"), help="Reject frames taken with the head farther than this from the park spot, mm (0: no check).")] = 1.0,
     poll: Annotated[float, typer.Option("--poll", parser=Finite(0.05, 60, unit="s"), help="Printer status poll interval, s; an unreachable host is retried with back-off up to this interval.")] = 0.2,
     bed_photo: Annotated[Path | None, typer.Option("--bed-photo", exists=True, dir_okay=False, help=BED_HELP)] = None,
+    homeassistant: Annotated[str | None, typer.Option("--homeassistant", help="mqtt://BROKER[:PORT]?node=ID[&user=NAME] (mqtts://...&ca=FILE): publish state, layer, a%, last overlay and a pause switch to Home Assistant by MQTT discovery (password: LAYERWATCH_MQTT_KEY).")] = None,
 ) -> None:
     """Watch a print until it ends: photo per layer, analysis, pause on a failure (Ctrl-C/SIGTERM stops cleanly)."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
@@ -167,18 +173,41 @@ def monitor(
     cfg = _settings(job_file, history, paper)
     _check_inputs(printer, key_file, images)
     spec = CameraSpec(camera, camera_model, settle, failure, onset, seed)
+    if homeassistant is not None:
+        broker_target(homeassistant)  # a bad URL is a usage error now, not after the printer connected
     if not printer.startswith("virtual") and (follow or gcode is None):  # the job's own G-code, from the host
-        done = run_follow(open_printer(printer, key_file=key_file, host=cfg.host), cfg, spec,
-                          history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
-                          park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
-                          max_jobs=None if follow else 1)
+        prn = open_printer(printer, key_file=key_file, host=cfg.host)
+        bridge, seen = _follow_bridge(homeassistant, prn, history, images) if homeassistant else (None, None)
+        try:
+            done = run_follow(prn, cfg, spec, history=history, images=images, keep_mb=keep_mb, keep_jobs=keep_jobs,
+                              park_tolerance_mm=park_tolerance or None, wait_for_verdict=wait_for_verdict,
+                              max_jobs=None if follow else 1)
+        finally:
+            if bridge is not None:
+                bridge.close()
+            if seen is not None:
+                seen.close()
         console.print("; ".join(f"{job.path}: {outcome}" for job, outcome in done) or "no job")
         raise typer.Exit(1 if not follow and any(o in ("not prepared", "error") for _, o in done) else 0)
     if follow:
         raise ConfigError("--follow needs a printer host: --printer octoprint://... or moonraker://...")
     rep = _watch_one(printer, gcode or PART_GCODE, cfg, spec, key_file=key_file, history=history,
-                     wait_for_verdict=wait_for_verdict, bed_photo=bed_photo, poll=poll, camera=camera)
+                     wait_for_verdict=wait_for_verdict, bed_photo=bed_photo, poll=poll, camera=camera,
+                     homeassistant=homeassistant)
     _print_report(rep)
+
+
+def _follow_bridge(url: str, prn, history: Path | None, images: Path | None):
+    """The Home Assistant bridge of ``--follow`` and the history connection it reads the jobs' layers from (or None)."""
+    if history is None:
+        return open_bridge(url, prn), None
+    seen = History(history)
+    root = images or history.resolve().parent  # where run_follow's ArtifactStore keeps the overlays
+    try:
+        return open_bridge(url, prn, results=HistoryResults(seen, root, f"{prn.name}:"), history=seen), seen
+    except BaseException:
+        seen.close()
+        raise
 
 
 def _settings(job_file: Path | None, history: Path | None, paper: bool) -> JobConfig:
@@ -211,7 +240,7 @@ def _check_inputs(printer: str, key_file: Path | None, images: Path | None) -> N
 
 def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, key_file: Path | None,
                history: Path | None, wait_for_verdict: bool, bed_photo: Path | None, poll: float,
-               camera: str) -> MonitorReport:
+               camera: str, homeassistant: str | None = None) -> MonitorReport:
     """Monitor one job whose G-code is ``gpath`` (local file) until it ends; the printer and history closed after."""
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)
@@ -219,21 +248,32 @@ def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, k
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
 
-    cam_src, cam_model = job_camera(spec, toolpath, cfg)
     prn = open_printer(printer, data, key_file=key_file, host=cfg.host)
-    hist = job = None
+    try:
+        cam_src, cam_model = printer_camera(prn, spec) if camera == "printer" else job_camera(spec, toolpath, cfg)
+    except BaseException:
+        prn.close()
+        raise
+    hist = job = bridge = None
     if history is not None:
         hist = History(history)
         job = hist.start_job(redact_url(printer), gpath, config=cfg)
     bed = scene_baseline(cfg, cam_model, bed_photo)  # None: the first accepted photo is the scene's start
-    mon = Monitor(prn, cam_src, LayerPipeline(toolpath, cam_model, cfg, bed_photo=bed), PausePolicy(cfg.policy),
+    pipe: Any = LayerPipeline(toolpath, cam_model, cfg, bed_photo=bed)
+    if homeassistant and history is not None and job is not None:  # Home Assistant's image: the stored overlays
+        pipe = StoringPipeline(pipe, ArtifactStore(history.resolve().parent), job)
+    mon = Monitor(prn, cam_src, pipe, PausePolicy(cfg.policy),
                   notifier=Notifier(cfg.notify), history=hist, job_id=job,
                   wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict,
                   faults=cfg.faults, frame_quality=cfg.frame_quality)
+    if homeassistant:
+        bridge = open_bridge(homeassistant, prn, monitor=mon, history=hist, job_id=job)
     console.print(f"monitoring {redact_url(printer)} with camera {redact_url(camera)} ({toolpath.n_layers} layers)")
     try:
         return mon.run(install_signals=True, poll_s=poll)
     finally:
+        if bridge is not None:
+            bridge.close()
         prn.close()
         if hist is not None:
             hist.close()

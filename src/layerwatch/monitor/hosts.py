@@ -13,8 +13,10 @@ types, and for downloads a size cap while streaming and the declared length. Any
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
@@ -22,11 +24,17 @@ import httpx
 import numpy as np
 
 from layerwatch.errors import ConfigError, PrinterError
+from layerwatch.gcode import read_toolpath
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.monitor.printers.bambu import BambuPrinter
 from layerwatch.monitor.printers.base import Printer, error_detail, http_request
+from layerwatch.monitor.printers.keys import resolve_key, split_url_key
 from layerwatch.monitor.printers.moonraker import _STATES as MOONRAKER_STATES
 from layerwatch.monitor.printers.octoprint import _STATES as OCTOPRINT_STATES
+from layerwatch.monitor.printers.prusalink import PrusaLinkPrinter
 
-__all__ = ["PrintJob", "JobHost", "OctoPrintJobs", "MoonrakerJobs", "job_host", "MAX_GCODE_BYTES"]
+__all__ = ["PrintJob", "JobHost", "OctoPrintJobs", "MoonrakerJobs", "job_host", "MAX_GCODE_BYTES", "HOST_PRINTERS",
+           "open_host_printer"]
 
 #: largest G-code download accepted, bytes (a 500 MB file is an hours-long print of a big part)
 MAX_GCODE_BYTES = 512 * 1024 * 1024
@@ -248,3 +256,62 @@ def job_host(printer: Printer) -> JobHost:
                           "or give the job with --gcode.")
     return cls(http)
 
+
+
+#: printer URL schemes whose connector follows layers from the host's own status (no trigger echo)
+HOST_PRINTERS: dict[str, type[PrusaLinkPrinter] | type[BambuPrinter]] = {"prusalink": PrusaLinkPrinter,
+                                                                         "bambu": BambuPrinter}
+
+
+def open_host_printer(kind: str, spec: str, gcode: bytes | None = None, *, key_file: Path | None = None,
+                      host: Any = None) -> Printer:
+    """A PrusaLink or Bambu Lab connector from its URL, with its secret from a key file, the environment or the job file.
+
+    Parameters
+    ----------
+    kind : str
+        ``"prusalink"`` or ``"bambu"`` (:data:`HOST_PRINTERS`).
+    spec : str
+        ``prusalink://host?user=NAME`` or ``bambu://host?serial=SERIAL``.
+    gcode : bytes, optional
+        The job's G-code: its layer tops name the layers the connector reports.
+    key_file : Path, optional
+        ``--key-file`` (the PrusaLink password or the Bambu access code on its first line).
+    host : HostSettings, optional
+        The job file's ``[host]`` section.
+
+    Raises
+    ------
+    ConfigError, PrinterError
+        A bad URL, no secret, an unreadable key file.
+    """
+    file = key_file or (Path(host.key_file) if host is not None and host.key_file else None)
+    config_key = host.api_key.get_secret_value() if host is not None and host.api_key else None
+    secret, source = resolve_key(kind, spec, key_file=file, config_key=config_key)
+    logging.getLogger("layerwatch.monitor").info("%s password/access code from: %s", kind, source)
+    layer_z = [layer.z for layer in read_toolpath(gcode).layers] if gcode else None
+    return HOST_PRINTERS[kind](split_url_key(spec)[0], secret, layer_z=layer_z)
+
+
+def printer_camera(printer: Printer, spec: Any) -> tuple[Any, CameraModel]:
+    """The printer's own camera (``--camera printer``: PrusaLink's snapshot, a Bambu P1/A1's stream) and its model.
+
+    Parameters
+    ----------
+    printer : Printer
+        A connector with a ``camera(**kw)`` method.
+    spec : CameraSpec
+        ``model`` (camera.toml, required) and ``settle_s``.
+
+    Raises
+    ------
+    ConfigError
+        The connector has no camera, or no ``--camera-model`` was given.
+    """
+    make = getattr(printer, "camera", None)
+    if make is None:
+        raise ConfigError(f"--camera printer: {printer.name} has no camera layerwatch can read; give --camera http://... "
+                          "(a snapshot or MJPEG URL).")
+    if spec.model is None:
+        raise ConfigError("--camera-model camera.toml is needed with a real camera; make one with `layerwatch calibrate`.")
+    return make(settle_s=spec.settle_s), CameraModel.load(spec.model)

@@ -26,7 +26,10 @@ __all__ = ["ENV_VARS", "HostSettings", "read_key_file", "split_url_key", "redact
 log = logging.getLogger("layerwatch.monitor.keys")
 
 #: Environment variable holding the API key, per host software.
-ENV_VARS = {"octoprint": "LAYERWATCH_OCTOPRINT_KEY", "moonraker": "LAYERWATCH_MOONRAKER_KEY"}
+#: PrusaLink: the password shown on the printer; Bambu Lab: the LAN-mode access code; mqtt: the
+#: password of the Home Assistant broker's user.
+ENV_VARS = {"octoprint": "LAYERWATCH_OCTOPRINT_KEY", "moonraker": "LAYERWATCH_MOONRAKER_KEY",
+            "prusalink": "LAYERWATCH_PRUSALINK_KEY", "bambu": "LAYERWATCH_BAMBU_KEY", "mqtt": "LAYERWATCH_MQTT_KEY"}
 
 #: Query parameters whose values are secrets.
 _SECRET_PARAMS = frozenset({"key", "apikey", "api_key", "token", "access_token", "password", "secret"})
