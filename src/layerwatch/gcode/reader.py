@@ -212,20 +212,18 @@ def _features(tags, seg_line: np.ndarray, seg_z: np.ndarray, detection: str, bou
     """Feature code per segment: the slicer's tags; moves before the first layer starts
     (start G-code purge and prime lines) are ``purge``."""
     n = seg_line.shape[0]
-    if tags.feature_lines.size:
-        fi = np.searchsorted(tags.feature_lines, seg_line, side="right") - 1
-        feature = tags.feature_codes[np.maximum(fi, 0)]
-        feature[fi < 0] = 0
-    else:
-        feature = np.zeros(n, np.uint8)
-    purge = np.zeros(n, bool)
+    # seg_line is sorted: each tag's first segment is one binary search, then runs are repeated
+    first = np.searchsorted(seg_line, tags.feature_lines, side="left")
+    codes = np.concatenate([[0], tags.feature_codes]).astype(np.uint8)
+    feature = np.repeat(codes, np.diff(np.concatenate([[0], first, [n]])))
+    n_purge = 0
     if detection.startswith("tags") and tags.layer_lines.size:
-        purge = seg_line < tags.layer_lines[0]
+        n_purge = int(np.searchsorted(seg_line, tags.layer_lines[0], side="left"))
     elif detection == "z" and len(bounds) > 1:  # prime lines above layer 0, merged into it by assign_layers
         z0 = seg_z[bounds[0] : bounds[1]]
         on_layer = np.flatnonzero(np.abs(z0 - z0.min()) < 1e-4)
-        purge[: on_layer[0] if on_layer.size else 0] = True
-    feature[purge] = FEATURES.index("purge")
+        n_purge = int(on_layer[0]) if on_layer.size else 0
+    feature[:n_purge] = FEATURES.index("purge")
     return feature
 
 
@@ -280,15 +278,12 @@ def _line_ranges(tags, detection, seg_line, bounds, n_lines):
 
 
 def _layers(lz, heights, bounds, starts, stops, lo, hi, ext, n_trav) -> tuple[Layer, ...]:
+    # columns to Python numbers in bulk (tolist), then one record per layer
+    cols = (lz.tolist(), heights.tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), starts.tolist(),
+            stops.tolist(), np.column_stack([lo, hi]).tolist(), ext.tolist(), n_trav.tolist())
     return tuple(
-        Layer(
-            index=k, z=float(lz[k]), height=float(heights[k]),
-            seg_start=int(bounds[k]), seg_stop=int(bounds[k + 1]),
-            line_start=int(starts[k]), line_stop=int(stops[k]),
-            bounds=(float(lo[k, 0]), float(lo[k, 1]), float(hi[k, 0]), float(hi[k, 1])),
-            extrusion_mm=float(ext[k]), n_travel=int(n_trav[k]),
-        )
-        for k in range(len(lz))
+        Layer(k, z, h, a, b, ls, le, tuple(box), e, nt)
+        for k, (z, h, a, b, ls, le, box, e, nt) in enumerate(zip(*cols, strict=True))
     )
 
 

@@ -49,9 +49,13 @@ def feature_code(name: str) -> int:
         return 0
 
 
+_IS_PART = np.ones(256, bool)
+_IS_PART[[FEATURES.index(f) for f in NOT_PART]] = False
+
+
 def part_mask(feature: np.ndarray) -> np.ndarray:
     """True for segments of the part itself (not skirt, brim, purge line or wipe tower), shape (S,)."""
-    return ~np.isin(feature, [FEATURES.index(f) for f in NOT_PART])
+    return _IS_PART[np.asarray(feature, np.uint8)]
 
 
 @dataclass(frozen=True)
