@@ -22,7 +22,7 @@ setup(
             [SOURCE],
             define_macros=[("LW_SOURCE_KEY", f'"{KEY}"')],
             # no fused multiply-add: the numba kernel rounds each product (identical outputs)
-            extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
+            extra_compile_args=["-O3", "-ffp-contract=off", "-fno-fast-math"],
             optional=True,
         )
     ]

@@ -396,6 +396,16 @@ static int emit_arc(Machine *m, const double *p, const double *arc, long long k,
     return 0;
 }
 
+/* hypot(dx, dy) > len, exactly as numba's math.hypot decides it, without the libm call unless
+ * the squared length is within 1e-6 of len^2 (where rounding could matter) */
+static inline int longer_than(double dx, double dy, double len)
+{
+    double q = dx * dx + dy * dy, l2 = len * len;
+    if (q > l2 * 1.000001) return 1;
+    if (q < l2 * 0.999999) return 0;
+    return hypot(dx, dy) > len;  /* also NaN: neither comparison above holds */
+}
+
 /* _move: returns 1 when a travel (non-extruding XY move) happened, 0 otherwise, -1 on memory error */
 static int move(Machine *m, const Words *w, int mo, int64_t line)
 {
@@ -406,12 +416,14 @@ static int move(Machine *m, const Words *w, int mo, int64_t line)
     double x1 = ms[MS_LX] + ms[MS_OX], y1 = ms[MS_LY] + ms[MS_OY], z1 = ms[MS_LZ] + ms[MS_OZ];
     int64_t tool = (int64_t)ms[MS_TOOL];
     double flow = tool < N_TOOLS ? ms[MS_FLOW + tool] : 1.0;
-    double dxy = hypot(x1 - x0, y1 - y0);
     int absurd = !(fabs(x1) <= ABSURD_MM && fabs(y1) <= ABSURD_MM && fabs(z1) <= ABSURD_MM && fabs(de) <= ABSURD_MM
                    && fabs(x0) <= ABSURD_MM && fabs(y0) <= ABSURD_MM && fabs(z0) <= ABSURD_MM);
     if (absurd) { flag(m->stats, ST_ABSURD, ST_FIRST_ABSURD, line); return 0; }
     int arc = mo == 2 || mo == 3;
-    account_filament(ms, fs, de, flow, dxy > 1e-12 || arc);
+    /* finite and within ABSURD_MM here: dx, dy cannot overflow; dxy > 0 iff either is non-zero */
+    double dx = x1 - x0, dy = y1 - y0;
+    int moved = longer_than(dx, dy, 1e-12);
+    account_filament(ms, fs, de, flow, moved || arc);
     int extruding = de > 1e-9 || (ms[MS_TOOLON_MODE] > 0 && ms[MS_TOOLON] > 0 && !HAS(W_E));
     double fed = de > 1e-9 ? de * flow : 0.0;
     if (arc) {
@@ -424,7 +436,7 @@ static int move(Machine *m, const Words *w, int mo, int64_t line)
         if (ok && !(g[2] <= ABSURD_MM && g[3] <= ABSURD_MM)) ok = 0;
         if (!ok) flag(m->stats, ST_ARC_BAD, ST_FIRST_ARC_BAD, line);
         else {
-            if (!extruding) return dxy > 0 || fabs(g[5]) > 0;
+            if (!extruding) return dx != 0.0 || dy != 0.0 || fabs(g[5]) > 0;
             int capped;
             k = arc_chords(ms, k, g[5], g[2], g[3], &capped);
             if (capped) flag(m->stats, ST_ARC_CAPPED, ST_FIRST_ARC_CAPPED, line);
@@ -434,7 +446,7 @@ static int move(Machine *m, const Words *w, int mo, int64_t line)
             return emit_arc(m, p, g, k, fed, line, tool);
         }
     }
-    if (dxy <= 1e-12) return 0;
+    if (!moved) return 0;
     if (!extruding) return 1;
     fs[FS_XY_CMD] += de > 0.0 ? de : 0.0;
     fs[FS_XY_FED] += fed;
