@@ -28,8 +28,12 @@ gcode_app = typer.Typer(
 _PROFILES = ("paper", "octoprint", "klipper", "timelapse", "m240")
 
 
+#: files above this size get a progress bar: about a second of parsing (the reader does ~200 MB/s)
+PROGRESS_BAR_BYTES = 200_000_000
+
+
 def _read_with_progress(path: Path, filament_diameter: float | None = None):
-    big = path.is_file() and path.stat().st_size > 5_000_000
+    big = path.is_file() and path.stat().st_size > PROGRESS_BAR_BYTES
     if not big:
         return read_toolpath(path, filament_diameter=filament_diameter)
     with Progress(

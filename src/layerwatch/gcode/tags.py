@@ -136,15 +136,21 @@ def _comment_keys(data: bytes, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return keys, lengths.astype(np.int64), long
 
 
+def _row_hash(keys: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """A 64-bit multiplicative hash of each key row and its length, (C,) uint64."""
+    words = keys.view(np.uint64)
+    h = lengths.astype(np.uint64)
+    for j in range(words.shape[1]):
+        h = h * np.uint64(0x9E3779B97F4A7C15) + words[:, j]
+    return h
+
+
 def _distinct_comments(data: bytes, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Group equal comments: ``(first, inverse, long)`` where comment ``i`` equals comment
     ``first[inverse[i]]`` (exactly: keys are compared, not only hashed); ``long`` comments
     (beyond the key) are each their own group."""
     keys, lengths, long = _comment_keys(data, offs)
-    words = keys.view(np.uint64)
-    h = lengths.astype(np.uint64)
-    for j in range(words.shape[1]):
-        h = h * np.uint64(0x9E3779B97F4A7C15) + words[:, j]
+    h = _row_hash(keys, lengths)
     h[long] = np.uint64(0)
     _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
     rep = first[inverse][~long]
