@@ -7,7 +7,7 @@ OUT ?= demo-out
 
 .PHONY: demo test check bench lint types install clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py src/layerwatch/gcode/_ckernel.c
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[web,notify,dask,mqtt,test]'

@@ -39,7 +39,7 @@ def test_a_change_to_any_source_or_to_numba_clears_the_kernel_cache(tmp_path):
 
 def test_kernel_key_covers_the_arc_source_and_numba():
     names = {p.name for p in jit_cache.KERNEL_SOURCES}
-    assert {"kernel.py", "lexer.py", "arcs.py"} <= names
+    assert {"kernel.py", "kernel_abi.py", "lexer.py", "arcs.py"} <= names
     assert K.arc_geometry.py_func.__code__.co_filename.endswith("arcs.py")
     key = jit_cache.cache_key(jit_cache.KERNEL_SOURCES)
     assert key != jit_cache.cache_key(jit_cache.KERNEL_SOURCES, ("not-" + numba.__version__,))

@@ -11,7 +11,6 @@ import struct
 import zlib
 
 from layerwatch.errors import GcodeError
-from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
 
 __all__ = ["decode_bgcode"]
 
@@ -21,6 +20,10 @@ _ENCODING = {0: "none", 1: "MeatPack", 2: "MeatPack with comments"}
 
 
 def _decode_block(payload: bytes, comp: int, enc: int, usize: int) -> bytes | None:
+    # the codecs are numba kernels (~0.3 s to import numba): only .bgcode files pay it, so a
+    # cold `gcode info` of a text file starts without numba
+    from layerwatch.gcode.bgcode_codecs import heatshrink_decode, meatpack_decode
+
     raw: bytes | None
     if comp == 0:
         raw = payload

@@ -28,7 +28,7 @@ __all__ = ["KERNEL_SOURCES", "cache_key", "ensure_fresh", "STAMP_NAME"]
 
 _HERE = Path(__file__).resolve().parent
 #: every source file whose code numba compiles into the kernel's cached functions
-KERNEL_SOURCES: tuple[Path, ...] = (_HERE / "kernel.py", _HERE / "lexer.py", _HERE / "arcs.py")
+KERNEL_SOURCES: tuple[Path, ...] = tuple(_HERE / f for f in ("kernel.py", "kernel_abi.py", "lexer.py", "arcs.py"))
 STAMP_NAME = "layerwatch-kernel.key"
 
 

@@ -34,6 +34,67 @@ import numpy as np
 
 from layerwatch.gcode import jit_cache
 from layerwatch.gcode.arcs import arc_geometry
+from layerwatch.gcode.kernel_abi import (
+    ABSURD_MM,
+    ARC_BUDGET_BASE,
+    ARC_BUDGET_PER_BYTE,
+    ARC_MAX_CHORDS,
+    ARC_MIN_CHORD_MM,
+    FS_CMD_HIGH,
+    FS_EONLY_FED,
+    FS_FED_HIGH,
+    FS_XY_CMD,
+    FS_XY_FED,
+    MS_ABS,
+    MS_ARC_BUDGET,
+    MS_ARC_CHORDS,
+    MS_CMD,
+    MS_CMD_HIGH,
+    MS_E,
+    MS_EAREA,
+    MS_EREL,
+    MS_FED,
+    MS_FED_HIGH,
+    MS_FEED,
+    MS_FLOW,
+    MS_LX,
+    MS_LY,
+    MS_LZ,
+    MS_MOTION,
+    MS_OX,
+    MS_OY,
+    MS_OZ,
+    MS_SCALE,
+    MS_TOOL,
+    MS_TOOLON,
+    MS_TOOLON_MODE,
+    N_FSTATS,
+    N_MS,
+    N_PROBE,
+    N_STATS,
+    N_TOOLS,
+    ST_ABSURD,
+    ST_ARC_BAD,
+    ST_ARC_CAPPED,
+    ST_ARCS,
+    ST_BAD,
+    ST_CMT,
+    ST_FIRST_ABSURD,
+    ST_FIRST_ARC_BAD,
+    ST_FIRST_ARC_CAPPED,
+    ST_FIRST_BAD,
+    ST_FIRST_MALFORMED,
+    ST_FLOW_SET,
+    ST_FWRETRACT,
+    ST_LINES,
+    ST_MALFORMED,
+    ST_NONL,
+    ST_SEG,
+    ST_TOOLON,
+    ST_TRAVEL,
+    ST_UNKNOWN,
+    ST_VOLUMETRIC,
+)
 from layerwatch.gcode.lexer import (
     BAD_BYTES,
     BAD_WORD,
@@ -59,32 +120,6 @@ from layerwatch.gcode.lexer import (
 jit_cache.ensure_fresh(Path(__file__).resolve().parent / "__pycache__", "kernel",
                        jit_cache.cache_key(jit_cache.KERNEL_SOURCES))
 
-# ---- stats slots (int64)
-ST_LINES, ST_SEG, ST_TRAVEL, ST_CMT, ST_BAD, ST_FIRST_BAD, ST_UNKNOWN, ST_ABSURD = 0, 1, 2, 3, 4, 5, 6, 7
-ST_FIRST_ABSURD, ST_TOOLON, ST_ARCS, ST_ARC_BAD, ST_FIRST_ARC_BAD, ST_NONL, ST_FWRETRACT = 8, 9, 10, 11, 12, 13, 14
-ST_VOLUMETRIC, ST_ARC_CAPPED, ST_FIRST_ARC_CAPPED, ST_FLOW_SET, ST_MALFORMED, ST_FIRST_MALFORMED = 15, 16, 17, 18, 19, 20
-N_STATS = 22
-# ---- filament totals (float64, mm of filament)
-FS_XY_CMD, FS_CMD_HIGH, FS_FED_HIGH, FS_EONLY_FED, FS_XY_FED = 0, 1, 2, 3, 4
-N_FSTATS = 5
-#: probe state columns: logical x, y, z, offsets x, y, z, e, feed (mm/min), abs_xyz, e_rel_flag, tool, inch,
-#: tool-on (M101 dialect, 1 when the extruder is switched on)
-N_PROBE = 13
-ABSURD_MM = 1.0e5
-#: at most this many chords per arc, and in the whole file ARC_BUDGET_BASE + ARC_BUDGET_PER_BYTE x its
-#: size (then 16 per arc): memory stays proportional to the file whatever its radii
-ARC_MAX_CHORDS = 2048
-ARC_BUDGET_BASE = 200_000
-ARC_BUDGET_PER_BYTE = 8
-ARC_MIN_CHORD_MM = 0.02
-
-# ---- machine state slots (float64)
-MS_LX, MS_LY, MS_LZ, MS_OX, MS_OY, MS_OZ, MS_E, MS_FEED = 0, 1, 2, 3, 4, 5, 6, 7
-MS_ABS, MS_EREL, MS_SCALE, MS_TOOL, MS_TOOLON, MS_TOOLON_MODE, MS_MOTION, MS_EAREA = 8, 9, 10, 11, 12, 13, 14, 15
-MS_CMD, MS_CMD_HIGH, MS_FED, MS_FED_HIGH, MS_ARC_CHORDS, MS_ARC_BUDGET = 16, 17, 18, 19, 20, 21
-MS_FLOW = 24  # + tool index, 16 tools
-N_TOOLS = 16
-N_MS = MS_FLOW + N_TOOLS
 # ---- what a line does
 ACT_NONE, ACT_HOME, ACT_SETPOS, ACT_MOVE = 0, 1, 2, 3
 
@@ -152,7 +187,8 @@ def _apply_m(ms, m, val, has, stats):
             stats[ST_VOLUMETRIC] = 1
     elif m == 221 and has[W_S] and math.isfinite(val[W_S]) and 0.0 <= val[W_S] <= 1000.0:
         t = int(val[W_T]) if has[W_T] and 0 <= val[W_T] < N_TOOLS else int(ms[MS_TOOL])
-        ms[MS_FLOW + t] = val[W_S] / 100.0
+        if t < N_TOOLS:  # tools 16..254 print at 100 %
+            ms[MS_FLOW + t] = val[W_S] / 100.0
         stats[ST_FLOW_SET] += 1
 
 

@@ -86,16 +86,20 @@ def assign_layers(
 def _tag_layers(
     seg_z: np.ndarray, seg_line: np.ndarray, tag_lines: np.ndarray, tag_z: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Layers from the slicer's layer tags: ``(bounds, z)`` as :func:`assign_layers` returns."""
-    ids = np.searchsorted(tag_lines, seg_line, side="right") - 1
-    np.maximum(ids, 0, out=ids)  # moves before the first tag (purge line) join layer 0
-    bounds = _runs(ids)
-    z = np.empty(bounds.size - 1)
-    for k in range(bounds.size - 1):
-        a, b = bounds[k], bounds[k + 1]
-        tz = tag_z[ids[a]]
-        z[k] = tz if np.isfinite(tz) else float(seg_z[(a + b) // 2])  # mid-layer segment
-    return bounds, z
+    """Layers from the slicer's layer tags: ``(bounds, z)`` as :func:`assign_layers` returns.
+
+    A segment belongs to the last tag at or above its line; moves before the first tag
+    (purge line) join layer 0. ``seg_line`` is sorted, so each tag's first segment is one
+    binary search (T of them, not S).
+    """
+    n = seg_z.shape[0]
+    starts = np.searchsorted(seg_line, tag_lines[1:], side="left")
+    cuts = starts[(starts > 0) & (starts < n)]
+    bounds = np.unique(np.concatenate([[0], cuts, [n]])).astype(np.int64)
+    ids = np.maximum(np.searchsorted(tag_lines, seg_line[bounds[:-1]], side="right") - 1, 0)
+    z = tag_z[ids].astype(np.float64)
+    mid = seg_z[(bounds[:-1] + bounds[1:]) // 2]  # mid-layer segment where the tag names no Z
+    return bounds, np.where(np.isfinite(z), z, mid)
 
 
 def _spiral_height(

@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.errors import GcodeError
-from layerwatch.gcode import kernel as K
+from layerwatch.gcode import kernel_abi as K
 from layerwatch.gcode.bgcode import decode_bgcode
 from layerwatch.gcode.generators import detect_generator
 from layerwatch.gcode.gx import MAGIC as GX_MAGIC
 from layerwatch.gcode.gx import decode_gx
 from layerwatch.gcode.layers import assign_layers
+from layerwatch.gcode.native import KernelOutput, run_kernel
 from layerwatch.gcode.statements import Statements, read_statements
 from layerwatch.gcode.tags import decode_tags
 from layerwatch.gcode.toolpath import FEATURES, Layer, Toolpath, part_mask
@@ -90,14 +91,11 @@ def volumetric_area(st: Statements, filament_diameter: float) -> float:
     return 0.0
 
 
-def kernel_outputs(data: bytes, probes: np.ndarray | None = None, e_area: float = 0.0) -> tuple:
-    """Raw kernel outputs for ``data`` (see :func:`layerwatch.gcode.kernel.run_kernel`)."""
-    buf = np.frombuffer(data, dtype=np.uint8)
+def kernel_outputs(data: bytes, probes: np.ndarray | None = None, e_area: float = 0.0) -> KernelOutput:
+    """Raw kernel outputs for ``data`` (see :class:`layerwatch.gcode.native.KernelOutput`)."""
     if probes is None:
         probes = np.zeros(0, np.int64)
-    return K.run_kernel(
-        buf, np.ascontiguousarray(probes, np.int64), CHORD_TOL_MM, guess_relative_e(data), float(e_area)
-    )
+    return run_kernel(data, probes, CHORD_TOL_MM, guess_relative_e(data), float(e_area))
 
 
 def run(data: bytes, probes: np.ndarray | None = None) -> tuple:
@@ -108,8 +106,9 @@ def run(data: bytes, probes: np.ndarray | None = None) -> tuple:
     seg : (S, 6) float64  x0, y0, x1, y1, z, e
     seg_line, seg_tool, travel_line, cmt, probe_state, stats : see the kernel
     """
-    segf, segi, travel, cmt, probe, stats, _fs = kernel_outputs(data, probes)
-    return segf, segi[:, 0].copy(), segi[:, 1].astype(np.uint8), travel, cmt, probe, stats
+    ko = kernel_outputs(data, probes)
+    segf = np.column_stack([ko.start, ko.end, ko.z, ko.e])
+    return segf, ko.line, ko.tool, ko.travel_line, ko.cmt, ko.probe_state, ko.stats
 
 
 def _line_text(data: bytes, line: int, limit: int = 60) -> str:
@@ -213,20 +212,18 @@ def _features(tags, seg_line: np.ndarray, seg_z: np.ndarray, detection: str, bou
     """Feature code per segment: the slicer's tags; moves before the first layer starts
     (start G-code purge and prime lines) are ``purge``."""
     n = seg_line.shape[0]
-    if tags.feature_lines.size:
-        fi = np.searchsorted(tags.feature_lines, seg_line, side="right") - 1
-        feature = tags.feature_codes[np.maximum(fi, 0)]
-        feature[fi < 0] = 0
-    else:
-        feature = np.zeros(n, np.uint8)
-    purge = np.zeros(n, bool)
+    # seg_line is sorted: each tag's first segment is one binary search, then runs are repeated
+    first = np.searchsorted(seg_line, tags.feature_lines, side="left")
+    codes = np.concatenate([[0], tags.feature_codes]).astype(np.uint8)
+    feature = np.repeat(codes, np.diff(np.concatenate([[0], first, [n]])))
+    n_purge = 0
     if detection.startswith("tags") and tags.layer_lines.size:
-        purge = seg_line < tags.layer_lines[0]
+        n_purge = int(np.searchsorted(seg_line, tags.layer_lines[0], side="left"))
     elif detection == "z" and len(bounds) > 1:  # prime lines above layer 0, merged into it by assign_layers
         z0 = seg_z[bounds[0] : bounds[1]]
         on_layer = np.flatnonzero(np.abs(z0 - z0.min()) < 1e-4)
-        purge[: on_layer[0] if on_layer.size else 0] = True
-    feature[purge] = FEATURES.index("purge")
+        n_purge = int(on_layer[0]) if on_layer.size else 0
+    feature[:n_purge] = FEATURES.index("purge")
     return feature
 
 
@@ -281,15 +278,12 @@ def _line_ranges(tags, detection, seg_line, bounds, n_lines):
 
 
 def _layers(lz, heights, bounds, starts, stops, lo, hi, ext, n_trav) -> tuple[Layer, ...]:
+    # columns to Python numbers in bulk (tolist), then one record per layer
+    cols = (lz.tolist(), heights.tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), starts.tolist(),
+            stops.tolist(), np.column_stack([lo, hi]).tolist(), ext.tolist(), n_trav.tolist())
     return tuple(
-        Layer(
-            index=k, z=float(lz[k]), height=float(heights[k]),
-            seg_start=int(bounds[k]), seg_stop=int(bounds[k + 1]),
-            line_start=int(starts[k]), line_stop=int(stops[k]),
-            bounds=(float(lo[k, 0]), float(lo[k, 1]), float(hi[k, 0]), float(hi[k, 1])),
-            extrusion_mm=float(ext[k]), n_travel=int(n_trav[k]),
-        )
-        for k in range(len(lz))
+        Layer(k, z, h, a, b, ls, le, tuple(box), e, nt)
+        for k, (z, h, a, b, ls, le, box, e, nt) in enumerate(zip(*cols, strict=True))
     )
 
 
@@ -328,15 +322,14 @@ def read_toolpath(
         progress(0, total)
     statements = read_statements(data)
     diameter = _filament_diameter(filament_diameter, statements)
-    segf, segi, travel_line, cmt, _probe, st, fst = kernel_outputs(data, e_area=volumetric_area(statements, diameter))
+    ko = kernel_outputs(data, e_area=volumetric_area(statements, diameter))
+    st, fst = ko.stats, ko.fstats
     if progress:
         progress(int(total * 0.9), total)
     short = Path(name).name
     warnings = _kernel_warnings(data, short, st)
-    seg_a, seg_b = np.ascontiguousarray(segf[:, 0:2]), np.ascontiguousarray(segf[:, 2:4])
-    seg_z, seg_e, seg_line = segf[:, 4].copy(), segf[:, 5].copy(), segi[:, 0].copy()
-    del segf
-    tags = decode_tags(data, cmt)
+    seg_a, seg_b, seg_z, seg_e, seg_line = ko.start, ko.end, ko.z, ko.e, ko.line
+    tags = decode_tags(data, ko.cmt)
     m = _LH.search(data[:8192]) or _LH.search(data[-65536:])
     lh_hint = _finite(m.group(1)) if m else None
     bounds, lz, detection, w2 = assign_layers(seg_z, seg_line, tags.layer_lines, tags.layer_z, tags.style,
@@ -350,12 +343,12 @@ def read_toolpath(
         lo, hi, ext = _layer_boxes(seg_a, seg_b, seg_e, feature, bounds)
     heights = _heights(lz, lo, hi, bounds)
     starts, stops = _line_ranges(tags, detection, seg_line, bounds, int(st[K.ST_LINES]))
-    n_trav = np.searchsorted(travel_line, stops) - np.searchsorted(travel_line, starts)
+    n_trav = np.searchsorted(ko.travel_line, stops) - np.searchsorted(ko.travel_line, starts)
     generator = detect_generator(data[:65536])
     tp = Toolpath(
         start=seg_a, end=seg_b, z=seg_z, e=seg_e,
         width=_bead_width(seg_a, seg_b, seg_e, np.repeat(heights.astype(np.float32), np.diff(bounds)), diameter),
-        feature=feature, tool=segi[:, 1].astype(np.uint8), line=seg_line,
+        feature=feature, tool=ko.tool, line=seg_line,
         layers=_layers(lz, heights, bounds, starts, stops, lo, hi, ext, n_trav) if len(lz) else (),
         detection=detection, filament_diameter=diameter, source=name, slicer=generator.name,
         warnings=warnings, generator=generator, statements=statements,

@@ -21,7 +21,8 @@ def reading(tp: Toolpath) -> dict:
     zs = [lay.z for lay in tp.layers]
     heights = sorted(lay.height for lay in tp.layers)
     area = tp.filament_area_mm2
-    feats = {FEATURES[c]: int(n) for c, n in zip(*np.unique(tp.feature, return_counts=True), strict=True)}
+    counts = np.bincount(tp.feature, minlength=len(FEATURES)) if tp.n_segments else np.zeros(0, np.int64)
+    feats = {FEATURES[c]: int(counts[c]) for c in np.flatnonzero(counts).tolist()}
     return {
         "generator": tp.generator.describe() if tp.generator else (tp.slicer or None),
         "layers": tp.n_layers,

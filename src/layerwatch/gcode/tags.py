@@ -108,58 +108,125 @@ def _classify(text: bytes) -> tuple[str | None, float, int, bytes | None]:
     return style, z, code, zval
 
 
+#: bytes of a comment that key the classification cache; longer comments are classified one by one
+KEY_BYTES = 48
+_MAX_TAG_BYTES = 200  # a comment is read up to its newline or this many bytes
+
+
+def _comment_keys(data: bytes, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first :data:`KEY_BYTES` bytes of each comment (zero after its newline), its length up to
+    the newline, and whether it is longer than the key: ``(C, KEY_BYTES)`` uint8, ``(C,)`` int64, ``(C,)`` bool."""
+    n, w = len(data), KEY_BYTES
+    buf = np.frombuffer(data, np.uint8)
+    inside = offs <= n - w
+    if n >= w:
+        keys = np.lib.stride_tricks.sliding_window_view(buf, w)[np.minimum(offs, n - w)]
+    else:
+        keys = np.zeros((offs.shape[0], w), np.uint8)
+    for r in np.flatnonzero(~inside).tolist():  # the last few comments of the file
+        tail = buf[offs[r] : offs[r] + w]
+        keys[r] = 0
+        keys[r, : tail.shape[0]] = tail
+    is_nl = keys == 10
+    lengths = np.argmax(is_nl, axis=1)
+    ended = is_nl[np.arange(keys.shape[0]), lengths]
+    lengths[~ended] = w
+    keys *= np.arange(w) < lengths[:, None]  # zero from the newline on
+    long = ~ended & inside
+    return keys, lengths.astype(np.int64), long
+
+
+def _row_hash(keys: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """A 64-bit multiplicative hash of each key row and its length, (C,) uint64."""
+    words = keys.view(np.uint64)
+    h = lengths.astype(np.uint64)
+    for j in range(words.shape[1]):
+        h = h * np.uint64(0x9E3779B97F4A7C15) + words[:, j]
+    return h
+
+
+def _distinct_comments(data: bytes, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group equal comments: ``(first, inverse, long)`` where comment ``i`` equals comment
+    ``first[inverse[i]]`` (exactly: keys are compared, not only hashed); ``long`` comments
+    (beyond the key) are each their own group."""
+    keys, lengths, long = _comment_keys(data, offs)
+    h = _row_hash(keys, lengths)
+    h[long] = np.uint64(0)
+    _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
+    rep = first[inverse][~long]
+    short = ~long
+    if not (np.array_equal(keys[rep], keys[short]) and np.array_equal(lengths[rep], lengths[short])):  # a collision
+        _, first, inverse = np.unique(np.column_stack([keys, lengths.view(np.uint8).reshape(-1, 8)]),
+                                      axis=0, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1), long
+
+
+def _raw(data: bytes, off: int) -> bytes:
+    end = data.find(b"\n", off, off + _MAX_TAG_BYTES)
+    return data[off : end if end >= 0 else off + _MAX_TAG_BYTES]
+
+
+def _classify_rows(data: bytes, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per comment: layer style index (-1 none), tag z (NaN), feature code (-1), ``;Z:`` value
+    (NaN none) and Cura label id (-1 none), each (C,); each distinct comment classified once."""
+    first, inverse, long = _distinct_comments(data, offs)
+    names = [s[0] for s in LAYER_STYLES]
+    labels: dict[bytes, int] = {}
+
+    def classify(off: int) -> tuple[int, float, int, float, int]:
+        style, z, code, zval = _classify(_raw(data, off).rstrip(b"\r"))
+        if style == "cura":
+            return names.index(style), z, code, float("nan"), labels.setdefault(zval or b"", len(labels))
+        zv = float(zval) if zval is not None and style is None else float("nan")
+        return (-1 if style is None else names.index(style)), z, code, zv, -1
+
+    uniq = [classify(off) for off in offs[first].tolist()]
+    cols = [np.array(c)[inverse] for c in zip(*uniq, strict=True)] if uniq else [np.zeros(0)] * 5
+    for r in np.flatnonzero(long).tolist():
+        for col, v in zip(cols, classify(int(offs[r])), strict=True):
+            col[r] = v
+    style, z, code, zval, label = cols
+    return style.astype(np.int64), z.astype(np.float64), code.astype(np.int64), zval.astype(np.float64), label.astype(np.int64)
+
+
 def decode_tags(data: bytes, cmt: np.ndarray) -> TagScan:
-    """Decode candidate comments ``cmt`` (``(C, 2)`` int64: byte offset, line) of ``data``."""
-    per_style: dict[str, list[tuple[int, float]]] = {s[0]: [] for s in LAYER_STYLES}
-    zvals: list[tuple[int, float]] = []
-    flines: list[int] = []
-    fcodes: list[int] = []
-    last_cura: bytes | None = None
-    cache: dict[bytes, tuple] = {}
-    find = data.find
-    # two flat lists (a nested tolist() builds a small list per comment); the raw line is the
-    # cache key and only a cache miss strips its CR
-    offs = cmt[:, 0].tolist() if len(cmt) else []
-    lines = cmt[:, 1].tolist() if len(cmt) else []
-    for off, line in zip(offs, lines, strict=True):
-        end = find(b"\n", off, off + 200)
-        raw = data[off : end if end >= 0 else off + 200]
-        hit = cache.get(raw)
-        if hit is None:
-            hit = _classify(raw.rstrip(b"\r"))
-            if len(cache) < 100000:
-                cache[raw] = hit
-        style, z, code, zval = hit
-        if style is not None:
-            if style == "cura":
-                if zval == last_cura:
-                    continue
-                last_cura = zval
-            elif style == "z-comment":
-                zvals.append((line, z))
-            per_style[style].append((line, z))
-        elif zval is not None:
-            zvals.append((line, float(zval)))
-        elif code >= 0:
-            flines.append(line)
-            fcodes.append(code)
-    scan = TagScan(
-        feature_lines=np.asarray(flines, np.int64), feature_codes=np.asarray(fcodes, np.uint8)
-    )
-    for name, _rx, _zg in LAYER_STYLES:
-        hits = per_style[name]
-        if len(hits) >= 2 or (hits and name != "z-comment"):
+    """Decode candidate comments ``cmt`` (``(C, 2)`` int64: byte offset, line) of ``data``.
+
+    Vectorised: equal comments (most of them: ``;TYPE:WALL-OUTER`` ...) are classified once
+    by regular expression, the rest is NumPy over all comments.
+    """
+    if len(cmt) == 0:
+        return TagScan()
+    offs, lines = np.ascontiguousarray(cmt[:, 0]), np.ascontiguousarray(cmt[:, 1])
+    style, tz, code, zval, label = _classify_rows(data, offs)
+    cura = names_index("cura")
+    rows = np.flatnonzero(style == cura)  # ideaMaker repeats ;LAYER:n per object: keep the first
+    repeat = np.zeros(style.shape[0], bool)
+    repeat[rows[1:][label[rows[1:]] == label[rows[:-1]]]] = True
+    style[repeat] = -2
+    zc = names_index("z-comment")
+    zrows = (style == zc) | ((style == -1) & ~np.isnan(zval))
+    zl, zv = lines[zrows], np.where(style[zrows] == zc, tz[zrows], zval[zrows])
+    feat = (style == -1) & np.isnan(zval) & (code >= 0)
+    scan = TagScan(feature_lines=lines[feat], feature_codes=code[feat].astype(np.uint8))
+    for k, (name, _rx, _zg) in enumerate(LAYER_STYLES):
+        hit = style == k
+        count = int(np.count_nonzero(hit))
+        if count >= 2 or (count and name != "z-comment"):
             scan.style = name
-            scan.layer_lines = np.array([h[0] for h in hits], np.int64)
-            z = np.array([h[1] for h in hits], np.float64)
-            if np.isnan(z).any() and zvals:
+            scan.layer_lines = lines[hit]
+            z = tz[hit]
+            if np.isnan(z).any() and zl.size:
                 # a ;Z: (or ; Z_HEIGHT:) shortly after the layer tag gives its height
-                zl = np.array([v[0] for v in zvals], np.int64)
-                zv = np.array([v[1] for v in zvals])
                 nxt = np.append(scan.layer_lines[1:], np.iinfo(np.int64).max)
-                k = np.searchsorted(zl, scan.layer_lines, side="left")
-                ok = (k < len(zl)) & (zl[np.minimum(k, len(zl) - 1)] < nxt)
-                z[ok & np.isnan(z)] = zv[np.minimum(k, len(zl) - 1)][ok & np.isnan(z)]
+                j = np.searchsorted(zl, scan.layer_lines, side="left")
+                ok = (j < len(zl)) & (zl[np.minimum(j, len(zl) - 1)] < nxt)
+                z[ok & np.isnan(z)] = zv[np.minimum(j, len(zl) - 1)][ok & np.isnan(z)]
             scan.layer_z = z
             break
     return scan
+
+
+def names_index(name: str) -> int:
+    """Index of a layer style in :data:`LAYER_STYLES`."""
+    return [s[0] for s in LAYER_STYLES].index(name)

@@ -49,9 +49,13 @@ def feature_code(name: str) -> int:
         return 0
 
 
+_IS_PART = np.ones(256, bool)
+_IS_PART[[FEATURES.index(f) for f in NOT_PART]] = False
+
+
 def part_mask(feature: np.ndarray) -> np.ndarray:
     """True for segments of the part itself (not skirt, brim, purge line or wipe tower), shape (S,)."""
-    return ~np.isin(feature, [FEATURES.index(f) for f in NOT_PART])
+    return _IS_PART[np.asarray(feature, np.uint8)]
 
 
 @dataclass(frozen=True)
@@ -234,9 +238,14 @@ class Toolpath:
         keep = part_mask(self.feature)
         if not keep.any():
             keep[:] = True
-        pts = np.concatenate([self.start[keep], self.end[keep]])
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        # column by column with a mask (no copies): NumPy reduces a strided column ~10x faster
+        # than an (S, 2) array along axis 0
+        a, b = self.start, self.end
+        lo = [float(np.minimum(a[:, k].min(where=keep, initial=np.inf), b[:, k].min(where=keep, initial=np.inf)))
+              for k in (0, 1)]
+        hi = [float(np.maximum(a[:, k].max(where=keep, initial=-np.inf), b[:, k].max(where=keep, initial=-np.inf)))
+              for k in (0, 1)]
+        return (lo[0], lo[1], hi[0], hi[1])
 
     @property
     def extrusion_mm(self) -> float:
