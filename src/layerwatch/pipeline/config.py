@@ -139,6 +139,16 @@ def observed_square(bounds: tuple[float, float, float, float]) -> dict[str, dict
     return {"topview": {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side}}
 
 
+def _merge_into(base: dict, values: Mapping) -> None:
+    """Update ``base`` with ``values``, table by table (``[policy.kinds.detachment]`` in one layer keeps
+    the other kinds and keys another layer set)."""
+    for k, v in values.items():
+        if isinstance(v, Mapping) and isinstance(base.get(k), dict):
+            _merge_into(base[k], v)
+        else:
+            base[k] = dict(v) if isinstance(v, Mapping) else v
+
+
 def resolve_config(
     path: str | Path | None = None,
     *,
@@ -176,7 +186,7 @@ def resolve_config(
     for name in SOURCES[1:]:
         for section, values in layers[name].items():
             if isinstance(values, Mapping) and isinstance(data.get(section, {}), dict):
-                data.setdefault(section, {}).update(values)
+                _merge_into(data.setdefault(section, {}), values)
                 sources.update({f"{section}.{k}": name for k in values})
             else:  # not a table: JobConfig's validation names it
                 data[section] = values
