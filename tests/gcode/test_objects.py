@@ -5,8 +5,8 @@ from itertools import combinations
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
 
+from conftest import SHARED_DATA
 from layerwatch.analysis.result import Region
 from layerwatch.gcode.objects import read_objects, without_objects
 from layerwatch.gcode.reader import read_toolpath

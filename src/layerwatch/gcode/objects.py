@@ -251,9 +251,10 @@ def read_objects(source: str | Path | bytes, toolpath: Toolpath, style: str | No
     """
     data, _ = load_bytes(source)
     starts = _line_of(data)
-    for style, start, end in [st for st in _STYLES if style in (None, st[0])]:
+    for name, start, end in [st for st in _STYLES if style in (None, st[0])]:
         events = _events(data, starts, start, end)
         if any(key is not None for _, key in events):
+            style = name
             break
     else:
         return ObjectMap(segment_object=np.full(toolpath.n_segments, -1, np.int32))
