@@ -101,7 +101,7 @@ def test_failures_between_objects_or_beside_them_pause_instead():
 def test_without_objects_drops_the_cancelled_object_above_the_layer_only():
     _, tp, om = _plate("cura-4.10.0_m83_multi-object.gcode")
     cut = 10
-    out = without_objects(tp, om, [1], cut)
+    out = without_objects(tp, om, {1: cut})
     assert out.n_layers == tp.n_layers
     for i in range(tp.n_layers):
         before = om.segment_object[tp.layer_slice(i)]

@@ -23,7 +23,7 @@ extruding segment of a :class:`~layerwatch.gcode.toolpath.Toolpath`;
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -284,21 +284,28 @@ def read_objects(source: str | Path | bytes, toolpath: Toolpath, style: str | No
     return ObjectMap(tuple(objects), style, relabel[seg_obj])
 
 
-def without_objects(toolpath: Toolpath, objects: ObjectMap, cancelled: Iterable[int], after_layer: int) -> Toolpath:
-    """``toolpath`` without the segments of ``cancelled`` objects above ``after_layer`` (what is no longer printed).
+def without_objects(toolpath: Toolpath, objects: ObjectMap, cancelled: Mapping[int, int]) -> Toolpath:
+    """``toolpath`` without what cancelled objects no longer print.
 
-    The layers up to ``after_layer`` keep them (that part of the object stays on the bed).
+    Parameters
+    ----------
+    toolpath : Toolpath
+        The full toolpath ``objects`` labels.
+    objects : ObjectMap
+    cancelled : mapping of int to int
+        Object index -> the last layer it printed (it was cancelled after that layer); its
+        segments on later layers are dropped, those up to it stay (that part is on the bed).
 
     Returns
     -------
     Toolpath
         Same layers (indices, heights, line ranges) with fewer segments.
     """
-    drop = np.isin(objects.segment_object, list(cancelled))
-    if toolpath.n_layers and after_layer + 1 < toolpath.n_layers:
-        drop[: toolpath.layers[max(after_layer, -1) + 1].seg_start] = False
-    else:
-        drop[:] = False
+    drop = np.zeros(toolpath.n_segments, bool)
+    for index, after in cancelled.items():
+        if after + 1 < toolpath.n_layers:
+            first = toolpath.layers[max(after + 1, 0)].seg_start
+            drop[first:] |= objects.segment_object[first:] == index
     keep = ~drop
     new_index = np.concatenate([[0], np.cumsum(keep)])
     layers: list[Layer] = [replace(lay, seg_start=int(new_index[lay.seg_start]), seg_stop=int(new_index[lay.seg_stop]))

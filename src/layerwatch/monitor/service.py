@@ -38,10 +38,12 @@ from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame
 from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
+from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
+from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.step import Reference
 
@@ -130,14 +132,18 @@ class Monitor:
     frame_quality : FrameQualitySettings, optional
         The camera-fault gate run on each frame before the pipeline; ``None`` (the default of
         this class; the ``monitor`` command always passes the job's settings) runs none.
+    objects : ObjectMap, optional
+        The job's labelled objects (``cancel_object`` needs them; without, it pauses).
     """
 
     def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
                  *, notifier: Any = None, history: Any = None, job_id: int | None = None,
                  wait_for_verdict: bool = False, max_backoff_s: float | None = None,
                  initial_backoff_s: float = 0.1, faults: FaultSettings | None = None,
-                 frame_quality: FrameQualitySettings | None = None) -> None:
+                 frame_quality: FrameQualitySettings | None = None, objects: ObjectMap | None = None) -> None:
         self.printer, self.camera, self.pipeline = printer, camera, pipeline
+        #: carries out stopping decisions, cancels single objects of ``objects``, audits
+        self.actions = ActionExecutor(printer, objects, pipeline, history, job_id)
         self.policy = policy or PausePolicy()
         self.notifier, self.history, self.job_id = notifier, history, job_id
         self.wait_for_verdict = wait_for_verdict
@@ -226,13 +232,15 @@ class Monitor:
     def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
         with self._lock:
             decision = self.policy.update(res)
-            if decision.stops:
-                try:
-                    (self.printer.pause if decision.action == "pause" else self.printer.cancel)()
+            if decision.stops:  # pause, cancel, cancel one object or a host command (pipeline/actions.py)
+                done = self.actions.execute(decision, self.policy)
+                decision = done.decision
+                if done.ok:
                     res.trigger_to_pause_ms = round((time.monotonic() - trigger.time) * 1000, 1)
                     self.report.pauses += 1
-                except Exception as exc:  # noqa: BLE001 - the host failed: say so, keep watching
-                    self._alert(f"could not {decision.action} the printer: {exc}", res, level="critical", force=True)
+                else:  # the host failed: say so, keep watching
+                    self._alert(f"could not {decision.action} the printer: {done.error}", res, level="critical",
+                                force=True)
             res.decision, res.decision_reason = decision.action, decision.reason
             self.report.results.append(res)
             self.report.decisions.append(decision)
@@ -435,6 +443,8 @@ class Monitor:
             if state != last_seen:
                 _log("transient", state=state)
             return settled
+        if settled and state != settled and state in ("paused", "printing", "cancelled"):
+            self.actions.state_changed(settled, state)  # audited with its source
         if settled == "paused" and state == "printing" and self.policy.halted:
             _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
             self.acknowledge()  # the operator resumed: accept what was seen

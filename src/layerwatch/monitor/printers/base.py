@@ -26,6 +26,8 @@ from layerwatch.monitor.printers.replies import MAX_REPLY_BYTES, read_capped
 if TYPE_CHECKING:
     import httpx
 
+    from layerwatch.gcode.objects import PrintObject
+
 __all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES", "WS_RETRY_S",
            "WS_MAX_FRAME_BYTES"]
 
@@ -284,6 +286,19 @@ class Printer(ABC):
     @abstractmethod
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         """Send G-code line(s) to the printer."""
+
+    def cancel_object(self, obj: PrintObject) -> None:
+        """Skip one object of the running job from now on (see :mod:`layerwatch.gcode.objects`).
+
+        Raises
+        ------
+        PrinterError
+            This host cannot skip objects, or the job does not label them the way its firmware needs.
+        """
+        raise PrinterError(f"{type(self).__name__} cannot cancel a single object; pause instead.")
+
+    def show_message(self, text: str) -> None:  # noqa: B027 - optional: hosts without a display show nothing
+        """Show one short line (printable ASCII) where the user looks: the printer's display, the host's UI."""
 
     def photo_done(self, trigger: SnapshotTrigger) -> None:
         """Tell the printer the photo of ``trigger`` was taken (or could not be), so a hold ends now.
