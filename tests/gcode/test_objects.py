@@ -5,12 +5,14 @@ from itertools import combinations
 
 import numpy as np
 import pytest
+from gcode_refs import _root
 
-from conftest import SHARED_DATA
 from layerwatch.analysis.result import Region
 from layerwatch.gcode.objects import read_objects, without_objects
 from layerwatch.gcode.reader import read_toolpath
 from layerwatch.gcode.toolpath import part_mask
+
+SHARED_DATA = _root.SHARED_DATA
 
 #: the labelled multi-object plates among the shared files, their label style and object count
 PLATES = {

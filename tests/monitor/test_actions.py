@@ -37,7 +37,7 @@ def _job(name):
 
 
 def _on(obj, h=1.5):
-    (x0, y0, x1, y1), cx, cy = obj.bbox_mm, (obj.bbox_mm[0] + obj.bbox_mm[2]) / 2, (obj.bbox_mm[1] + obj.bbox_mm[3]) / 2
+    cx, cy = obj.center_mm
     return Region(9.0, (cx - h, cy - h, cx + h, cy + h), (cx, cy), 3, 0.2, 0.0, 0.0, "detachment")
 
 
