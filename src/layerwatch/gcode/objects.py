@@ -32,7 +32,7 @@ import numpy as np
 from layerwatch.gcode.reader import load_bytes
 from layerwatch.gcode.toolpath import Layer, Toolpath, part_mask
 
-__all__ = ["ObjectMap", "Located", "PrintObject", "read_objects", "without_objects"]
+__all__ = ["ObjectMap", "Located", "PrintObject", "quiet_layers", "read_objects", "without_objects"]
 
 #: (style, start regex (group 1 = name or id), end regex); first style present wins (firmware labels first)
 _STYLES: tuple[tuple[str, re.Pattern, re.Pattern], ...] = (
@@ -312,3 +312,16 @@ def without_objects(toolpath: Toolpath, objects: ObjectMap, cancelled: Mapping[i
                            for lay in toolpath.layers]
     arrays = {name: getattr(toolpath, name)[keep] for name in ("start", "end", "z", "e", "width", "feature", "tool", "line")}
     return replace(toolpath, layers=tuple(layers), **arrays)
+
+
+def quiet_layers(toolpath: Toolpath, objects: ObjectMap | None = None) -> frozenset[int]:
+    """Layers that print none of the part: only the start or end G-code's purge lines, wipes or primes.
+
+    A layer is quiet when none of its segments belongs to a labelled object (files that label
+    objects: the start and end scripts never do) or, without labels, when all of them are
+    skirt, purge, brim or wipe tower. The monitor does not judge those layers.
+    """
+    labelled = objects is not None and objects.style != "" and len(objects.objects) > 0
+    part = objects.segment_object >= 0 if labelled else part_mask(toolpath.feature)  # type: ignore[union-attr]
+    return frozenset(lay.index for lay in toolpath.layers
+                     if lay.n_segments and not part[lay.seg_start:lay.seg_stop].any())

@@ -331,6 +331,13 @@ class PausePolicy:
         self._grace = self.settings.resume_grace_layers
         self._halted = False
 
+    def forget_streaks(self) -> None:
+        """Start counting layers in a row afresh (after a quiet period: what came before is another scene)."""
+        self._streak = self._out_streak = 0
+        self._prev_regions, self._prev_outside = [], []
+        self._kind_streak.clear()
+        self._kind_prev.clear()
+
     def ignore_zone(self, bbox_mm: Sequence[float], label: str = "") -> None:
         """Stop judging regions centred in ``bbox_mm`` ``(x0, y0, x1, y1)`` (a cancelled object), and resume.
 

@@ -33,7 +33,7 @@ from layerwatch.monitor.printers.base import (
     PrinterStatus,
     SnapshotTrigger,
     http_request,
-    parse_trigger,
+    parse_line,
 )
 from layerwatch.monitor.printers.keys import split_url_key
 from layerwatch.monitor.printers.replies import RateLimitedLog, field, reply_json
@@ -307,9 +307,10 @@ class MoonrakerPrinter(Printer):
         result = msg.get("result")
         if method == "notify_gcode_response":
             for line in params:
-                trig = parse_trigger(line, source=self.name) if isinstance(line, str) else None
-                if trig is not None and trig.layer != self._last_layer:
-                    self._last_layer = trig.layer
+                trig = parse_line(line, source=self.name) if isinstance(line, str) else None
+                if trig is not None and (trig.signal or trig.layer != self._last_layer):
+                    if not trig.signal:
+                        self._last_layer = trig.layer
                     self._emit(trig)
         elif method == "notify_status_update" and params:
             self._merge_status(params[0])

@@ -27,7 +27,7 @@ from layerwatch.monitor.printers.base import (
     Printer,
     PrinterStatus,
     http_request,
-    parse_trigger,
+    parse_line,
 )
 from layerwatch.monitor.printers.keys import ENV_VARS, split_url_key
 from layerwatch.monitor.printers.replies import (
@@ -67,7 +67,7 @@ def parse_octoprint_message(msg: Any, source: str = "octoprint") -> list:
         logs = body.get("logs") if isinstance(body, dict) else None
         for line in logs if isinstance(logs, list) else []:
             if isinstance(line, str) and line.startswith("Recv:"):
-                trig = parse_trigger(line[5:], source=source)
+                trig = parse_line(line[5:], source=source)
                 if trig is not None:
                     out.append(trig)
     return out

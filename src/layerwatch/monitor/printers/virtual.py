@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from layerwatch.errors import PrinterError
-from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger, parse_trigger
+from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger, parse_line
 
 if TYPE_CHECKING:
     from layerwatch.gcode.objects import PrintObject
@@ -82,8 +82,8 @@ class VirtualPrinter(Printer):
                 self._z = float(m["z"])
             except ValueError:
                 pass
-        trig = parse_trigger(line, source=self.name)
-        if trig is not None and trig.layer == self._layer:
+        trig = parse_line(line, source=self.name)
+        if trig is not None and not trig.signal and trig.layer == self._layer:
             return None  # second trigger line of the same block (@ command + M118 echo)
         return trig
 
@@ -108,7 +108,8 @@ class VirtualPrinter(Printer):
             self._pos += 1
             trig = self._exec(line)
             if trig is not None:
-                self._layer = trig.layer
+                if not trig.signal:
+                    self._layer = trig.layer
                 self._emit(trig)
                 return trig
         self._state = "finished"
