@@ -5,8 +5,9 @@ import pytest
 
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.errors import ConfigError
-from layerwatch.pipeline.config import resolve_config
+from layerwatch.pipeline.config import JobConfig, resolve_config
 from layerwatch.pipeline.policy import KindActions, PausePolicy, PolicySettings
+from layerwatch.web.settings import SettingsRejected, validate_settings
 
 PRINTED = 1000.0
 
@@ -134,3 +135,16 @@ def test_config_tables_per_kind(tmp_path):
         f.write_text(bad)
         with pytest.raises(ConfigError, match="policy.kinds"):
             resolve_config(f)
+
+
+def test_dashboard_refuses_to_silence_a_failure_kind():
+    current = JobConfig()
+    data = current.model_dump(mode="json")
+    data["policy"]["kinds"]["spaghetti"]["action"] = "notify"
+    with pytest.raises(SettingsRejected, match="policy.kinds.spaghetti.action"):
+        validate_settings(data, current)
+    data["policy"]["kinds"]["spaghetti"] = {"action": "pause", "act_mm2": 3000}
+    with pytest.raises(SettingsRejected, match="allowed: 0 to 2500"):
+        validate_settings(data, current)
+    data["policy"]["kinds"]["spaghetti"] = {"action": "cancel_object", "act_mm2": 40}
+    assert validate_settings(data, current).policy.kinds.spaghetti.act_mm2 == 40

@@ -156,6 +156,10 @@ def validate_settings(data: dict[str, Any], current: JobConfig) -> JobConfig:
         if getattr(cfg.policy, k) == "notify" != getattr(current.policy, k):
             raise SettingsRejected(f"invalid setting policy.{k}: pausing is switched off only with the dashboard's "
                                    "pause switch (PUT /api/pausing); choose pause or cancel here.")
+    for kind in FAILURE_KINDS:  # a failure kind silenced from the dashboard would silence the policy piece by piece
+        if cfg.policy.kinds.of(kind).action == "notify" != current.policy.kinds.of(kind).action:
+            raise SettingsRejected(f"invalid setting policy.kinds.{kind}.action: the dashboard does not turn a failure "
+                                   "kind's stop into a notification; raise its act_mm2 instead, or set it in the job file.")
     return cfg
 
 
