@@ -5,10 +5,10 @@ import pytest
 from layerwatch.cli import main
 from layerwatch.evaluate.plate_demo import run_plate_demo
 from layerwatch.examples import PART_GCODE
-from layerwatch.examples.plate import PLATE_NAMES, plate_gcode
 from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.objects import read_objects
 from layerwatch.gcode.toolpath import part_mask
+from layerwatch.simulate.plate import PLATE_NAMES, plate_gcode
 
 
 def test_plate_is_four_labelled_disjoint_copies_of_the_part():
@@ -32,6 +32,7 @@ def test_plate_demo_cancels_the_failed_object_and_the_rest_finish(tmp_path):
     assert res.layers == res.total_layers  # the other three printed to the end
     assert not [a for a in res.later_alarms if a[3]]  # nothing more about the cancelled object
     assert (tmp_path / "summary.md").is_file() and (tmp_path / "plate.gcode").is_file()
+    assert res.host_lines[0] == "EXCLUDE_OBJECT NAME=PART_B"  # Klipper keeps names upper case
 
 
 def test_plate_demo_refuses_failures_it_cannot_place_on_one_object(tmp_path, capsys):

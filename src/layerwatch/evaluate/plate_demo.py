@@ -1,10 +1,10 @@
 """The plate demo: one of four objects fails, is cancelled alone, and the other three finish.
 
-``layerwatch demo --plate`` prints :func:`~layerwatch.examples.plate.plate_gcode`
+``layerwatch demo --plate`` prints :func:`~layerwatch.simulate.plate.plate_gcode`
 (four copies of the bundled part, labelled for Klipper's ``EXCLUDE_OBJECT``)
 on the simulator with a failure on one object, through the real pipeline, pause
-policy and :class:`~layerwatch.pipeline.actions.ActionExecutor` on the virtual
-printer. The job file is the bundled part's with every failure kind set to
+policy and :class:`~layerwatch.pipeline.actions.ActionExecutor` on a simulated
+Klipper host (:class:`SimulatedKlipper`: it records the lines it is sent). The job file is the bundled part's with every failure kind set to
 ``cancel_object`` (region typing may leave a region untyped, ``"unknown"``):
 the policy's stop becomes ``EXCLUDE_OBJECT NAME=<object>``; from the next layer
 the simulator no longer prints that object, the reference and footprint leave
@@ -22,21 +22,43 @@ from pathlib import Path
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS
 from layerwatch.evaluate.results import ResultsFolder
 from layerwatch.examples import PART_CONFIG, PART_GCODE
-from layerwatch.examples.plate import plate_gcode
 from layerwatch.gcode import read_toolpath
-from layerwatch.gcode.objects import read_objects, without_objects
+from layerwatch.gcode.objects import PrintObject, read_objects, without_objects
 from layerwatch.geometry.pose import locate_bed
-from layerwatch.monitor.printers.virtual import VirtualPrinter
 from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.config import resolve_config
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
+from layerwatch.simulate.plate import plate_gcode
 
-__all__ = ["PLATE_FAILURES", "PlateDemoResult", "run_plate_demo"]
+__all__ = ["PLATE_FAILURES", "PlateDemoResult", "SimulatedKlipper", "run_plate_demo"]
 
 #: failures the simulator puts on a given point (the failing object's centre)
 PLATE_FAILURES = ("spaghetti", "foreign_body")
+
+
+class SimulatedKlipper:
+    """The host of the simulated print: keeps its state and the lines the executor sends it."""
+
+    def __init__(self) -> None:
+        self.state = "printing"
+        self.sent: list[str] = []
+
+    def pause(self) -> None:
+        self.state = "paused"
+
+    def cancel(self) -> None:
+        self.state = "cancelled"
+
+    def send_gcode(self, lines: str | list[str]) -> None:
+        self.sent += [lines] if isinstance(lines, str) else list(lines)
+
+    def cancel_object(self, obj: PrintObject) -> None:
+        self.send_gcode(f"EXCLUDE_OBJECT NAME={obj.klipper_name}")
+
+    def show_message(self, text: str) -> None:
+        self.send_gcode([f"M117 {text}", f'RESPOND TYPE=echo MSG="{text}"'])
 
 
 @dataclass
@@ -58,6 +80,8 @@ class PlateDemoResult:
         Layers simulated; the print ran to the end when it equals the plate's layer count.
     later_alarms : list of (int, str, str, bool)
         Notifications after the cancel: (layer, action, reason, about a cancelled object).
+    host_lines : list of str
+        What the host was sent (``EXCLUDE_OBJECT NAME=..``, the ``M117`` / ``RESPOND`` message).
     """
 
     out: Path
@@ -70,6 +94,7 @@ class PlateDemoResult:
     layers: int = 0
     total_layers: int = 0
     later_alarms: list[tuple[int, str, str, bool]] = field(default_factory=list)
+    host_lines: list[str] = field(default_factory=list)
     seconds: float = 0.0
 
 
@@ -104,7 +129,7 @@ def run_plate_demo(out: str | Path, *, failed: int = 1, failure: str = "spaghett
     camera = locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), first.photo, cfg.markers, tv)
     pipe = LayerPipeline(tp, camera, cfg, bed_photo=sim.bed_photo())
     policy = PausePolicy(cfg.policy)
-    printer = VirtualPrinter(data, name="plate.gcode")
+    printer = SimulatedKlipper()
     actions = ActionExecutor(printer, objects, pipe)
     folder = ResultsFolder(out, tv)
     result = PlateDemoResult(out, [o.name for o in objects.objects], target.name, failure, onset,
@@ -133,9 +158,10 @@ def run_plate_demo(out: str | Path, *, failed: int = 1, failure: str = "spaghett
         result.layers = i + 1
         if progress is not None:
             progress(i + 1, tp.n_layers, f"layer {i}: a% {100 * res.anomaly_ratio:.0f}")
-        if printer.status().state != "printing":  # paused (no object to cancel alone): a person must look
+        if printer.state != "printing":  # paused (no object to cancel alone): a person must look
             break
     folder.stack()
+    result.host_lines = list(printer.sent)
     result.seconds = time.perf_counter() - t0
     folder.summary(results, None, "", extra={
         "plate": "plate.gcode (four copies of the bundled part)", "injected failure":
