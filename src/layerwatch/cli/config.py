@@ -67,8 +67,10 @@ def show(
     values = resolved.config.model_dump(mode="json")
     rows = {}
     for key, src in sorted(resolved.sources.items()):
-        section, name = key.split(".", 1)
-        rows.update({k: {"value": v, "source": src} for k, v in _leaves(key, values[section][name])})
+        value: object = values
+        for part in key.split("."):
+            value = value[part]  # type: ignore[index]
+        rows.update({k: {"value": v, "source": src} for k, v in _leaves(key, value)})
     if as_json:
         console.print_json(json.dumps(rows))
         return
