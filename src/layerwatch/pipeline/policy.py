@@ -54,7 +54,7 @@ from layerwatch.analysis.failure_kinds import FAILURE_KINDS, UNKNOWN
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.settings_base import Section
 
-__all__ = ["DEFAULT_KIND_ACTIONS", "Decision", "KindAction", "KindActions", "NotifySettings", "PausePolicy",
+__all__ = ["DEFAULT_KIND_ACTIONS", "Decision", "KindAction", "KindActions", "NotifySettings", "PausePolicy", "STOPPING",
            "PolicySettings", "first_stop"]
 
 Action = Literal["none", "notify", "pause", "cancel", "cancel_object", "host_command"]
