@@ -350,7 +350,8 @@ class Monitor:
         try:
             self.history.add_layer(self.job_id, res)
             if decision.action != "none":
-                self.history.add_event(self.job_id, decision.action, decision.reason, {"layer": res.layer})
+                self.history.add_event(self.job_id, decision.action, decision.reason,
+                                       {"layer": res.layer, "kind": decision.kind} if decision.kind else {"layer": res.layer})
         except LayerwatchError as exc:
             log.warning("history write failed: %s", exc)
 
