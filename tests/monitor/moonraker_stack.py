@@ -82,14 +82,15 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def printer_cfg(gcodes: Path) -> str:
-    """Klipper config: no MCU pins, no kinematics, SD card in Moonraker's gcodes folder, our macro."""
+def printer_cfg(gcodes: Path, extra: str = "") -> str:
+    """Klipper config: no MCU pins, no kinematics, SD card in Moonraker's gcodes folder, our macro
+    (and ``extra`` sections)."""
     return (
         "[mcu]\nserial: /dev/null\n\n"
         "[printer]\nkinematics: none\nmax_velocity: 300\nmax_accel: 3000\n\n"
         f"[virtual_sdcard]\npath: {gcodes}\n\n"
         "[pause_resume]\n\n[display_status]\n\n[layerwatch_test_layer_time]\n\n"
-        + KLIPPER_MACRO
+        + KLIPPER_MACRO + ("\n" + extra if extra else "")
     )
 
 
@@ -137,9 +138,11 @@ class MoonrakerStack:
     ----------
     base : Path
         Working folder: Moonraker data path, Klippy config, sockets and logs.
+    extra_cfg : str
+        More printer.cfg sections (``[exclude_object]``, ``[respond]``, test macros).
     """
 
-    def __init__(self, base: Path) -> None:
+    def __init__(self, base: Path, extra_cfg: str = "") -> None:
         self.base = base
         self.data = base / "printer_data"
         self.gcodes = self.data / "gcodes"
@@ -152,7 +155,7 @@ class MoonrakerStack:
         self._moonraker: subprocess.Popen | None = None
         self._logs: list = []
         (base / "mcu.dict").write_text(json.dumps(MCU_DICTIONARY))
-        (self.data / "config" / "printer.cfg").write_text(printer_cfg(self.gcodes))
+        (self.data / "config" / "printer.cfg").write_text(printer_cfg(self.gcodes, extra_cfg))
         (self.data / "config" / "moonraker.conf").write_text(moonraker_conf(self.port, self.klippy_sock))
         self._install_extras()
 
@@ -160,9 +163,10 @@ class MoonrakerStack:
         extras = next(KLIPPY_VENV.glob("lib/python3*/site-packages/klippy/extras"), None)
         if extras is None:
             pytest.fail(f"Klippy's extras folder not found under {KLIPPY_VENV}")
-        target = extras / EXTRAS_MODULE.name
-        if not target.exists() or target.read_bytes() != EXTRAS_MODULE.read_bytes():
-            shutil.copyfile(EXTRAS_MODULE, target)
+        for module in sorted(EXTRAS_MODULE.parent.glob("*.py")):  # the layer-time wait, the test extruder
+            target = extras / module.name
+            if not target.exists() or target.read_bytes() != module.read_bytes():
+                shutil.copyfile(module, target)
 
     def _spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         log = open(self.base / f"{name}.out", "a")

@@ -12,7 +12,11 @@ import httpx
 import pytest
 
 from layerwatch.errors import PrinterError
+from layerwatch.gcode.objects import PrintObject
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter, parse_octoprint_message
+from layerwatch.pipeline.actions import ActionExecutor
+from layerwatch.pipeline.policy import Decision
+from layerwatch.storage.history import History
 
 ROOT = Path(__file__).resolve().parents[2]
 VENV = Path(os.environ.get("LAYERWATCH_OCTOPRINT_VENV", ROOT / ".venv-octoprint"))
@@ -124,4 +128,46 @@ def test_real_octoprint_triggers_and_pause(octoprint):
         assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Printing"
         printer.cancel()
     finally:
+        printer.close()
+
+
+@pytest.mark.slow
+@pytest.mark.octoprint
+def test_real_octoprint_shows_the_reason_and_takes_m486_object_cancels(octoprint, tmp_path):
+    """The pause reason reaches OctoPrint's own API (the bundled action-command notification plugin,
+    fed by the firmware's echo of ``M118 A1 action:notification``); an object cancel goes out as
+    ``M486 P<id>`` through the command API (OctoPrint has no object-cancel API of its own)."""
+    url, key = octoprint
+    h = {"X-Api-Key": key}
+    httpx.post(url + "/api/connection", headers=h, json={"command": "connect", "port": "VIRTUAL", "baudrate": 115200,
+                                                          "autoconnect": False}, timeout=10).raise_for_status()
+    _until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
+           30, "virtual printer connection")
+    httpx.post(url + "/api/plugin/action_command_notification", headers=h, json={"command": "clear"}, timeout=5)
+    printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
+    hist = History(tmp_path / "h.db")
+    try:
+        r = httpx.post(url + "/api/files/local", headers=h, files={"file": ("lw2.gcode", _gcode(40), "application/octet-stream")},
+                       data={"select": "true", "print": "true"}, timeout=10)
+        r.raise_for_status()
+        _until(lambda: printer.status().state == "printing", 20, "printing")
+        ex = ActionExecutor(printer, history=hist, job_id=1)
+        obj = PrintObject(1, "cube_1 id:0 copy 0", 1, None, (0.0, 0.0, 5.0, 5.0))
+        printer.cancel_object(obj)  # M486 P1: accepted by OctoPrint and sent to the firmware
+        done = ex.execute(Decision("pause", "layer 3: anomaly ratio 30% above 2.5% for 2 layers", 3, "spaghetti"))
+        assert done.ok
+        _until(lambda: printer.status().state == "paused", 20, "job state Paused")
+
+        def notes():
+            got = httpx.get(url + "/api/plugin/action_command_notification", headers=h, timeout=5).json()
+            return [n["message"] for n in got["notifications"]]
+        _until(lambda: "layerwatch: pause L3 spaghetti" in notes(), 20, "the reason in OctoPrint's notifications")
+        (row,) = hist.audit()
+        assert (row["action"], row["actor"], row["detail"]["kind"]) == ("pause", "layerwatch", "spaghetti")
+        no_labels = PrintObject(0, "part", None, None, (0.0, 0.0, 5.0, 5.0))
+        with pytest.raises(PrinterError, match="no M486 labels"):
+            printer.cancel_object(no_labels)
+        printer.cancel()
+    finally:
+        hist.close()
         printer.close()

@@ -40,6 +40,13 @@ def parse_set(items: list[str] | None) -> dict[str, dict]:
     return out
 
 
+def _leaves(key: str, value: object) -> list[tuple[str, object]]:
+    """``("policy.kinds", {"spaghetti": {"action": "rule"}})`` -> ``[("policy.kinds.spaghetti.action", "rule")]``."""
+    if isinstance(value, dict) and value:
+        return [leaf for k, v in value.items() for leaf in _leaves(f"{key}.{k}", v)]
+    return [(key, value)]
+
+
 @app.command("show")
 def show(
     config: Annotated[Path | None, typer.Option("--config", "-c", help="Job config TOML.")] = None,
@@ -58,8 +65,12 @@ def show(
     tp = _toolpath(gcode) if gcode is not None and config is None else None
     resolved = job_settings(config, gcode, tp, paper=paper, flags=parse_set(set_))
     values = resolved.config.model_dump(mode="json")
-    rows = {key: {"value": values[key.split(".", 1)[0]][key.split(".", 1)[1]], "source": src}
-            for key, src in sorted(resolved.sources.items())}
+    rows = {}
+    for key, src in sorted(resolved.sources.items()):
+        value: object = values
+        for part in key.split("."):
+            value = value[part]  # type: ignore[index]
+        rows.update({k: {"value": v, "source": src} for k, v in _leaves(key, value)})
     if as_json:
         console.print_json(json.dumps(rows))
         return

@@ -15,6 +15,7 @@ from layerwatch.cli.pipeline import BED_HELP, PAPER_HELP, scene_baseline
 from layerwatch.errors import ConfigError
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.objects import quiet_layers, read_objects
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.follow import CameraSpec, job_camera, run_follow
@@ -244,6 +245,7 @@ def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, k
     """Monitor one job whose G-code is ``gpath`` (local file) until it ends; the printer and history closed after."""
     data = gpath.read_bytes()
     toolpath = read_toolpath(data)
+    objects = read_objects(data, toolpath)  # the plate's labelled objects: cancel_object cancels one of them
     if printer.startswith("virtual") and not any(parse_trigger(ln) for ln in data.decode("utf-8", "replace").splitlines()):
         console.print("[dim]G-code has no layerwatch triggers: inserting them (octoprint profile) for the virtual printer[/]")
         data = insert_snapshots(data, cfg.snapshot.model_copy(update={"profile": "octoprint"}), cfg.printer)
@@ -265,7 +267,8 @@ def _watch_one(printer: str, gpath: Path, cfg: JobConfig, spec: CameraSpec, *, k
     mon = Monitor(prn, cam_src, pipe, PausePolicy(cfg.policy),
                   notifier=Notifier(cfg.notify), history=hist, job_id=job,
                   wait_for_verdict=wait_for_verdict or cfg.policy.wait_for_verdict,
-                  faults=cfg.faults, frame_quality=cfg.frame_quality)
+                  faults=cfg.faults, frame_quality=cfg.frame_quality, objects=objects,
+                  quiet_layers=quiet_layers(toolpath, objects))
     if homeassistant:
         bridge = open_bridge(homeassistant, prn, monitor=mon, history=hist, job_id=job)
     console.print(f"monitoring {redact_url(printer)} with camera {redact_url(camera)} ({toolpath.n_layers} layers)")

@@ -19,6 +19,7 @@ from typing import Any
 
 from layerwatch.errors import ConfigError, LayerwatchError
 from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.objects import quiet_layers, read_objects
 from layerwatch.gcode.reader import load_bytes
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.pose import locate_bed
@@ -161,9 +162,11 @@ class JobService:
             spots = park_spots(data)
             cam = ParkedCamera(source, ParkCheck(spots, self.park_tolerance_mm), self.position)
             log.info("park spots of %s: %d layers, first %s", job.name, len(spots), next(iter(spots.values()), None))
+        objects = read_objects(data, toolpath)
         mon = Monitor(self.printer, cam, pipeline, PausePolicy(cfg.policy), notifier=self.notifier,
                       history=self.history, job_id=job_id,
-                      wait_for_verdict=self.wait_for_verdict or cfg.policy.wait_for_verdict)
+                      wait_for_verdict=self.wait_for_verdict or cfg.policy.wait_for_verdict,
+                      objects=objects, quiet_layers=quiet_layers(toolpath, objects))
         self.jobs[id(mon)] = (job_id, pipeline.topview)
         log.info("monitoring %s (%d layers, history job %s)", job.path, toolpath.n_layers, job_id)
         return mon

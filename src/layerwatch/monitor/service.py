@@ -27,6 +27,7 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Iterable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,10 +39,12 @@ from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame
 from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
+from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
+from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.step import Reference
 
@@ -130,14 +133,26 @@ class Monitor:
     frame_quality : FrameQualitySettings, optional
         The camera-fault gate run on each frame before the pipeline; ``None`` (the default of
         this class; the ``monitor`` command always passes the job's settings) runs none.
+    objects : ObjectMap, optional
+        The job's labelled objects (``cancel_object`` needs them; without, it pauses).
+    quiet_layers : iterable of int
+        Layers that print no part (start/end G-code): not judged. A ``layerwatch quiet [s=..]``
+        signal (:func:`~layerwatch.monitor.printers.base.parse_signal`) suspends detection for a
+        while, until ``layerwatch watch`` or its time runs out.
     """
 
     def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
                  *, notifier: Any = None, history: Any = None, job_id: int | None = None,
                  wait_for_verdict: bool = False, max_backoff_s: float | None = None,
                  initial_backoff_s: float = 0.1, faults: FaultSettings | None = None,
-                 frame_quality: FrameQualitySettings | None = None) -> None:
+                 frame_quality: FrameQualitySettings | None = None, objects: ObjectMap | None = None,
+                 quiet_layers: Iterable[int] = ()) -> None:
         self.printer, self.camera, self.pipeline = printer, camera, pipeline
+        #: layers not judged: they print no part (start/end G-code, :func:`~layerwatch.gcode.objects.quiet_layers`)
+        self.quiet_layers = frozenset(int(i) for i in quiet_layers)
+        self._quiet_until = 0.0  # monotonic time a macro's quiet signal ends
+        #: carries out stopping decisions, cancels single objects of ``objects``, audits
+        self.actions = ActionExecutor(printer, objects, pipeline, history, job_id)
         self.policy = policy or PausePolicy()
         self.notifier, self.history, self.job_id = notifier, history, job_id
         self.wait_for_verdict = wait_for_verdict
@@ -164,8 +179,19 @@ class Monitor:
 
     # ------------------------------------------------------------------ triggers
     def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
-        """Take the photo for ``trigger`` and queue (or run) its analysis."""
+        """Take the photo for ``trigger`` and queue (or run) its analysis (a signal: quiet or watch)."""
+        if trigger.signal:
+            self._signal(trigger)
+            return None
         _log("trigger", layer=trigger.layer, z=trigger.z, source=trigger.source)
+        quiet = self._quiet_reason(trigger)
+        if quiet is not None:  # start/end G-code or a queue script: no photo, nothing judged
+            self._photo_done(trigger)
+            res = LayerResult(layer=trigger.layer, z=trigger.z, status="skipped", message=quiet)
+            if self.wait_for_verdict:
+                return self._finish(trigger, res)
+            self._futures.append(self._pool.submit(self._finish, trigger, res))  # keep layer order
+            return res
         try:
             if hasattr(self.camera, "set_layer"):
                 self.camera.set_layer(trigger.layer)
@@ -185,6 +211,32 @@ class Monitor:
             return self._analyse(trigger, photo, t_photo)
         self._futures.append(self._pool.submit(self._analyse, trigger, photo, t_photo))
         return None
+
+    def _quiet_reason(self, trigger: SnapshotTrigger) -> str | None:
+        """Why ``trigger``'s layer is not judged (start/end G-code, a macro's quiet signal), or None."""
+        if trigger.layer in self.quiet_layers:
+            return f"layer {trigger.layer} prints no part (start/end G-code): not judged"
+        left = self._quiet_until - time.monotonic()
+        if left > 0:
+            return f"layer {trigger.layer}: detection quiet for {left:.0f} s more (signalled by a macro)"
+        return None
+
+    def _signal(self, trigger: SnapshotTrigger) -> None:
+        """``layerwatch quiet [s=..]``: suspend detection for ``z`` seconds; ``layerwatch watch``: resume now."""
+        quiet = trigger.signal == "quiet"
+        self._quiet_until = time.monotonic() + trigger.z if quiet else 0.0
+        if quiet:  # a failure before the quiet period and one after are not in a row (after queued layers)
+            if self.wait_for_verdict:
+                self._forget_streaks()
+            else:
+                self._futures.append(self._pool.submit(self._forget_streaks))
+        text = f"detection quiet for {trigger.z:.0f} s (signalled by the printer)" if quiet else "detection resumed"
+        _log("signal", signal=trigger.signal, seconds=trigger.z, source=trigger.source)
+        self._event(trigger.signal, text, {"seconds": trigger.z, "source": trigger.source})
+
+    def _forget_streaks(self) -> None:
+        with self._lock:
+            self.policy.forget_streaks()
 
     def _photo_done(self, trigger: SnapshotTrigger) -> None:
         """Release the printer's hold for the photo (Klipper), with or without a usable frame."""
@@ -226,13 +278,15 @@ class Monitor:
     def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
         with self._lock:
             decision = self.policy.update(res)
-            if decision.stops:
-                try:
-                    (self.printer.pause if decision.action == "pause" else self.printer.cancel)()
+            if decision.stops:  # pause, cancel, cancel one object or a host command (pipeline/actions.py)
+                done = self.actions.execute(decision, self.policy)
+                decision = done.decision
+                if done.ok:
                     res.trigger_to_pause_ms = round((time.monotonic() - trigger.time) * 1000, 1)
                     self.report.pauses += 1
-                except Exception as exc:  # noqa: BLE001 - the host failed: say so, keep watching
-                    self._alert(f"could not {decision.action} the printer: {exc}", res, level="critical", force=True)
+                else:  # the host failed: say so, keep watching
+                    self._alert(f"could not {decision.action} the printer: {done.error}", res, level="critical",
+                                force=True)
             res.decision, res.decision_reason = decision.action, decision.reason
             self.report.results.append(res)
             self.report.decisions.append(decision)
@@ -296,7 +350,8 @@ class Monitor:
         try:
             self.history.add_layer(self.job_id, res)
             if decision.action != "none":
-                self.history.add_event(self.job_id, decision.action, decision.reason, {"layer": res.layer})
+                self.history.add_event(self.job_id, decision.action, decision.reason,
+                                       {"layer": res.layer, "kind": decision.kind} if decision.kind else {"layer": res.layer})
         except LayerwatchError as exc:
             log.warning("history write failed: %s", exc)
 
@@ -435,6 +490,8 @@ class Monitor:
             if state != last_seen:
                 _log("transient", state=state)
             return settled
+        if settled and state != settled and state in ("paused", "printing", "cancelled"):
+            self.actions.state_changed(settled, state)  # audited with its source
         if settled == "paused" and state == "printing" and self.policy.halted:
             _log("resumed", layer=self.report.results[-1].layer if self.report.results else None)
             self.acknowledge()  # the operator resumed: accept what was seen

@@ -97,7 +97,8 @@ class ResolvedConfig:
     ----------
     config : JobConfig
     sources : dict of str to str
-        ``"section.key"`` -> one of :data:`SOURCES`, for every key of every section.
+        ``"section.key"`` (``"policy.kinds.spaghetti.action"`` inside tables) -> one of :data:`SOURCES`,
+        for every key of every section.
     path : Path or None
         The job config file, when one was read.
     """
@@ -139,6 +140,29 @@ def observed_square(bounds: tuple[float, float, float, float]) -> dict[str, dict
     return {"topview": {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": side, "height_mm": side}}
 
 
+def _leaf_keys(prefix: str, values: Mapping) -> list[str]:
+    """Dotted keys under ``prefix`` of the keys of ``values`` and, inside tables, of their keys too
+    (``policy.kinds`` and ``policy.kinds.spaghetti.action``)."""
+    out = []
+    for k, v in values.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if prefix:
+            out.append(key)
+        if isinstance(v, Mapping) and v:
+            out += _leaf_keys(key, v)
+    return out
+
+
+def _merge_into(base: dict, values: Mapping) -> None:
+    """Update ``base`` with ``values``, table by table (``[policy.kinds.detachment]`` in one layer keeps
+    the other kinds and keys another layer set)."""
+    for k, v in values.items():
+        if isinstance(v, Mapping) and isinstance(base.get(k), dict):
+            _merge_into(base[k], v)
+        else:
+            base[k] = dict(v) if isinstance(v, Mapping) else v
+
+
 def resolve_config(
     path: str | Path | None = None,
     *,
@@ -176,8 +200,8 @@ def resolve_config(
     for name in SOURCES[1:]:
         for section, values in layers[name].items():
             if isinstance(values, Mapping) and isinstance(data.get(section, {}), dict):
-                data.setdefault(section, {}).update(values)
-                sources.update({f"{section}.{k}": name for k in values})
+                _merge_into(data.setdefault(section, {}), values)
+                sources.update({key: name for key in _leaf_keys(section, values)})
             else:  # not a table: JobConfig's validation names it
                 data[section] = values
                 sources[section] = name
@@ -185,15 +209,15 @@ def resolve_config(
         cfg = JobConfig.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        key = ".".join(str(p) for p in err["loc"][:2])
-        origin = sources.get(key, sources.get(key.split(".", 1)[0], "file"))
+        loc = [str(p) for p in err["loc"]]
+        origin = next((sources[k] for k in (".".join(loc[:n]) for n in range(len(loc), 0, -1)) if k in sources),
+                      next((v for k, v in sources.items() if k.startswith(".".join(loc) + ".")), "file"))
         if origin == "file":
             raise ConfigError(f"{path}: invalid setting {_format_validation(exc)}.") from None
         kind = {"flag": "command-line", "gcode": "G-code derived"}.get(origin, origin)
         raise ConfigError(f"invalid {kind} setting {_format_validation(exc)}.") from None
-    for section, part in cfg:
-        for key in type(part).model_fields:
-            sources.setdefault(f"{section}.{key}", "default")
+    for key in _leaf_keys("", cfg.model_dump(mode="json")):
+        sources.setdefault(key, "default")
     return ResolvedConfig(cfg, sources, None if path is None else Path(path))
 
 

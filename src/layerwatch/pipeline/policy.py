@@ -24,7 +24,18 @@ Rules (all thresholds in :class:`PolicySettings`):
 Errors (camera, warp, printer) never pause: they give ``notify``. After a
 pause the policy stays quiet until :meth:`PausePolicy.acknowledge` (the
 operator resumed); the regions seen at that moment are then ignored unless
-they grow beyond ``growth_ratio`` times their acknowledged area.
+they grow beyond ``growth_ratio`` times their acknowledged area, and for
+``resume_grace_layers`` analysed layers after the resume only such growth or a
+failing region in a new place stops the print again.
+
+What a stop does depends on the failure kind (:mod:`layerwatch.analysis.failure_kinds`)
+of the largest fresh region behind it (an untyped region counts as
+``"unknown"``): ``[policy.kinds.<kind>]`` (:class:`KindAction`) gives its
+action and, optionally, its own warn and act thresholds. The kind's action
+replaces the rule's (``action``/``strong_action``) unless it is ``"rule"``;
+a rule action of ``"notify"`` (the dashboard's "pause on failure" switch off)
+turns every stop into a notification. :meth:`PausePolicy.ignore_zone` takes
+a cancelled object's area out of every later judgement.
 
 References
 ----------
@@ -37,14 +48,98 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
+from layerwatch.analysis.failure_kinds import FAILURE_KINDS, UNKNOWN
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.settings_base import Section
 
-__all__ = ["Decision", "NotifySettings", "PausePolicy", "PolicySettings", "first_stop"]
+__all__ = ["DEFAULT_KIND_ACTIONS", "Decision", "KindAction", "KindActions", "NotifySettings", "PausePolicy", "STOPPING",
+           "PolicySettings", "first_stop"]
 
-Action = Literal["none", "notify", "pause", "cancel"]
+Action = Literal["none", "notify", "pause", "cancel", "cancel_object", "host_command"]
+#: what a failure kind may do; ``"rule"``: what the rule that fired says (``action`` / ``strong_action``)
+KindActionName = Literal["rule", "notify", "pause", "cancel", "cancel_object", "host_command"]
+#: actions that stop (or take over) the job; the policy then waits for the operator
+STOPPING = frozenset({"pause", "cancel", "cancel_object", "host_command"})
+#: the documented per-kind defaults: a detached part of a multi-object plate is cancelled alone (a pause
+#: when the G-code does not label its objects or the failure spans several); every other kind does what
+#: the rule says (pause by default): a wrongly typed region must still stop the print
+DEFAULT_KIND_ACTIONS: dict[str, dict[str, object]] = {k: {"action": "rule"} for k in FAILURE_KINDS} | {
+    "detachment": {"action": "cancel_object"}}
+_MAX_COMMAND = 200
+
+
+class KindAction(Section):
+    """What one failure kind does (config table ``[policy.kinds.<kind>]``).
+
+    Attributes
+    ----------
+    action : {"rule", "notify", "pause", "cancel", "cancel_object", "host_command"}
+        ``"rule"``: the firing rule's ``action``/``strong_action``; ``"cancel_object"``: cancel only the
+        object the failing region lies on (:mod:`layerwatch.pipeline.actions`; a pause when it cannot);
+        ``"host_command"``: send ``command`` to the host (e.g. a Klipper macro that cools down), then wait
+        for the operator like after a pause.
+    warn_mm2 : float
+        Fresh area of this kind on one layer that sends a notification, mm^2 (0: the rules' notification).
+    act_mm2 : float
+        Fresh area of this kind on ``consecutive_layers`` layers in a row, in overlapping places, that takes
+        ``action``, mm^2. 0: the general rules decide; above 0 it replaces them for regions of this kind
+        (larger: less sensitive, smaller: more).
+    command : str
+        The host command of ``"host_command"``: one G-code line or macro call, printable ASCII.
+    """
+
+    action: KindActionName = "rule"
+    warn_mm2: float = Field(0.0, ge=0)
+    act_mm2: float = Field(0.0, ge=0)
+    command: str = ""
+
+    @field_validator("command")
+    @classmethod
+    def _one_line(cls, v: str) -> str:
+        v = v.strip()
+        if len(v) > _MAX_COMMAND or any(not (32 <= ord(c) < 127) for c in v):
+            raise ValueError(f"command must be one line of printable ASCII, at most {_MAX_COMMAND} characters")
+        return v
+
+    @model_validator(mode="after")
+    def _command_given(self) -> KindAction:
+        if self.action == "host_command" and not self.command:
+            raise ValueError('action "host_command" needs a command, e.g. command = "COOL_DOWN"')
+        return self
+
+
+def _kind_field(kind: str):
+    return Field(default_factory=lambda: KindAction(**DEFAULT_KIND_ACTIONS[kind]))
+
+
+class KindActions(Section):
+    """Per failure kind, its :class:`KindAction` (``[policy.kinds.<kind>]``); defaults in :data:`DEFAULT_KIND_ACTIONS`.
+
+    A table that sets some keys of a kind keeps that kind's defaults for the others.
+    """
+
+    spaghetti: KindAction = _kind_field("spaghetti")
+    foreign_body: KindAction = _kind_field("foreign_body")
+    detachment: KindAction = _kind_field("detachment")
+    layer_shift: KindAction = _kind_field("layer_shift")
+    infill_defect: KindAction = _kind_field("infill_defect")
+    thin_wall: KindAction = _kind_field("thin_wall")
+    nothing_extruded: KindAction = _kind_field("nothing_extruded")
+    unknown: KindAction = _kind_field("unknown")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _over_defaults(cls, data: object) -> object:
+        if not isinstance(data, dict):
+            return data
+        return {k: ({**DEFAULT_KIND_ACTIONS[k], **v} if k in DEFAULT_KIND_ACTIONS and isinstance(v, dict) else v)
+                for k, v in data.items()}
+
+    def of(self, kind: str) -> KindAction:
+        """The settings of ``kind`` (an untyped ``""`` or unknown name: ``"unknown"``'s)."""
+        return getattr(self, kind if kind in FAILURE_KINDS else UNKNOWN)
 
 
 class PolicySettings(Section):
@@ -99,6 +194,13 @@ class PolicySettings(Section):
         Change beside the print for the outside rule, mm^2 (0 = off).
     notify_single_layer : bool
     wait_for_verdict : bool
+    resume_grace_layers : int
+        Analysed layers after a resume in which only an acknowledged region that grew by
+        ``growth_ratio``, or a failing region in a new place, stops the print again: anomaly
+        without a region (a%) and change beside the print do not (the operator just touched
+        the printer). Acknowledged regions stay accepted after it, unless they grow.
+    kinds : KindActions
+        Action and thresholds per failure kind (``[policy.kinds.<kind>]``).
     """
 
     pause_ratio: float = Field(0.10, ge=0, le=1)
@@ -113,6 +215,8 @@ class PolicySettings(Section):
     strong_action: Literal["notify", "pause", "cancel"] = "pause"
     notify_single_layer: bool = True
     outside_pause_mm2: float = Field(0.0, ge=0)
+    resume_grace_layers: int = Field(3, ge=0)
+    kinds: KindActions = Field(default_factory=KindActions)
 
 
 class NotifySettings(Section):
@@ -141,21 +245,30 @@ class Decision:
     Attributes
     ----------
     action : str
-        ``"none"``, ``"notify"``, ``"pause"`` or ``"cancel"``.
+        ``"none"``, ``"notify"``, ``"pause"``, ``"cancel"``, ``"cancel_object"`` or ``"host_command"``.
     reason : str
         One sentence for logs and notifications.
     layer : int
         Layer index the decision is about.
+    kind : str
+        Failure kind behind the decision (``"unknown"`` for untyped regions; ``""`` when none).
+    regions : tuple of Region
+        The fresh failing regions of the layer, largest first (what ``cancel_object`` maps to objects).
+    command : str
+        The host command of ``"host_command"``.
     """
 
     action: Action
     reason: str
     layer: int
+    kind: str = ""
+    regions: tuple[Region, ...] = ()
+    command: str = ""
 
     @property
     def stops(self) -> bool:
-        """True for pause or cancel."""
-        return self.action in ("pause", "cancel")
+        """True for an action that stops or takes over the job (pause, cancel, cancel_object, host_command)."""
+        return self.action in STOPPING
 
 
 def _overlap(a: Sequence[float], b: Sequence[float]) -> bool:
@@ -186,10 +299,14 @@ class PausePolicy:
         self._prev_outside: list[Region] = []
         self._last_outside: list[Region] = []
         self._acked_outside: list[tuple[tuple[float, ...], float]] = []
+        self._grace = 0  # analysed layers left in the resume grace period
+        self._zones: list[tuple[tuple[float, ...], str]] = []  # (bbox_mm, label) judged no more
+        self._kind_streak: dict[str, int] = {}
+        self._kind_prev: dict[str, list[Region]] = {}
 
     @property
     def halted(self) -> bool:
-        """True after a pause/cancel decision until :meth:`acknowledge`."""
+        """True after a stopping decision until :meth:`acknowledge`."""
         return self._halted
 
     @property
@@ -197,15 +314,44 @@ class PausePolicy:
         """Accepted regions as ``(bbox_mm (x0, y0, x1, y1), area_mm2)``; they count again only if they grow."""
         return list(self._acked)
 
+    @property
+    def ignored_zones(self) -> list[tuple[tuple[float, ...], str]]:
+        """Areas no longer judged (cancelled objects) as ``(bbox_mm, label)``."""
+        return list(self._zones)
+
     def acknowledge(self) -> None:
-        """The operator resumed: forget the streak and accept the current regions."""
+        """The operator resumed: forget the streak, accept the current regions, start the grace period."""
         for r in self._last_regions:
             self._acked.append((tuple(r.bbox_mm), float(r.area_mm2)))
         for r in self._last_outside:
             self._acked_outside.append((tuple(r.bbox_mm), float(r.area_mm2)))
         self._acked_ratio = max(self._acked_ratio, self._last_ratio)
         self._streak = self._out_streak = 0
+        self._kind_streak.clear()
+        self._grace = self.settings.resume_grace_layers
         self._halted = False
+
+    def forget_streaks(self) -> None:
+        """Start counting layers in a row afresh (after a quiet period: what came before is another scene)."""
+        self._streak = self._out_streak = 0
+        self._prev_regions, self._prev_outside = [], []
+        self._kind_streak.clear()
+        self._kind_prev.clear()
+
+    def ignore_zone(self, bbox_mm: Sequence[float], label: str = "") -> None:
+        """Stop judging regions centred in ``bbox_mm`` ``(x0, y0, x1, y1)`` (a cancelled object), and resume.
+
+        The print goes on without that object: its remains are neither a%, nor a
+        region, nor growth from now on. Clears the halt of the ``cancel_object`` decision.
+        """
+        self._zones.append((tuple(float(v) for v in bbox_mm), label))
+        self._streak = 0
+        self._kind_streak.clear()
+        self._halted = False
+
+    def _ignored(self, r: Region) -> bool:
+        x, y = r.centroid_mm
+        return any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones)
 
     def _acked_area(self, r: Region) -> float | None:
         """Acknowledged area of the region ``r`` overlaps, or None."""
@@ -213,13 +359,14 @@ class PausePolicy:
         return max(areas) if areas else None
 
     def _fresh(self, regions: list[Region]) -> list[Region]:
+        """Regions not acknowledged (or grown beyond it) and not in an ignored zone, largest first."""
         g = self.settings.growth_ratio
         out = []
         for r in regions:
             acked = self._acked_area(r)
-            if acked is None or r.area_mm2 > g * acked:
+            if (acked is None or r.area_mm2 > g * acked) and not self._ignored(r):
                 out.append(r)
-        return out
+        return sorted(out, key=lambda r: -r.area_mm2)
 
     def update(self, result: LayerResult) -> Decision:
         """Decide after one layer's result.
@@ -249,36 +396,93 @@ class PausePolicy:
         alarm = ratio > limit and self._fresh_area >= s.min_area_mm2
         self._streak = self._streak + 1 if alarm else 0
         outside_regions, outside_area = self._outside(result)
+        kind_stop, kind_warn = self._kinds(regions, layer)
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
+        if self._grace > 0:  # after a resume: only growth or a failure in a new place stops again
+            self._grace -= 1
+            grown = self._growth(regions, [], layer)
+            if grown is not None or not any(self._acked_area(r) is None for r in regions):
+                return grown or Decision("none", f"layer {layer}: resumed, {self._grace + 1} layer(s) of grace "
+                                                 f"left (anomaly ratio {ratio:.1%})", layer)
         if s.strong_outside_area_mm2 > 0 and outside > s.strong_outside_area_mm2:
-            return self._stop(
-                s.strong_action,
-                f"layer {layer}: {outside:.0f} mm^2 of material outside the part "
-                f"(> {s.strong_outside_area_mm2:.0f}; spaghetti or detachment?)",
-                layer,
-            )
+            return self._act(s.strong_action, f"layer {layer}: {outside:.0f} mm^2 of material outside the part "
+                                              f"(> {s.strong_outside_area_mm2:.0f}; spaghetti or detachment?)",
+                             layer, regions)
         if self._out_streak >= s.consecutive_layers:
             big = outside_regions[0]
-            return self._stop(s.action, f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print "
-                                        f"(largest at ({big.centroid_mm[0]:.0f}, {big.centroid_mm[1]:.0f}) mm) "
-                                        f"for {self._out_streak} layers", layer)
+            return self._act(s.action, f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print "
+                                       f"(largest at ({big.centroid_mm[0]:.0f}, {big.centroid_mm[1]:.0f}) mm) "
+                                       f"for {self._out_streak} layers", layer, outside_regions)
+        if kind_stop is not None:
+            return self._act(s.action, kind_stop[1], layer, kind_stop[2], own=True)
         # a real failure stays in place: consecutive alarms must share a region
         # (isolated noise spikes land at random places); without regions, trust a%.
         persistent = not regions or not prev or any(
             _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in regions for p in prev
         )
         if self._streak >= s.consecutive_layers and persistent:
-            return self._stop(s.action, f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
-                                        f"for {self._streak} layers", layer)
+            return self._act(s.action, f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
+                                       f"for {self._streak} layers", layer, regions)
         grown = self._growth(regions, prev, layer)
         if grown is not None:
             return grown
         if self._out_streak and s.notify_single_layer and not alarm:
             return Decision("notify", f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print", layer)
         if alarm and s.notify_single_layer:
-            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer)
+            return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer,
+                            _kind_of(regions), tuple(regions))
+        if kind_warn is not None:
+            return kind_warn
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
+
+    def _kinds(self, regions: list[Region], layer: int) -> tuple[tuple | None, Decision | None]:
+        """The per-kind thresholds (``act_mm2``, ``warn_mm2``) after one layer.
+
+        Returns ``(stop, warning)``: ``stop`` is ``(kind, reason, regions)`` of the first kind whose
+        own act threshold held for ``consecutive_layers`` layers, or None; ``warning`` a notification or None.
+        """
+        s = self.settings
+        stop = warn = None
+        for kind in FAILURE_KINDS:
+            ka = s.kinds.of(kind)
+            mine = [r for r in regions if (r.kind or UNKNOWN) == kind]
+            area = float(sum(r.area_mm2 for r in mine))
+            if ka.act_mm2 > 0 and area >= ka.act_mm2:
+                prev = self._kind_prev.get(kind, [])
+                same = not prev or any(_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in mine for p in prev)
+                self._kind_streak[kind] = self._kind_streak.get(kind, 0) + 1 if same else 1
+                self._kind_prev[kind] = mine
+            else:
+                self._kind_streak[kind], self._kind_prev[kind] = 0, []
+            n = self._kind_streak[kind]
+            if stop is None and n >= s.consecutive_layers:
+                stop = (kind, f"layer {layer}: {area:.0f} mm^2 of {kind} (act at {ka.act_mm2:g}) for {n} layers", mine)
+            if warn is None and ka.warn_mm2 > 0 and area >= ka.warn_mm2:
+                warn = Decision("notify", f"layer {layer}: {area:.0f} mm^2 of {kind} (warn at {ka.warn_mm2:g})",
+                                layer, kind, tuple(mine))
+        return stop, warn
+
+    def _act(self, rule_action: str, reason: str, layer: int, regions: Sequence[Region], *,
+             own: bool = False) -> Decision:
+        """The decision of a rule that fired: the failure kind's action, or a notification.
+
+        ``rule_action`` is the rule's own (``action``/``strong_action``); its ``"notify"``
+        (pausing switched off) wins. A kind with its own ``act_mm2`` is stopped only by
+        its own threshold (``own``); other rules then notify.
+        """
+        kind = _kind_of(regions) or UNKNOWN
+        ka = self.settings.kinds.of(kind)
+        regions = tuple(regions)
+        if rule_action == "notify":
+            return Decision("notify", reason, layer, kind, regions)
+        if ka.act_mm2 > 0 and not own:
+            return Decision("notify", f"{reason} ({kind} stops at its own {ka.act_mm2:g} mm^2)", layer, kind, regions)
+        action = rule_action if ka.action == "rule" else ka.action
+        if action in STOPPING:
+            self._halted = True
+        return Decision(action, f"{reason}; {kind}: {action.replace('_', ' ')}", layer, kind, regions,  # type: ignore[arg-type]
+                        ka.command if action == "host_command" else "")
 
     def _outside(self, result: LayerResult) -> tuple[list[Region], float]:
         """The outside rule's state after ``result``: fresh outside regions (largest first) and their area, mm^2.
@@ -290,7 +494,7 @@ class PausePolicy:
         fresh = []
         for r in result.outside_regions:
             acked = [a for box, a in self._acked_outside if _overlap(box, tuple(r.bbox_mm))]
-            if not acked or r.area_mm2 > s.growth_ratio * max(acked):
+            if (not acked or r.area_mm2 > s.growth_ratio * max(acked)) and not self._ignored(r):
                 fresh.append(r)
         area = float(sum(r.area_mm2 for r in fresh))
         alarm = s.outside_pause_mm2 > 0 and area >= s.outside_pause_mm2
@@ -305,7 +509,7 @@ class PausePolicy:
         Also remembers the fresh anomalous area (``_fresh_area``, mm^2) and the diffuse
         anomaly not explained by regions (``_last_ratio``, for :meth:`acknowledge`).
         """
-        self._last_regions = list(result.regions)
+        self._last_regions = [r for r in result.regions if not self._ignored(r)]
         acked_area = sum(r.area_mm2 for r in result.regions if r not in regions)
         printed = result.printed_area_mm2
         self._fresh_area = max(result.anomalous_area_mm2 - acked_area, 0.0)
@@ -313,10 +517,10 @@ class PausePolicy:
             ratio = self._fresh_area / printed
             self._last_ratio = max(result.anomalous_area_mm2 - sum(r.area_mm2 for r in result.regions), 0.0) / printed
         else:
-            ratio = float(result.anomaly_ratio) if not self._acked else 0.0
+            ratio = float(result.anomaly_ratio) if not (self._acked or self._zones) else 0.0
             self._last_ratio = ratio
         outside = result.outside_area_mm2
-        if self._acked and acked_area > 0:
+        if (self._acked or self._zones) and acked_area > 0:
             outside = min(outside, sum(r.area_mm2 * r.outside_fraction for r in regions))
         return ratio, outside
 
@@ -329,18 +533,20 @@ class PausePolicy:
             where = f"({r.centroid_mm[0]:.0f}, {r.centroid_mm[1]:.0f}) mm"
             acked = self._acked_area(r)
             if acked is not None:  # _fresh kept it, so it outgrew its acknowledged size
-                return self._stop(s.action, f"layer {layer}: acknowledged region at {where} "
-                                            f"grew from {acked:.0f} to {r.area_mm2:.0f} mm^2", layer)
+                return self._act(s.action, f"layer {layer}: acknowledged region at {where} "
+                                           f"grew from {acked:.0f} to {r.area_mm2:.0f} mm^2", layer, [r])
             for p in prev:
                 if _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) and r.area_mm2 >= s.growth_ratio * max(p.area_mm2, 1e-9):
-                    return self._stop(s.action, f"layer {layer}: failing region at {where} "
-                                                f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2", layer)
+                    return self._act(s.action, f"layer {layer}: failing region at {where} "
+                                               f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2", layer, [r])
         return None
 
-    def _stop(self, action: Action, reason: str, layer: int) -> Decision:
-        if action in ("pause", "cancel"):
-            self._halted = True
-        return Decision(action, reason, layer)
+
+def _kind_of(regions: Sequence[Region]) -> str:
+    """Failure kind of the largest region (``"unknown"`` when untyped), ``""`` without regions."""
+    if not regions:
+        return ""
+    return max(regions, key=lambda r: r.area_mm2).kind or UNKNOWN
 
 
 def first_stop(results: Iterable[LayerResult], settings: PolicySettings | None = None) -> Decision | None:

@@ -228,6 +228,19 @@ class LayerPipeline:
         for i in sorted(range(self.toolpath.n_layers) if layers is None else layers):
             self.reference(int(i))
 
+    def replace_toolpath(self, toolpath: Toolpath) -> None:
+        """Judge the following layers against ``toolpath`` (the same layers, e.g. without a cancelled object).
+
+        Forgets the memoised references; the on-disk cache keys on the new toolpath.
+        """
+        if toolpath.n_layers != self.toolpath.n_layers:
+            raise RenderError(f"the new toolpath has {toolpath.n_layers} layers, the job {self.toolpath.n_layers}")
+        self.toolpath = toolpath
+        self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
+        self._memo.clear()
+        if self._cache is not None:
+            self._hash = toolpath_hash(toolpath)
+
     def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
         """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
         lay = self.toolpath.layers[index]

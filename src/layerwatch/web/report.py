@@ -16,6 +16,7 @@ from pathlib import Path
 from matplotlib.figure import Figure
 
 from layerwatch.errors import StorageError
+from layerwatch.pipeline.policy import STOPPING
 from layerwatch.storage.history import History
 
 __all__ = ["build_report", "curve_png"]
@@ -101,7 +102,7 @@ def build_report(history: History, job_id: int, out_dir: str | Path, image_root:
     if pause is None and results:
         pause = 0.10
     first = next((r for r in results if pause is not None and r.status == "ok"
-                  and (r.anomaly_ratio > pause or r.decision in ("pause", "cancel"))), None)
+                  and (r.anomaly_ratio > pause or r.decision in STOPPING)), None)
     worst = max((r for r in results if r.status == "ok"), key=lambda r: r.anomaly_ratio, default=None)
     curve = curve_png([r.layer for r in results], [r.anomaly_ratio if r.status == "ok" else None for r in results], pause)
 

@@ -20,6 +20,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from layerwatch.analysis.failure_kinds import FAILURE_KINDS
 from layerwatch.errors import ConfigError
 from layerwatch.pipeline.config import JobConfig
 
@@ -68,6 +69,9 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "policy.consecutive_layers": (1, 10, "layers"), "policy.strong_outside_area_mm2": (1.0, 2500.0, "mm^2"),
     "policy.growth_ratio": (1.0, 10.0, ""), "policy.skip_first_layers": (0, 20, "layers"),
     "policy.growth_min_area_mm2": (0.0, 2500.0, "mm^2"), "policy.outside_pause_mm2": (0.0, 2500.0, "mm^2"),
+    "policy.resume_grace_layers": (0, 20, "layers"),
+    # per failure kind: its own thresholds stay below the whole observed square's worth of plastic
+    **{f"policy.kinds.{k}.{t}": (0.0, 2500.0, "mm^2") for k in FAILURE_KINDS for t in ("warn_mm2", "act_mm2")},
     "scene.working_px": (160, 4096, "px"), "scene.margin_mm": (0.0, 20.0, "mm"), "scene.block_px": (2, 64, "px"),
     "scene.noise_k": (0.1, 100.0, ""), "scene.min_change": (0.0, 255.0, "grey levels"),
     "scene.min_region_mm2": (0.0, 2500.0, "mm^2"), "scene.max_changed_share": (0.01, 1.0, ""),
@@ -152,6 +156,10 @@ def validate_settings(data: dict[str, Any], current: JobConfig) -> JobConfig:
         if getattr(cfg.policy, k) == "notify" != getattr(current.policy, k):
             raise SettingsRejected(f"invalid setting policy.{k}: pausing is switched off only with the dashboard's "
                                    "pause switch (PUT /api/pausing); choose pause or cancel here.")
+    for kind in FAILURE_KINDS:  # a failure kind silenced from the dashboard would silence the policy piece by piece
+        if cfg.policy.kinds.of(kind).action == "notify" != current.policy.kinds.of(kind).action:
+            raise SettingsRejected(f"invalid setting policy.kinds.{kind}.action: the dashboard does not turn a failure "
+                                   "kind's stop into a notification; raise its act_mm2 instead, or set it in the job file.")
     return cfg
 
 

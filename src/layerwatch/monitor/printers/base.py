@@ -26,7 +26,9 @@ from layerwatch.monitor.printers.replies import MAX_REPLY_BYTES, read_capped
 if TYPE_CHECKING:
     import httpx
 
-__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "http_request", "error_detail", "TRANSIENT_STATES", "WS_RETRY_S",
+    from layerwatch.gcode.objects import PrintObject
+
+__all__ = ["PrinterStatus", "SnapshotTrigger", "Printer", "parse_trigger", "parse_signal", "parse_line", "http_request", "error_detail", "TRANSIENT_STATES", "WS_RETRY_S",
            "WS_MAX_FRAME_BYTES"]
 
 #: websocket reconnect wait of the connectors: first, largest (s); doubles per failed attempt.
@@ -69,6 +71,39 @@ def parse_trigger(line: str, source: str = "") -> SnapshotTrigger | None:
         return SnapshotTrigger(layer=int(m["layer"]), z=float(m["z"]), source=source)
     except ValueError:
         return None
+
+
+_SIGNAL = re.compile(r"layerwatch\s+(?P<signal>quiet|watch)\b(?:\s+s=(?P<s>\d+(?:\.\d+)?))?", re.IGNORECASE)
+#: longest quiet period a signal may ask for, s (detection resumes by itself after it)
+QUIET_MAX_S = 3600.0
+#: quiet period of a ``layerwatch quiet`` signal without ``s=``, s
+QUIET_DEFAULT_S = 600.0
+
+
+def parse_signal(line: str, source: str = "") -> SnapshotTrigger | None:
+    """Recognise a detection signal of a macro or queue script (not a comment).
+
+    ``layerwatch quiet [s=<seconds>]`` (``M118 E1 ...`` on Marlin/OctoPrint, ``RESPOND MSG="..."`` on
+    Klipper) suspends detection for ``s`` seconds (default :data:`QUIET_DEFAULT_S`, at most
+    :data:`QUIET_MAX_S`) or until ``layerwatch watch``, e.g. while a farm queue clears the bed.
+
+    Returns
+    -------
+    SnapshotTrigger or None
+        With ``signal`` ``"quiet"`` or ``"watch"``, ``layer`` -1 and ``z`` the quiet seconds (0 for watch).
+    """
+    text = line.split(";", 1)[0] if not line.lstrip().startswith(";") else ""
+    m = _SIGNAL.search(text)
+    if m is None or _TRIGGER.search(text):
+        return None
+    signal = m["signal"].lower()
+    secs = 0.0 if signal == "watch" else min(float(m["s"]) if m["s"] else QUIET_DEFAULT_S, QUIET_MAX_S)
+    return SnapshotTrigger(layer=-1, z=secs, source=source, signal=signal)
+
+
+def parse_line(line: str, source: str = "") -> SnapshotTrigger | None:
+    """A snapshot trigger (:func:`parse_trigger`) or a detection signal (:func:`parse_signal`) in ``line``."""
+    return parse_trigger(line, source) or parse_signal(line, source)
 
 
 def error_detail(body: str, limit: int = 160) -> str:
@@ -210,12 +245,16 @@ class SnapshotTrigger:
         Connector name.
     time : float
         ``time.monotonic()`` when the connector saw it, s.
+    signal : str
+        ``""`` for a snapshot trigger; ``"quiet"`` / ``"watch"`` for a detection signal
+        (:func:`parse_signal`: ``layer`` -1, ``z`` the quiet seconds).
     """
 
     layer: int
     z: float
     source: str = ""
     time: float = field(default_factory=time.monotonic)
+    signal: str = ""
 
 
 class Printer(ABC):
@@ -284,6 +323,19 @@ class Printer(ABC):
     @abstractmethod
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         """Send G-code line(s) to the printer."""
+
+    def cancel_object(self, obj: PrintObject) -> None:
+        """Skip one object of the running job from now on (see :mod:`layerwatch.gcode.objects`).
+
+        Raises
+        ------
+        PrinterError
+            This host cannot skip objects, or the job does not label them the way its firmware needs.
+        """
+        raise PrinterError(f"{type(self).__name__} cannot cancel a single object; pause instead.")
+
+    def show_message(self, text: str) -> None:  # noqa: B027 - optional: hosts without a display show nothing
+        """Show one short line (printable ASCII) where the user looks: the printer's display, the host's UI."""
 
     def photo_done(self, trigger: SnapshotTrigger) -> None:
         """Tell the printer the photo of ``trigger`` was taken (or could not be), so a hold ends now.

@@ -15,9 +15,10 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import threading
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 import httpx
@@ -32,10 +33,13 @@ from layerwatch.monitor.printers.base import (
     PrinterStatus,
     SnapshotTrigger,
     http_request,
-    parse_trigger,
+    parse_line,
 )
 from layerwatch.monitor.printers.keys import split_url_key
 from layerwatch.monitor.printers.replies import RateLimitedLog, field, reply_json
+
+if TYPE_CHECKING:
+    from layerwatch.gcode.objects import PrintObject
 
 __all__ = ["MoonrakerPrinter", "SUBSCRIBE", "clean_objects"]
 
@@ -69,6 +73,10 @@ _FIELDS: dict[str, dict[str, tuple[type, ...]]] = {
     "virtual_sdcard": {"progress": (int, float)},
     "webhooks": {"state": (str,), "state_message": (str,)},
 }
+
+
+#: object names this connector sends in EXCLUDE_OBJECT (what slicers and Moonraker's processing write)
+_KLIPPER_NAME = re.compile(r"[A-Za-z0-9_.\-]{1,120}")
 
 
 def _finite(value: Any, lo: float = -math.inf, hi: float = math.inf) -> bool:
@@ -205,6 +213,49 @@ class MoonrakerPrinter(Printer):
         script = lines if isinstance(lines, str) else "\n".join(lines)
         self._req("POST", "/printer/gcode/script", params={"script": script})
 
+    def cancel_object(self, obj: PrintObject) -> None:
+        """``EXCLUDE_OBJECT NAME=<name>``: the file's own Klipper name, else the object Klipper defines at its centre.
+
+        Raises
+        ------
+        PrinterError
+            Klipper defines no object there (no ``[exclude_object]``, or the file was not labelled
+            for it nor processed by Moonraker's object processing).
+        """
+        name = obj.klipper_name or self._klipper_object_at(obj.center_mm)
+        if not _KLIPPER_NAME.fullmatch(name):
+            raise PrinterError(f"object name {name!r} is not safe to send to Klipper; rename the object in the slicer.")
+        self.send_gcode(f"EXCLUDE_OBJECT NAME={name}")
+
+    def _klipper_object_at(self, center_mm: tuple[float, float], tol_mm: float = 3.0) -> str:
+        """Name of the object Klipper's ``exclude_object`` defines nearest ``center_mm`` (within ``tol_mm``)."""
+        status = field(self._req("GET", "/printer/objects/query", params={"exclude_object": ""}),
+                       "status", dict, "Moonraker objects query")
+        objects = (status.get("exclude_object") or {}).get("objects") or []
+        best, dist = None, tol_mm
+        for o in objects:
+            c = o.get("center") if isinstance(o, dict) else None
+            if isinstance(c, list) and len(c) == 2 and all(_finite(v) for v in c):
+                d = math.hypot(c[0] - center_mm[0], c[1] - center_mm[1])
+                if d <= dist and isinstance(o.get("name"), str):
+                    best, dist = o["name"], d
+        if best is None:
+            raise PrinterError(f"Klipper defines no object at ({center_mm[0]:.0f}, {center_mm[1]:.0f}) mm; add "
+                               "[exclude_object] to printer.cfg and slice with label objects (or enable "
+                               "Moonraker's object processing).")
+        return best
+
+    def show_message(self, text: str) -> None:
+        """``M117`` (the display, ``display_status.message``) and ``RESPOND`` (the console, Moonraker's gcode store)."""
+        errors = []
+        for line in (f"M117 {text}", f'RESPOND TYPE=echo MSG="{text}"'):
+            try:
+                self.send_gcode(line)
+            except PrinterError as exc:  # no [display_status] or no [respond]: the other one may still work
+                errors.append(str(exc))
+        if len(errors) == 2:
+            raise PrinterError("; ".join(errors))
+
     def photo_done(self, trigger: SnapshotTrigger) -> None:
         """End the ``klipper`` profile's hold for this layer (``layerwatch klipper-config`` macros):
         ``SET_GCODE_VARIABLE MACRO=LAYERWATCH_SNAPSHOT VARIABLE=taken VALUE=<layer>``; Klippy runs it
@@ -256,9 +307,10 @@ class MoonrakerPrinter(Printer):
         result = msg.get("result")
         if method == "notify_gcode_response":
             for line in params:
-                trig = parse_trigger(line, source=self.name) if isinstance(line, str) else None
-                if trig is not None and trig.layer != self._last_layer:
-                    self._last_layer = trig.layer
+                trig = parse_line(line, source=self.name) if isinstance(line, str) else None
+                if trig is not None and (trig.signal or trig.layer != self._last_layer):
+                    if not trig.signal:
+                        self._last_layer = trig.layer
                     self._emit(trig)
         elif method == "notify_status_update" and params:
             self._merge_status(params[0])

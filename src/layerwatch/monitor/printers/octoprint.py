@@ -14,7 +14,7 @@ import json
 import logging
 import threading
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 import httpx
@@ -27,7 +27,7 @@ from layerwatch.monitor.printers.base import (
     Printer,
     PrinterStatus,
     http_request,
-    parse_trigger,
+    parse_line,
 )
 from layerwatch.monitor.printers.keys import ENV_VARS, split_url_key
 from layerwatch.monitor.printers.replies import (
@@ -37,6 +37,9 @@ from layerwatch.monitor.printers.replies import (
     reply_json,
     text_field,
 )
+
+if TYPE_CHECKING:
+    from layerwatch.gcode.objects import PrintObject
 
 __all__ = ["OctoPrintPrinter", "parse_octoprint_message", "parse_job"]
 
@@ -64,7 +67,7 @@ def parse_octoprint_message(msg: Any, source: str = "octoprint") -> list:
         logs = body.get("logs") if isinstance(body, dict) else None
         for line in logs if isinstance(logs, list) else []:
             if isinstance(line, str) and line.startswith("Recv:"):
-                trig = parse_trigger(line[5:], source=source)
+                trig = parse_line(line[5:], source=source)
                 if trig is not None:
                     out.append(trig)
     return out
@@ -156,6 +159,26 @@ class OctoPrintPrinter(Printer):
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         cmds = [lines] if isinstance(lines, str) else list(lines)
         self._req("POST", "/api/printer/command", json={"commands": cmds})
+
+    def cancel_object(self, obj: PrintObject) -> None:
+        """``M486 P<id>`` through the command API: OctoPrint has no object-cancel API of its own, so the
+        printer's firmware skips the object (Marlin/Prusa with ``M486`` labels in the file).
+
+        Raises
+        ------
+        PrinterError
+            The file has no ``M486`` labels (the firmware cannot know the object).
+        """
+        if obj.firmware_id is None:
+            raise PrinterError(f"the job has no M486 labels, so the printer cannot skip {obj.name}; slice with "
+                               "label objects on (OctoPrint has no object-cancel API).")
+        self.send_gcode(f"M486 P{int(obj.firmware_id)}")
+
+    def show_message(self, text: str) -> None:
+        """``M117`` (the printer's display) and ``M118 A1 action:notification`` (the firmware echoes it as
+        an action command: OctoPrint's bundled notification plugin shows it and lists it at
+        ``GET /api/plugin/action_command_notification``)."""
+        self.send_gcode([f"M117 {text}", f"M118 A1 action:notification {text}"])
 
     # -- push ----------------------------------------------------------------
     def _ws_loop(self) -> None:

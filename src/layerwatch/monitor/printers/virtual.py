@@ -10,9 +10,13 @@ import re
 import threading
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from layerwatch.errors import PrinterError
-from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger, parse_trigger
+from layerwatch.monitor.printers.base import Printer, PrinterStatus, SnapshotTrigger, parse_line
+
+if TYPE_CHECKING:
+    from layerwatch.gcode.objects import PrintObject
 
 __all__ = ["VirtualPrinter"]
 
@@ -65,6 +69,8 @@ class VirtualPrinter(Printer):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.pause_count = 0
+        #: names of the objects cancelled through :meth:`cancel_object`
+        self.cancelled_objects: list[str] = []
         if on_trigger is not None:
             self.subscribe(on_trigger)
 
@@ -76,8 +82,8 @@ class VirtualPrinter(Printer):
                 self._z = float(m["z"])
             except ValueError:
                 pass
-        trig = parse_trigger(line, source=self.name)
-        if trig is not None and trig.layer == self._layer:
+        trig = parse_line(line, source=self.name)
+        if trig is not None and not trig.signal and trig.layer == self._layer:
             return None  # second trigger line of the same block (@ command + M118 echo)
         return trig
 
@@ -102,7 +108,8 @@ class VirtualPrinter(Printer):
             self._pos += 1
             trig = self._exec(line)
             if trig is not None:
-                self._layer = trig.layer
+                if not trig.signal:
+                    self._layer = trig.layer
                 self._emit(trig)
                 return trig
         self._state = "finished"
@@ -162,6 +169,16 @@ class VirtualPrinter(Printer):
 
     def send_gcode(self, lines: str | Iterable[str]) -> None:
         self._sent.extend([lines] if isinstance(lines, str) else list(lines))
+
+    def cancel_object(self, obj: PrintObject) -> None:
+        """Record the firmware's line: ``EXCLUDE_OBJECT NAME=..`` (Klipper labels) or ``M486 P<id>``."""
+        if obj.klipper_name is None and obj.firmware_id is None:
+            raise PrinterError(f"the job has no firmware labels, so the printer cannot skip {obj.name}.")
+        self.send_gcode(f"EXCLUDE_OBJECT NAME={obj.klipper_name}" if obj.klipper_name else f"M486 P{obj.firmware_id}")
+        self.cancelled_objects.append(obj.name)
+
+    def show_message(self, text: str) -> None:
+        self.send_gcode(f"M117 {text}")
 
     @property
     def sent(self) -> list[str]:
