@@ -9,6 +9,9 @@ differences:
   oldest is dropped and a ``frame_dropped`` event records its layer;
 * its pipeline is a :class:`PoolPipeline`: the per-layer compute runs on the
   farm's shared :class:`~layerwatch.farm.pool.WorkerPool` (threads or Dask);
+* it keeps only the last :data:`RESULTS_KEPT` layer records in memory
+  (:attr:`report`): the farm reads its layers from the history, and a printer's
+  memory must not grow with the length of its prints;
 * each photo is stamped with the monitor's *generation*; an operator
   acknowledge or resume, and the end of the job, start a new one. A verdict on
   a photo of an older generation (it arrived late) is recorded, with a
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -33,12 +37,15 @@ from layerwatch.errors import LayerwatchError
 from layerwatch.farm.pool import FrameLane, WorkerPool
 from layerwatch.farm.remote import JobContext, Verdict, analyse_on, analyse_remote
 from layerwatch.monitor.printers.base import SnapshotTrigger
-from layerwatch.monitor.service import Monitor
+from layerwatch.monitor.service import Monitor, MonitorReport
 from layerwatch.pipeline.step import LayerPipeline
 
-__all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger"]
+__all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger", "RESULTS_KEPT"]
 
 log = logging.getLogger("layerwatch.farm")
+
+#: layer records (and decisions) a farm monitor keeps in memory; all of them are in the history database
+RESULTS_KEPT = 32
 
 
 @dataclass(frozen=True)
@@ -64,6 +71,7 @@ class PoolPipeline:
     def __init__(self, pool: WorkerPool, pipeline: LayerPipeline, context: JobContext | None = None) -> None:
         self.pool, self.local = pool, pipeline
         self.context = pool.scatter(context) if pool.distributed else None
+        self.key = context.key if self.context is not None else None  # the job's worker pin
         self.topview = pipeline.topview
         self.last_top: np.ndarray | None = None
         self.last_thumb: bytes | None = None
@@ -71,7 +79,7 @@ class PoolPipeline:
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """:meth:`LayerPipeline.process` on a pool worker (blocks this printer's lane, not the others)."""
         if self.context is not None:
-            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, key=self.context.key)
+            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, key=self.key)
         else:
             v = self.pool.run(analyse_on, self.local, photo, layer_index)
         self.last_top, self.last_thumb = v.top, v.thumb
@@ -80,6 +88,12 @@ class PoolPipeline:
     def reference(self, index: int):
         """The reference of layer ``index`` (rendered here; only alert overlays ask for it)."""
         return self.local.reference(index)
+
+    def close(self) -> None:
+        """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""
+        if self.key is not None:
+            self.pool.release(self.key)
+        self.last_top = self.last_thumb = None
 
 
 class FarmMonitor(Monitor):
@@ -99,6 +113,8 @@ class FarmMonitor(Monitor):
     def __init__(self, *args: Any, queue_frames: int = 2,
                  observe: Callable[[LayerResult, bytes | None], None] | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.report = MonitorReport(results=deque(maxlen=RESULTS_KEPT),  # type: ignore[arg-type]
+                                    decisions=deque(maxlen=RESULTS_KEPT))  # type: ignore[arg-type]
         self._pool.shutdown(wait=False)  # replaced by the bounded lane
         self._lane = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
         self._pool = self._lane

@@ -5,8 +5,9 @@
 small overlay thumbnail the farm dashboard shows. On local threads the
 printer's own pipeline is passed; on a Dask cluster :func:`analyse_remote`
 receives a :class:`JobContext` (scattered once per job) and keeps one
-pipeline per job in each worker process (:data:`PIPELINES_PER_WORKER`, least
-recently used dropped), so references stay incremental and memoised there.
+pipeline per job in each worker process (dropped by :func:`forget_pipeline` when
+the job ends; at most :data:`PIPELINES_PER_WORKER`, least recently used dropped),
+so references stay incremental and memoised there.
 The records are the same either way: the same code runs on the same inputs.
 """
 
@@ -27,10 +28,15 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.step import LayerPipeline
 
-__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH"]
+__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "forget_pipeline", "MEMO", "PIPELINES_PER_WORKER",
+           "THUMB_WIDTH", "WARP_MAPS"]
 
 #: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it); memory per printer
 MEMO = 1
+#: per-height remap tables a farm pipeline keeps (about 2.5 MB each at 600 x 600 px): the layer being judged
+#: (its scene-channel step reuses it). Each layer has its own height, so more would only fill up over the
+#: first layers of every job (16 by default: ~40 MB per printer) without a hit.
+WARP_MAPS = 1
 
 #: pipelines a Dask worker process keeps (one per job it analyses)
 PIPELINES_PER_WORKER = 1024
@@ -61,8 +67,10 @@ class JobContext:
     config: JobConfig
 
     def pipeline(self) -> LayerPipeline:
-        """A new pipeline for this job."""
-        return LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
+        """A new pipeline for this job (:data:`MEMO` references, :data:`WARP_MAPS` remap tables kept)."""
+        pipe = LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
+        pipe.warper.cache_size = WARP_MAPS
+        return pipe
 
 
 @dataclass
@@ -133,3 +141,9 @@ def _pipeline_for(ctx: JobContext) -> LayerPipeline:
 def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int) -> Verdict:
     """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task)."""
     return analyse_on(_pipeline_for(ctx), photo, layer)
+
+
+def forget_pipeline(key: str) -> bool:
+    """Drop job ``key``'s pipeline from this worker process (the job ended); ``True`` if it was there."""
+    with _lock:
+        return _pipelines.pop(key, None) is not None

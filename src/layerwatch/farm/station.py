@@ -309,6 +309,7 @@ class Station:
     def _ended(self, job: PrintJob, monitor: FarmMonitor) -> None:
         """A followed job ended: its verdicts can no longer act; the printer waits for the next job."""
         monitor.new_generation("job ended")
+        monitor.pipeline.close()
         if monitor.job_id is not None and monitor.report.outcome != "idle":
             self.history.end_job(monitor.job_id, monitor.report.outcome)
         with self._lock:
@@ -360,6 +361,7 @@ class Station:
             log.exception("printer %s: monitor crashed", self.spec.name)
             self.fault(f"monitor crashed ({type(exc).__name__}: {exc}); see the service log")
         finally:
+            mon.pipeline.close()
             self._close_printer()
 
     def _close_printer(self) -> None:

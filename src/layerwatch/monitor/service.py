@@ -178,13 +178,19 @@ class Monitor:
             res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT, message=problem)
             if self.wait_for_verdict:
                 return self._finish(trigger, res)
-            self._futures.append(self._pool.submit(self._finish, trigger, res))  # keep layer order
+            self._queue(self._finish, trigger, res)  # keep layer order
             return res
         t_photo = time.monotonic()
         if self.wait_for_verdict:
             return self._analyse(trigger, photo, t_photo)
-        self._futures.append(self._pool.submit(self._analyse, trigger, photo, t_photo))
+        self._queue(self._analyse, trigger, photo, t_photo)
         return None
+
+    def _queue(self, fn: Any, *args: Any) -> None:
+        """Submit ``fn(*args)`` to the analysis executor; only the unfinished futures are kept (a long print
+        would otherwise hold every layer's result twice)."""
+        self._futures = [f for f in self._futures if not f.done()]
+        self._futures.append(self._pool.submit(fn, *args))
 
     def _photo_done(self, trigger: SnapshotTrigger) -> None:
         """Release the printer's hold for the photo (Klipper), with or without a usable frame."""
