@@ -38,7 +38,7 @@ from layerwatch.farm.pool import FrameLane, WorkerPool
 from layerwatch.farm.remote import JobContext, Verdict, analyse_on, analyse_remote
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.service import Monitor, MonitorReport
-from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.pipeline.step import LayerPipeline, Reference
 
 __all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger", "RESULTS_KEPT"]
 
@@ -66,10 +66,16 @@ class PoolPipeline:
         top view and footprints for alert overlays in both modes).
     context : JobContext, optional
         The job for Dask workers (required when the pool is distributed).
+    with_reference : bool
+        Bring each analysed layer's reference back with its verdict (for an image store on a
+        Dask pool: :meth:`reference` then renders nothing here).
     """
 
-    def __init__(self, pool: WorkerPool, pipeline: LayerPipeline, context: JobContext | None = None) -> None:
+    def __init__(self, pool: WorkerPool, pipeline: LayerPipeline, context: JobContext | None = None, *,
+                 with_reference: bool = False) -> None:
         self.pool, self.local = pool, pipeline
+        self.with_reference = with_reference
+        self._reference: tuple[int, Reference] | None = None  # the last verdict's (layer, reference)
         self.context = pool.scatter(context) if pool.distributed else None
         self.key = context.key if self.context is not None else None  # the job's worker pin
         self.topview = pipeline.topview
@@ -79,21 +85,25 @@ class PoolPipeline:
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """:meth:`LayerPipeline.process` on a pool worker (blocks this printer's lane, not the others)."""
         if self.context is not None:
-            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, key=self.key)
+            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, self.with_reference,
+                                       key=self.key)
         else:
-            v = self.pool.run(analyse_on, self.local, photo, layer_index)
+            v = self.pool.run(analyse_on, self.local, photo, layer_index, self.with_reference)
         self.last_top, self.last_thumb = v.top, v.thumb
+        self._reference = (v.result.layer, v.reference) if v.reference is not None else None
         return v.result
 
-    def reference(self, index: int):
-        """The reference of layer ``index`` (rendered here; only alert overlays ask for it)."""
+    def reference(self, index: int) -> Reference:
+        """The reference of layer ``index``: the one the last verdict brought, else rendered here (alert overlays)."""
+        if self._reference is not None and self._reference[0] == index:
+            return self._reference[1]
         return self.local.reference(index)
 
     def close(self) -> None:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""
         if self.key is not None:
             self.pool.release(self.key)
-        self.last_top = self.last_thumb = None
+        self.last_top = self.last_thumb = self._reference = None
 
 
 class FarmMonitor(Monitor):

@@ -26,7 +26,7 @@ from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
-from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.pipeline.step import LayerPipeline, Reference
 
 __all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "forget_pipeline", "MEMO", "PIPELINES_PER_WORKER",
            "THUMB_WIDTH", "WARP_MAPS"]
@@ -85,11 +85,15 @@ class Verdict:
         Grey top view of an analysed photo (for alert overlays).
     thumb : bytes or None
         PNG of the overlay (failing regions over the top view), :data:`THUMB_WIDTH` px wide.
+    reference : Reference or None
+        The reference the photo was compared with, when asked for (the image store writes it;
+        sent back rather than rendered again where the verdict is used).
     """
 
     result: LayerResult
     top: np.ndarray | None = None
     thumb: bytes | None = None
+    reference: Reference | None = None
 
 
 def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes | None:
@@ -105,7 +109,7 @@ def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes 
     return png.tobytes() if ok else None
 
 
-def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int) -> Verdict:
+def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
     """The per-layer step on ``pipe`` and the overlay thumbnail of its result.
 
     Parameters
@@ -116,12 +120,15 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int) -> Verdict:
         Camera frame, BGR.
     layer : int
         0-based layer index.
+    with_reference : bool
+        Return the reference of an analysed layer too (:attr:`Verdict.reference`).
     """
     res = pipe.process(photo, layer)
     top = pipe.last_top if res.status == "ok" else None
     thumb = _thumbnail(pipe, top, res) if top is not None and res.heatmap is not None else None
     pipe.last_top = pipe.last_valid = None  # the verdict carries the top view; a farm keeps hundreds of pipelines
-    return Verdict(res, top, thumb)
+    ref = pipe.reference(res.layer) if with_reference and top is not None else None  # memoised: no second render
+    return Verdict(res, top, thumb, ref)
 
 
 def _pipeline_for(ctx: JobContext) -> LayerPipeline:
@@ -138,9 +145,9 @@ def _pipeline_for(ctx: JobContext) -> LayerPipeline:
     return pipe
 
 
-def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int) -> Verdict:
+def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
     """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task)."""
-    return analyse_on(_pipeline_for(ctx), photo, layer)
+    return analyse_on(_pipeline_for(ctx), photo, layer, with_reference)
 
 
 def forget_pipeline(key: str) -> bool:
