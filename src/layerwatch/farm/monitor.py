@@ -1,8 +1,9 @@
 """The monitor of one farm printer: :class:`~layerwatch.monitor.service.Monitor` on the farm's pool.
 
 :class:`FarmMonitor` is the monitor loop unchanged (triggers, camera, policy,
-pause, alerts, history, operator resume and acknowledgements), with three
-differences:
+pause, alerts, history, operator resume and acknowledgements) through its
+public hooks (the ``executor`` it analyses on, :meth:`Monitor.finish_layer`,
+:meth:`Monitor.record_event`), with these differences:
 
 * its analysis executor is a :class:`~layerwatch.farm.pool.FrameLane`: at most
   ``queue_frames`` photos wait; when the farm's workers fall behind, the
@@ -122,12 +123,10 @@ class FarmMonitor(Monitor):
 
     def __init__(self, *args: Any, queue_frames: int = 2,
                  observe: Callable[[LayerResult, bytes | None], None] | None = None, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+        self._lane = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
+        super().__init__(*args, executor=self._lane, **kwargs)
         self.report = MonitorReport(results=deque(maxlen=RESULTS_KEPT),  # type: ignore[arg-type]
                                     decisions=deque(maxlen=RESULTS_KEPT))  # type: ignore[arg-type]
-        self._pool.shutdown(wait=False)  # replaced by the bounded lane
-        self._lane = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
-        self._pool = self._lane
         self.generation = 0
         self.dropped = self.late = 0
         self.observe = observe
@@ -153,14 +152,15 @@ class FarmMonitor(Monitor):
         """A pending photo was dropped from the full lane (``args``: the analysis call's arguments)."""
         trigger = args[0]
         self.dropped += 1
-        self._event("frame_dropped", f"layer {trigger.layer} not analysed: the workers are saturated "
+        self.record_event("frame_dropped", f"layer {trigger.layer} not analysed: the workers are saturated "
                     f"(the {self._lane.capacity} newest photos are kept)", {"layer": trigger.layer})
 
-    def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+    def finish_layer(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        """:meth:`Monitor.finish_layer` for a photo of the current generation; a late one is only recorded."""
         with self._generation_lock:
             gen = getattr(trigger, "generation", self.generation)
             if gen == self.generation:
-                out = super()._finish(trigger, res, top)
+                out = super().finish_layer(trigger, res, top)
             else:
                 out = self._late(trigger, res)
         if self.observe is not None:
@@ -178,5 +178,5 @@ class FarmMonitor(Monitor):
                 self.history.add_layer(self.job_id, res)
             except LayerwatchError as exc:
                 log.warning("history write failed: %s", exc)
-        self._event("late_verdict", res.decision_reason, {"layer": trigger.layer})
+        self.record_event("late_verdict", res.decision_reason, {"layer": trigger.layer})
         return res

@@ -130,13 +130,16 @@ class Monitor:
     frame_quality : FrameQualitySettings, optional
         The camera-fault gate run on each frame before the pipeline; ``None`` (the default of
         this class; the ``monitor`` command always passes the job's settings) runs none.
+    executor : Executor, optional
+        Where each photo's analysis and :meth:`finish_layer` run, in layer order (``submit`` and
+        ``shutdown``); default one worker thread. A farm passes its bounded lane.
     """
 
     def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
                  *, notifier: Any = None, history: Any = None, job_id: int | None = None,
                  wait_for_verdict: bool = False, max_backoff_s: float | None = None,
                  initial_backoff_s: float = 0.1, faults: FaultSettings | None = None,
-                 frame_quality: FrameQualitySettings | None = None) -> None:
+                 frame_quality: FrameQualitySettings | None = None, executor: Executor | None = None) -> None:
         self.printer, self.camera, self.pipeline = printer, camera, pipeline
         self.policy = policy or PausePolicy()
         self.notifier, self.history, self.job_id = notifier, history, job_id
@@ -145,7 +148,7 @@ class Monitor:
         self.initial_backoff_s = initial_backoff_s
         self.report = MonitorReport()
         self.stop_event = threading.Event()
-        self._pool: Executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
+        self._pool: Executor = executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
         self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-notify")
         self._futures: list[Future] = []
         self._lock = threading.Lock()
@@ -230,6 +233,15 @@ class Monitor:
         return self._finish(trigger, res, top)
 
     def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        return self.finish_layer(trigger, res, top)
+
+    def finish_layer(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        """Judge a layer's record with the policy, act on it (pause or cancel, alerts) and record it.
+
+        The step after each photo's analysis (or camera fault), on the analysis executor in layer
+        order; the hook a subclass extends (the farm's monitor keeps verdicts on photos older than
+        an operator action from acting). ``top``: the photo's grey top view, for alert overlays.
+        """
         with self._lock:
             decision = self.policy.update(res)
             if decision.stops:
@@ -288,7 +300,10 @@ class Monitor:
                         res, force=True)
 
     def _event(self, kind: str, message: str, data: dict | None = None) -> None:
-        """Append a history event (a failed write is a warning)."""
+        self.record_event(kind, message, data)
+
+    def record_event(self, kind: str, message: str, data: dict | None = None) -> None:
+        """Append an event to this job's history (none without a history; a failed write is a warning)."""
         if self.history is None or self.job_id is None:
             return
         try:
