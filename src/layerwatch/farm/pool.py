@@ -32,6 +32,8 @@ from collections.abc import Callable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any
 
+import numpy as np
+
 from layerwatch.errors import ConfigError, LayerwatchError, require
 from layerwatch.farm.remote import forget_pipeline
 
@@ -43,6 +45,8 @@ log = logging.getLogger("layerwatch.farm")
 REFRESH_S = 10.0
 #: how often a waiting frame checks that its worker is still there, s
 LOST_CHECK_S = 15.0
+#: arrays at least this large (bytes) go straight to their worker, not through the scheduler; 0: never
+DIRECT_BYTES = 1 << 20
 
 
 class WorkerLost(LayerwatchError):
@@ -186,6 +190,7 @@ class WorkerPool:
         self._slots: dict[str, threading.BoundedSemaphore] = {}  # worker address -> its frames in flight
         self._alive: list[str] = []
         self._seen_at = -math.inf
+        self._direct = True  # photos straight to their worker (until that fails once)
         self._lock = threading.Lock()
         if client is None and scheduler is not None:
             distributed = require("distributed", "dask", "a farm on a Dask cluster")
@@ -239,7 +244,8 @@ class WorkerPool:
             return self._threads.submit(fn, *args).result()
         worker = self._worker_for(key)
         with self._slot(worker):
-            fut = self._client.submit(fn, *args, pure=False, workers=[worker], allow_other_workers=False)
+            sent = [self._ship(a, worker) for a in args]
+            fut = self._client.submit(fn, *sent, pure=False, workers=[worker], allow_other_workers=False)
             while True:  # a task pinned to a worker that left would wait for it for ever
                 try:
                     return fut.result(timeout=LOST_CHECK_S)
@@ -250,6 +256,22 @@ class WorkerPool:
                             self.release(key)
                         raise WorkerLost(f"Dask worker {worker} left while analysing this frame; "
                                          "the job's next frame goes to another worker") from None
+
+    def _ship(self, arg: Any, worker: str) -> Any:
+        """``arg``, or for a photo-sized array a future of it sent straight to ``worker``.
+
+        A task's arguments travel through the scheduler (client -> scheduler -> worker); a 1080p
+        photo (6 MB) sent directly takes one hop instead of two, and the scheduler, which serves
+        every printer, never handles its bytes.
+        """
+        if not (DIRECT_BYTES and self._direct and isinstance(arg, np.ndarray) and arg.nbytes >= DIRECT_BYTES):
+            return arg
+        try:
+            return self._client.scatter(arg, workers=[worker], direct=True, hash=False)
+        except (OSError, TimeoutError) as exc:  # the workers' ports are not reachable from here: via the scheduler
+            log.warning("cannot send photos straight to Dask worker %s (%s); they go through the scheduler", worker, exc)
+            self._direct = False
+            return arg
 
     def _workers(self, refresh: bool = False) -> list[str]:
         """Addresses of the cluster's workers (cached for :data:`REFRESH_S` seconds)."""
