@@ -1,6 +1,6 @@
 """Capacity of one farm service: printers per core, memory per printer, verdict latency p99.
 
-Run: ``python benchmarks/farm_capacity.py [--quick] [--dask N]`` (``make bench`` runs ``--quick``).
+Run: ``python benchmarks/farm_capacity.py [--quick] [--dask N] [--dask-speedup N]`` (``make bench`` runs ``--quick``).
 
 What is measured
 ----------------
@@ -23,15 +23,21 @@ What is measured
   made with one warm frame's cost until the latency p99 of a window exceeds 2 s; ``printers_per_core`` is the
   largest ``N`` that kept p99 <= 2 s, divided by the workers.
 * **Memory.** Resident set growth of this process over the ``N`` printers'
-  pipelines (after they ran), divided by ``N``.
+  pipelines, divided by ``N`` (many printers of the last window have not analysed a
+  layer yet, so this reads low); and the **long run**: a few printers with what a farm
+  station holds for a job (:class:`FarmMonitor`, its pool pipeline), fed every layer
+  of the part, read after 2 layers and after the last. The final figure is the larger.
 * **Baseline** (same run): the single-printer monitor
   (:class:`~layerwatch.monitor.service.Monitor` with a virtual printer and the
   same photos): its time per layer, and the resident set of a process running
   it (what one ``layerwatch monitor`` process per printer costs).
 
-``--dask N``: the per-layer task runs on a :class:`distributed.LocalCluster` of
-``N`` worker processes (each layer's frame sent to it, ``N`` in flight); the
-run also times the same frames on one worker process and prints the speed-up.
+``--dask N``: the per-layer task runs through the farm's :class:`WorkerPool` on a
+:class:`distributed.LocalCluster` of ``N`` worker processes (jobs pinned, each
+layer's photo sent to its worker); the run then compares the pool on ``N``
+workers with one on the same frames (:func:`dask_speedup`) and prints the
+throughput ratio. ``--dask-speedup N`` runs only that comparison (about a minute):
+its last line reads ``dask_speedup=<r> workers=<N> records_identical=<bool>``.
 
 The last line reads ``printers_per_core=<n> mb_per_printer=<m> p99_s=<s>``.
 """
@@ -345,6 +351,16 @@ def _record(res) -> dict:
     return d
 
 
+def _cpu(pids: list[int]) -> np.ndarray:
+    """CPU seconds used so far by this process and by the processes ``pids`` together."""
+    def one(pid: int) -> float:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    return np.array([time.process_time(), sum(one(p) for p in pids)])
+
+
 def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
     """Throughput of the farm pool on ``n`` Dask worker processes over one, and whether the records match.
 
@@ -368,24 +384,30 @@ def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
             pools.append(pool)
             pipes.append([PoolPipeline(pool, ctx.pipeline(), ctx) for ctx in (
                 JobContext(f"speed/{w}/{k}", scene.toolpath, scene.camera, scene.cfg) for k in range(printers))])
-        elapsed = [0.0, 0.0]
+        elapsed, cpu = [0.0, 0.0], np.zeros((2, 2))  # per pool: wall s; (service, workers) CPU s
+        pids = [list(pool.client.run(os.getpid).values()) for pool in pools]
         records: list[list[dict]] = [[], []]
         with ThreadPoolExecutor(printers) as lanes:
             for layer in range(scene.layers):
                 photos = [scene.photo(k, layer) for k in range(printers)]
                 for j in ((0, 1) if layer % 2 else (1, 0)):
-                    t = time.perf_counter()
+                    t, c = time.perf_counter(), _cpu(pids[j])
                     out = list(lanes.map(PoolPipeline.process, pipes[j], photos, [layer] * printers))
                     if layer > 0:
                         elapsed[j] += time.perf_counter() - t
+                        cpu[j] += _cpu(pids[j]) - c
                     records[j] += [_record(r) for r in out]
         local = scene.pipeline()
         mine = [_record(analyse_on(local, scene.photo(0, i), i).result) for i in range(scene.layers)]
         same = records[0] == records[1] and mine == records[1][::printers]
         loads = [sorted(p.jobs_per_worker.values()) for p in pools]
+        frames = printers * (scene.layers - 1)
         print(f"dask: {printers} printers x {scene.layers - 1} timed layers; one worker {elapsed[0]:.2f} s, {n} workers "
               f"{elapsed[1]:.2f} s (jobs per worker {loads[1]}); {os.cpu_count()} cores, load average "
               f"{os.getloadavg()[0]:.1f}", flush=True)
+        print("dask: CPU per frame (service process with the scheduler + worker processes): "
+              + "; ".join(f"{w} worker(s) {cpu[j, 0] / frames * 1e3:.0f} + {cpu[j, 1] / frames * 1e3:.0f} ms"
+                          for j, w in enumerate((1, n))), flush=True)
         return elapsed[0] / elapsed[1], same
     finally:
         for row in pipes:
