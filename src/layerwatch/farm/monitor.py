@@ -46,7 +46,7 @@ __all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger", "RESULTS_KEPT"]
 log = logging.getLogger("layerwatch.farm")
 
 #: layer records (and decisions) a farm monitor keeps in memory; all of them are in the history database
-RESULTS_KEPT = 32
+RESULTS_KEPT = 8
 
 
 @dataclass(frozen=True)
@@ -99,6 +99,10 @@ class PoolPipeline:
         if self._reference is not None and self._reference[0] == index:
             return self._reference[1]
         return self.local.reference(index)
+
+    def layer_done(self) -> None:
+        """The layer is recorded: drop its top view and reference (a printer holds nothing between layers)."""
+        self.last_top = self._reference = None
 
     def close(self) -> None:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""
@@ -165,6 +169,9 @@ class FarmMonitor(Monitor):
                 out = self._late(trigger, res)
         if self.observe is not None:
             self.observe(out, getattr(self.pipeline, "last_thumb", None) if out.status == "ok" else None)
+        done = getattr(self.pipeline, "layer_done", None)  # a PoolPipeline, possibly inside a StoringPipeline
+        if done is not None:
+            done()
         return out
 
     def _late(self, trigger: SnapshotTrigger, res: LayerResult) -> LayerResult:
