@@ -1,6 +1,6 @@
 """Capacity of one farm service: printers per core, memory per printer, verdict latency p99.
 
-Run: ``python benchmarks/farm_capacity.py [--quick] [--dask N]`` (``make bench`` runs ``--quick``).
+Run: ``python benchmarks/farm_capacity.py [--quick] [--dask N] [--dask-speedup N]`` (``make bench`` runs ``--quick``).
 
 What is measured
 ----------------
@@ -23,15 +23,21 @@ What is measured
   made with one warm frame's cost until the latency p99 of a window exceeds 2 s; ``printers_per_core`` is the
   largest ``N`` that kept p99 <= 2 s, divided by the workers.
 * **Memory.** Resident set growth of this process over the ``N`` printers'
-  pipelines (after they ran), divided by ``N``.
+  pipelines, divided by ``N`` (many printers of the last window have not analysed a
+  layer yet, so this reads low); and the **long run**: a few printers with what a farm
+  station holds for a job (:class:`FarmMonitor`, its pool pipeline), fed every layer
+  of the part, read after 2 layers and after the last. The final figure is the larger.
 * **Baseline** (same run): the single-printer monitor
   (:class:`~layerwatch.monitor.service.Monitor` with a virtual printer and the
   same photos): its time per layer, and the resident set of a process running
   it (what one ``layerwatch monitor`` process per printer costs).
 
-``--dask N``: the per-layer task runs on a :class:`distributed.LocalCluster` of
-``N`` worker processes (each layer's frame sent to it, ``N`` in flight); the
-run also times the same frames on one worker process and prints the speed-up.
+``--dask N``: the per-layer task runs through the farm's :class:`WorkerPool` on a
+:class:`distributed.LocalCluster` of ``N`` worker processes (jobs pinned, each
+layer's photo sent to its worker); the run then compares the pool on ``N``
+workers with one on the same frames (:func:`dask_speedup`) and prints the
+throughput ratio. ``--dask-speedup N`` runs only that comparison (about a minute):
+its last line reads ``dask_speedup=<r> workers=<N> records_identical=<bool>``.
 
 The last line reads ``printers_per_core=<n> mb_per_printer=<m> p99_s=<s>``.
 """
@@ -53,9 +59,12 @@ from dataclasses import dataclass, field  # noqa: E402
 import numpy as np  # noqa: E402
 
 from layerwatch.examples import PART_CONFIG, PART_GCODE  # noqa: E402
-from layerwatch.farm.remote import JobContext, analyse_on, analyse_remote  # noqa: E402
+from layerwatch.farm.monitor import FarmMonitor, PoolPipeline  # noqa: E402
+from layerwatch.farm.pool import WorkerPool  # noqa: E402
+from layerwatch.farm.remote import JobContext, analyse_on  # noqa: E402
 from layerwatch.gcode import read_toolpath  # noqa: E402
 from layerwatch.monitor.cameras import SimCamera  # noqa: E402
+from layerwatch.monitor.printers.base import SnapshotTrigger  # noqa: E402
 from layerwatch.monitor.printers.virtual import VirtualPrinter  # noqa: E402
 from layerwatch.monitor.service import Monitor  # noqa: E402
 from layerwatch.pipeline.config import resolve_config  # noqa: E402
@@ -111,28 +120,29 @@ class Printer:
     period_s: float
     next_t: float
     pipe: LayerPipeline | None = None
-    context: JobContext | None = None
+    remote: PoolPipeline | None = None
     layer: int = 0
     free_t: float = 0.0  # virtual time its previous frame's verdict came
     latencies: list[float] = field(default_factory=list)
 
 
 class Runner:
-    """Runs frames: here (one core) or on a Dask cluster (``N`` in flight)."""
+    """Runs frames: here (one core), or through the farm's :class:`WorkerPool` on a Dask cluster (``N`` in flight)."""
 
-    def __init__(self, scene: Scene, client=None, workers: int = 1) -> None:
-        self.scene, self.client, self.workers = scene, client, workers
+    def __init__(self, scene: Scene, pool: WorkerPool | None = None, workers: int = 1) -> None:
+        self.scene, self.pool, self.workers = scene, pool, workers
+        self.client = pool.client if pool is not None else None
 
     def attach(self, p: Printer) -> None:
-        if self.client is None:
+        if self.pool is None:
             p.pipe = self.scene.pipeline()
-        else:
+        else:  # as a farm station builds it: the job scattered once, pinned to the least loaded worker
             ctx = JobContext(f"bench/{p.index}", self.scene.toolpath, self.scene.camera, self.scene.cfg)
-            p.context = self.client.scatter(ctx, hash=False)
+            p.remote = PoolPipeline(self.pool, ctx.pipeline(), ctx)
 
     def run(self, batch: list[tuple[Printer, int, np.ndarray]]) -> list[float]:
         """Wall seconds of each frame's work (the batch runs ``workers`` at a time)."""
-        if self.client is None:
+        if self.pool is None:
             out = []
             for p, layer, photo in batch:
                 t = time.perf_counter()
@@ -143,7 +153,7 @@ class Runner:
         def one(item):
             p, layer, photo = item
             t = time.perf_counter()
-            self.client.submit(analyse_remote, p.context, photo, layer, pure=False).result()
+            p.remote.process(photo, layer)
             return time.perf_counter() - t
 
         with ThreadPoolExecutor(self.workers) as ex:
@@ -232,15 +242,23 @@ def main(argv: list[str] | None = None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="short windows (finishes in under 3 minutes)")
     ap.add_argument("--dask", type=int, default=0, metavar="N", help="run on a LocalCluster of N worker processes")
+    ap.add_argument("--dask-speedup", type=int, default=0, metavar="N",
+                    help="only compare the farm pool on N Dask worker processes with one (throughput ratio)")
     ap.add_argument("--fast-share", type=float, default=0.1, help="share of printers at one layer per 10 s")
     ap.add_argument("--window", type=float, default=None, help="farm seconds per ramp step (default 20 quick, 120)")
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args(argv)
-    if not (0.0 <= a.fast_share <= 1.0) or a.dask < 0:
-        ap.error("--fast-share must be in [0, 1] and --dask >= 0")
+    if not (0.0 <= a.fast_share <= 1.0) or a.dask < 0 or not (a.dask_speedup == 0 or 2 <= a.dask_speedup <= 64):
+        ap.error("--fast-share must be in [0, 1], --dask >= 0 and --dask-speedup in [2, 64]")
+    t_start = time.perf_counter()
+    if a.dask_speedup:
+        scene = Scene(layers=8)
+        ratio, same = dask_speedup(scene, a.dask_speedup)
+        line = f"dask_speedup={ratio:.2f} workers={a.dask_speedup} records_identical={same}"
+        print(line)
+        return line
     win = a.window or (20.0 if a.quick else 120.0)
     step = 1.5 if a.quick else 1.25
-    t_start = time.perf_counter()
     scene = Scene(layers=12 if a.quick else 33)
     warm = scene.pipeline()
     analyse_on(warm, scene.photo(0, 0), 0)  # compile and import what the first frame needs, untimed
@@ -253,31 +271,26 @@ def main(argv: list[str] | None = None) -> str:
     rate = (1 - a.fast_share) / 60.0 + a.fast_share / 10.0  # layers per printer per s
     print(f"farm per-layer task {per_frame * 1e3:.0f} ms/frame (warm); baseline: single-printer monitor {per_layer * 1e3:.0f} ms/layer, process RSS {rss_base:.0f} MB "
           f"(one monitor process per printer); layer rate {rate * 60:.2f}/min per printer", flush=True)
-    client = cluster = None
+    soak_mb = soak(scene, 6 if a.quick else 12) if not a.dask else 0.0
+    pool = None
     workers = 1
     if a.dask:
-        import distributed  # the optional `dask` extra
-
-        cluster = distributed.LocalCluster(n_workers=a.dask, threads_per_worker=1, processes=True,
-                                           dashboard_address=None)
-        client = distributed.Client(cluster)
+        pool = WorkerPool(a.dask, scheduler="local")
         workers = a.dask
-    runner = Runner(scene, client, workers)
+    runner = Runner(scene, pool, workers)
     n0 = max(10, int(0.7 * workers / (rate * per_frame)))  # ramp from 70 % of the estimate of one frame's cost
     try:
         best = ramp(runner, np.random.default_rng(a.seed), n0, step, win, a.fast_share, t_start)
-        speedup = None
-        if client is not None:
-            speedup = dask_speedup(scene, client, a.dask)
     finally:
-        if client is not None:
-            client.close()
-            cluster.close()
+        if pool is not None:
+            pool.close()
     n_ok, mb, p99 = best
-    if client is not None:
-        print(f"dask: {a.dask} worker processes, throughput {speedup:.2f}x one worker process on the same frames "
-              f"(this machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f})")
+    if a.dask:
+        ratio, same = dask_speedup(scene, a.dask)
+        print(f"dask: {a.dask} worker processes, throughput {ratio:.2f}x one worker process on the same frames, "
+              f"records identical: {same}")
     ppc = n_ok / workers
+    mb = max(mb, soak_mb)  # the larger of the ramp's and the long run's figure
     print(f"ratio vs baseline: {ppc:.0f} printers per core in one farm process vs one printer per monitor "
           f"process ({rss_base:.0f} MB each); memory per printer {rss_base / max(mb, 1e-9):.0f}x less; "
           f"CPU per layer: monitor {per_layer * 1e3:.0f} ms vs farm task {per_frame * 1e3:.0f} ms")
@@ -292,24 +305,116 @@ def worker_mb(client, since: float = 0.0) -> float:
     return sum(sizes.values()) - since
 
 
-def dask_speedup(scene: Scene, client, n: int, frames: int = 24) -> float:
-    """Throughput of ``n`` worker processes over one, on the same frames (wall clock)."""
-    import distributed
+def soak(scene: Scene, n: int) -> float:
+    """Memory per printer of a farm's per-printer state over a long run (every layer of the scene's part).
 
-    def timed(c) -> float:
-        ctxs = [c.scatter(JobContext(f"speed/{k}", scene.toolpath, scene.camera, scene.cfg), hash=False)
-                for k in range(frames)]
-        t = time.perf_counter()
-        futs = [c.submit(analyse_remote, ctxs[k], scene.photo(k, k % scene.layers), k % scene.layers, pure=False)
-                for k in range(frames)]
-        distributed.wait(futs)
-        return time.perf_counter() - t
+    ``n`` printers, each with what a farm station holds for a job (:class:`FarmMonitor`, its
+    :class:`PoolPipeline` and pipeline on a local :class:`WorkerPool`), all fed the same
+    layers in turn; the resident set over them is read after 2 layers and after the last.
 
-    many = timed(client)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as one, \
-            distributed.Client(one) as c1:
-        single = timed(c1)
-    return single / many
+    Returns
+    -------
+    float
+        MB per printer after the last layer.
+    """
+    gcode = b"G1 Z0.2\n"
+    pool = WorkerPool(1)
+    try:
+        mem0 = rss_mb()
+        mons = []
+        for k in range(n):
+            ctx = JobContext(f"soak/{k}", scene.toolpath, scene.camera, scene.cfg)
+            mons.append(FarmMonitor(VirtualPrinter(gcode), SimCamera(lambda i, k=k: scene.photo(k, i)),
+                                    PoolPipeline(pool, ctx.pipeline()), PausePolicy(scene.cfg.policy),
+                                    wait_for_verdict=True))
+        seen = {}
+        for layer in range(scene.layers):
+            for mon in mons:
+                mon.handle_trigger(SnapshotTrigger(layer, 0.2 * (layer + 1), "soak", time.monotonic()))
+            if layer + 1 in (2, scene.layers):
+                seen[layer + 1] = (rss_mb() - mem0) / n
+        print(f"long run: {n} printers' farm state (monitor, pipeline), MB/printer after "
+              + ", ".join(f"{k} layers {v:.2f}" for k, v in seen.items()), flush=True)
+        for mon in mons:
+            mon.close()
+        return seen[scene.layers]
+    finally:
+        pool.close()
+
+
+def _record(res) -> dict:
+    """A layer record without its timings (what must match between runs)."""
+    d = res.to_dict()
+    d.pop("timings_ms", None)
+    if d.get("scene"):
+        d["scene"].pop("ms", None)
+    return d
+
+
+def _cpu(pids: list[int]) -> np.ndarray:
+    """CPU seconds used so far by this process and by the processes ``pids`` together."""
+    def one(pid: int) -> float:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    return np.array([time.process_time(), sum(one(p) for p in pids)])
+
+
+def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
+    """Throughput of the farm pool on ``n`` Dask worker processes over one, and whether the records match.
+
+    Both clusters run in this process at once; ``4 n`` printers' jobs go through
+    :class:`WorkerPool` as a farm sends them (one lane thread per printer, jobs pinned). Each
+    round is one layer of every printer, on one pool then the other (the order alternating, so
+    both see the same load); the photos are made before a round (the camera's part, not timed)
+    and the first layer, which builds each worker's pipelines, is not timed. The records of
+    both pools are compared with each other and, for the first printer, with a local pipeline.
+
+    Returns
+    -------
+    (float, bool)
+        Wall time on one worker / on ``n`` workers; every record identical.
+    """
+    printers = 4 * n
+    pools, pipes = [], []
+    try:
+        for w in (1, n):
+            pool = WorkerPool(w, scheduler="local")
+            pools.append(pool)
+            pipes.append([PoolPipeline(pool, ctx.pipeline(), ctx) for ctx in (
+                JobContext(f"speed/{w}/{k}", scene.toolpath, scene.camera, scene.cfg) for k in range(printers))])
+        elapsed, cpu = [0.0, 0.0], np.zeros((2, 2))  # per pool: wall s; (service, workers) CPU s
+        pids = [list(pool.client.run(os.getpid).values()) for pool in pools]
+        records: list[list[dict]] = [[], []]
+        with ThreadPoolExecutor(printers) as lanes:
+            for layer in range(scene.layers):
+                photos = [scene.photo(k, layer) for k in range(printers)]
+                for j in ((0, 1) if layer % 2 else (1, 0)):
+                    t, c = time.perf_counter(), _cpu(pids[j])
+                    out = list(lanes.map(PoolPipeline.process, pipes[j], photos, [layer] * printers))
+                    if layer > 0:
+                        elapsed[j] += time.perf_counter() - t
+                        cpu[j] += _cpu(pids[j]) - c
+                    records[j] += [_record(r) for r in out]
+        local = scene.pipeline()
+        mine = [_record(analyse_on(local, scene.photo(0, i), i).result) for i in range(scene.layers)]
+        same = records[0] == records[1] and mine == records[1][::printers]
+        loads = [sorted(p.jobs_per_worker.values()) for p in pools]
+        frames = printers * (scene.layers - 1)
+        print(f"dask: {printers} printers x {scene.layers - 1} timed layers; one worker {elapsed[0]:.2f} s, {n} workers "
+              f"{elapsed[1]:.2f} s (jobs per worker {loads[1]}); {os.cpu_count()} cores, load average "
+              f"{os.getloadavg()[0]:.1f}", flush=True)
+        print("dask: CPU per frame (service process with the scheduler + worker processes): "
+              + "; ".join(f"{w} worker(s) {cpu[j, 0] / frames * 1e3:.0f} + {cpu[j, 1] / frames * 1e3:.0f} ms"
+                          for j, w in enumerate((1, n))), flush=True)
+        return elapsed[0] / elapsed[1], same
+    finally:
+        for row in pipes:
+            for pp in row:
+                pp.close()
+        for pool in pools:
+            pool.close()
 
 
 if __name__ == "__main__":

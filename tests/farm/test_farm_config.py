@@ -59,6 +59,9 @@ def test_good_farm_file_reads_every_key(tmp_path):
     ('settings = { policy = { pause_ratio = nan } }', ["'p02'", "policy.pause_ratio", "finite"]),
     ('settings = { bogus = { a = 1 } }', ["'p02'", "bogus"]),
     ('gcode = "missing.gcode"', ["'p02'", "gcode", "no such file"]),
+    ('park_tolerance = 0', ["'p02'", "park_tolerance", "false"]),
+    ('park_tolerance = nan', ["'p02'", "park_tolerance"]),
+    ('park_tolerance = true', ["'p02'", "park_tolerance"]),
 ])
 def test_each_mistake_is_one_line_naming_printer_and_key(tmp_path, extra, words):
     with pytest.raises(ConfigError) as err:
@@ -66,6 +69,16 @@ def test_each_mistake_is_one_line_naming_printer_and_key(tmp_path, extra, words)
     msg = str(err.value)
     assert "\n" not in msg and all(w in msg for w in words), msg
     assert "SECRET" not in msg
+
+
+def test_image_store_and_park_check_keys(tmp_path):
+    cfg = load_farm(_write(tmp_path, "[farm]\nimages = \"pics\"\nkeep_mb = 500\nkeep_jobs = 20\n"
+                                     "[[printers]]\nname = \"a\"\npark_tolerance = 2.5\n"
+                                     "[[printers]]\nname = \"b\"\npark_tolerance = false\n[[printers]]\nname = \"c\"\n"))
+    assert (cfg.images, cfg.keep_mb, cfg.keep_jobs) == (tmp_path / "pics", 500.0, 20) and cfg.images.is_dir()
+    assert [p.park_tolerance_mm for p in cfg.printers] == [2.5, None, 1.0]
+    with pytest.raises(ConfigError, match="keep_jobs"):
+        parse_farm({"farm": {"keep_jobs": 0}, "printers": [{"name": "a"}]}, tmp_path)
 
 
 def test_duplicate_names_and_top_level_mistakes(tmp_path):

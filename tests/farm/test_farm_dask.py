@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,7 @@ def _record(res) -> dict:
     return d
 
 
-def _run(pool: WorkerPool, sims, tp, cfg, layers) -> list[tuple[dict, bytes | None]]:
+def _run(pool: WorkerPool, sims, tp, cfg, layers) -> tuple[list[tuple[dict, bytes | None]], dict]:
     pipes = {k: PoolPipeline(pool, LayerPipeline(tp, sim.located, cfg), JobContext(k, tp, sim.located, cfg))
              for k, sim in sims.items()}
     out = []
@@ -34,7 +36,7 @@ def _run(pool: WorkerPool, sims, tp, cfg, layers) -> list[tuple[dict, bytes | No
         for k, sim in sims.items():
             res = pipes[k].process(sim.frame(i), i)
             out.append((_record(res), pipes[k].last_thumb))
-    return out
+    return out, pipes
 
 
 def test_dask_cluster_gives_the_records_of_local_threads():
@@ -44,15 +46,26 @@ def test_dask_cluster_gives_the_records_of_local_threads():
     layers = range(0, 12)
     local = WorkerPool(2)
     try:
-        expected = _run(local, sims, tp, cfg, layers)
+        expected, _ = _run(local, sims, tp, cfg, layers)
     finally:
         local.close()
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
         pool = WorkerPool(2, client=client)
-        got = _run(pool, sims, tp, cfg, layers)
-        ran_on = {w for w, tasks in client.run(lambda: len(__import__("layerwatch.farm.remote").farm.remote._pipelines)).items() if tasks}
-    assert len(ran_on) >= 1  # the pipelines live in the worker processes
+        got, pipes = _run(pool, sims, tp, cfg, layers)
+        count = lambda: len(__import__("layerwatch.farm.remote").farm.remote._pipelines)  # noqa: E731
+        ran_on = {w for w, tasks in client.run(count).items() if tasks}
+        balance = sorted(pool.jobs_per_worker.values())
+        for pp in pipes.values():
+            pp.close()  # the jobs end: pins freed, the workers drop their pipelines
+        left = 0
+        for _ in range(50):
+            left = sum(client.run(count).values())
+            if not left:
+                break
+            time.sleep(0.1)  # the drop is sent, not awaited
+    assert len(ran_on) == 2 and balance == [1, 1]  # the two jobs on the two worker processes
+    assert left == 0 and pool.jobs_per_worker == dict.fromkeys(pool.jobs_per_worker, 0)
     assert [g[0] for g in got] == [e[0] for e in expected]  # every field of every record
     assert [g[1] for g in got] == [e[1] for e in expected]  # the same overlay thumbnails
     assert any(e[0]["anomaly_ratio"] > 0.02 for e in expected)  # the failure is in the compared records

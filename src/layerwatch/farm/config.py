@@ -6,6 +6,9 @@ Example::
     workers = 2                 # analysis workers shared by all printers (local threads)
     queue_frames = 2            # frames a printer may have waiting; older ones are dropped
     scheduler = "tcp://host:8786"   # optional: run the per-layer work on a Dask cluster
+    images = "images"           # real printers' layer images (default: beside the history database)
+    keep_mb = 2000              # image retention: at most this many MB of job folders...
+    keep_jobs = 200             # ...and at most this many jobs (oldest deleted first)
 
     [[printers]]
     name = "p01"
@@ -14,6 +17,7 @@ Example::
     layer_seconds = 1.0         # virtual printer: time per layer, s
     failure = "spaghetti"       # sim camera: optional injected failure
     onset = 8                   # sim camera: first failed layer
+    park_tolerance = 1.0        # real printer: frames taken off the park spot (mm) are rejected; false: no check
     # gcode, camera_model, bed_photo, config (job.toml): paths, relative to farm.toml
     [printers.settings]         # overrides of the job settings (highest precedence)
     policy = { pause_ratio = 0.05 }
@@ -73,6 +77,9 @@ class PrinterSpec:
         Wait after the trigger before the photo, s, in [0, 60].
     wait_for_verdict : bool
         Hold the printer until the layer is analysed.
+    park_tolerance_mm : float or None
+        Real printer: reject frames whose reported head position is farther than this from the
+        layer's park spot, mm (as ``layerwatch monitor --park-tolerance``); ``None``: no check.
     settings : dict of dict
         Per-section job settings overriding every other source.
     """
@@ -90,6 +97,7 @@ class PrinterSpec:
     seed: int = 1
     settle_s: float = 0.0
     wait_for_verdict: bool = False
+    park_tolerance_mm: float | None = 1.0
     settings: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     @property
@@ -122,12 +130,20 @@ class FarmConfig:
         Frames a printer may have waiting for a worker, 1..64; when full the oldest is dropped.
     scheduler : str or None
         Dask scheduler address (``tcp://host:8786``) or ``"local"``; ``None``: local threads.
+    images : Path or None
+        Folder of the real printers' layer images (:class:`~layerwatch.monitor.artifacts.ArtifactStore`);
+        ``None``: beside the history database.
+    keep_mb, keep_jobs : float or int or None
+        Image retention limits (``None``: none).
     """
 
     printers: tuple[PrinterSpec, ...]
     workers: int = 2
     queue_frames: int = 2
     scheduler: str | None = None
+    images: Path | None = None
+    keep_mb: float | None = None
+    keep_jobs: int | None = None
 
 
 def _where(printer: str | None, key: str) -> str:
@@ -173,8 +189,24 @@ def _settings(raw: Any, where: str) -> dict[str, dict[str, Any]]:
     return raw
 
 
+_FARM_KEYS = ("workers", "queue_frames", "scheduler", "images", "keep_mb", "keep_jobs")
+
+
+def _folder(raw: Any, where: str, base: Path) -> Path:
+    """A folder for output (created when missing), relative to ``base``."""
+    if not isinstance(raw, str) or not raw:
+        raise ConfigError(f"{where} must be a folder path (string), not {raw!r}.")
+    p = Path(raw).expanduser()
+    p = p if p.is_absolute() else base / p
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{where} = {raw!r}: cannot create {p} ({exc.strerror}); pick a writable folder.") from None
+    return p
+
+
 _PRINTER_KEYS = ("name", "printer", "camera", "gcode", "camera_model", "bed_photo", "config", "layer_seconds",
-                 "failure", "onset", "seed", "settle", "wait_for_verdict", "settings")
+                 "failure", "onset", "seed", "settle", "wait_for_verdict", "park_tolerance", "settings")
 
 
 def _printer(raw: Any, index: int, base: Path) -> PrinterSpec:
@@ -215,6 +247,12 @@ def _printer(raw: Any, index: int, base: Path) -> PrinterSpec:
         if not isinstance(raw["wait_for_verdict"], bool):
             raise ConfigError(f"{w('wait_for_verdict')} must be true or false.")
         kw["wait_for_verdict"] = raw["wait_for_verdict"]
+    if "park_tolerance" in raw:
+        tol = raw["park_tolerance"]
+        if tol is not False and (isinstance(tol, bool) or not isinstance(tol, (int, float)) or not math.isfinite(tol)
+                                 or not 0 < tol <= 100):
+            raise ConfigError(f"{w('park_tolerance')} = {tol!r}: give a distance in mm in (0, 100], or false for no check.")
+        kw["park_tolerance_mm"] = None if tol is False else float(tol)
     if "settings" in raw:
         kw["settings"] = _settings(raw["settings"], w("settings"))
     spec = PrinterSpec(**kw)
@@ -251,8 +289,8 @@ def parse_farm(data: Mapping[str, Any], base: Path) -> FarmConfig:
         raise ConfigError("farm must be a [farm] table.")
     kw: dict[str, Any] = {}
     for key in farm:
-        if key not in ("workers", "queue_frames", "scheduler"):
-            raise ConfigError(f"farm: unknown key {key!r}; use workers, queue_frames, scheduler.")
+        if key not in _FARM_KEYS:
+            raise ConfigError(f"farm: unknown key {key!r}; use {', '.join(_FARM_KEYS)}.")
     if "workers" in farm:
         kw["workers"] = int(_number(farm["workers"], "farm: workers", 1, 256, integer=True))
     if "queue_frames" in farm:
@@ -260,6 +298,12 @@ def parse_farm(data: Mapping[str, Any], base: Path) -> FarmConfig:
     if "scheduler" in farm:
         kw["scheduler"] = _text(farm["scheduler"], "farm: scheduler", re.compile(r"^(local|tcp://.+|tls://.+)$"),
                                 '"tcp://host:8786" or "local"')
+    if "images" in farm:
+        kw["images"] = _folder(farm["images"], "farm: images", base)
+    if "keep_mb" in farm:
+        kw["keep_mb"] = float(_number(farm["keep_mb"], "farm: keep_mb", 1, 1e9))
+    if "keep_jobs" in farm:
+        kw["keep_jobs"] = int(_number(farm["keep_jobs"], "farm: keep_jobs", 1, 1e6, integer=True))
     raw = data.get("printers")
     if not isinstance(raw, list) or not raw:
         raise ConfigError("no [[printers]] table; add one per printer (name, printer, camera...).")

@@ -1,14 +1,18 @@
 """The monitor of one farm printer: :class:`~layerwatch.monitor.service.Monitor` on the farm's pool.
 
 :class:`FarmMonitor` is the monitor loop unchanged (triggers, camera, policy,
-pause, alerts, history, operator resume and acknowledgements), with three
-differences:
+pause, alerts, history, operator resume and acknowledgements) through its
+public hooks (the ``executor`` it analyses on, :meth:`Monitor.finish_layer`,
+:meth:`Monitor.record_event`), with these differences:
 
 * its analysis executor is a :class:`~layerwatch.farm.pool.FrameLane`: at most
   ``queue_frames`` photos wait; when the farm's workers fall behind, the
   oldest is dropped and a ``frame_dropped`` event records its layer;
 * its pipeline is a :class:`PoolPipeline`: the per-layer compute runs on the
   farm's shared :class:`~layerwatch.farm.pool.WorkerPool` (threads or Dask);
+* it keeps only the last :data:`RESULTS_KEPT` layer records in memory
+  (:attr:`report`): the farm reads its layers from the history, and a printer's
+  memory must not grow with the length of its prints;
 * each photo is stamped with the monitor's *generation*; an operator
   acknowledge or resume, and the end of the job, start a new one. A verdict on
   a photo of an older generation (it arrived late) is recorded, with a
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -33,12 +38,15 @@ from layerwatch.errors import LayerwatchError
 from layerwatch.farm.pool import FrameLane, WorkerPool
 from layerwatch.farm.remote import JobContext, Verdict, analyse_on, analyse_remote
 from layerwatch.monitor.printers.base import SnapshotTrigger
-from layerwatch.monitor.service import Monitor
-from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.monitor.service import Monitor, MonitorReport
+from layerwatch.pipeline.step import LayerPipeline, Reference
 
-__all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger"]
+__all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger", "RESULTS_KEPT"]
 
 log = logging.getLogger("layerwatch.farm")
+
+#: layer records (and decisions) a farm monitor keeps in memory; all of them are in the history database
+RESULTS_KEPT = 8
 
 
 @dataclass(frozen=True)
@@ -59,11 +67,18 @@ class PoolPipeline:
         top view and footprints for alert overlays in both modes).
     context : JobContext, optional
         The job for Dask workers (required when the pool is distributed).
+    with_reference : bool
+        Bring each analysed layer's reference back with its verdict (for an image store on a
+        Dask pool: :meth:`reference` then renders nothing here).
     """
 
-    def __init__(self, pool: WorkerPool, pipeline: LayerPipeline, context: JobContext | None = None) -> None:
+    def __init__(self, pool: WorkerPool, pipeline: LayerPipeline, context: JobContext | None = None, *,
+                 with_reference: bool = False) -> None:
         self.pool, self.local = pool, pipeline
+        self.with_reference = with_reference
+        self._reference: tuple[int, Reference] | None = None  # the last verdict's (layer, reference)
         self.context = pool.scatter(context) if pool.distributed else None
+        self.key = context.key if context is not None and self.context is not None else None  # the job's worker pin
         self.topview = pipeline.topview
         self.last_top: np.ndarray | None = None
         self.last_thumb: bytes | None = None
@@ -71,15 +86,29 @@ class PoolPipeline:
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """:meth:`LayerPipeline.process` on a pool worker (blocks this printer's lane, not the others)."""
         if self.context is not None:
-            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, key=self.context.key)
+            v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, self.with_reference,
+                                       key=self.key)
         else:
-            v = self.pool.run(analyse_on, self.local, photo, layer_index)
+            v = self.pool.run(analyse_on, self.local, photo, layer_index, self.with_reference)
         self.last_top, self.last_thumb = v.top, v.thumb
+        self._reference = (v.result.layer, v.reference) if v.reference is not None else None
         return v.result
 
-    def reference(self, index: int):
-        """The reference of layer ``index`` (rendered here; only alert overlays ask for it)."""
+    def reference(self, index: int) -> Reference:
+        """The reference of layer ``index``: the one the last verdict brought, else rendered here (alert overlays)."""
+        if self._reference is not None and self._reference[0] == index:
+            return self._reference[1]
         return self.local.reference(index)
+
+    def layer_done(self) -> None:
+        """The layer is recorded: drop its top view and reference (a printer holds nothing between layers)."""
+        self.last_top = self._reference = None
+
+    def close(self) -> None:
+        """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""
+        if self.key is not None:
+            self.pool.release(self.key)
+        self.last_top = self.last_thumb = self._reference = None
 
 
 class FarmMonitor(Monitor):
@@ -98,10 +127,10 @@ class FarmMonitor(Monitor):
 
     def __init__(self, *args: Any, queue_frames: int = 2,
                  observe: Callable[[LayerResult, bytes | None], None] | None = None, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._pool.shutdown(wait=False)  # replaced by the bounded lane
         self._lane = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
-        self._pool = self._lane
+        super().__init__(*args, executor=self._lane, **kwargs)
+        self.report = MonitorReport(results=deque(maxlen=RESULTS_KEPT),  # type: ignore[arg-type]
+                                    decisions=deque(maxlen=RESULTS_KEPT))  # type: ignore[arg-type]
         self.generation = 0
         self.dropped = self.late = 0
         self.observe = observe
@@ -109,7 +138,8 @@ class FarmMonitor(Monitor):
 
     def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
         """Stamp the trigger with the current generation, then take and queue the photo."""
-        stamped = StampedTrigger(trigger.layer, trigger.z, trigger.source, trigger.time, self.generation)
+        stamped = StampedTrigger(trigger.layer, trigger.z, trigger.source, trigger.time, trigger.signal,
+                                 generation=self.generation)
         return super().handle_trigger(stamped)
 
     def new_generation(self, why: str) -> None:
@@ -127,18 +157,22 @@ class FarmMonitor(Monitor):
         """A pending photo was dropped from the full lane (``args``: the analysis call's arguments)."""
         trigger = args[0]
         self.dropped += 1
-        self._event("frame_dropped", f"layer {trigger.layer} not analysed: the workers are saturated "
+        self.record_event("frame_dropped", f"layer {trigger.layer} not analysed: the workers are saturated "
                     f"(the {self._lane.capacity} newest photos are kept)", {"layer": trigger.layer})
 
-    def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+    def finish_layer(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        """:meth:`Monitor.finish_layer` for a photo of the current generation; a late one is only recorded."""
         with self._generation_lock:
             gen = getattr(trigger, "generation", self.generation)
             if gen == self.generation:
-                out = super()._finish(trigger, res, top)
+                out = super().finish_layer(trigger, res, top)
             else:
                 out = self._late(trigger, res)
         if self.observe is not None:
             self.observe(out, getattr(self.pipeline, "last_thumb", None) if out.status == "ok" else None)
+        done = getattr(self.pipeline, "layer_done", None)  # a PoolPipeline, possibly inside a StoringPipeline
+        if done is not None:
+            done()
         return out
 
     def _late(self, trigger: SnapshotTrigger, res: LayerResult) -> LayerResult:
@@ -152,5 +186,5 @@ class FarmMonitor(Monitor):
                 self.history.add_layer(self.job_id, res)
             except LayerwatchError as exc:
                 log.warning("history write failed: %s", exc)
-        self._event("late_verdict", res.decision_reason, {"layer": trigger.layer})
+        self.record_event("late_verdict", res.decision_reason, {"layer": trigger.layer})
         return res

@@ -11,9 +11,10 @@ Two pieces give back-pressure without unbounded queues:
   holds a shared worker.
 * :class:`WorkerPool` (one per farm) runs the per-layer compute (reference
   rendering + warp + analysis) for every printer: on ``workers`` local threads,
-  or as tasks on a Dask cluster (:mod:`layerwatch.farm.remote`). A printer's
-  lane thread waits for its own layer, so the pool's queue never holds more
-  than one frame per printer.
+  or as tasks on a Dask cluster (:mod:`layerwatch.farm.remote`), each job pinned
+  to the least loaded worker process, with a few frames in flight per worker. A
+  printer's lane thread waits for its own layer, so the pool's queue never holds
+  more than one frame per printer.
 
 When the pool is saturated, the lanes fill up and drop their oldest frames:
 a saturated farm analyses the newest layer of each printer instead of
@@ -23,18 +24,33 @@ falling further and further behind.
 from __future__ import annotations
 
 import logging
+import math
 import threading
-import zlib
+import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any
 
-from layerwatch.errors import ConfigError, require
+import numpy as np
 
-__all__ = ["FrameLane", "WorkerPool"]
+from layerwatch.errors import ConfigError, LayerwatchError, require
+from layerwatch.farm.remote import forget_pipeline
+
+__all__ = ["FrameLane", "WorkerLost", "WorkerPool", "LOST_CHECK_S", "REFRESH_S"]
 
 log = logging.getLogger("layerwatch.farm")
+
+#: how often the cached list of Dask workers is refreshed, s
+REFRESH_S = 10.0
+#: how often a waiting frame checks that its worker is still there, s
+LOST_CHECK_S = 15.0
+#: arrays at least this large (bytes) go straight to their worker, not through the scheduler; 0: never
+DIRECT_BYTES = 1 << 20
+
+
+class WorkerLost(LayerwatchError):
+    """The Dask worker holding a job's frame left (or the cluster has none)."""
 
 
 class FrameLane(Executor):
@@ -135,32 +151,52 @@ class FrameLane(Executor):
 class WorkerPool:
     """Run the per-layer compute of every printer on shared workers.
 
+    On a Dask cluster each job is *pinned* to one worker process (its pipeline keeps
+    per-job state between layers, :mod:`layerwatch.farm.remote`): a new job goes to
+    the worker with the fewest live jobs, so the work is balanced however the jobs'
+    names hash, and :meth:`release` frees the pin (and the worker's pipeline) when the
+    job ends. Each worker has its own slots: at most ``inflight`` frames per worker
+    thread are on the cluster, so one busy worker never holds frames meant for an idle
+    one, and the next frame is already on the worker when the previous one finishes
+    (its transfer overlaps the compute). The worker list is cached (refreshed every
+    :data:`REFRESH_S` seconds or when a pinned worker is missing), so a frame costs one
+    task round trip, not a scheduler query as well.
+
     Parameters
     ----------
     workers : int
-        Local threads (default mode), or tasks allowed in flight on the cluster.
+        Local threads (default mode); with ``scheduler="local"``, the worker processes started.
     scheduler : str, optional
         Dask scheduler address (``"tcp://host:8786"``), or ``"local"`` for a
         :class:`distributed.LocalCluster` of worker processes started here; needs
         the ``dask`` extra. ``None``: local threads.
     client : distributed.Client, optional
         An existing client to use instead of ``scheduler`` (not closed by :meth:`close`).
+    inflight : int
+        Frames on the cluster per worker thread (one computing, the rest already sent), >= 1.
     """
 
-    def __init__(self, workers: int = 2, scheduler: str | None = None, client: Any = None) -> None:
+    def __init__(self, workers: int = 2, scheduler: str | None = None, client: Any = None,
+                 inflight: int = 2) -> None:
+        if inflight < 1:
+            raise ConfigError(f"a Dask worker takes at least 1 frame at a time, not {inflight}.")
         self.workers = max(1, int(workers))
         self.scheduler = scheduler
+        self.inflight = int(inflight)
         self._own_client = False
         self._client = client
-        self._slots = threading.BoundedSemaphore(self.workers)
         self._threads: ThreadPoolExecutor | None = None
-        self._pinned: dict[str, str] = {}  # job key -> Dask worker address
-        self._pin_lock = threading.Lock()
+        self._pinned: dict[str, str] = {}  # live job key -> Dask worker address
+        self._slots: dict[str, threading.BoundedSemaphore] = {}  # worker address -> its frames in flight
+        self._alive: list[str] = []
+        self._seen_at = -math.inf
+        self._direct = True  # photos straight to their worker (until that fails once)
+        self._lock = threading.Lock()
         if client is None and scheduler is not None:
             distributed = require("distributed", "dask", "a farm on a Dask cluster")
             if scheduler == "local":
                 self._client = distributed.Client(distributed.LocalCluster(
-                    n_workers=self.workers, threads_per_worker=1, processes=True))
+                    n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None))
             else:
                 self._client = distributed.Client(scheduler)
             self._own_client = True
@@ -176,6 +212,12 @@ class WorkerPool:
     def distributed(self) -> bool:
         """Work goes to a Dask cluster."""
         return self._client is not None
+
+    @property
+    def jobs_per_worker(self) -> dict[str, int]:
+        """Live (pinned) jobs on each known Dask worker (empty with local threads)."""
+        with self._lock:
+            return {w: sum(p == w for p in self._pinned.values()) for w in self._alive}
 
     def scatter(self, value: Any) -> Any:
         """``value`` sent once to every Dask worker (a future standing for it); itself with local threads."""
@@ -193,29 +235,93 @@ class WorkerPool:
 
         Raises
         ------
+        WorkerLost
+            The job's Dask worker left while it held the frame (the next frame goes to another).
         Exception
             Whatever ``fn`` raised (re-raised here), or the cluster's error.
         """
         if self._threads is not None:
             return self._threads.submit(fn, *args).result()
-        with self._slots:  # at most `workers` frames in flight on the cluster
-            if key is None:
-                return self._client.submit(fn, *args, pure=False).result()
-            return self._client.submit(fn, *args, pure=False, workers=[self._worker_for(key)],
-                                       allow_other_workers=False).result()
+        worker = self._worker_for(key)
+        with self._slot(worker):
+            sent = [self._ship(a, worker) for a in args]
+            fut = self._client.submit(fn, *sent, pure=False, workers=[worker], allow_other_workers=False)
+            while True:  # a task pinned to a worker that left would wait for it for ever
+                try:
+                    return fut.result(timeout=LOST_CHECK_S)
+                except TimeoutError:
+                    if worker not in self._workers(refresh=True):
+                        fut.cancel()
+                        if key is not None:
+                            self.release(key)
+                        raise WorkerLost(f"Dask worker {worker} left while analysing this frame; "
+                                         "the job's next frame goes to another worker") from None
 
-    def _worker_for(self, key: str) -> str:
-        """The Dask worker address that runs every frame of job ``key`` (stable while it lives)."""
-        alive = sorted(self._client.scheduler_info()["workers"])
+    def _ship(self, arg: Any, worker: str) -> Any:
+        """``arg``, or for a photo-sized array a future of it sent straight to ``worker``.
+
+        A task's arguments travel through the scheduler (client -> scheduler -> worker); a 1080p
+        photo (6 MB) sent directly takes one hop instead of two, and the scheduler, which serves
+        every printer, never handles its bytes.
+        """
+        if not (DIRECT_BYTES and self._direct and isinstance(arg, np.ndarray) and arg.nbytes >= DIRECT_BYTES):
+            return arg
+        try:
+            return self._client.scatter(arg, workers=[worker], direct=True, hash=False)
+        except (OSError, TimeoutError) as exc:  # the workers' ports are not reachable from here: via the scheduler
+            log.warning("cannot send photos straight to Dask worker %s (%s); they go through the scheduler", worker, exc)
+            self._direct = False
+            return arg
+
+    def _workers(self, refresh: bool = False) -> list[str]:
+        """Addresses of the cluster's workers (cached for :data:`REFRESH_S` seconds)."""
+        now = time.monotonic()
+        with self._lock:
+            if not refresh and now - self._seen_at < REFRESH_S and self._alive:
+                return self._alive
+        info = self._client.scheduler_info()["workers"]
+        with self._lock:
+            self._alive, self._seen_at = sorted(info), now
+            for w, d in info.items():
+                if w not in self._slots:
+                    self._slots[w] = threading.BoundedSemaphore(self.inflight * max(1, int(d.get("nthreads", 1))))
+            return self._alive
+
+    def _slot(self, worker: str) -> threading.BoundedSemaphore:
+        with self._lock:
+            return self._slots[worker]
+
+    def _worker_for(self, key: str | None) -> str:
+        """The Dask worker that runs job ``key``'s frames: its pinned one while alive, else the least loaded."""
+        alive = self._workers()
+        with self._lock:
+            pinned = self._pinned.get(key) if key is not None else None
+        if pinned is not None and pinned not in alive:
+            alive = self._workers(refresh=True)
         if not alive:
-            raise RuntimeError("the Dask cluster has no worker")
-        with self._pin_lock:
-            pinned = self._pinned.get(key)
+            raise WorkerLost("the Dask cluster has no worker; start `dask worker tcp://SCHEDULER:8786` on a machine")
+        with self._lock:
             if pinned is not None and pinned in alive:
                 return pinned
-            worker: str = alive[zlib.crc32(key.encode()) % len(alive)]
-            self._pinned[key] = worker
+            load = {w: 0 for w in alive}
+            for w in self._pinned.values():
+                if w in load:
+                    load[w] += 1
+            worker = min(alive, key=lambda w: (load[w], w))
+            if key is not None:
+                self._pinned[key] = worker
             return worker
+
+    def release(self, key: str) -> None:
+        """Job ``key`` ended: free its worker pin and drop its pipeline there (no-op with local threads)."""
+        with self._lock:
+            worker = self._pinned.pop(key, None)
+        if worker is None or self._client is None:
+            return
+        try:  # fire and forget: a worker that left took the pipeline with it
+            self._client.submit(forget_pipeline, key, pure=False, workers=[worker], allow_other_workers=False)
+        except Exception:  # noqa: BLE001 - the client is closing; nothing to free
+            log.debug("could not drop the pipeline of %s on %s", key, worker, exc_info=True)
 
     def close(self) -> None:
         """Stop the local threads or the client (and its cluster) this pool started."""

@@ -5,8 +5,9 @@
 small overlay thumbnail the farm dashboard shows. On local threads the
 printer's own pipeline is passed; on a Dask cluster :func:`analyse_remote`
 receives a :class:`JobContext` (scattered once per job) and keeps one
-pipeline per job in each worker process (:data:`PIPELINES_PER_WORKER`, least
-recently used dropped), so references stay incremental and memoised there.
+pipeline per job in each worker process (dropped by :func:`forget_pipeline` when
+the job ends; at most :data:`PIPELINES_PER_WORKER`, least recently used dropped),
+so references stay incremental and memoised there.
 The records are the same either way: the same code runs on the same inputs.
 """
 
@@ -25,12 +26,17 @@ from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
-from layerwatch.pipeline.step import LayerPipeline
+from layerwatch.pipeline.step import LayerPipeline, Reference
 
-__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH"]
+__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "forget_pipeline", "MEMO", "PIPELINES_PER_WORKER",
+           "THUMB_WIDTH", "WARP_MAPS"]
 
 #: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it); memory per printer
 MEMO = 1
+#: per-height remap tables a farm pipeline keeps (about 2.5 MB each at 600 x 600 px): the layer being judged
+#: (its scene-channel step reuses it). Each layer has its own height, so more would only fill up over the
+#: first layers of every job (16 by default: ~40 MB per printer) without a hit.
+WARP_MAPS = 1
 
 #: pipelines a Dask worker process keeps (one per job it analyses)
 PIPELINES_PER_WORKER = 1024
@@ -61,8 +67,10 @@ class JobContext:
     config: JobConfig
 
     def pipeline(self) -> LayerPipeline:
-        """A new pipeline for this job."""
-        return LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
+        """A new pipeline for this job (:data:`MEMO` references, :data:`WARP_MAPS` remap tables kept)."""
+        pipe = LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
+        pipe.warper.cache_size = WARP_MAPS
+        return pipe
 
 
 @dataclass
@@ -77,11 +85,15 @@ class Verdict:
         Grey top view of an analysed photo (for alert overlays).
     thumb : bytes or None
         PNG of the overlay (failing regions over the top view), :data:`THUMB_WIDTH` px wide.
+    reference : Reference or None
+        The reference the photo was compared with, when asked for (the image store writes it;
+        sent back rather than rendered again where the verdict is used).
     """
 
     result: LayerResult
     top: np.ndarray | None = None
     thumb: bytes | None = None
+    reference: Reference | None = None
 
 
 def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes | None:
@@ -97,7 +109,7 @@ def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes 
     return png.tobytes() if ok else None
 
 
-def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int) -> Verdict:
+def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
     """The per-layer step on ``pipe`` and the overlay thumbnail of its result.
 
     Parameters
@@ -108,12 +120,15 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int) -> Verdict:
         Camera frame, BGR.
     layer : int
         0-based layer index.
+    with_reference : bool
+        Return the reference of an analysed layer too (:attr:`Verdict.reference`).
     """
     res = pipe.process(photo, layer)
     top = pipe.last_top if res.status == "ok" else None
     thumb = _thumbnail(pipe, top, res) if top is not None and res.heatmap is not None else None
     pipe.last_top = pipe.last_valid = None  # the verdict carries the top view; a farm keeps hundreds of pipelines
-    return Verdict(res, top, thumb)
+    ref = pipe.reference(res.layer) if with_reference and top is not None else None  # memoised: no second render
+    return Verdict(res, top, thumb, ref)
 
 
 def _pipeline_for(ctx: JobContext) -> LayerPipeline:
@@ -130,6 +145,12 @@ def _pipeline_for(ctx: JobContext) -> LayerPipeline:
     return pipe
 
 
-def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int) -> Verdict:
+def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
     """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task)."""
-    return analyse_on(_pipeline_for(ctx), photo, layer)
+    return analyse_on(_pipeline_for(ctx), photo, layer, with_reference)
+
+
+def forget_pipeline(key: str) -> bool:
+    """Drop job ``key``'s pipeline from this worker process (the job ended); ``True`` if it was there."""
+    with _lock:
+        return _pipelines.pop(key, None) is not None

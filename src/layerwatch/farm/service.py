@@ -11,12 +11,14 @@ CSRF guard and audit log serve the farm unchanged.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any
 
 from layerwatch.farm.config import FarmConfig
 from layerwatch.farm.pool import WorkerPool
 from layerwatch.farm.simcam import SimFrames
 from layerwatch.farm.station import Station
+from layerwatch.monitor.artifacts import ArtifactStore
 
 __all__ = ["Farm"]
 
@@ -39,6 +41,9 @@ class Farm:
         Use this pool (tests, benchmarks) instead of building one; not closed by :meth:`stop`.
     retry_s : tuple of float
         First and largest wait between a failed printer's set-up attempts, s.
+
+    Real printers' layer images go to :attr:`store` (``[farm] images``, default beside the
+    history database, which is where ``layerwatch serve`` reads them without ``--images``).
     """
 
     def __init__(self, config: FarmConfig, history: Any, *, scheduler: str | None = None,
@@ -49,9 +54,22 @@ class Farm:
         self._own_pool = pool is None
         self.pool = pool or WorkerPool(workers or config.workers, scheduler or config.scheduler)
         self.sims = SimFrames()
+        self.store = self._store(config, history)
         self.stations: dict[str, Station] = {
-            p.name: Station(p, self.pool, history, self.sims, queue_frames=config.queue_frames, retry_s=retry_s)
+            p.name: Station(p, self.pool, history, self.sims, queue_frames=config.queue_frames, store=self.store,
+                            retry_s=retry_s)
             for p in config.printers}
+
+    @staticmethod
+    def _store(config: FarmConfig, history: Any) -> ArtifactStore | None:
+        """The real printers' image store: ``[farm] images``, else beside the history database (``None``:
+        no real printer, or an in-memory history without ``images``)."""
+        if all(p.is_virtual for p in config.printers):
+            return None
+        root = config.images
+        if root is None and getattr(history, "path", None) is not None:
+            root = Path(history.path).resolve().parent
+        return None if root is None else ArtifactStore(root, config.keep_mb, config.keep_jobs)
 
     @property
     def printers(self) -> dict[str, Station]:

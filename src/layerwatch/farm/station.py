@@ -17,6 +17,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,10 +38,12 @@ from layerwatch.gcode.reader import load_bytes
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.pose import locate_bed
+from layerwatch.monitor.artifacts import ArtifactStore, StoringPipeline
 from layerwatch.monitor.cameras import SimCamera, open_camera
 from layerwatch.monitor.hosts import MAX_GCODE_BYTES, JobHost, PrintJob, job_host
 from layerwatch.monitor.jobs import JobWatcher
 from layerwatch.monitor.notify import Notifier
+from layerwatch.monitor.parked import M114Position, ParkCheck, ParkedCamera, Position, park_spots
 from layerwatch.monitor.printers.base import PrinterStatus, parse_trigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.printers.octoprint import OctoPrintPrinter
@@ -121,13 +124,18 @@ class Station:
         Simulated photos shared by the farm's ``camera = "sim"`` printers.
     queue_frames : int
         Photos a printer may have waiting for a worker.
+    store : ArtifactStore, optional
+        Where a real printer's jobs keep their layer images (retention applied per job).
     retry_s : tuple of float
         First and largest wait between set-up attempts after an error, s.
     """
 
     def __init__(self, spec: PrinterSpec, pool: WorkerPool, history: Any, sims: SimFrames, *,
-                 queue_frames: int = 2, retry_s: tuple[float, float] = (2.0, 60.0)) -> None:
+                 queue_frames: int = 2, store: ArtifactStore | None = None,
+                 retry_s: tuple[float, float] = (2.0, 60.0)) -> None:
         self.spec, self.pool, self.history, self.sims = spec, pool, history, sims
+        self.store = None if spec.is_virtual else store
+        self._position: Callable[[], Position | None] | None = None  # where the host says the head is
         self.queue_frames = int(queue_frames)
         self.retry_s = retry_s
         self.stop_event = threading.Event()
@@ -269,17 +277,52 @@ class Station:
 
     def _monitor(self, path: str, data: bytes, toolpath: Toolpath, cfg: JobConfig, camera: Any,
                  model: CameraModel) -> FarmMonitor:
-        """A history job and the :class:`FarmMonitor` of one job on :attr:`printer`."""
+        """A history job and the :class:`FarmMonitor` of one job on :attr:`printer`.
+
+        A real printer's job goes through the same path as ``layerwatch monitor --follow``
+        (:class:`~layerwatch.monitor.follow.JobService`): its frames are only accepted while the
+        host reports the head at the layer's park spot (:class:`ParkedCamera`, unless
+        ``park_tolerance = false``), and each analysed layer's images go to the farm's
+        :class:`ArtifactStore` (retention applied as the job starts and when it ends).
+        """
         job = self.history.start_job(self.spec.name, path, hashlib.sha256(data).hexdigest(), config=cfg)
         ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg)
         self._set(job=Path(path).name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
         with self._lock:
             self._ratios.clear()
-        self.monitor = FarmMonitor(_Watched(self.printer, self), camera, PoolPipeline(self.pool, ctx.pipeline(), ctx),
+        pipeline: Any = PoolPipeline(self.pool, ctx.pipeline(), ctx, with_reference=self.store is not None)
+        if self.store is not None:
+            self.store.prune(keep=job)
+            pipeline = StoringPipeline(pipeline, self.store, job)
+        if not self.spec.is_virtual and self.spec.park_tolerance_mm is not None:
+            spots = park_spots(data)
+            camera = ParkedCamera(camera, ParkCheck(spots, self.spec.park_tolerance_mm), self._head_position())
+            log.info("printer %s: park spots of %s for %d layers", self.spec.name, Path(path).name, len(spots))
+        self.monitor = FarmMonitor(_Watched(self.printer, self), camera, pipeline,
                                    PausePolicy(cfg.policy), notifier=Notifier(cfg.notify), history=self.history,
                                    job_id=job, wait_for_verdict=self.spec.wait_for_verdict or cfg.policy.wait_for_verdict,
                                    queue_frames=self.queue_frames, observe=self.observe)
         return self.monitor
+
+    def _head_position(self) -> Callable[[], Position | None]:
+        """Where the host says the head is (OctoPrint: the firmware's ``M114`` reply), made once per printer."""
+        if self._position is None:
+            host = job_host(self.printer)
+            self._position = M114Position(self.printer) if host.kind == "octoprint" else host.position
+        return self._position
+
+    def _job_done(self, monitor: FarmMonitor) -> None:
+        """After a job: free its worker, draw its layer stack, apply the image retention limits."""
+        close = getattr(monitor.pipeline, "close", None)  # a PoolPipeline (maybe inside a StoringPipeline)
+        if close is not None:
+            close()
+        if self.store is None or monitor.job_id is None:
+            return
+        try:
+            self.store.finish(monitor.job_id, monitor.pipeline.topview, self.history)
+            self.store.prune()
+        except (OSError, LayerwatchError) as exc:
+            log.warning("printer %s: images of job %s not finished: %s", self.spec.name, monitor.job_id, exc)
 
     # ------------------------------------------------------------ job pick-up (real printers without `gcode`)
     def _follow(self) -> None:
@@ -309,6 +352,7 @@ class Station:
     def _ended(self, job: PrintJob, monitor: FarmMonitor) -> None:
         """A followed job ended: its verdicts can no longer act; the printer waits for the next job."""
         monitor.new_generation("job ended")
+        self._job_done(monitor)
         if monitor.job_id is not None and monitor.report.outcome != "idle":
             self.history.end_job(monitor.job_id, monitor.report.outcome)
         with self._lock:
@@ -360,6 +404,7 @@ class Station:
             log.exception("printer %s: monitor crashed", self.spec.name)
             self.fault(f"monitor crashed ({type(exc).__name__}: {exc}); see the service log")
         finally:
+            self._job_done(mon)
             self._close_printer()
 
     def _close_printer(self) -> None:

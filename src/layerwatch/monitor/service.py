@@ -139,6 +139,9 @@ class Monitor:
         Layers that print no part (start/end G-code): not judged. A ``layerwatch quiet [s=..]``
         signal (:func:`~layerwatch.monitor.printers.base.parse_signal`) suspends detection for a
         while, until ``layerwatch watch`` or its time runs out.
+    executor : Executor, optional
+        Where each photo's analysis and :meth:`finish_layer` run, in layer order (``submit`` and
+        ``shutdown``); default one worker thread. A farm passes its bounded lane.
     """
 
     def __init__(self, printer: Printer, camera: Any, pipeline: _Pipeline, policy: PausePolicy | None = None,
@@ -146,7 +149,7 @@ class Monitor:
                  wait_for_verdict: bool = False, max_backoff_s: float | None = None,
                  initial_backoff_s: float = 0.1, faults: FaultSettings | None = None,
                  frame_quality: FrameQualitySettings | None = None, objects: ObjectMap | None = None,
-                 quiet_layers: Iterable[int] = ()) -> None:
+                 quiet_layers: Iterable[int] = (), executor: Executor | None = None) -> None:
         self.printer, self.camera, self.pipeline = printer, camera, pipeline
         #: layers not judged: they print no part (start/end G-code, :func:`~layerwatch.gcode.objects.quiet_layers`)
         self.quiet_layers = frozenset(int(i) for i in quiet_layers)
@@ -160,7 +163,7 @@ class Monitor:
         self.initial_backoff_s = initial_backoff_s
         self.report = MonitorReport()
         self.stop_event = threading.Event()
-        self._pool: Executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
+        self._pool: Executor = executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-analysis")
         self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="layerwatch-notify")
         self._futures: list[Future] = []
         self._lock = threading.Lock()
@@ -189,8 +192,8 @@ class Monitor:
             self._photo_done(trigger)
             res = LayerResult(layer=trigger.layer, z=trigger.z, status="skipped", message=quiet)
             if self.wait_for_verdict:
-                return self._finish(trigger, res)
-            self._futures.append(self._pool.submit(self._finish, trigger, res))  # keep layer order
+                return self.finish_layer(trigger, res)
+            self._queue(self.finish_layer, trigger, res)  # keep layer order
             return res
         try:
             if hasattr(self.camera, "set_layer"):
@@ -203,13 +206,13 @@ class Monitor:
         if problem is not None:
             res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT, message=problem)
             if self.wait_for_verdict:
-                return self._finish(trigger, res)
-            self._futures.append(self._pool.submit(self._finish, trigger, res))  # keep layer order
+                return self.finish_layer(trigger, res)
+            self._queue(self.finish_layer, trigger, res)  # keep layer order
             return res
         t_photo = time.monotonic()
         if self.wait_for_verdict:
             return self._analyse(trigger, photo, t_photo)
-        self._futures.append(self._pool.submit(self._analyse, trigger, photo, t_photo))
+        self._queue(self._analyse, trigger, photo, t_photo)
         return None
 
     def _quiet_reason(self, trigger: SnapshotTrigger) -> str | None:
@@ -229,14 +232,20 @@ class Monitor:
             if self.wait_for_verdict:
                 self._forget_streaks()
             else:
-                self._futures.append(self._pool.submit(self._forget_streaks))
+                self._queue(self._forget_streaks)
         text = f"detection quiet for {trigger.z:.0f} s (signalled by the printer)" if quiet else "detection resumed"
         _log("signal", signal=trigger.signal, seconds=trigger.z, source=trigger.source)
-        self._event(trigger.signal, text, {"seconds": trigger.z, "source": trigger.source})
+        self.record_event(trigger.signal, text, {"seconds": trigger.z, "source": trigger.source})
 
     def _forget_streaks(self) -> None:
         with self._lock:
             self.policy.forget_streaks()
+
+    def _queue(self, fn: Any, *args: Any) -> None:
+        """Submit ``fn(*args)`` to the analysis executor; only the unfinished futures are kept (a long print
+        would otherwise hold every layer's result twice)."""
+        self._futures = [f for f in self._futures if not f.done()]
+        self._futures.append(self._pool.submit(fn, *args))
 
     def _photo_done(self, trigger: SnapshotTrigger) -> None:
         """Release the printer's hold for the photo (Klipper), with or without a usable frame."""
@@ -265,7 +274,7 @@ class Monitor:
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
         res = self._gate(trigger, photo)
         if res is not None:
-            return self._finish(trigger, res)
+            return self.finish_layer(trigger, res)
         try:
             res = self.pipeline.process(photo, trigger.layer)
         except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
@@ -273,9 +282,15 @@ class Monitor:
             res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
         res.photo_ms = round((t_photo - trigger.time) * 1000, 1)
         top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None  # one analysis thread
-        return self._finish(trigger, res, top)
+        return self.finish_layer(trigger, res, top)
 
-    def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+    def finish_layer(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        """Judge a layer's record with the policy, act on it (pause or cancel, alerts) and record it.
+
+        The step after each photo's analysis (or camera fault), on the analysis executor in layer
+        order; the hook a subclass extends (the farm's monitor keeps verdicts on photos older than
+        an operator action from acting). ``top``: the photo's grey top view, for alert overlays.
+        """
         with self._lock:
             decision = self.policy.update(res)
             if decision.stops:  # pause, cancel, cancel one object or a host command (pipeline/actions.py)
@@ -319,7 +334,7 @@ class Monitor:
             if ended is not None:
                 self._warn.reset("camera")
                 _log("camera_recovered", frames=ended.count)
-                self._event("camera_recovered", f"camera delivers usable frames again after {ended.count} bad one(s)",
+                self.record_event("camera_recovered", f"camera delivers usable frames again after {ended.count} bad one(s)",
                             {"layer": res.layer, "frames": ended.count})
                 if ended.notified:
                     self._alert(f"camera recovered: usable frames again from layer {res.layer}", res, level="info",
@@ -329,14 +344,14 @@ class Monitor:
         started, notify = self._camera_fault.failed(res.message)
         self._warn.warning("camera", "camera fault on layer %d (never a pause): %s", res.layer, res.message)
         if started:
-            self._event("camera_fault", res.message, {"layer": res.layer, **res.frame_quality})
+            self.record_event("camera_fault", res.message, {"layer": res.layer, **res.frame_quality})
         if notify:
             n = self._camera_fault.current.count if self._camera_fault.current else 0
             self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}",
                         res, force=True)
 
-    def _event(self, kind: str, message: str, data: dict | None = None) -> None:
-        """Append a history event (a failed write is a warning)."""
+    def record_event(self, kind: str, message: str, data: dict | None = None) -> None:
+        """Append an event to this job's history (none without a history; a failed write is a warning)."""
         if self.history is None or self.job_id is None:
             return
         try:
@@ -509,7 +524,7 @@ class Monitor:
         _log("printer_unreachable", logging.DEBUG, retry_s=retry_s, error=error)
         self._warn.warning("printer", "printer fault (never a pause), retrying every <= %g s: %s", cap, error)
         if started:
-            self._event("printer_fault", error, {"retry_s": retry_s})
+            self.record_event("printer_fault", error, {"retry_s": retry_s})
         if notify:
             self._alert(f"printer unreachable for {self.faults.printer_grace_s:g} s ({count} failed polls), "
                         f"retrying every <= {cap:g} s; layers are not being checked: {error}", force=True)
@@ -523,7 +538,7 @@ class Monitor:
         self._warn.reset("printer")
         after = round(time.monotonic() - ended.started, 2)
         _log("printer_reconnected", after_s=after, failed_polls=ended.count, state=state)
-        self._event("printer_recovered", f"printer answers again after {after} s ({ended.count} failed polls)",
+        self.record_event("printer_recovered", f"printer answers again after {after} s ({ended.count} failed polls)",
                     {"after_s": after, "failed_polls": ended.count, "state": state})
         if ended.notified:
             self._alert(f"printer reachable again after {after:g} s (state {state})", level="info", force=True)

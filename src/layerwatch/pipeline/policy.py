@@ -65,8 +65,8 @@ STOPPING = frozenset({"pause", "cancel", "cancel_object", "host_command"})
 #: the documented per-kind defaults: a detached part of a multi-object plate is cancelled alone (a pause
 #: when the G-code does not label its objects or the failure spans several); every other kind does what
 #: the rule says (pause by default): a wrongly typed region must still stop the print
-DEFAULT_KIND_ACTIONS: dict[str, dict[str, object]] = {k: {"action": "rule"} for k in FAILURE_KINDS} | {
-    "detachment": {"action": "cancel_object"}}
+DEFAULT_KIND_ACTIONS: dict[str, dict[str, object]] = {k: {"action": "rule"} for k in FAILURE_KINDS}
+DEFAULT_KIND_ACTIONS["detachment"] = {"action": "cancel_object"}
 _MAX_COMMAND = 200
 
 
