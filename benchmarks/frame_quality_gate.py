@@ -1,6 +1,6 @@
 """Does the camera-fault gate stop false pauses without hiding real failures? (issue 19)
 
-Run: ``python benchmarks/frame_quality_gate.py`` (about two minutes on one core).
+Run: ``python benchmarks/frame_quality_gate.py`` (about eight minutes on one core).
 
 1. **Camera faults on clean prints.** The bundled example part is printed on the
    virtual printer and watched by the real :class:`Monitor` (``LayerPipeline`` +
@@ -19,8 +19,8 @@ Run: ``python benchmarks/frame_quality_gate.py`` (about two minutes on one core)
    simulator) in which the failure is visible is checked as the monitor checks it:
    by the gate against the frame of the layer before, with the bed markers found in
    it; then, when its analysis would count toward a pause, by the lag check (is it
-   explained by the previous layer's reference?). A frame passes when neither calls
-   it a camera fault. Target: >= 0.97 pass.
+   explained by the previous layer's reference?). A frame passes when the gate does
+   not refuse it and the lag check does not call it one layer late. Target: >= 0.97.
 3. **Real photos.** The photos in ``/work/shared/data/photos`` (real cameras:
    exposure drift, glare, glass beds, dark filament) pass the gate (no previous frame).
 """
@@ -56,6 +56,8 @@ from layerwatch.simulate import PrintSimulator, default_camera
 
 PHOTOS = Path("/work/shared/data/photos")
 N_LAYERS = 20
+#: about this many frames are planned for the failure measurement (about half show a failure)
+FAILURE_FRAMES = 240
 FAULT_LAYERS = range(8, 14)
 
 
@@ -121,7 +123,7 @@ def _job():
 
 
 def clean_print_pauses(cfg, pipe, gcode, frames, bed=None, kinds=None) -> dict[str, dict[str, int]]:
-    """Per fault kind: pauses with the gate on and off, frames the gate refused, camera alerts.
+    """Per fault kind: pauses with the gate on and off, frames refused, frames judged one layer late, alerts.
 
     ``kinds``: the kinds to run (all of :func:`camera_faults`, and of :func:`whole_print_faults`
     when ``bed`` is given). ``refused_clean`` counts refused frames outside :data:`FAULT_LAYERS`
@@ -142,6 +144,7 @@ def clean_print_pauses(cfg, pipe, gcode, frames, bed=None, kinds=None) -> dict[s
             if gate:
                 whole = kind.endswith("whole_print")
                 row["refused"] = sum(r.status == CAMERA_FAULT for r in rep.results)
+                row["lagged"] = rep.lagged_frames
                 row["refused_clean"] = 0 if whole else sum(r.status == CAMERA_FAULT and r.layer not in FAULT_LAYERS
                                                            for r in rep.results)
                 row["alerts"] = rep.alerts
@@ -150,32 +153,43 @@ def clean_print_pauses(cfg, pipe, gcode, frames, bed=None, kinds=None) -> dict[s
 
 
 def monitor_verdict(pipe, cfg, photo: np.ndarray, previous: np.ndarray, layer: int,
-                    markers: MarkerWatch | None) -> list[str]:
+                    markers: MarkerWatch | None) -> tuple[list[str], bool]:
     """The camera-fault reasons the monitor gives a frame (empty: it is judged as analysed).
 
     The gate with the previous frame and the bed markers, then, when the analysis would count
-    toward a pause, the lag check (as :meth:`Monitor._analyse` does).
+    toward a pause, the lag check (as :meth:`Monitor._analyse` does). A frame the lag check
+    calls one layer late is counted as refused here (the monitor judges it against the
+    previous layer instead, where the failure would still show; counting it refused is the
+    stricter measure). Second value: the lag check ran.
     """
     q = assess_frame(photo, previous, **(markers(photo) if markers is not None else {}))
     if not q.ok:
-        return q.reasons
+        return q.reasons, False
     res = pipe.process(photo, layer)
     if not counts_toward_pause(res, cfg.policy):
-        return []
+        return [], False
     verdict = previous_layer_explains(pipe, photo, res, cfg.policy)
-    return [verdict.message] if verdict is not None and verdict.lagged else []
+    return ([verdict.message] if verdict is not None and verdict.lagged else []), verdict is not None
 
 
 def failure_frames_passed(tp, truth, cfg, pipe=None, n_layers: int = 120,
-                          seed: int = 0) -> tuple[Counter, Counter, list]:
-    """Failure frames the monitor's camera-fault checks let through: (passed, total) per type, refusals.
+                          seed: int = 0) -> tuple[Counter, Counter, list, int]:
+    """Failure frames the monitor's camera-fault checks let through.
 
     ``pipe``: the job's :class:`LayerPipeline` (its camera's markers and the lag check);
     without it only :func:`assess_frame` against the previous frame is run.
+
+    Returns
+    -------
+    passed, total : Counter
+        Per failure type.
+    refused : list of (scenario, layer, reasons)
+    lag_checked : int
+        Frames the lag check ran on (their analysis would count toward a pause).
     """
     tv = cfg.topview.topview()
     markers = MarkerWatch.of_pipeline(pipe) if pipe is not None else None
-    passed, total, refused = Counter(), Counter(), []
+    passed, total, refused, lag_checked = Counter(), Counter(), [], 0
     for k, (scen, layers) in enumerate(plan_frames(tp, n_layers, seed=seed)):
         if not scen.failures:
             continue
@@ -190,12 +204,13 @@ def failure_frames_passed(tp, truth, cfg, pipe=None, n_layers: int = 120,
             if pipe is None:
                 reasons = assess_frame(frame.photo, sim.frame(i - 1).photo).reasons
             else:
-                reasons = monitor_verdict(pipe, cfg, frame.photo, sim.frame(i - 1).photo, i, markers)
+                reasons, checked = monitor_verdict(pipe, cfg, frame.photo, sim.frame(i - 1).photo, i, markers)
+                lag_checked += checked
             total[kind] += 1
             passed[kind] += not reasons
             if reasons:
                 refused.append((scen.name, i, reasons))
-    return passed, total, refused
+    return passed, total, refused, lag_checked
 
 
 def real_photos() -> list[tuple[str, bool, list[str]]]:
@@ -215,11 +230,13 @@ def main() -> None:
     rows = clean_print_pauses(cfg, pipe, gcode, frames, bed)
     for kind, r in rows.items():
         print(f"   {kind:18s} pauses gate on {r['pauses_gate_on']}  gate off {r['pauses_gate_off']}  "
-              f"frames refused {r['refused']} (of which clean {r['refused_clean']}), alerts {r['alerts']}")
+              f"frames refused {r['refused']} (of which clean {r['refused_clean']}), judged as one layer late "
+              f"{r['lagged']}, alerts {r['alerts']}")
     print(f"   total pauses: gate on {sum(r['pauses_gate_on'] for r in rows.values())}, "
           f"gate off {sum(r['pauses_gate_off'] for r in rows.values())}")
-    passed, total, refused = failure_frames_passed(tp, truth, cfg, pipe)
-    print("2. failure frames the monitor's camera-fault checks let through (so the analysis still sees them)")
+    passed, total, refused, lag_checked = failure_frames_passed(tp, truth, cfg, pipe, n_layers=FAILURE_FRAMES)
+    print("2. failure frames the monitor's camera-fault checks let through (so the analysis still sees them; "
+          f"{lag_checked} of them would count toward a pause and went through the lag check)")
     for kind in sorted(total):
         print(f"   {kind:14s} {passed[kind]}/{total[kind]}")
     print(f"   all: {sum(passed.values())}/{sum(total.values())} = {sum(passed.values()) / sum(total.values()):.3f}")

@@ -14,25 +14,29 @@ layer ``k``'s reference and would pause a good print. The check is made only
 where it matters, on a layer whose analysis would count toward a pause
 (:func:`counts_toward_pause`): the same photo is analysed once more against
 layer ``k - 1``'s reference (warped at that layer's height). When the
-previous layer explains the picture (its anomalous area is below the
-policy's ``min_area_mm2`` and at most :data:`LAG_EXPLAINED_SHARE` of the
-area against layer ``k``; and the scene channel's change beside the print,
+previous layer explains the picture (its anomalous area is at most
+:data:`LAG_EXPLAINED_SHARE` of the area against layer ``k``, or both are
+below the policy's ``min_area_mm2``; not "below ``min_area_mm2``" alone, as
+a part on which the analysis sees a few blocks of clean-print noise keeps
+them against either layer; and the scene channel's change beside the print,
 if it counts, lies where layer ``k - 1`` was printed and layer ``k`` is
-not: a first layer's skirt or brim seen one layer late), the frame is a *lagged frame*, a camera fault:
-it is recorded with its reason and never counts toward a pause (the monitor
-lets the scene channel take the frame's change beside the print as the
-scene, as when the operator acknowledges it, so that it does not count on
-the next layers). A real failure
+not: a first layer's skirt or brim seen one layer late), the frame is a *lagged frame*: the monitor
+judges the analysis against the layer the frame shows (layer ``k - 1``)
+instead, records the lag with the layer (its reason in the message, both
+areas in ``frame_quality``) and lets the scene channel take the frame's
+change beside the print as the scene, as when the operator acknowledges it,
+so that it does not count on the next layers. The lag itself never counts
+toward a pause, yet a late camera still watches the print: a failure in a
+late frame is anomalous against the layer it shows and pauses as on time. A real failure
 is not explained by the layer below: spaghetti, a foreign body, a shifted or
 detached part and a missing patch are as anomalous against layer ``k - 1``
-as against layer ``k`` (the patch is a pit in both), so the check does not
-hide them; a frame that shows layer ``k - 1`` *and* a failure is anomalous
-against both and still pauses. A print on which nothing new was printed
+as against layer ``k`` (the patch is a pit in both), so a frame on time with
+a failure is never called late. A print on which nothing new was printed
 (layer ``k`` looks like ``k - 1`` because the extruder stopped) gives a frame
 that repeats the previous one, which the gate's repeat check sees before
 this check runs. :class:`LagTracker` says when the lag is *consistent*
 (``after_n`` lagged frames with no layer in between that its own reference
-explained better) and the monitor alerts then. No timestamps are used: the
+explained better) and the monitor alerts then, as a camera fault. No timestamps are used: the
 cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
 that can be trusted against the printer's trigger.
 
@@ -68,7 +72,7 @@ __all__ = ["LAG_EXPLAINED_SHARE", "LagTracker", "LagVerdict", "MarkerWatch", "co
 log = logging.getLogger("layerwatch.monitor")
 
 #: a frame is one layer late when its anomalous area against the previous layer is at most this share of
-#: its area against its own layer (and below the policy's ``min_area_mm2``)
+#: its area against its own layer
 LAG_EXPLAINED_SHARE = 0.25
 
 #: how far from the previous layer's own area a change beside the print may lie and still be that layer, mm
@@ -140,12 +144,16 @@ class LagVerdict:
         Anomalous area against the previous layer, mm^2.
     message : str
         One line for the record (empty when not ``lagged``).
+    previous : LayerResult or None
+        The analysis of the frame against the previous layer (its ``layer`` and ``z`` those
+        of the previous layer).
     """
 
     lagged: bool
     area_mm2: float
     previous_area_mm2: float
     message: str = ""
+    previous: LayerResult | None = None
 
     @property
     def figures(self) -> dict[str, float]:
@@ -168,12 +176,13 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
     res : LayerResult
         The pipeline's result for this frame against its own layer.
     policy : PolicySettings
-        ``min_area_mm2``: the previous layer must leave less anomalous area than this.
+        ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
 
     Returns
     -------
     LagVerdict or None
-        None when there is no previous layer or the pipeline cannot be asked.
+        With the analysis against the previous layer; None when there is no previous layer or
+        the pipeline cannot be asked.
     """
     k = int(res.layer)
     needed = ("reference", "top_view", "topview", "config")
@@ -185,14 +194,14 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
                            valid=valid, layer=k - 1, z=ref.z)
     here, prev = float(res.anomalous_area_mm2), float(before.anomalous_area_mm2)
     least = _least_area(policy)
-    hog_explained = prev < least and (prev <= LAG_EXPLAINED_SHARE * here or here < least)
+    hog_explained = prev <= LAG_EXPLAINED_SHARE * here or (prev < least and here < least)
     lagged = hog_explained and _beside_explained(res, ref.footprint, pipeline.reference(k).footprint,
                                                  pipeline.topview, policy)
     msg = (f"lagged frame: the photo of layer {k} shows layer {k - 1} ({prev:.0f} mm^2 anomalous against "
-           f"layer {k - 1}, {here:.0f} mm^2 against layer {k}); the camera delivers frames one layer late: "
-           "take the snapshot from the camera itself, not a cached stream, or add a delay before it"
-           if lagged else "")
-    return LagVerdict(lagged, here, prev, msg)
+           f"layer {k - 1}, {here:.0f} mm^2 against layer {k}), judged against layer {k - 1}; the camera "
+           "delivers frames one layer late: take the snapshot from the camera itself, not a cached stream, "
+           "or add a delay before it" if lagged else "")
+    return LagVerdict(lagged, here, prev, msg, before)
 
 
 class LagTracker:

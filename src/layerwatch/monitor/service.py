@@ -18,8 +18,11 @@ judge. With the gate on, two checks that need the job run beside it
 (:mod:`~layerwatch.monitor.camera_checks`): the bed markers of the
 calibration are looked for in each frame (a camera that moved), and a layer
 whose analysis would count toward a pause is analysed once more against the
-previous layer's reference (a stream that stays one layer late); both give
-``camera_fault`` records, and a consistently late stream is alerted. Both are logged as rate-limited warnings, written to the history as
+previous layer's reference (a stream that stays one layer late). A moved
+camera gives ``camera_fault`` records; a late frame is judged against the
+layer it shows (the lag never counts toward a pause, a failure in the frame
+still does), and a consistently late stream is a camera fault alerted once.
+Printer and camera faults are logged as rate-limited warnings, written to the history as
 ``printer_fault``/``camera_fault`` events (and ``..._recovered`` when they end)
 and notified after a grace period or a number of bad frames in a row
 (:class:`~layerwatch.monitor.health.FaultSettings`); :meth:`Monitor.health`
@@ -86,6 +89,7 @@ class MonitorReport:
     outcome: str = "unknown"
     printer_faults: int = 0
     camera_faults: int = 0
+    lagged_frames: int = 0
 
     @property
     def latencies_ms(self) -> list[float]:
@@ -236,7 +240,11 @@ class Monitor:
             return {}
 
     def _lag_check(self, trigger: SnapshotTrigger, photo: np.ndarray, res: LayerResult) -> LayerResult:
-        """A result that would count toward a pause but shows the previous layer -> a ``camera_fault`` record."""
+        """A result that would count toward a pause but shows the previous layer -> judged against that layer.
+
+        See :mod:`~layerwatch.monitor.camera_checks`; the returned result keeps this trigger's
+        layer and height, its message and ``frame_quality`` say what the frame showed.
+        """
         if self.frame_quality is None or not counts_toward_pause(res, self.policy.settings):
             return res
         try:
@@ -246,17 +254,22 @@ class Monitor:
             return res
         if verdict is None:
             return res
-        episode = self._camera_fault.current
-        if self._lag.update(verdict) and (episode is None or not episode.notified):  # one alert per episode
-            self._alert(f"camera lagging: {self._lag.count} frames showed the layer before theirs, those layers are "
-                        f"not being checked: {verdict.message}", res, force=True)
-        if not verdict.lagged:
+        if self._lag.update(verdict):
+            message = (f"camera lagging: {self._lag.count} frames showed the layer before theirs (each judged "
+                       f"against the layer it shows): {verdict.message}")
+            self._event("camera_fault", message, {"layer": res.layer, **verdict.figures})
+            self._alert(message, res, force=True)
+        if not verdict.lagged or verdict.previous is None:
             return res
         if res.outside_anomalous_mm2 > 0 and hasattr(self.pipeline, "acknowledge"):
-            self.pipeline.acknowledge()  # the change beside the print was the previous layer: the scene takes it
-        fault = LayerResult(layer=res.layer, z=res.z, status=CAMERA_FAULT, message=verdict.message)
-        fault.frame_quality, fault.photo_ms = verdict.figures, res.photo_ms
-        return fault
+            with self._lock:  # as Monitor.acknowledge: the change beside the print was the previous layer
+                self.pipeline.acknowledge()
+        judged = verdict.previous
+        judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
+        judged.message, judged.frame_quality = verdict.message, verdict.figures
+        self.report.lagged_frames += 1
+        self._warn.warning("lag", "layer %d: %s", res.layer, verdict.message)
+        return judged
 
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
         res = self._gate(trigger, photo)
