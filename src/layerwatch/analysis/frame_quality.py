@@ -15,6 +15,13 @@ leave exposure, noise, sharpness and blocking alone and differ from the
 previous frame by structure, not noise. Markers hidden by spaghetti are not
 a fault; only visible markers away from their place are.
 
+Two camera faults need the job, not the frame alone, and are the monitor's
+(:mod:`layerwatch.monitor.camera_checks`): it detects the calibration's bed
+markers in each frame and passes them here (``markers_px``,
+``expected_markers_px``); and a stream that stays one layer late for good (each
+frame a new picture, of the layer before) is told by analysing a frame that
+would count toward a pause against the previous layer's reference.
+
 All functions are pure: arrays in, figures out.
 """
 

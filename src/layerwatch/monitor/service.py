@@ -14,7 +14,15 @@ interval (so the monitor sees the host again within one poll interval of its
 return); a camera that raises or returns no usable image, and a frame the
 camera-fault gate (:func:`~layerwatch.analysis.frame_quality.assess_frame`)
 refuses, give a ``camera_fault`` layer record that the pause policy does not
-judge. Both are logged as rate-limited warnings, written to the history as
+judge. With the gate on, two checks that need the job run beside it
+(:mod:`~layerwatch.monitor.camera_checks`): the bed markers of the
+calibration are looked for in each frame (a camera that moved), and a layer
+whose analysis would count toward a pause is analysed once more against the
+previous layer's reference (a stream that stays one layer late). A moved
+camera gives ``camera_fault`` records; a late frame is judged against the
+layer it shows (the lag never counts toward a pause, a failure in the frame
+still does), and a consistently late stream is a camera fault alerted once.
+Printer and camera faults are logged as rate-limited warnings, written to the history as
 ``printer_fault``/``camera_fault`` events (and ``..._recovered`` when they end)
 and notified after a grace period or a number of bad frames in a row
 (:class:`~layerwatch.monitor.health.FaultSettings`); :meth:`Monitor.health`
@@ -41,6 +49,12 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
+from layerwatch.monitor.camera_checks import (
+    LagTracker,
+    MarkerWatch,
+    counts_toward_pause,
+    previous_layer_explains,
+)
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
@@ -78,6 +92,7 @@ class MonitorReport:
     outcome: str = "unknown"
     printer_faults: int = 0
     camera_faults: int = 0
+    lagged_frames: int = 0
 
     @property
     def latencies_ms(self) -> list[float]:
@@ -132,7 +147,9 @@ class Monitor:
         When faults are notified (grace period, bad frames in a row, warning interval).
     frame_quality : FrameQualitySettings, optional
         The camera-fault gate run on each frame before the pipeline; ``None`` (the default of
-        this class; the ``monitor`` command always passes the job's settings) runs none.
+        this class; the ``monitor`` command always passes the job's settings) runs none. With
+        it, the marker check (when ``pipeline.camera`` was calibrated with markers) and the
+        lag check (when the pipeline has ``reference`` and ``top_view``) run too.
     objects : ObjectMap, optional
         The job's labelled objects (``cancel_object`` needs them; without, it pauses).
     quiet_layers : iterable of int
@@ -174,6 +191,8 @@ class Monitor:
         self._camera_fault = FaultTracker("camera", after_n=self.faults.camera_alert_after)
         self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
         self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
+        self._markers = MarkerWatch.of_pipeline(pipeline) if self.frame_quality is not None else None
+        self._lag = LagTracker(self.faults.camera_alert_after)
 
     def health(self) -> dict[str, dict | None]:
         """Ongoing faults: ``{"printer": {...} or None, "camera": {...} or None}`` (see :class:`Fault`)."""
@@ -259,7 +278,7 @@ class Monitor:
         if self.frame_quality is None:
             return None
         try:
-            quality = assess_frame(photo, self._last_good, self.frame_quality)
+            quality = assess_frame(photo, self._last_good, self.frame_quality, **self._marker_positions(photo))
         except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
             log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", trigger.layer)
             return None
@@ -271,6 +290,48 @@ class Monitor:
         res.frame_quality = {k: round(float(v), 3) for k, v in quality.figures.items()}
         return res
 
+    def _marker_positions(self, photo: np.ndarray) -> dict[str, np.ndarray]:
+        """Detected and expected bed markers for the gate (empty without a marker calibration)."""
+        if self._markers is None:
+            return {}
+        try:
+            return self._markers(photo)
+        except Exception as exc:  # noqa: BLE001 - no marker verdict rather than no gate
+            self._warn.warning("markers", "bed markers not checked on this frame: %s: %s", type(exc).__name__, exc)
+            return {}
+
+    def _lag_check(self, trigger: SnapshotTrigger, photo: np.ndarray, res: LayerResult) -> LayerResult:
+        """A result that would count toward a pause but shows the previous layer -> judged against that layer.
+
+        See :mod:`~layerwatch.monitor.camera_checks`; the returned result keeps this trigger's
+        layer and height, its message and ``frame_quality`` say what the frame showed.
+        """
+        if self.frame_quality is None or not counts_toward_pause(res, self.policy.settings):
+            return res
+        try:
+            verdict = previous_layer_explains(self.pipeline, photo, res, self.policy.settings)
+        except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
+            log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
+            return res
+        if verdict is None:
+            return res
+        if self._lag.update(verdict):
+            message = (f"camera lagging: {self._lag.count} frames showed the layer before theirs (each judged "
+                       f"against the layer it shows): {verdict.message}")
+            self.record_event("camera_fault", message, {"layer": res.layer, **verdict.figures})
+            self._alert(message, res, force=True)
+        if not verdict.lagged or verdict.previous is None:
+            return res
+        if res.outside_anomalous_mm2 > 0 and hasattr(self.pipeline, "acknowledge"):
+            with self._lock:  # as Monitor.acknowledge: the change beside the print was the previous layer
+                self.pipeline.acknowledge()
+        judged = verdict.previous
+        judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
+        judged.message, judged.frame_quality = verdict.message, verdict.figures
+        self.report.lagged_frames += 1
+        self._warn.warning("lag", "layer %d: %s", res.layer, verdict.message)
+        return judged
+
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
         res = self._gate(trigger, photo)
         if res is not None:
@@ -281,6 +342,7 @@ class Monitor:
             log.exception("pipeline failed on layer %d", trigger.layer)
             res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
         res.photo_ms = round((t_photo - trigger.time) * 1000, 1)
+        res = self._lag_check(trigger, photo, res)
         top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None  # one analysis thread
         return self.finish_layer(trigger, res, top)
 

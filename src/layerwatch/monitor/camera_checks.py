@@ -1,0 +1,284 @@
+"""Camera-fault checks that need the job: a stream one layer late, and a camera that moved.
+
+The camera-fault gate (:func:`~layerwatch.analysis.frame_quality.assess_frame`)
+judges a frame by itself and against the previous one. Two camera faults need
+what only the monitor's job knows, the layers' references and the calibration:
+
+**A lagging stream** (:func:`previous_layer_explains`). A camera (or a
+snapshot URL behind a cache or a slow encoder) that stays one layer late for
+good delivers, at layer ``k``, a new picture of layer ``k - 1``: each frame
+differs from the one before by a layer's progress, so the gate's repeat check
+does not see it, and where layer ``k`` differs from layer ``k - 1`` (a new
+feature, a top surface, the end of a part) the picture is "wrong" against
+layer ``k``'s reference and would pause a good print. The check is made only
+where it matters, on a layer whose analysis would count toward a pause
+(:func:`counts_toward_pause`): the same photo is analysed once more against
+layer ``k - 1``'s reference (warped at that layer's height). When the
+previous layer explains the picture (its anomalous area is at most
+:data:`LAG_EXPLAINED_SHARE` of the area against layer ``k``, or both are
+below the policy's ``min_area_mm2``; not "below ``min_area_mm2``" alone, as
+a part on which the analysis sees a few blocks of clean-print noise keeps
+them against either layer; and the scene channel's change beside the print,
+if it counts, lies where layer ``k - 1`` was printed and layer ``k`` is
+not: a first layer's skirt or brim seen one layer late), the frame is a *lagged frame*: the monitor
+judges the analysis against the layer the frame shows (layer ``k - 1``)
+instead, records the lag with the layer (its reason in the message, both
+areas in ``frame_quality``) and lets the scene channel take the frame's
+change beside the print as the scene, as when the operator acknowledges it,
+so that it does not count on the next layers. The lag itself never counts
+toward a pause, yet a late camera still watches the print: a failure in a
+late frame is anomalous against the layer it shows and pauses as on time. A real failure
+is not explained by the layer below: spaghetti, a foreign body, a shifted or
+detached part and a missing patch are as anomalous against layer ``k - 1``
+as against layer ``k`` (the patch is a pit in both), so a frame on time with
+a failure is never called late. A print on which nothing new was printed
+(layer ``k`` looks like ``k - 1`` because the extruder stopped) gives a frame
+that repeats the previous one, which the gate's repeat check sees before
+this check runs. :class:`LagTracker` says when the lag is *consistent*
+(``after_n`` lagged frames with no layer in between that its own reference
+explained better) and the monitor alerts then, as a camera fault. No timestamps are used: the
+cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
+that can be trusted against the printer's trigger.
+
+**A camera that moved** (:class:`MarkerWatch`). With a calibration that
+recorded the bed markers (``CameraModel.markers_mm``), each frame's markers
+are detected (:mod:`layerwatch.geometry.markers`, the dots on a copy at most
+:data:`MARKER_SIDE_PX` px wide, the centres refined at full size) and
+compared with the calibration's projection at the frame's size
+(:func:`~layerwatch.analysis.frame_quality.marker_shift_px`): visible markers
+away from their place are a camera fault; markers hidden (by spaghetti, the
+head, a part) give no verdict.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scoring import analyze_layer
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.markers import detect_aruco, detect_dots
+from layerwatch.geometry.synthetic import project_points
+from layerwatch.pipeline.policy import PolicySettings
+
+__all__ = ["LAG_EXPLAINED_SHARE", "LagTracker", "LagVerdict", "MarkerWatch", "counts_toward_pause",
+           "previous_layer_explains"]
+
+log = logging.getLogger("layerwatch.monitor")
+
+#: a frame is one layer late when its anomalous area against the previous layer is at most this share of
+#: its area against its own layer
+LAG_EXPLAINED_SHARE = 0.25
+
+#: how far from the previous layer's own area a change beside the print may lie and still be that layer, mm
+BESIDE_MARGIN_MM = 2.0
+
+#: longest side of the copy the dot markers are looked for in, px (centres are refined at full size)
+MARKER_SIDE_PX = 960
+
+
+def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
+    """Whether an analysed layer's result could count toward a pause (the lag check runs only then).
+
+    True for an ``ok`` result past ``skip_first_layers`` with at least ``min_area_mm2`` (and
+    one 1 mm^2) of anomalous area, with more anomalous area outside the footprint than
+    ``strong_outside_area_mm2``, or with at least ``outside_pause_mm2`` of change beside the
+    print (the scene channel), each when its rule is on.
+    """
+    if res.status != "ok" or res.layer < max(1, policy.skip_first_layers):
+        return False
+    strong, beside = policy.strong_outside_area_mm2, policy.outside_pause_mm2
+    return (res.anomalous_area_mm2 >= _least_area(policy)
+            or bool(strong) and res.outside_area_mm2 > strong
+            or bool(beside) and res.outside_anomalous_mm2 >= beside)
+
+
+def _least_area(policy: PolicySettings) -> float:
+    """Anomalous HOG area that counts, mm^2 (the policy's ``min_area_mm2``, at least 1)."""
+    return max(policy.min_area_mm2, 1.0)
+
+
+def _beside_explained(res: LayerResult, previous: np.ndarray, here: np.ndarray, topview: Any,
+                      policy: PolicySettings) -> bool:
+    """Whether the scene channel's change beside the print is what layer ``k - 1`` shows and layer ``k`` does not.
+
+    ``previous``, ``here``: top-view footprints (bool, (H, W)) of layers ``k - 1`` and ``k``.
+    Only there can a frame one layer late differ beside layer ``k``'s print (a first layer's
+    skirt or brim, a ledge where the part narrows). A region counts as explained when that
+    area, within :data:`BESIDE_MARGIN_MM`, covers at least half of its area inside its
+    bounding box; the change not explained must stay below ``outside_pause_mm2``.
+    """
+    if not policy.outside_pause_mm2 or res.outside_anomalous_mm2 < policy.outside_pause_mm2:
+        return True
+    r = max(1, round(BESIDE_MARGIN_MM * topview.px_per_mm))
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    only_before = previous & ~cv2.dilate(here.astype(np.uint8), kernel).astype(bool)
+    near = cv2.dilate(only_before.astype(np.uint8), kernel)
+    px_mm2 = 1.0 / topview.px_per_mm**2
+    left = 0.0
+    for reg in res.outside_regions:
+        corners = topview.to_px(np.array(reg.bbox_mm, np.float64).reshape(2, 2))
+        (u0, v0), (u1, v1) = np.floor(corners.min(axis=0)) - r, np.ceil(corners.max(axis=0)) + r
+        box = near[max(int(v0), 0):max(int(v1) + 1, 0), max(int(u0), 0):max(int(u1) + 1, 0)]
+        if float(box.sum()) * px_mm2 < 0.5 * reg.area_mm2:
+            left += reg.area_mm2
+    return left < policy.outside_pause_mm2
+
+
+@dataclass(frozen=True)
+class LagVerdict:
+    """What the previous layer's reference says about a frame.
+
+    Attributes
+    ----------
+    lagged : bool
+        The frame shows layer ``layer - 1``: a camera fault.
+    area_mm2 : float
+        Anomalous area against the frame's own layer, mm^2.
+    previous_area_mm2 : float
+        Anomalous area against the previous layer, mm^2.
+    message : str
+        One line for the record (empty when not ``lagged``).
+    previous : LayerResult or None
+        The analysis of the frame against the previous layer (its ``layer`` and ``z`` those
+        of the previous layer).
+    """
+
+    lagged: bool
+    area_mm2: float
+    previous_area_mm2: float
+    message: str = ""
+    previous: LayerResult | None = None
+
+    @property
+    def figures(self) -> dict[str, float]:
+        """The two areas, for ``LayerResult.frame_quality``."""
+        return {"lag_area_mm2": round(self.area_mm2, 3), "lag_previous_area_mm2": round(self.previous_area_mm2, 3)}
+
+
+def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
+                            policy: PolicySettings) -> LagVerdict | None:
+    """Analyse ``photo`` (taken for ``res.layer``) against the previous layer's reference.
+
+    Parameters
+    ----------
+    pipeline : LayerPipeline
+        Anything with ``reference(i)``, ``top_view(photo, z)``, ``topview`` and
+        ``config.analysis`` (:class:`~layerwatch.pipeline.step.LayerPipeline`, or a wrapper
+        that forwards them); its state (scene channel, last top view) is not touched.
+    photo : ndarray, uint8, shape (h, w, 3)
+        The frame, as the pipeline was given it.
+    res : LayerResult
+        The pipeline's result for this frame against its own layer.
+    policy : PolicySettings
+        ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
+
+    Returns
+    -------
+    LagVerdict or None
+        With the analysis against the previous layer; None when there is no previous layer or
+        the pipeline cannot be asked.
+    """
+    k = int(res.layer)
+    needed = ("reference", "top_view", "topview", "config")
+    if k < 1 or not all(hasattr(pipeline, n) for n in needed):
+        return None
+    ref = pipeline.reference(k - 1)
+    top, valid = pipeline.top_view(photo, ref.z)
+    before = analyze_layer(top, ref.image, ref.footprint, pipeline.topview, pipeline.config.analysis,
+                           valid=valid, layer=k - 1, z=ref.z)
+    here, prev = float(res.anomalous_area_mm2), float(before.anomalous_area_mm2)
+    least = _least_area(policy)
+    hog_explained = prev <= LAG_EXPLAINED_SHARE * here or (prev < least and here < least)
+    lagged = hog_explained and _beside_explained(res, ref.footprint, pipeline.reference(k).footprint,
+                                                 pipeline.topview, policy)
+    msg = (f"lagged frame: the photo of layer {k} shows layer {k - 1} ({prev:.0f} mm^2 anomalous against "
+           f"layer {k - 1}, {here:.0f} mm^2 against layer {k}), judged against layer {k - 1}; the camera "
+           "delivers frames one layer late: take the snapshot from the camera itself, not a cached stream, "
+           "or add a delay before it" if lagged else "")
+    return LagVerdict(lagged, here, prev, msg, before)
+
+
+class LagTracker:
+    """Is the stream consistently one layer late? (lagged frames with no contrary evidence between).
+
+    Only the layers the lag check ran on count: a lagged frame adds one, a frame that its
+    own layer explained better (a real anomaly) starts the count again. Layers that did
+    not need the check (nothing to explain) leave it alone.
+
+    Parameters
+    ----------
+    after_n : int
+        Lagged frames in a row (in that sense) before :meth:`lagged` says to alert.
+    """
+
+    def __init__(self, after_n: int) -> None:
+        self.after_n = int(after_n)
+        self.count = 0
+        self.alerted = False
+
+    def update(self, verdict: LagVerdict) -> bool:
+        """Count one checked frame; True exactly when the lag just became consistent (alert once)."""
+        if not verdict.lagged:
+            self.count, self.alerted = 0, False
+            return False
+        self.count += 1
+        due = self.count >= self.after_n and not self.alerted
+        self.alerted = self.alerted or due
+        return due
+
+
+class MarkerWatch:
+    """The calibration's bed markers: where a frame should show them, and where it does.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        Calibrated with markers (``markers_mm`` and a pose).
+    kind : {"dots", "aruco"}
+        Marker kind (default: the camera model's).
+    dictionary : str
+        ArUco dictionary for ``kind="aruco"``.
+    """
+
+    def __init__(self, camera: CameraModel, kind: str | None = None, dictionary: str = "DICT_4X4_50") -> None:
+        if not camera.has_pose or camera.markers_mm is None:
+            raise ValueError("the camera model has no marker pose; calibrate with --markers")
+        self.camera, self.dictionary = camera, dictionary
+        self.kind = kind or camera.marker_kind or "dots"
+        self._expected: dict[tuple[int, int], np.ndarray] = {}
+
+    @classmethod
+    def of_pipeline(cls, pipeline: Any) -> MarkerWatch | None:
+        """The watch for a pipeline's camera (``pipeline.camera``, ``pipeline.config.markers``), or None."""
+        cam = getattr(pipeline, "camera", None)
+        if not isinstance(cam, CameraModel) or not cam.has_pose or cam.markers_mm is None:
+            return None
+        markers = getattr(getattr(pipeline, "config", None), "markers", None)
+        return cls(cam, getattr(markers, "kind", None), getattr(markers, "aruco_dictionary", "DICT_4X4_50"))
+
+    def expected_px(self, size: tuple[int, int]) -> np.ndarray:
+        """Marker centres the calibration predicts in a frame of ``size`` = (w, h), shape (M, 2) px."""
+        key = (int(size[0]), int(size[1]))
+        if key not in self._expected:
+            assert self.camera.markers_mm is not None  # checked in __init__
+            self._expected[key] = project_points(self.camera.scaled_to(key), self.camera.markers_mm)
+        return self._expected[key]
+
+    def found_px(self, photo: np.ndarray) -> np.ndarray:
+        """Marker candidates detected in ``photo``, shape (K, 2) px (K may be 0)."""
+        if self.kind == "aruco":
+            found = detect_aruco(photo, self.dictionary)
+            return np.array([v for _, v in sorted(found.items())], np.float64).reshape(-1, 2)
+        return np.array([b.center for b in detect_dots(photo, max_candidates=20, max_side_px=MARKER_SIDE_PX)],
+                        np.float64).reshape(-1, 2)
+
+    def __call__(self, photo: np.ndarray) -> dict[str, np.ndarray]:
+        """``markers_px`` and ``expected_markers_px`` for :func:`assess_frame` (at the photo's size)."""
+        h, w = photo.shape[:2]
+        return {"markers_px": self.found_px(photo), "expected_markers_px": self.expected_px((w, h))}

@@ -1,0 +1,242 @@
+"""The monitor's job-aware camera checks: a stream one layer late, and a camera that moved.
+
+Lag: a small stand-in pipeline whose "photos" are already top views and whose
+analysis is the real one (:func:`~layerwatch.analysis.scoring.analyze_layer`
+against layer references whose printed shape changes every layer), so a frame
+of layer ``k - 1`` delivered at layer ``k`` is a large anomaly against layer
+``k``'s reference and pauses a clean print unless the lag check sees it.
+
+Markers: a posed camera with four dot markers drawn where it projects them;
+a bumped camera (the whole frame shifted) must become camera-fault records and
+one alert, never an analysed layer; spaghetti over the markers must not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+from test_camera_faults import PausingPipeline, Recorder, _gcode, _good
+
+from layerwatch.analysis.frame_quality import FrameQualitySettings
+from layerwatch.analysis.scoring import analyze_layer
+from layerwatch.analysis.settings import AnalysisSettings
+from layerwatch.geometry.synthetic import project_points
+from layerwatch.geometry.topview import TopView
+from layerwatch.monitor.camera_checks import LagTracker, LagVerdict, MarkerWatch
+from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.health import FaultSettings
+from layerwatch.monitor.printers.virtual import VirtualPrinter
+from layerwatch.monitor.service import CAMERA_FAULT, Monitor
+from layerwatch.pipeline.config import MarkerSettings
+from layerwatch.pipeline.policy import PausePolicy, PolicySettings
+from layerwatch.pipeline.step import Reference
+from layerwatch.simulate import default_camera
+
+N_LAYERS = 12
+TV = TopView(3.0, 60.0, 60.0, (0.0, 0.0))  # 180 x 180 px top view
+
+
+def _layer_picture(layer: int, blob: bool = False, seed: int = 0,
+                   turns: frozenset[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Grey top view of the part after ``layer`` and its footprint.
+
+    The part is a bar that grows by 1 mm a layer and turns by 90 degrees on every layer, its
+    infill lines at +-45 degrees in turn; or (``turns``) a bar that turns only on the layers in
+    ``turns``, grows by 1/3 mm a layer and whose infill lines move sideways from layer to layer.
+    """
+    h, w = TV.shape
+    y, x = np.mgrid[0:h, 0:w]
+    img = 70 + 25 * np.sin(x / 5.0) * np.cos(y / 7.0)  # the bed's texture
+    foot = np.zeros((h, w), bool)
+    long_side = 40 + (3 * layer if turns is None else layer)
+    turned = layer % 2 if turns is None else sum(t <= layer for t in turns) % 2
+    if turned:
+        foot[90 - long_side // 2:90 + long_side // 2, 70:110] = True
+    else:
+        foot[70:110, 90 - long_side // 2:90 + long_side // 2] = True
+    lines = (x + y if layer % 2 else x - y) if turns is None else x - y + 5 * layer
+    stripes = 170 + 50 * np.sign(np.sin(lines / 2.0))  # infill lines
+    img = np.where(foot, stripes, img)
+    if blob:  # a dark clump of spaghetti on and beside the part
+        cv2.circle(img, (120, 80), 18, 20, -1)
+    img = img + np.random.default_rng([layer, seed]).normal(0, 2, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8), foot
+
+
+class TopViewPipeline:
+    """A pipeline whose photos are top views already: the real HOG analysis against per-layer references."""
+
+    def __init__(self, turns: frozenset[int] | None = None) -> None:
+        self.topview = TV
+        self.turns = turns
+        self.config = SimpleNamespace(analysis=AnalysisSettings())
+        self.seen: list[int] = []
+
+    def reference(self, index: int) -> Reference:
+        image, foot = _layer_picture(index, seed=99, turns=self.turns)
+        return Reference(image, foot, 0.2 * (index + 1))
+
+    def top_view(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+        return cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY), np.ones(TV.shape, bool)
+
+    def process(self, photo: np.ndarray, layer_index: int):
+        self.seen.append(layer_index)
+        ref = self.reference(layer_index)
+        top, valid = self.top_view(photo, ref.z)
+        return analyze_layer(top, ref.image, ref.footprint, TV, self.config.analysis, valid=valid,
+                             layer=layer_index, z=ref.z)
+
+
+def _photo(layer: int, blob: bool = False, turns: frozenset[int] | None = None) -> np.ndarray:
+    return cv2.cvtColor(_layer_picture(layer, blob, turns=turns)[0], cv2.COLOR_GRAY2BGR)
+
+
+def _lagged(from_layer: int = 1, blob_from: int | None = None):
+    """A camera one layer late from ``from_layer`` on (layer k gets the picture of layer k-1)."""
+    def frame(layer: int) -> np.ndarray:
+        shown = layer - 1 if layer >= from_layer else layer
+        return _photo(shown, blob=blob_from is not None and shown >= blob_from)
+    return frame
+
+
+def _watch_lag(frames, gate: bool = True, turns: frozenset[int] | None = None):
+    rec = Recorder()
+    mon = Monitor(VirtualPrinter(_gcode(N_LAYERS)), SimCamera(frames), TopViewPipeline(turns),
+                  PausePolicy(PolicySettings(skip_first_layers=1)), notifier=rec, wait_for_verdict=True,
+                  faults=FaultSettings(camera_alert_after=3),
+                  frame_quality=FrameQualitySettings() if gate else None)
+    return mon.run(poll_s=0.001), rec
+
+
+def test_the_stand_in_pipeline_sees_a_clean_print_clean_and_a_failure():
+    rep, _ = _watch_lag(lambda layer: _photo(layer))
+    assert rep.pauses == 0 and all(r.status == "ok" for r in rep.results)
+    rep, _ = _watch_lag(lambda layer: _photo(layer, blob=layer >= 6))
+    assert rep.pauses == 1
+
+
+def _late(rep) -> list:
+    """Results of frames the lag check found one layer late."""
+    return [r for r in rep.results if "lag_area_mm2" in r.frame_quality]
+
+
+def test_a_camera_one_layer_late_for_the_whole_print_never_pauses():
+    rep_off, _ = _watch_lag(_lagged(), gate=False)
+    assert rep_off.pauses == 1  # without the checks the late frames pause this clean print
+    rep, rec = _watch_lag(_lagged())
+    assert rep.pauses == 0 and rep.outcome == "done"
+    faults = [r for r in rep.results if r.status == CAMERA_FAULT]
+    assert [r.layer for r in faults] == [1] and "same picture" in faults[0].message  # layer 0's picture again
+    late = _late(rep)
+    assert [r.layer for r in late] == list(range(2, N_LAYERS)) and rep.lagged_frames == len(late)
+    assert all(r.status == "ok" and "shows layer" in r.message and "one layer late" in r.message for r in late)
+    assert all(r.frame_quality["lag_previous_area_mm2"] < r.frame_quality["lag_area_mm2"] for r in late)
+    alerts = [m for _, m in rec.sent if m.startswith("camera")]
+    assert len(alerts) == 1 and alerts[0].startswith("camera lagging: 3 frames")  # consistent: alerted once
+
+
+def test_a_late_camera_is_alerted_when_its_frames_are_far_apart():
+    """A late camera shows only where the part turns: the lag alert says so after 3 such layers."""
+    turns = frozenset({3, 6, 9, 11})
+    rep_off, _ = _watch_lag(lambda layer: _photo(max(layer - 1, 0), turns=turns), gate=False, turns=turns)
+    assert sum(d.action == "notify" for d in rep_off.decisions) >= 3  # false failure alerts without the checks
+    rep, rec = _watch_lag(lambda layer: _photo(max(layer - 1, 0), turns=turns), turns=turns)
+    assert rep.pauses == 0 and all(d.action == "none" for d in rep.decisions)
+    late = [r.layer for r in _late(rep)]
+    assert len(late) >= 3 and all(b - a >= 2 for a, b in zip(late, late[1:], strict=False)), late  # far apart
+    alerts = [m for _, m in rec.sent if m.startswith("camera")]
+    assert len(alerts) == 1 and alerts[0].startswith("camera lagging: 3 frames"), alerts
+
+
+def test_a_real_failure_still_pauses_through_a_late_camera_and_on_time():
+    rep, _ = _watch_lag(_lagged(blob_from=6))  # late and failing: judged against the layer it shows
+    stops = [d.layer for d in rep.decisions if d.stops]
+    assert rep.pauses == 1 and stops[0] in (7, 8)
+    assert "lag_area_mm2" in rep.results[stops[0]].frame_quality  # the pausing frame was a late one
+    rep, _ = _watch_lag(lambda layer: _photo(layer, blob=layer >= 6))  # gate on, camera on time
+    assert rep.pauses == 1 and not _late(rep) and not any(r.status == CAMERA_FAULT for r in rep.results)
+
+
+def test_lag_tracker_alerts_once_per_consistent_run():
+    lag, real = LagVerdict(True, 50, 0, "late"), LagVerdict(False, 50, 50)
+    t = LagTracker(2)
+    assert [t.update(v) for v in (lag, real, lag, lag, lag)] == [False, False, False, True, False]
+    assert [t.update(v) for v in (real, lag, lag)] == [False, False, True]
+
+
+# ---------------------------------------------------------------- markers
+W, H = 480, 360
+MARK_MM = np.array([[-40.0, -40.0], [40.0, -40.0], [40.0, 40.0], [-40.0, 40.0]])
+CAMERA = dataclasses.replace(default_camera(TopView(3.0, 100, 100, (0, 0)), image_size=(W, H)),
+                             markers_mm=MARK_MM)
+MARKS_PX = project_points(CAMERA, MARK_MM)
+
+
+def _marked(layer: int, shift: tuple[float, float] = (0.0, 0.0), spaghetti: bool = False) -> np.ndarray:
+    """A frame with the four bed markers where the camera sees them (shifted when it was bumped)."""
+    img = cv2.resize(_good(layer), (W, H))
+    img = (img * 0.5).astype(np.uint8)  # a darker bed, white dots on it
+    for u, v in MARKS_PX:
+        cv2.circle(img, (round(u), round(v)), 7, (245, 245, 245), -1, lineType=cv2.LINE_AA)
+    if spaghetti:  # strands over three of the markers and much of the picture
+        rng = np.random.default_rng(layer)
+        for u, v in MARKS_PX[:3]:
+            for _ in range(12):
+                p = (np.array([u, v]) + rng.normal(0, 14, 2)).astype(int)
+                q = (np.array([u, v]) + rng.normal(0, 14, 2)).astype(int)
+                cv2.line(img, tuple(int(c) for c in p), tuple(int(c) for c in q), (40, 30, 160), 4)
+        for _ in range(60):
+            p, q = rng.integers(0, [W, H], size=(2, 2))
+            cv2.line(img, tuple(int(c) for c in p), tuple(int(c) for c in q), (40, 30, 160), 3)
+    if shift != (0.0, 0.0):
+        m = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+        img = cv2.warpAffine(img, m, (W, H), borderMode=cv2.BORDER_REPLICATE)
+    return img
+
+
+class MarkedPipeline(PausingPipeline):
+    """PausingPipeline with a calibrated camera (marker positions) as LayerPipeline has."""
+
+    def __init__(self, from_layer: int = 10**6):
+        super().__init__(from_layer)
+        self.camera = CAMERA
+        self.config = SimpleNamespace(markers=MarkerSettings())
+
+
+def _watch_markers(frames, pipe):
+    rec = Recorder()
+    mon = Monitor(VirtualPrinter(_gcode(N_LAYERS)), SimCamera(frames), pipe,
+                  PausePolicy(PolicySettings(skip_first_layers=0)), notifier=rec, wait_for_verdict=True,
+                  faults=FaultSettings(camera_alert_after=3), frame_quality=FrameQualitySettings())
+    return mon.run(poll_s=0.001), rec
+
+
+def test_marker_watch_finds_the_markers_where_the_calibration_puts_them():
+    watch = MarkerWatch.of_pipeline(MarkedPipeline())
+    assert watch is not None and MarkerWatch.of_pipeline(PausingPipeline()) is None
+    found = watch(_marked(2))
+    d = np.linalg.norm(found["expected_markers_px"][:, None] - found["markers_px"][None], axis=2).min(axis=1)
+    assert np.all(d < 1.5)
+    big = watch.expected_px((2 * W, 2 * H))  # at the frame's size
+    assert np.allclose(big, 2 * found["expected_markers_px"], atol=0.5)
+
+
+def test_a_bumped_camera_is_a_camera_fault_never_analysed_or_paused():
+    bumped = range(5, N_LAYERS)
+    pipe = MarkedPipeline(from_layer=5)  # any analysed frame from layer 5 on would pause
+    rep, rec = _watch_markers(lambda i: _marked(i, (24.0, -18.0) if i in bumped else (0.0, 0.0)), pipe)
+    assert rep.pauses == 0 and pipe.seen == list(range(5))
+    faults = [r for r in rep.results if r.status == CAMERA_FAULT]
+    assert [r.layer for r in faults] == list(bumped)
+    assert all("camera moved" in r.message and r.frame_quality["marker_shift_px"] > 25 for r in faults)
+    assert len([m for _, m in rec.sent if m.startswith("camera fault")]) == 1  # after 3 in a row, once
+
+
+def test_spaghetti_over_the_markers_is_analysed_and_pauses():
+    pipe = MarkedPipeline(from_layer=5)
+    rep, _ = _watch_markers(lambda i: _marked(i, spaghetti=i >= 5), pipe)
+    assert not any(r.status == CAMERA_FAULT for r in rep.results), [r.message for r in rep.results]
+    assert rep.pauses == 1 and 5 in pipe.seen
