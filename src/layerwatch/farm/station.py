@@ -33,6 +33,7 @@ from layerwatch.farm.remote import JobContext
 from layerwatch.farm.simcam import SimFrames
 from layerwatch.farm.virtual import PacedVirtualPrinter
 from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.objects import quiet_layers, read_objects
 from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.gcode.reader import load_bytes
 from layerwatch.gcode.toolpath import Toolpath
@@ -298,10 +299,13 @@ class Station:
             spots = park_spots(data)
             camera = ParkedCamera(camera, ParkCheck(spots, self.spec.park_tolerance_mm), self._head_position())
             log.info("printer %s: park spots of %s for %d layers", self.spec.name, Path(path).name, len(spots))
+        objects = read_objects(data, toolpath)  # cancel_object cancels one of them; layers without the part are quiet
         self.monitor = FarmMonitor(_Watched(self.printer, self), camera, pipeline,
                                    PausePolicy(cfg.policy), notifier=Notifier(cfg.notify), history=self.history,
                                    job_id=job, wait_for_verdict=self.spec.wait_for_verdict or cfg.policy.wait_for_verdict,
-                                   queue_frames=self.queue_frames, observe=self.observe)
+                                   queue_frames=self.queue_frames, observe=self.observe,
+                                   faults=cfg.faults, frame_quality=cfg.frame_quality,  # camera faults never pause
+                                   objects=objects, quiet_layers=quiet_layers(toolpath, objects))
         return self.monitor
 
     def _head_position(self) -> Callable[[], Position | None]:

@@ -166,6 +166,7 @@ class JobService:
         mon = Monitor(self.printer, cam, pipeline, PausePolicy(cfg.policy), notifier=self.notifier,
                       history=self.history, job_id=job_id,
                       wait_for_verdict=self.wait_for_verdict or cfg.policy.wait_for_verdict,
+                      faults=cfg.faults, frame_quality=cfg.frame_quality,  # camera faults: alerts, never pauses
                       objects=objects, quiet_layers=quiet_layers(toolpath, objects))
         self.jobs[id(mon)] = (job_id, pipeline.topview)
         log.info("monitoring %s (%d layers, history job %s)", job.path, toolpath.n_layers, job_id)
