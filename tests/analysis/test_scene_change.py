@@ -8,6 +8,7 @@ import pytest
 
 from layerwatch.analysis.result import LayerResult, Region, SceneStats
 from layerwatch.analysis.scene_change import (
+    _morph_near,
     change_blocks,
     change_regions,
     image_rays,
@@ -172,8 +173,6 @@ def test_compare_with_a_bed_photo_reports_what_changed_beside_the_footprint(tmp_
 
 @pytest.mark.parametrize("dilate", [True, False])
 def test_morphology_on_the_footprint_box_equals_the_whole_image_operation(dilate):
-    from layerwatch.analysis.scene_change import _morph_near
-
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (21, 21))
     rng = np.random.default_rng(4)
     for case in range(6):

@@ -9,7 +9,7 @@ import pytest
 from analysis_scenes import TOPVIEW, part_scene
 
 from layerwatch.analysis.result import LayerResult
-from layerwatch.analysis.scoring import analyze_layer, block_geometry
+from layerwatch.analysis.scoring import analyze_layer, block_geometry, grey_u8, reference_hog
 from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
@@ -225,8 +225,6 @@ def test_flat_tolerance_forgives_faint_reference_texture_the_photo_lacks_but_not
 
 
 def test_grey_u8_of_a_colour_image_is_the_floor_of_the_channel_mean_for_every_colour():
-    from layerwatch.analysis.scoring import grey_u8
-
     v = np.arange(256, dtype=np.uint8)
     b, g, r = (a.reshape(4096, 4096) for a in np.meshgrid(v, v, v, indexing="ij"))
     img = np.stack([b, g, r], -1)
@@ -237,8 +235,6 @@ def test_grey_u8_of_a_colour_image_is_the_floor_of_the_channel_mean_for_every_co
 
 
 def test_a_reference_hog_computed_ahead_gives_the_same_result_and_is_not_changed():
-    from layerwatch.analysis.scoring import reference_hog
-
     st = AnalysisSettings(presmooth_px=1.25, min_gradient=2.0)
     for kind in (None, "blob"):
         ref, photo, foot = part_scene(0, kind) if kind else part_scene(0)

@@ -119,7 +119,9 @@ class LayerPipeline:
     camera : CameraModel
         Calibrated camera with a bed pose (``rvec``/``tvec``).
     config : JobConfig, optional
-        Top view, render and analysis settings (defaults when omitted).
+        Top view, render and analysis settings (defaults when omitted);
+        ``[topview] scale = "camera"`` is resolved for ``camera``
+        (:meth:`JobConfig.for_camera`; :attr:`config` holds the result).
     cache_dir : str or Path, optional
         Folder of an on-disk reference cache (:class:`~layerwatch.render.cache.ReferenceCache`);
         identical parts then render each layer once across runs.
@@ -161,7 +163,7 @@ class LayerPipeline:
             raise RenderError(f"{toolpath.source} has no layers; check the G-code has extrusion moves.")
         self.toolpath = toolpath
         self.camera = camera
-        self.config = config or JobConfig()
+        self.config = (config or JobConfig()).for_camera(camera)  # [topview] scale = "camera" resolved
         self.topview = self.config.topview.topview()
         self.warper = TopViewWarper(camera, self.topview)
         self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
