@@ -274,7 +274,8 @@ def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
     if smooth_cells > 1:
         mean = ndimage.median_filter(mean, size=(smooth_cells, smooth_cells, 1), mode="nearest")
     field = cv2.resize(mean, (size[0] * cell_px, size[1] * cell_px), interpolation=cv2.INTER_LINEAR)[:h, :w]
-    return np.exp(field).astype(np.float32), np.exp(glob).astype(np.float64)
+    field = np.ascontiguousarray(field, np.float32)
+    return np.exp(field, out=field), np.exp(glob).astype(np.float64)  # in place: no second frame-sized array
 
 
 @dataclass
@@ -358,7 +359,8 @@ def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, rat
     """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`)."""
     h, w = usable.shape
     n, m = h // b, w // b
-    pred = np.minimum(expected * ratio, 255.0)  # the camera clips too
+    pred = expected * ratio
+    np.minimum(pred, 255.0, out=pred)  # the camera clips too
     img = np.ascontiguousarray(photo)
     okf = usable.astype(np.float32)
     frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
