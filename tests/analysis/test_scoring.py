@@ -240,6 +240,7 @@ def test_a_reference_hog_computed_ahead_gives_the_same_result_and_is_not_changed
         ref, photo, foot = part_scene(0, kind) if kind else part_scene(0)
         ahead = reference_hog(ref, st)
         before = ahead[0].copy()
+        assert ahead[0].ndim == 3 and ahead[0].shape[2] == st.bins  # cell histograms, not blocks
         a = analyze_layer(photo, ref, foot, TOPVIEW, st)
         b = analyze_layer(photo, ref, foot, TOPVIEW, st, ref_hog=ahead)
         assert np.array_equal(a.heatmap, b.heatmap) and a.anomaly_ratio == b.anomaly_ratio

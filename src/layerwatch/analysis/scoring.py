@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from layerwatch.analysis.hog import hog_blocks
+from layerwatch.analysis.hog import block_energy, hog_blocks, hog_cell_histograms, normalize_blocks
 from layerwatch.analysis.metrics import similarity, similarity_all
 from layerwatch.analysis.result import BlockGrid, LayerResult, MetricScore, Region
 from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
@@ -155,31 +155,44 @@ def anomaly_ratio(n_anomalous, tile_mm2: float, printed_mm2: float):
     return float(out) if out.ndim == 0 else out
 
 
-def _hog(grey: np.ndarray, settings: AnalysisSettings) -> tuple[np.ndarray, np.ndarray]:
-    """HOG blocks and block energies of a grey 0-255 image, pre-filtered when ``settings.presmooth_px > 0``."""
-    if settings.presmooth_px > 0:
-        grey = cv2.GaussianBlur(np.asarray(grey, np.float32), (0, 0), float(settings.presmooth_px),
-                                borderType=cv2.BORDER_REPLICATE)
-    return hog_blocks(grey, cell_px=settings.cell_px, block_cells=settings.block_cells, bins=settings.bins,
-                      block_norm=settings.block_norm, gamma=settings.gamma, return_energy=True)
+def _presmoothed(grey: np.ndarray, settings: AnalysisSettings) -> np.ndarray:
+    """The grey image pre-filtered as the analysis compares it (Gaussian of ``presmooth_px``; as is when 0)."""
+    if settings.presmooth_px <= 0:
+        return grey
+    return cv2.GaussianBlur(np.asarray(grey, np.float32), (0, 0), float(settings.presmooth_px),
+                            borderType=cv2.BORDER_REPLICATE)
 
 
 def reference_hog(reference: np.ndarray, settings: AnalysisSettings) -> tuple[np.ndarray, np.ndarray]:
-    """HOG blocks and block energies of a reference as :func:`block_hogs` computes them.
+    """Cell histograms and block energies of a reference as :func:`block_hogs` uses them.
 
     A reference does not change between photos, so the per-layer step
     computes this once with the reference (``Reference.hog``) and passes it
-    to :func:`analyze_layer`. The arrays are returned read-only.
+    to :func:`analyze_layer`; the block normalisation (a fraction of the
+    cost) runs per call, so what is kept is the cell histograms, a quarter
+    of the block tensor. The arrays are returned read-only.
 
     Returns
     -------
-    blocks : ndarray, shape (N, M, k), float64
-    energy : ndarray, shape (N, M), float64
-        Mean gradient magnitude per block (featureless test of :func:`block_hogs`).
+    cells : ndarray, shape (R, C, bins), float64
+        :func:`~layerwatch.analysis.hog.hog_cell_histograms` of the pre-filtered grey reference.
+    energy : ndarray, shape (R - block_cells + 1, C - block_cells + 1), float64
+        Mean gradient magnitude per block (the featureless test of :func:`block_hogs`).
+
+    Raises
+    ------
+    AnalysisError
+        Bad image, or smaller than one HOG block.
     """
-    h, e = _hog(to_grey255(reference, "reference"), settings)
-    h.flags.writeable = e.flags.writeable = False
-    return h, e
+    grey = _presmoothed(to_grey255(reference, "reference"), settings)
+    b = int(settings.block_cells)
+    if grey.shape[0] // settings.cell_px < b or grey.shape[1] // settings.cell_px < b:
+        raise AnalysisError(f"reference {grey.shape[1]}x{grey.shape[0]} px is smaller than one HOG block; "
+                            "use a larger top view or smaller cells.")
+    cells = hog_cell_histograms(grey, settings.cell_px, settings.bins, settings.gamma)
+    energy = block_energy(cells, b)
+    cells.flags.writeable = energy.flags.writeable = False
+    return cells, energy
 
 
 def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSettings,
@@ -199,14 +212,15 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
     h_top, h_ref : ndarray, shape (N, M, k), float64
         ``k = block_cells**2 * bins`` (36 for the paper's parameters).
     """
-    h_top, e_top = _hog(to_grey255(top, "photo top view"), settings)
-    h_ref, e_ref = ref_hog if ref_hog is not None else reference_hog(reference, settings)
+    h_top, e_top = hog_blocks(_presmoothed(to_grey255(top, "photo top view"), settings), cell_px=settings.cell_px,
+                              block_cells=settings.block_cells, bins=settings.bins, block_norm=settings.block_norm,
+                              gamma=settings.gamma, return_energy=True)
+    cells, e_ref = ref_hog if ref_hog is not None else reference_hog(reference, settings)
+    h_ref = normalize_blocks(cells, settings.block_cells, settings.block_norm)
     # featureless photo; reference featureless or only faintly textured (flat_tolerance >= 1, validated)
     flat = (e_top < settings.min_gradient) & (e_ref < settings.flat_tolerance * settings.min_gradient)
     h_top[flat] = 0.0  # featureless in both: identical (similarity 1)
-    if flat.any():
-        h_ref = h_ref.copy()
-        h_ref[flat] = 0.0
+    h_ref[flat] = 0.0
     return h_top, h_ref
 
 

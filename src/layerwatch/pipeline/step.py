@@ -90,7 +90,7 @@ class Reference:
     z : float
         Layer top, mm.
     hog : (ndarray, ndarray) or None
-        The image's HOG blocks and block energies
+        The image's HOG cell histograms and block energies
         (:func:`~layerwatch.analysis.scoring.reference_hog` with the
         pipeline's analysis settings), computed with the reference so that a
         prepared layer costs only the photo's HOG.
