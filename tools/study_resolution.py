@@ -78,13 +78,14 @@ def main() -> None:
     ap.add_argument("-n", "--layers", type=int, default=240)
     ap.add_argument("--width", type=int, default=1920)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--variants", type=int, default=3, help="the first N variants only")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     tp = read_toolpath(PART_GCODE)
     base = recommended_config(PART_CONFIG)
     camera = default_camera(base.topview.topview(), image_size=(args.width, int(round(args.width * 9 / 16))))
     rows = {}
-    for name, cfg in variants(base, camera).items():
+    for name, cfg in list(variants(base, camera).items())[: args.variants]:
         t = time.perf_counter()
         data = run_evaluation(tp, cfg, camera, n_layers=args.layers, seed=args.seed)
         rows[name] = auroc_table(data, cfg)
