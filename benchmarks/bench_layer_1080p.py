@@ -20,8 +20,9 @@ when the issue-18 speed work started), loaded in this same process with
 The two are interleaved layer by layer (old, new, old, new, ...) so that the
 load of a shared machine hits both alike; medians over ``--rounds`` passes.
 Also printed: the paper-only step (``--paper-settings``: no scene channel) of
-the current code, and whether the old and new results agree (a%, outside
-area, region count per layer).
+the current code, the current step with ``[topview] scale = "camera"`` (the
+camera's own resolution, 8.8 px/mm here), and whether the old and new results
+agree (a%, outside area, region count per layer).
 
 One thread: ``cv2.setNumThreads(1)``, Numba and BLAS at one thread.
 """
@@ -71,12 +72,14 @@ def _photos(size: tuple[int, int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
     return sim.bed_photo(), {i: sim.frame(i).photo for i in LAYERS}
 
 
-def _pipeline(mods, paper: bool, bed: np.ndarray, size: tuple[int, int]):
+def _pipeline(mods, paper: bool, bed: np.ndarray, size: tuple[int, int], camera_scale: bool = False):
     """A prepared pipeline of the package ``mods`` (current or old), recommended or paper settings."""
     tp = mods["gcode"].read_toolpath(PART_GCODE)
     cfg = mods["config"].recommended_config(PART_CONFIG)
     if paper:
         cfg = mods["config"].JobConfig(topview=cfg.topview)
+    if camera_scale:
+        cfg = cfg.model_copy(update={"topview": cfg.topview.model_copy(update={"scale": "camera"})})
     cam = mods["simulate"].default_camera(cfg.topview.topview(), image_size=size)
     pipe = mods["step"].LayerPipeline(tp, cam, cfg, memo=tp.n_layers, bed_photo=None if paper else bed)
     pipe.prepare(range(0, max(LAYERS) + 1))
@@ -102,7 +105,8 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
     current = {"gcode": lw_gcode, "config": lw_config, "step": lw_step, "simulate": lw_simulate}
     old = load_revision(rev, OLD_MODULES)
     bed, photos = _photos(size)
-    pipes = {"ours": _pipeline(current, False, bed, size), "paper": _pipeline(current, True, bed, size)}
+    pipes = {"ours": _pipeline(current, False, bed, size), "paper": _pipeline(current, True, bed, size),
+             "camera": _pipeline(current, False, bed, size, camera_scale=True)}
     if old is not None:
         assert old["layerwatch.pipeline.step"].__file__ != lw_step.__file__, "the baseline is the current code"
         oldm = dict(zip(("gcode", "config", "step", "simulate"), (old[m] for m in OLD_MODULES), strict=True))
@@ -115,7 +119,7 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
     for _ in range(rounds):
         _pass(pipes, photos, bed, times, results)
     out = {k: float(np.median(v)) for k, v in times.items()}
-    out.update(threads=threads, rev=rev if old is not None else None, layers=len(photos), rounds=rounds,
+    out.update(camera_px_per_mm=pipes["camera"].topview.px_per_mm, threads=threads, rev=rev if old is not None else None, layers=len(photos), rounds=rounds,
                results=results)
     return out
 
@@ -138,6 +142,7 @@ def report(r: dict) -> None:
     else:
         print("  baseline revision: not available (git archive failed); the paper-only step below is the baseline")
     print(f"  paper-only step (--paper-settings, no scene channel), current code: {r['paper']:7.1f} ms/layer")
+    print(f"  current with [topview] scale = \"camera\" ({r['camera_px_per_mm']:.2f} px/mm):  {r['camera']:7.1f} ms/layer")
 
 
 def main(argv: list[str] | None = None) -> dict:
