@@ -119,6 +119,7 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
     for _ in range(rounds):
         _pass(pipes, photos, bed, times, results)
     out = {k: float(np.median(v)) for k, v in times.items()}
+    out["load"] = os.getloadavg()[0]
     out.update(camera_px_per_mm=pipes["camera"].topview.px_per_mm, threads=threads, rev=rev if old is not None else None, layers=len(photos), rounds=rounds,
                results=results)
     return out
@@ -126,7 +127,8 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
 
 def report(r: dict) -> None:
     print(f"per-layer step, 1920x1080 photo, recommended settings (HOG + volume reference + scene channel), "
-          f"references prepared, {r['layers']} layers x {r['rounds']} passes interleaved, {r['threads']}")
+          f"references prepared, {r['layers']} layers x {r['rounds']} passes interleaved, {r['threads']}; "
+          f"machine load average {r['load']:.1f} on {os.cpu_count()} cores")
     print(f"  current:                                 {r['ours']:7.1f} ms/layer  (budget {BUDGET_MS:.0f} ms: "
           f"{'met' if r['ours'] <= BUDGET_MS else 'NOT met'})")
     if r["rev"] is not None:
