@@ -8,6 +8,7 @@ import pytest
 
 from layerwatch.analysis.result import LayerResult, Region, SceneStats
 from layerwatch.analysis.scene_change import (
+    SATURATED,
     _morph_near,
     change_blocks,
     change_regions,
@@ -22,6 +23,7 @@ from layerwatch.analysis.scene_change import (
 from layerwatch.analysis.settings import SceneSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.scene import _saturated
 from layerwatch.simulate.scene import default_camera
 
 TV = TopView(4.0, 90.0, 90.0, (110.0, 100.0))
@@ -205,3 +207,13 @@ def test_change_blocks_score_only_the_blocks_around_usable_pixels_and_equal_a_bl
     assert not full.scored[outside].any() and not full.score[outside].any()
     none = change_blocks(photo, E, np.zeros_like(usable), ratio, st)
     assert not none.scored.any() and not none.changed.any() and none.changed_share == 0.0
+
+
+def test_saturated_pixels_are_those_with_a_channel_at_or_above_the_limit():
+    img = np.full((4, 5, 3), 100.0, np.float32)
+    img[0, 0] = (SATURATED, 0, 0)
+    img[0, 1] = (0, 0, np.nextafter(np.float32(SATURATED), np.float32(0)))  # just below: not saturated
+    img[1, 2] = (0, 255.0, 0)
+    want = np.zeros((4, 5), bool)
+    want[0, 0] = want[1, 2] = True
+    assert np.array_equal(_saturated(img), want)

@@ -67,7 +67,6 @@ from layerwatch.analysis.scene_change import (
     ChangeMap,
     change_blocks,
     change_regions,
-    channel_max,
     channel_mean,
     image_rays,
     photometric_fit,
@@ -98,9 +97,14 @@ REBASE_AFTER = 3
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
 
 
+#: the largest float32 below :data:`SATURATED` (``cv2.inRange``'s bounds are inclusive)
+_BELOW_SATURATED = float(np.nextafter(np.float32(SATURATED), np.float32(0)))
+
+
 def _saturated(img: np.ndarray) -> np.ndarray:
-    """Pixels with a channel at or above :data:`SATURATED`, bool (h, w)."""
-    return channel_max(img) >= SATURATED
+    """Pixels with a channel at or above :data:`SATURATED`, bool (h, w) (one ``cv2.inRange`` pass)."""
+    lo, hi = (-np.inf,) * img.shape[2], (_BELOW_SATURATED,) * img.shape[2]
+    return cv2.inRange(img, lo, hi) == 0
 
 
 def _box(mask: np.ndarray) -> tuple[slice, slice]:
