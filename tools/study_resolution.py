@@ -12,7 +12,9 @@ channel) is scored with the top view at
   (finer cells in mm);
 * ``camera, cells in mm``: the camera's scale with the cell side scaled so that
   a cell covers the same millimetres as 8 px at 6.67 px/mm (only the sampling
-  changes).
+  changes);
+* ``fixed, finer cells``: 6.67 px/mm with the cells of the camera variant in
+  mm (8 px at the camera's scale: only the cell size changes).
 
 Prints, per variant, the AUROC of the recommended setting's a% for each
 failure type against the clean layers, the mean a% of clean layers, and the
@@ -63,6 +65,7 @@ def variants(base: JobConfig, camera) -> dict[str, JobConfig]:
     cam_scale = camera_px_per_mm(camera, tv.center_mm, tv.width_mm, tv.height_mm)
     cell_mm = base.analysis.cell_px / tv.px_per_mm
     cells = max(2, int(round(cell_mm * cam_scale)))
+    fine = max(2, int(round(base.analysis.cell_px * tv.px_per_mm / cam_scale)))  # the camera scale's cells in mm
     return {
         f"fixed {tv.px_per_mm:.2f} px/mm": base,
         f"camera {cam_scale:.2f} px/mm, 8-px cells": base.model_copy(
@@ -70,6 +73,8 @@ def variants(base: JobConfig, camera) -> dict[str, JobConfig]:
         f"camera {cam_scale:.2f} px/mm, {cells}-px cells": base.model_copy(
             update={"topview": tv.model_copy(update={"px_per_mm": cam_scale}),
                     "analysis": base.analysis.model_copy(update={"cell_px": cells})}),
+        f"fixed {tv.px_per_mm:.2f} px/mm, {fine}-px cells": base.model_copy(
+            update={"analysis": base.analysis.model_copy(update={"cell_px": fine})}),
     }
 
 
@@ -78,14 +83,14 @@ def main() -> None:
     ap.add_argument("-n", "--layers", type=int, default=240)
     ap.add_argument("--width", type=int, default=1920)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--variants", type=int, default=3, help="the first N variants only")
+    ap.add_argument("--variants", type=int, nargs="*", default=[0, 1, 2, 3], help="which variants (0-3)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     tp = read_toolpath(PART_GCODE)
     base = recommended_config(PART_CONFIG)
     camera = default_camera(base.topview.topview(), image_size=(args.width, int(round(args.width * 9 / 16))))
     rows = {}
-    for name, cfg in list(variants(base, camera).items())[: args.variants]:
+    for name, cfg in [v for k, v in enumerate(variants(base, camera).items()) if k in args.variants]:
         t = time.perf_counter()
         data = run_evaluation(tp, cfg, camera, n_layers=args.layers, seed=args.seed)
         rows[name] = auroc_table(data, cfg)
