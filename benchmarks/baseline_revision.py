@@ -16,6 +16,7 @@ baseline it can build from the current package.
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import shutil
 import subprocess
@@ -51,6 +52,7 @@ def load_revision(rev: str, modules: list[str]) -> dict[str, types.ModuleType] |
         The old modules by name; ``None`` when ``rev`` cannot be extracted.
     """
     tmp = Path(tempfile.mkdtemp(prefix=f"layerwatch-{rev[:12]}-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # the old modules are used until the end
     try:
         archive = subprocess.run(["git", "-C", str(_ROOT), "archive", "--format=tar", rev, "src/layerwatch"],
                                  capture_output=True, check=False)
