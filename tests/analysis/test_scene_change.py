@@ -8,6 +8,8 @@ import pytest
 
 from layerwatch.analysis.result import LayerResult, Region, SceneStats
 from layerwatch.analysis.scene_change import (
+    SATURATED,
+    _morph_near,
     change_blocks,
     change_regions,
     image_rays,
@@ -21,6 +23,7 @@ from layerwatch.analysis.scene_change import (
 from layerwatch.analysis.settings import SceneSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
+from layerwatch.pipeline.scene import _saturated
 from layerwatch.simulate.scene import default_camera
 
 TV = TopView(4.0, 90.0, 90.0, (110.0, 100.0))
@@ -168,3 +171,49 @@ def test_compare_with_a_bed_photo_reports_what_changed_beside_the_footprint(tmp_
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert main(args) == 0
     assert "no --bed-photo" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("dilate", [True, False])
+def test_morphology_on_the_footprint_box_equals_the_whole_image_operation(dilate):
+    se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (21, 21))
+    rng = np.random.default_rng(4)
+    for case in range(6):
+        mask = np.zeros((200, 240), np.uint8)
+        y, x = rng.integers(0, 170), rng.integers(0, 210)
+        mask[y : y + 30, x : x + 30] = 1
+        if case % 2:  # touching the image border: cv2's border rule must be the same on the box
+            mask[:25, :18] = 1
+        full = cv2.dilate(mask, se) if dilate else cv2.erode(mask, se)
+        assert np.array_equal(_morph_near(mask, se, dilate=dilate), full)
+    assert not _morph_near(np.zeros((50, 60), np.uint8), se, dilate=dilate).any()
+
+
+def test_change_blocks_score_only_the_blocks_around_usable_pixels_and_equal_a_block_aligned_crop():
+    E = _texture(240, 320)
+    photo = _noisy(E)
+    photo[100:124, 150:174] = 200.0  # an object
+    usable = np.zeros(E.shape[:2], bool)
+    usable[44:180, 60:250] = True
+    ratio = np.ones_like(E)
+    st = SceneSettings()
+    full = change_blocks(photo, E, usable, ratio, st)
+    crop = (slice(40, 184), slice(56, 256))  # block-aligned (8 px), holds every usable pixel
+    part = change_blocks(photo[crop], E[crop], usable[crop], ratio[crop], st)
+    inner = (slice(5, 23), slice(7, 32))
+    assert np.array_equal(full.score[inner], part.score) and np.array_equal(full.changed[inner], part.changed)
+    assert full.threshold == part.threshold and full.changed[13:15, 19:21].all()
+    outside = np.ones(full.scored.shape, bool)
+    outside[inner] = False
+    assert not full.scored[outside].any() and not full.score[outside].any()
+    none = change_blocks(photo, E, np.zeros_like(usable), ratio, st)
+    assert not none.scored.any() and not none.changed.any() and none.changed_share == 0.0
+
+
+def test_saturated_pixels_are_those_with_a_channel_at_or_above_the_limit():
+    img = np.full((4, 5, 3), 100.0, np.float32)
+    img[0, 0] = (SATURATED, 0, 0)
+    img[0, 1] = (0, 0, np.nextafter(np.float32(SATURATED), np.float32(0)))  # just below: not saturated
+    img[1, 2] = (0, 255.0, 0)
+    want = np.zeros((4, 5), bool)
+    want[0, 0] = want[1, 2] = True
+    assert np.array_equal(_saturated(img), want)

@@ -9,7 +9,7 @@ import pytest
 from analysis_scenes import TOPVIEW, part_scene
 
 from layerwatch.analysis.result import LayerResult
-from layerwatch.analysis.scoring import analyze_layer, block_geometry
+from layerwatch.analysis.scoring import analyze_layer, block_geometry, grey_u8, reference_hog
 from layerwatch.analysis.settings import METRIC_NAMES, AnalysisSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
@@ -222,3 +222,26 @@ def test_flat_tolerance_forgives_faint_reference_texture_the_photo_lacks_but_not
         assert h_photo[left].any()
         _, h_ref = block_hogs(flat, strong, st)  # strong reference texture missing from the photo
         assert h_ref[left].any()
+
+
+def test_grey_u8_of_a_colour_image_is_the_floor_of_the_channel_mean_for_every_colour():
+    v = np.arange(256, dtype=np.uint8)
+    b, g, r = (a.reshape(4096, 4096) for a in np.meshgrid(v, v, v, indexing="ij"))
+    img = np.stack([b, g, r], -1)
+    want = ((b.astype(np.uint16) + g + r) // 3).astype(np.uint8)
+    assert np.array_equal(grey_u8(img), want)
+    bgra = np.dstack([img[:64, :64], np.full((64, 64), 7, np.uint8)])
+    assert np.array_equal(grey_u8(bgra), want[:64, :64])  # alpha ignored
+
+
+def test_a_reference_hog_computed_ahead_gives_the_same_result_and_is_not_changed():
+    st = AnalysisSettings(presmooth_px=1.25, min_gradient=2.0)
+    for kind in (None, "blob"):
+        ref, photo, foot = part_scene(0, kind) if kind else part_scene(0)
+        ahead = reference_hog(ref, st)
+        before = ahead[0].copy()
+        assert ahead[0].ndim == 3 and ahead[0].shape[2] == st.bins  # cell histograms, not blocks
+        a = analyze_layer(photo, ref, foot, TOPVIEW, st)
+        b = analyze_layer(photo, ref, foot, TOPVIEW, st, ref_hog=ahead)
+        assert np.array_equal(a.heatmap, b.heatmap) and a.anomaly_ratio == b.anomaly_ratio
+        assert np.array_equal(ahead[0], before) and not ahead[0].flags.writeable

@@ -55,7 +55,7 @@ from layerwatch.analysis.hog_kernels import (
 )
 from layerwatch.errors import AnalysisError
 
-__all__ = ["hog_blocks", "BLOCK_NORMS", "hog_cell_histograms", "gradients"]
+__all__ = ["hog_blocks", "BLOCK_NORMS", "block_energy", "hog_cell_histograms", "gradients", "normalize_blocks"]
 
 BLOCK_NORMS = ("L2-Hys", "L2", "L1", "L1-sqrt")
 
@@ -263,11 +263,29 @@ def hog_blocks(
     blocks = normalize_blocks(hist, int(block_cells), block_norm)
     if not return_energy:
         return blocks
+    return blocks, block_energy(hist, int(block_cells))
+
+
+def block_energy(hist: np.ndarray, block_cells: int = 2) -> np.ndarray:
+    """Mean gradient magnitude per pixel of every block, before normalisation.
+
+    Parameters
+    ----------
+    hist : ndarray, shape (R, C, bins)
+        Cell histograms from :func:`hog_cell_histograms`.
+    block_cells : int
+        Block side in cells.
+
+    Returns
+    -------
+    ndarray, shape (R - block_cells + 1, C - block_cells + 1), float64
+        Sum of the block's cell histograms / ``block_cells**2`` (intensity units).
+    """
     cell_energy = hist.sum(axis=2)
     b = int(block_cells)
-    n, m = blocks.shape[:2]
+    n, m = hist.shape[0] - b + 1, hist.shape[1] - b + 1
     energy = np.zeros((n, m), dtype=np.float64)
     for di in range(b):
         for dj in range(b):
             energy += cell_energy[di : di + n, dj : dj + m]
-    return blocks, energy / (b * b)
+    return energy / (b * b)

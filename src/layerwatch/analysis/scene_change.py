@@ -166,6 +166,25 @@ def top_coords(maps: tuple[np.ndarray, np.ndarray], z: float) -> tuple[np.ndarra
     return A[0] + z32 * B[0], A[1] + z32 * B[1]
 
 
+def _morph_near(mask: np.ndarray, se: np.ndarray, *, dilate: bool) -> np.ndarray:
+    """``cv2.dilate``/``cv2.erode`` of a uint8 mask by ``se``, computed on the mask's bounding box only.
+
+    The box is grown by the element's radius plus one pixel, so every output
+    pixel inside it sees the same neighbourhood as on the whole image (zeros
+    around the mask; the image border as cv2 treats it) and every pixel
+    outside it is 0 either way: the result equals the whole-image operation.
+    """
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    out = np.zeros_like(mask)
+    if rows.size == 0:
+        return out
+    r = max(se.shape) // 2 + 1
+    box = (slice(max(0, rows[0] - r), rows[-1] + r + 1), slice(max(0, cols[0] - r), cols[-1] + r + 1))
+    roi = np.ascontiguousarray(mask[box])
+    out[box] = cv2.dilate(roi, se) if dilate else cv2.erode(roi, se)
+    return out
+
+
 def predicted_change(
     footprint: np.ndarray,
     z_planes: np.ndarray,
@@ -197,8 +216,7 @@ def predicted_change(
     fp = np.asarray(footprint, np.uint8)
     k = int(round(2 * abs(margin_mm) * topview.px_per_mm)) | 1
     if k > 1:
-        se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        fp = np.asarray(cv2.dilate(fp, se) if margin_mm > 0 else cv2.erode(fp, se), np.uint8)
+        fp = _morph_near(fp, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dilate=margin_mm > 0)
     out = np.zeros(maps[0].shape[1:], np.uint8)
     for z in np.asarray(z_planes, float).ravel():
         mx, my = top_coords(maps, float(z))
@@ -256,7 +274,8 @@ def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
     if smooth_cells > 1:
         mean = ndimage.median_filter(mean, size=(smooth_cells, smooth_cells, 1), mode="nearest")
     field = cv2.resize(mean, (size[0] * cell_px, size[1] * cell_px), interpolation=cv2.INTER_LINEAR)[:h, :w]
-    return np.exp(field).astype(np.float32), np.exp(glob).astype(np.float64)
+    field = np.ascontiguousarray(field, np.float32)
+    return np.exp(field, out=field), np.exp(glob).astype(np.float64)  # in place: no second frame-sized array
 
 
 @dataclass
@@ -327,6 +346,33 @@ def _noise_threshold(vals: np.ndarray, floor: float, k: float) -> tuple[float, f
     return max(float(floor), med + k * noise), noise
 
 
+def _block_roi(usable: np.ndarray, b: int) -> tuple[slice, slice]:
+    """Rows and columns of the blocks of ``b`` px that hold a usable pixel (block-aligned; empty when none)."""
+    rows, cols = np.flatnonzero(usable.any(axis=1)), np.flatnonzero(usable.any(axis=0))
+    if rows.size == 0:
+        return slice(0, 0), slice(0, 0)
+    return (slice(rows[0] // b * b, (rows[-1] // b + 1) * b), slice(cols[0] // b * b, (cols[-1] // b + 1) * b))
+
+
+def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
+                b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`)."""
+    h, w = usable.shape
+    n, m = h // b, w // b
+    pred = expected * ratio
+    np.minimum(pred, 255.0, out=pred)  # the camera clips too
+    img = np.ascontiguousarray(photo)
+    okf = usable.astype(np.float32)
+    frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
+    score = _block_mean(channel_mean(cv2.absdiff(img, pred)), okf, frac)
+    # the same residual after the best gain per block and channel: what a local shade explains
+    sxy = cv2.resize(img * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    syy = cv2.resize(pred * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
+    shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
+    return score, frac >= 0.5, shade_free
+
+
 def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
                   settings: SceneSettings) -> ChangeMap:
     """Score every block of the photo against the normalised expected appearance.
@@ -347,18 +393,13 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
     b = int(settings.block_px)
     h, w = usable.shape
     n, m = h // b, w // b
-    crop = (slice(0, n * b), slice(0, m * b))
-    pred = np.minimum(expected[crop] * ratio[crop], 255.0)  # the camera clips too
-    img = np.ascontiguousarray(photo[crop])
-    okf = np.ascontiguousarray(usable[crop]).astype(np.float32)
-    frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
-    scored = frac >= 0.5
-    score = _block_mean(channel_mean(cv2.absdiff(img, pred)), okf, frac)
-    # the same residual after the best gain per block and channel: what a local shade explains
-    sxy = cv2.resize(img * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
-    syy = cv2.resize(pred * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
-    g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
-    shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
+    score, scored = np.zeros((n, m), np.float32), np.zeros((n, m), bool)
+    shade_free = np.zeros((n, m), np.float32)
+    rows, cols = _block_roi(usable[: n * b, : m * b], b)
+    if rows.stop > rows.start and cols.stop > cols.start:  # only blocks with usable pixels can be scored
+        blocks = (slice(rows.start // b, rows.stop // b), slice(cols.start // b, cols.stop // b))
+        score[blocks], scored[blocks], shade_free[blocks] = _roi_scores(
+            photo[rows, cols], expected[rows, cols], usable[rows, cols], ratio[rows, cols], b)
     threshold, noise = _noise_threshold(score[scored], settings.min_change, settings.noise_k)
     thr2, _ = _noise_threshold(shade_free[scored], settings.min_change, settings.noise_k)
     strong = score > SHADE_LIMIT * threshold

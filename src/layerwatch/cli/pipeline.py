@@ -149,8 +149,8 @@ def simulate(
             raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM][/beside]; e.g. spaghetti@15.") from None
     tp = _toolpath(gcode)
     cfg = job_settings(config, gcode, tp).config
-    tv = cfg.topview.topview()
-    cam = default_camera(tv, image_size=(width, int(round(width * 9 / 16))))
+    cam = default_camera(cfg.topview.topview(), image_size=(width, int(round(width * 9 / 16))))
+    tv = cfg.for_camera(cam).topview.topview()  # truth masks in the top view analyze will use
     out.mkdir(parents=True, exist_ok=True)
     sim = PrintSimulator(tp, cam, tv, fails, seed=seed)
     cv2.imwrite(str(out / "bed.png"), sim.bed_photo())  # the empty bed, kept with the camera as calibrate does

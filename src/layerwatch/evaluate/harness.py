@@ -309,6 +309,7 @@ def run_evaluation(
     EvalData
     """
     t0 = time.perf_counter()
+    config = config.for_camera(camera)  # truth masks in the pipeline's top view
     tv = config.topview.topview()
     plan = plan_frames(toolpath, n_layers, seed=seed, beside_share=beside_share)
     total = sum(len(ls) for _, ls in plan)
@@ -374,6 +375,7 @@ def clean_false_alarms(
         (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list),
         ``outside_layers`` (layers with any scene-channel change beside the print), ``max_outside_mm2``.
     """
+    config = config.for_camera(camera)  # the pipeline's top view
     tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
     policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),

@@ -45,6 +45,7 @@ from layerwatch.analysis.frame_quality import FrameQualitySettings
 from layerwatch.analysis.settings import AnalysisSettings, SceneSettings
 from layerwatch.errors import ConfigError
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
+from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.settings import MarkerSettings, TopViewSettings
 from layerwatch.pipeline.policy import NotifySettings, PolicySettings
 from layerwatch.pipeline.watch_settings import FaultSettings, HostSettings
@@ -81,6 +82,15 @@ class JobConfig(Section):
     host: HostSettings = Field(default_factory=HostSettings)
     faults: FaultSettings = Field(default_factory=FaultSettings)
     frame_quality: FrameQualitySettings = Field(default_factory=FrameQualitySettings)
+
+    def for_camera(self, camera: CameraModel) -> JobConfig:
+        """This config with the top view's scale resolved for ``camera`` (``[topview] scale = "camera"``).
+
+        Unchanged (the same object) when the scale is fixed; see
+        :meth:`~layerwatch.geometry.settings.TopViewSettings.for_camera`.
+        """
+        tv = self.topview.for_camera(camera)
+        return self if tv is self.topview else self.model_copy(update={"topview": tv})
 
 
 def _format_validation(exc: ValidationError) -> str:

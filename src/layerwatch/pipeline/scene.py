@@ -67,7 +67,6 @@ from layerwatch.analysis.scene_change import (
     ChangeMap,
     change_blocks,
     change_regions,
-    channel_max,
     channel_mean,
     image_rays,
     photometric_fit,
@@ -98,9 +97,22 @@ REBASE_AFTER = 3
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
 
 
+#: the largest float32 below :data:`SATURATED` (``cv2.inRange``'s bounds are inclusive)
+_BELOW_SATURATED = float(np.nextafter(np.float32(SATURATED), np.float32(0)))
+
+
 def _saturated(img: np.ndarray) -> np.ndarray:
-    """Pixels with a channel at or above :data:`SATURATED`, bool (h, w)."""
-    return channel_max(img) >= SATURATED
+    """Pixels with a channel at or above :data:`SATURATED`, bool (h, w) (one ``cv2.inRange`` pass)."""
+    lo, hi = (-np.inf,) * img.shape[2], (_BELOW_SATURATED,) * img.shape[2]
+    return cv2.inRange(img, lo, hi) == 0
+
+
+def _box(mask: np.ndarray) -> tuple[slice, slice]:
+    """Rows and columns of the bounding box of a bool (h, w) mask (empty slices when nothing is set)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return slice(0, 0), slice(0, 0)
+    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
 
 def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "bed photo") -> np.ndarray:
@@ -378,9 +390,9 @@ class SceneModel:
             self.expected, self.baseline = obs.image.copy(), "first photo"
         elif obs.body is not None:
             assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
-            back = self._in_expected_frame(obs)
             take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)
-            np.copyto(self.expected, back, where=take[..., None])
+            box = _box(take)  # the division only where E takes the photo
+            np.copyto(self.expected[box], self._in_expected_frame(obs, box), where=take[box][..., None])
             self._confirmed = True
             self.body, self.ledges = obs.body, obs.ledges
             self.body_layer = max(self.body_layer, obs.layer)
@@ -400,9 +412,10 @@ class SceneModel:
         return quiet.pixels(obs.image.shape[:2]) & self.observed & ~obs.predicted
 
     @staticmethod
-    def _in_expected_frame(obs: SceneObservation) -> np.ndarray:
+    def _in_expected_frame(obs: SceneObservation, box: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
+        """The photo mapped into ``E``'s photometric frame (``image / ratio``), on ``box`` of the working image."""
         assert obs.ratio is not None  # set by photometric_fit before any photo is accepted into E
-        return obs.image / np.maximum(obs.ratio, 1e-3)
+        return obs.image[box] / np.maximum(obs.ratio[box], 1e-3)
 
     def acknowledge(self) -> int:
         """The operator accepted what changed: ``E`` takes the last accepted photo on its changed blocks.

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.result import LayerResult
-from layerwatch.analysis.scoring import analyze_layer, grey_u8
+from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
@@ -89,12 +89,18 @@ class Reference:
         Pixels printed in this layer.
     z : float
         Layer top, mm.
+    hog : (ndarray, ndarray) or None
+        The image's HOG cell histograms and block energies
+        (:func:`~layerwatch.analysis.scoring.reference_hog` with the
+        pipeline's analysis settings), computed with the reference so that a
+        prepared layer costs only the photo's HOG.
     """
 
-    __slots__ = ("image", "footprint", "z")
+    __slots__ = ("image", "footprint", "z", "hog")
 
-    def __init__(self, image: np.ndarray, footprint: np.ndarray, z: float) -> None:
-        self.image, self.footprint, self.z = image, footprint, float(z)
+    def __init__(self, image: np.ndarray, footprint: np.ndarray, z: float,
+                 hog: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        self.image, self.footprint, self.z, self.hog = image, footprint, float(z), hog
 
 
 class LayerPipeline:
@@ -113,7 +119,9 @@ class LayerPipeline:
     camera : CameraModel
         Calibrated camera with a bed pose (``rvec``/``tvec``).
     config : JobConfig, optional
-        Top view, render and analysis settings (defaults when omitted).
+        Top view, render and analysis settings (defaults when omitted);
+        ``[topview] scale = "camera"`` is resolved for ``camera``
+        (:meth:`JobConfig.for_camera`; :attr:`config` holds the result).
     cache_dir : str or Path, optional
         Folder of an on-disk reference cache (:class:`~layerwatch.render.cache.ReferenceCache`);
         identical parts then render each layer once across runs.
@@ -155,7 +163,7 @@ class LayerPipeline:
             raise RenderError(f"{toolpath.source} has no layers; check the G-code has extrusion moves.")
         self.toolpath = toolpath
         self.camera = camera
-        self.config = config or JobConfig()
+        self.config = (config or JobConfig()).for_camera(camera)  # [topview] scale = "camera" resolved
         self.topview = self.config.topview.topview()
         self.warper = TopViewWarper(camera, self.topview)
         self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
@@ -214,7 +222,7 @@ class LayerPipeline:
         image = r.image
         if self.match_camera:
             image = camera_matched(image, self.camera, self.topview, z)
-        ref = Reference(image, r.mask, z)
+        ref = Reference(image, r.mask, z, reference_hog(image, self.config.analysis))
         self._memo[index] = ref
         while len(self._memo) > self._memo_size:
             self._memo.popitem(last=False)
@@ -328,7 +336,7 @@ class LayerPipeline:
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
             res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
-                                z=ref.z, all_metrics=self.all_metrics)
+                                z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog)
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid)
         except LayerwatchError as exc:
