@@ -31,6 +31,8 @@ import shutil
 import socket
 import subprocess
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -239,3 +241,16 @@ class MoonrakerStack:
         r = httpx.get(self.url + "/printer/objects/query", params={o: "" for o in objects}, timeout=5)
         r.raise_for_status()
         return r.json()["result"]["status"]
+
+
+@contextmanager
+def running(stack: MoonrakerStack) -> Iterator[MoonrakerStack]:
+    """Start ``stack`` and yield it; print its log when it fails to start; stop it at the end."""
+    try:
+        stack.start()
+        yield stack
+    except BaseException:
+        print(stack.log_tail())
+        raise
+    finally:
+        stack.stop()

@@ -20,7 +20,7 @@ import warnings
 
 import httpx
 import pytest
-from moonraker_stack import MoonrakerStack, printer_cfg, require_installed, until
+from moonraker_stack import MoonrakerStack, printer_cfg, require_installed, running, until
 from test_jobs import PARK, prepared
 from test_octoprint_real import octoprint  # noqa: F401 - the session fixture (real OctoPrint server)
 
@@ -229,14 +229,8 @@ def stack(tmp_path_factory):
     s = MoonrakerStack(tmp_path_factory.mktemp("moonraker_jobs"))
     assert KLIPPER_MACRO in printer_cfg(s.gcodes)
     (s.data / "config" / "printer.cfg").write_text(printer_cfg(s.gcodes).replace(KLIPPER_MACRO, TEST_MACROS))
-    try:
-        s.start()
+    with running(s):
         yield s
-    except BaseException:
-        print(s.log_tail())
-        raise
-    finally:
-        s.stop()
 
 
 def _moon_state(stack):

@@ -13,7 +13,7 @@ import time
 
 import httpx
 import pytest
-from moonraker_stack import MoonrakerStack, require_installed, until
+from moonraker_stack import MoonrakerStack, require_installed, running, until
 
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
@@ -27,14 +27,8 @@ N_LAYERS, STEPS = 5, 4
 def stack(tmp_path_factory):
     require_installed()
     s = MoonrakerStack(tmp_path_factory.mktemp("klipper_hold"))
-    try:
-        s.start()
+    with running(s):
         yield s
-    except BaseException:
-        print(s.log_tail())
-        raise
-    finally:
-        s.stop()
 
 
 def hold_gcode() -> str:

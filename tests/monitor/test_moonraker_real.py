@@ -10,7 +10,7 @@ import threading
 import httpx
 import numpy as np
 import pytest
-from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, until
+from moonraker_stack import MoonrakerStack, klipper_gcode, require_installed, running, until
 
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.errors import PrinterError
@@ -26,14 +26,8 @@ pytestmark = pytest.mark.moonraker
 def stack(tmp_path_factory):
     require_installed()
     s = MoonrakerStack(tmp_path_factory.mktemp("moonraker"))
-    try:
-        s.start()
+    with running(s):
         yield s
-    except BaseException:
-        print(s.log_tail())
-        raise
-    finally:
-        s.stop()
 
 
 @pytest.mark.slow

@@ -19,7 +19,7 @@ import threading
 import httpx
 import numpy as np
 import pytest
-from moonraker_stack import MoonrakerStack, require_installed, until
+from moonraker_stack import MoonrakerStack, require_installed, running, until
 
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.gcode.objects import read_objects
@@ -92,14 +92,8 @@ class _DetachedB:
 def stack(tmp_path_factory):
     require_installed()
     s = MoonrakerStack(tmp_path_factory.mktemp("object_cancel"), extra_cfg=EXTRA_CFG)
-    try:
-        s.start()
+    with running(s):
         yield s
-    except BaseException:
-        print(s.log_tail())
-        raise
-    finally:
-        s.stop()
 
 
 def _marks(stack) -> dict[str, dict[int, tuple[float, float]]]:

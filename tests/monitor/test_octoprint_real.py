@@ -1,12 +1,6 @@
 """Integration test against a REAL OctoPrint (1.11) with its virtual printer."""
 
-import os
-import secrets
-import socket
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import httpx
 import pytest
@@ -17,10 +11,7 @@ from layerwatch.monitor.printers.octoprint import OctoPrintPrinter, parse_octopr
 from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.policy import Decision
 from layerwatch.storage.history import History
-
-ROOT = Path(__file__).resolve().parents[2]
-VENV = Path(os.environ.get("LAYERWATCH_OCTOPRINT_VENV", ROOT / ".venv-octoprint"))
-OCTO = VENV / "bin" / "octoprint"
+from octoprint_stack import OCTO, VENV, octoprint_server, until
 
 
 def test_parse_recorded_push_message():
@@ -31,57 +22,12 @@ def test_parse_recorded_push_message():
     assert parse_octoprint_message({"event": {"type": "PrintStarted"}}) == []
 
 
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _until(fn, deadline_s, what):
-    end = time.monotonic() + deadline_s
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except (httpx.HTTPError, KeyError):
-            pass
-        time.sleep(0.2)
-    pytest.fail(f"timed out waiting for {what} (last: {last!r})")
-
-
 @pytest.fixture(scope="session")
 def octoprint(tmp_path_factory):
     if not OCTO.exists():
         pytest.skip(f"OctoPrint not installed at {VENV}; run .ci/install-octoprint")
-    base = tmp_path_factory.mktemp("octoprint")
-    key = secrets.token_hex(16).upper()
-    (base / "config.yaml").write_text(
-        "server:\n  firstRun: false\n  onlineCheck:\n    enabled: false\n  pluginBlacklist:\n    enabled: false\n"
-        f"api:\n  key: {key}\n"
-        "devel:\n  virtualPrinter:\n    enabled: true\n    okAfterResend: false\n"
-        "plugins:\n  tracking:\n    enabled: false\n  announcements:\n    enabled: false\n  softwareupdate:\n    checks: {}\n"
-    )
-    subprocess.run([str(OCTO), "--basedir", str(base), "user", "add", "--password", "lw-test-pw", "--admin", "lwadmin"],
-                   check=True, capture_output=True, timeout=60)
-    port = _free_port()
-    log = open(base / "serve.log", "w")
-    proc = subprocess.Popen([str(OCTO), "serve", "--iknowwhatimdoing", "--basedir", str(base), "--host", "127.0.0.1",
-                             "--port", str(port)], stdout=log, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        _until(lambda: httpx.get(url + "/api/version", headers={"X-Api-Key": key}, timeout=2).status_code == 200,
-               60, "OctoPrint to serve")
-        yield url, key
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
-        sys.stdout.write((base / "serve.log").read_text()[-2000:] if proc.returncode not in (0, -15) else "")
+    with octoprint_server(tmp_path_factory.mktemp("octoprint"), virtual_printer={}) as served:
+        yield served
 
 
 def _gcode(n_layers=6):
@@ -104,7 +50,7 @@ def test_real_octoprint_triggers_and_pause(octoprint):
         bad.status()
     httpx.post(url + "/api/connection", headers=h, json={"command": "connect", "port": "VIRTUAL", "baudrate": 115200,
                                                           "autoconnect": False}, timeout=10).raise_for_status()
-    _until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
+    until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
            30, "virtual printer connection")
     printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
     try:
@@ -113,18 +59,18 @@ def test_real_octoprint_triggers_and_pause(octoprint):
                        data={"select": "true", "print": "true"}, timeout=10)
         r.raise_for_status()
         seen = []
-        _until(lambda: seen.extend(printer.poll_triggers()) or len(seen) >= 2, 40, "two layer triggers")
+        until(lambda: seen.extend(printer.poll_triggers()) or len(seen) >= 2, 40, "two layer triggers")
         assert [t.layer for t in seen[:2]] == [0, 1]
         t0 = seen[1].time
         printer.pause()
         print(f"\nOctoPrint: trigger -> pause request {1000 * (time.monotonic() - t0):.0f} ms (no analysis)")
         states = []
-        _until(lambda: states.append(printer.status().state) or states[-1] == "paused", 20, "job state Paused")
+        until(lambda: states.append(printer.status().state) or states[-1] == "paused", 20, "job state Paused")
         assert set(states) <= {"printing", "pausing", "paused"}, states
         # "paused" now means OctoPrint's exact "Paused" ("Pausing" is its own state; a resume then is ignored)
         assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Paused"
         printer.resume()
-        _until(lambda: printer.status().state == "printing", 20, "job state Printing after resume")
+        until(lambda: printer.status().state == "printing", 20, "job state Printing after resume")
         assert httpx.get(url + "/api/job", headers=h, timeout=2).json()["state"] == "Printing"
         printer.cancel()
     finally:
@@ -141,7 +87,7 @@ def test_real_octoprint_shows_the_reason_and_takes_m486_object_cancels(octoprint
     h = {"X-Api-Key": key}
     httpx.post(url + "/api/connection", headers=h, json={"command": "connect", "port": "VIRTUAL", "baudrate": 115200,
                                                           "autoconnect": False}, timeout=10).raise_for_status()
-    _until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
+    until(lambda: httpx.get(url + "/api/connection", headers=h, timeout=2).json()["current"]["state"] == "Operational",
            30, "virtual printer connection")
     httpx.post(url + "/api/plugin/action_command_notification", headers=h, json={"command": "clear"}, timeout=5)
     printer = OctoPrintPrinter(f"octoprint://{url[7:]}?key={key}")
@@ -150,18 +96,18 @@ def test_real_octoprint_shows_the_reason_and_takes_m486_object_cancels(octoprint
         r = httpx.post(url + "/api/files/local", headers=h, files={"file": ("lw2.gcode", _gcode(40), "application/octet-stream")},
                        data={"select": "true", "print": "true"}, timeout=10)
         r.raise_for_status()
-        _until(lambda: printer.status().state == "printing", 20, "printing")
+        until(lambda: printer.status().state == "printing", 20, "printing")
         ex = ActionExecutor(printer, history=hist, job_id=1)
         obj = PrintObject(1, "cube_1 id:0 copy 0", 1, None, (0.0, 0.0, 5.0, 5.0))
         printer.cancel_object(obj)  # M486 P1: accepted by OctoPrint and sent to the firmware
         done = ex.execute(Decision("pause", "layer 3: anomaly ratio 30% above 2.5% for 2 layers", 3, "spaghetti"))
         assert done.ok
-        _until(lambda: printer.status().state == "paused", 20, "job state Paused")
+        until(lambda: printer.status().state == "paused", 20, "job state Paused")
 
         def notes():
             got = httpx.get(url + "/api/plugin/action_command_notification", headers=h, timeout=5).json()
             return [n["message"] for n in got["notifications"]]
-        _until(lambda: "layerwatch: pause L3 spaghetti" in notes(), 20, "the reason in OctoPrint's notifications")
+        until(lambda: "layerwatch: pause L3 spaghetti" in notes(), 20, "the reason in OctoPrint's notifications")
         (row,) = hist.audit()
         assert (row["action"], row["actor"], row["detail"]["kind"]) == ("pause", "layerwatch", "spaghetti")
         no_labels = PrintObject(0, "part", None, None, (0.0, 0.0, 5.0, 5.0))

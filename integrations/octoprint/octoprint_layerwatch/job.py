@@ -107,8 +107,8 @@ class PluginMonitor(Monitor):
         super().__init__(*args, **kw)
         self.on_result = on_result
 
-    def _finish(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
-        res = super()._finish(trigger, res, top)
+    def finish_layer(self, trigger: SnapshotTrigger, res: LayerResult, top: np.ndarray | None = None) -> LayerResult:
+        res = super().finish_layer(trigger, res, top)
         png = None
         if res.status == "ok" and top is not None and res.heatmap is not None:
             try:

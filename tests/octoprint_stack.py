@@ -1,4 +1,4 @@
-"""A real OctoPrint (the CI's .venv-octoprint) with its virtual printer, for the plugin tests.
+"""A real OctoPrint (the CI's .venv-octoprint) with its virtual printer, for the plugin and monitor tests.
 
 :func:`octoprint_server` writes a fresh basedir (config, admin user, API key), starts
 ``octoprint serve`` on a free port and stops it afterwards. Missing OctoPrint or plugin:
@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 VENV = Path(os.environ.get("LAYERWATCH_OCTOPRINT_VENV", ROOT / ".venv-octoprint"))
 OCTO = VENV / "bin" / "octoprint"
 
@@ -62,18 +62,21 @@ def until(fn: Callable[[], object], deadline_s: float, what: str, every_s: float
 
 
 @contextlib.contextmanager
-def octoprint_server(base: Path, plugins: dict | None = None) -> Iterator[tuple[str, str]]:
+def octoprint_server(base: Path, plugins: dict | None = None,
+                     virtual_printer: dict | None = None) -> Iterator[tuple[str, str]]:
     """Serve a fresh OctoPrint from ``base``; yields ``(url, api_key)``.
 
     ``plugins``: more ``plugins.<id>`` settings. ``serial.log`` is on (``base/logs/serial.log``
-    has every line sent, with its time); the virtual printer answers at once (``throttle`` 1 ms).
+    has every line sent, with its time). ``virtual_printer``: settings of OctoPrint's virtual
+    printer (default: it answers at once, ``throttle`` 1 ms; ``{}`` keeps OctoPrint's pace).
     """
     key = secrets.token_hex(16).upper()
     config = {
         "server": {"firstRun": False, "onlineCheck": {"enabled": False}, "pluginBlacklist": {"enabled": False}},
         "api": {"key": key},
         "serial": {"log": True},
-        "devel": {"virtualPrinter": {"enabled": True, "okAfterResend": False, "throttle": 0.001}},
+        "devel": {"virtualPrinter": {"enabled": True, "okAfterResend": False,
+                                     **({"throttle": 0.001} if virtual_printer is None else virtual_printer)}},
         "plugins": {"tracking": {"enabled": False}, "announcements": {"enabled": False},
                     "softwareupdate": {"checks": {}}, **(plugins or {})},
     }
