@@ -184,3 +184,29 @@ def test_move_threshold_is_above_the_registration_noise():
     for seed in range(10, 15):
         top, ref, foot = _part(seed)
         assert part_motion(top, ref, foot, TOPVIEW).magnitude_mm < MOVE_MIN_MM
+
+
+@pytest.mark.slow
+def test_the_per_layer_step_types_every_region_of_a_simulated_layer_shift():
+    """The pipeline's step types each region; a 3 mm shift is measured within 0.5 mm once it shows."""
+    from layerwatch.pipeline.config import recommended_config
+    from layerwatch.pipeline.step import LayerPipeline
+    from layerwatch.simulate import Failure, PrintSimulator, Scenario, default_camera
+
+    cfg = recommended_config(topview={"center_mm": [110.0, 100.0], "width_mm": 50.0, "height_mm": 50.0})
+    tv = cfg.topview.topview()
+    cam = default_camera(tv, image_size=(960, 540))
+    tp = box_part(size_mm=24.0, height_mm=3.0, layer_h=0.3, center=(110.0, 100.0))
+    shift = Failure("layer_shift", onset=4, size_mm=3.0, seed=1, offset_mm=(3.0, 0.0))
+    sim = PrintSimulator(tp, cam, tv, Scenario((shift,), name="shift"), seed=2)
+    pipe = LayerPipeline(tp, cam, cfg, bed_photo=sim.bed_photo())
+    results = [pipe.process(sim.frame(i).photo, i) for i in range(3, 7)]
+    assert all(r.status == "ok" for r in results)
+    for res in results:
+        for r in (*res.regions, *res.outside_regions):
+            assert r.kind in FAILURE_KINDS and 0 < r.kind_confidence <= 1
+    last = results[-1]
+    assert "typing" in last.timings_ms
+    largest = max((*last.regions, *last.outside_regions), key=lambda q: q.area_mm2)
+    assert largest.kind == "layer_shift" and largest.displacement_mm is not None
+    assert np.hypot(largest.displacement_mm[0] - 3.0, largest.displacement_mm[1]) < 0.5
