@@ -10,21 +10,22 @@ the rendered reference and footprint of the layer, the layer's plan (which
 toolpath features lie under a region) and the regions of the previous
 analysed photo of the same print.
 
-Evidence (per region, all scale-free or in mm, none fitted to the simulator)
----------------------------------------------------------------------------
-* **Whole-part motion** (:func:`part_motion`): the printed part's edges in
-  the top view registered against the reference's edges by phase
-  correlation (translation, sub-pixel) inside the footprint's neighbourhood,
-  then an ECC refinement with a rotation. A part whose top layer sits more
-  than :data:`MOVE_MIN_MM` away from where the plan puts it, with a clear
-  correlation peak, has moved: a *layer shift* (the gantry skipped steps: a
-  pure translation) or, when it also turned by more than
-  :data:`ROTATION_MIN_DEG`, a *detachment* (a part knocked loose turns as it
-  slides). Regions within the moved part's reach take that kind and the
-  displacement.
-* **Where**: the share of the region outside the layer's footprint (material
-  where the plan has none: strands, objects, a moved part) against inside
-  (material missing or disturbed where the plan prints).
+Evidence (per region, all scale-free or in mm)
+----------------------------------------------
+* **Whole-part motion** (:func:`part_motion`): the top layer's edges in the
+  reference registered against the photo's edges in the top view by phase
+  correlation (translation, sub-pixel) inside the footprint's
+  neighbourhood, then a rotation search. A part whose top layer sits at
+  least :data:`MOVE_MIN_MM` away from where the plan puts it has moved: a
+  *layer shift* (the gantry skipped steps: a pure translation) or, when it
+  also turned by :data:`ROTATION_MIN_DEG` or more, a *detachment* (a part
+  knocked loose turns as it slides). Regions within the moved part's reach
+  take that kind and the displacement.
+* **Where**: the share of the region outside the part's closed outline
+  (the footprint with the gaps of sparse infill closed; material where the
+  plan has none: strands, objects, a moved part) against inside (material
+  missing or disturbed where the plan prints). The scene channel's regions
+  beside the printed layer count as outside.
 * **Colour**: the share of the region's pixels that look neither like the
   printed part nor like the bare bed (CIELAB distance, lightness half
   weighted against shading). A foreign body is another material; strands
@@ -42,11 +43,15 @@ Rules
 -----
 Each kind gets a score, a sum of the evidence terms above with unit weights
 (:func:`kind_scores`); the region's kind is the highest, its confidence the
-softmax share of that score. The weights and thresholds are physical
-choices (a bead is ~0.45 mm, a shift below 0.75 mm is within registration
-noise of a 6.67 px/mm top view), not fitted to simulated photos; the
-evaluation reports the resulting confusion matrix on held-out simulated
-prints (``docs/evaluation/report.md``).
+softmax share of that score (temperature 0.5). The weights are unit
+weights and the colour and move thresholds physical choices (a shift below
+0.75 mm is within the registration noise of a 6.67 px/mm top view); the
+registration's peak and rotation constants were set by hand on
+development photos of the simulator, none fitted to the evaluation's
+prints. The evaluation reports the resulting confusion matrix on held-out
+simulated prints (``docs/evaluation/report.md``); on real photos the
+colour and texture evidence is what carries over, the simulator's own
+shading is not used.
 """
 
 from __future__ import annotations
