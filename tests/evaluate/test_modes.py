@@ -72,6 +72,9 @@ def test_summarize_modes_counts_confusion_auroc_and_displacement():
     assert s["auroc"]["spaghetti"] == 1.0
     assert {d: n for d, n, _ in s["since"]["layer_shift"]} == {0: 1, 1: 1, 2: 1}
     assert s["iou"]["layer_shift"] == (pytest.approx(1.0 / 3), 3) and s["iou"]["spaghetti"][1] == 0  # 3 mm: not scored
+    # a 2 mm shift moves the whole layer's outline: it counts in the IoU whatever its displacement
+    small = summarize_modes([*recs[:3], _rec("layer_shift", 0, 0.5, "layer_shift", 0.3, 0.6, size=2.0)], 5.0)
+    assert small["series"]["iou"]["layer_shift"] == (pytest.approx(0.6), 1)
 
 
 def test_report_section_shows_both_modes_and_the_targets():

@@ -136,7 +136,9 @@ def summarize_modes(records: list, min_iou_size_mm: float) -> dict:
     records : list of LayerRecord
         Records with ``modes`` filled (:func:`~layerwatch.evaluate.harness.run_evaluation`).
     min_iou_size_mm : float
-        Failures at least this large count in the IoU.
+        Failures at least this large count in the IoU. A layer shift's or a
+        detachment's size is its displacement, but its failed region is the
+        layer's whole outline (tens of mm): those always count.
 
     Returns
     -------
@@ -166,7 +168,7 @@ def summarize_modes(records: list, min_iou_size_mm: float) -> dict:
             conf[r.kind][m.kind if m.kind in conf[r.kind] else "unknown"] += 1
             if r.kind in disp and m.displacement_error_mm is not None:
                 disp[r.kind].append(m.displacement_error_mm)
-            if m.iou is not None and r.size_mm >= min_iou_size_mm:
+            if m.iou is not None and (r.size_mm >= min_iou_size_mm or r.kind in MOVED_KINDS):
                 ious[r.kind].append(m.iou)
         out[mode] = {
             "auroc": {t: roc_auc(score[kinds == t], clean) for t in types},

@@ -233,7 +233,7 @@ def _mode_targets(m: dict, clean_run: dict | None) -> list[str]:
                      + ", ".join(f"{t} {_fmt(v, nd=3)}" for t, v in weak.items()) + f" | {'yes' if ok else 'no'} |")
         ious = {t: m["series"]["iou"][t] for t in _STRONG_TYPES if t in m["series"]["iou"]}
         ok = all(n and v >= 0.5 for v, n in ious.values())
-        L.append("| IoU (failures >= 5 mm, series mode) | >= 0.5 | "
+        L.append("| IoU (failures >= 5 mm; every shift and detachment, series mode) | >= 0.5 | "
                  + ", ".join(f"{t} {_fmt(v)} (n {n})" for t, (v, n) in ious.items()) + f" | {'yes' if ok else 'no'} |")
         err = np.asarray(m["series"]["displacement"].get("layer_shift", []), float)
         if err.size:
