@@ -26,12 +26,14 @@ Evidence (per region, all scale-free or in mm)
   plan has none: strands, objects, a moved part) against inside (material
   missing or disturbed where the plan prints). The scene channel's regions
   beside the printed layer count as outside.
-* **Colour**: the share of the region's pixels that look neither like the
-  printed part nor like the bare bed (CIELAB distance, lightness half
-  weighted against shading). A foreign body is another material; strands
-  and a pit in the infill are the part's own filament.
+* **Colour**: how far the region's material (its pixels unlike the bare
+  bed) lies from the printed part's colour (median CIELAB distance,
+  lightness half weighted against shading). A foreign body is another
+  material; strands and a pit in the infill are the part's own filament.
 * **Texture**: mean edge strength of the photo against the reference in the
-  region (strands add many thin edges; a missing patch removes lines).
+  region; beside the part (where the reference is bare bed) many thin
+  edges are strands. Inside the part it is no evidence: a pit shows the
+  layers below, as many edges as strands on the part.
 * **Plan under it**: the share of wall segments (perimeters) against infill
   segments of the layer's G-code inside the region: a gap in a wall is a
   *thin-wall* defect, one in the infill an *infill defect*.
@@ -84,6 +86,8 @@ MOVE_MAX_MM = 12.0
 ROTATIONS_DEG = np.arange(-10.0, 10.01, 1.0)
 #: CIELAB distance (lightness half weighted) above which a pixel is unlike a reference colour
 COLOUR_DELTA = 22.0
+#: median CIELAB distance of a region's material from the part: 0 (the part's filament) to 1 (another material)
+PART_DELTA = (20.0, 40.0)
 
 _WALL = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -265,7 +269,7 @@ class RegionEvidence:
     outside : float
         Share of the region outside the layer's footprint, 0-1.
     foreign : float
-        Share of its pixels unlike both the printed part and the bed (colour), 0-1.
+        How unlike the printed part its material is (colour), 0 (the part's filament) to 1.
     texture : float
         log2 of the photo's mean edge strength over the reference's in the region.
     wall : float
@@ -350,6 +354,25 @@ def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float
     return 0.5 if walls + infill == 0 else walls / (walls + infill)
 
 
+def _unlike_part(lab: np.ndarray, scene: _Scene) -> float:
+    """How unlike the printed part the region's material is, 0-1 (:data:`PART_DELTA` ramp of the median CIELAB distance).
+
+    The material is the pixels unlike the bare bed when they are at least
+    5 % of the region (a few strands over the bed), else all its pixels (an
+    object the colour of the bed).
+    """
+    if scene.part_colour is None or len(lab) == 0:
+        return 0.0
+    if scene.bed_colour is not None:
+        material = _unlike(lab, scene.bed_colour)
+        if material.mean() >= 0.05:
+            lab = lab[material]
+    d = lab - scene.part_colour
+    dist = float(np.median(np.sqrt((0.5 * d[:, 0]) ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)))
+    lo, hi = PART_DELTA
+    return float(np.clip((dist - lo) / (hi - lo), 0.0, 1.0))
+
+
 def region_evidence(r: Region, scene: _Scene, wall: float, motion: PartMotion, outside: float) -> RegionEvidence:
     """Measure a region's evidence (module notes) in the photo of ``scene``."""
     box = scene.box(r)
@@ -357,12 +380,7 @@ def region_evidence(r: Region, scene: _Scene, wall: float, motion: PartMotion, o
     if box is not None:
         seen = scene.valid[box]
         if seen.any():
-            lab = scene.lab[box][seen]
-            unlike = np.ones(len(lab), bool)
-            for colour in (scene.part_colour, scene.bed_colour):
-                if colour is not None:
-                    unlike &= _unlike(lab, colour)
-            foreign = float(unlike.mean())
+            foreign = _unlike_part(scene.lab[box][seen], scene)
             texture = float(np.log2((scene.top_e[box][seen].mean() + 1.0) / (scene.ref_e[box][seen].mean() + 1.0)))
     near = False
     if motion.moved:
@@ -384,18 +402,20 @@ def kind_scores(e: RegionEvidence, motion: PartMotion) -> dict[str, float]:
         ``infill_defect``, ``thin_wall``; higher = more likely.
     """
     grew = 0.0 if not np.isfinite(e.growth) else float(np.clip(e.growth / 0.6, -1.0, 1.0))
-    added = e.outside + float(np.clip(e.texture, 0.0, 1.0))
+    edges = float(np.clip(e.texture, 0.0, 1.0))
     moved = 0.0
     if e.near_moved_part:
-        moved = 2.0 + min(motion.magnitude_mm / MOVE_MIN_MM, 3.0) / 3.0
+        moved = 2.5 + min(motion.magnitude_mm / MOVE_MIN_MM, 3.0) / 3.0
     turned = 1.0 if motion.turned else -1.0
+    inside = 1.0 - e.outside
+    # edges count for strands beside the part only: a pit in the part also shows more edges (the layers below)
     return {
-        "spaghetti": added + float(np.clip(e.texture, 0.0, 1.0)) + grew - 2.0 * e.foreign,
-        "foreign_body": added + 3.0 * e.foreign - max(grew, 0.0) - float(np.clip(e.texture - 0.5, 0.0, 1.0)),
+        "spaghetti": e.outside * (1.0 + edges) + 0.5 * edges + grew - 2.0 * e.foreign,
+        "foreign_body": e.outside + 3.0 * e.foreign - max(grew, 0.0),
         "detachment": moved + (0.75 * turned if moved else 0.0),
         "layer_shift": moved - (0.75 * turned if moved else 0.0),
-        "infill_defect": 2.0 * (1.0 - e.outside) * (1.0 - e.wall) - float(np.clip(e.texture, 0.0, 1.0)) - e.foreign,
-        "thin_wall": 2.0 * (1.0 - e.outside) * e.wall - float(np.clip(e.texture, 0.0, 1.0)) - e.foreign,
+        "infill_defect": 2.0 * inside * (1.0 - e.wall) - e.foreign,
+        "thin_wall": 2.0 * inside * e.wall - e.foreign,
     }
 
 
