@@ -65,6 +65,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from layerwatch.analysis.failure_kinds import UNKNOWN
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
@@ -479,14 +480,24 @@ class FailureTyper:
         Returns
         -------
         PartMotion or None
-            The registration (None when there was no region to type: nothing is measured then).
+            The registration; None when there was no region to type (nothing
+            is measured then) or the images could not be read (every region
+            ``"unknown"``, confidence 0, said in ``res.message``).
         """
         regions = [*res.regions, *res.outside_regions]
         if not regions:
             self.previous = []
             return None
-        motion = part_motion(top, reference, footprint, self.topview, valid)
-        scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid)
+        try:
+            motion = part_motion(top, reference, footprint, self.topview, valid)
+            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid)
+        except (cv2.error, ValueError, IndexError) as exc:  # odd images: the regions stay reported, untyped
+            for r in regions:
+                r.kind, r.kind_confidence, r.displacement_mm = UNKNOWN, 0.0, None
+            note = f"failure typing skipped ({type(exc).__name__})"
+            res.message = f"{res.message}; {note}" if res.message else note
+            self.previous = regions
+            return None
         for r in regions:
             outside = 1.0 if any(r is q for q in res.outside_regions) else scene.outside(r)
             e = region_evidence(r, scene, _plan_wall_share(self.toolpath, res.layer, r.bbox_mm), motion, outside)
