@@ -215,7 +215,7 @@ def test_the_per_layer_step_types_every_region_of_a_simulated_layer_shift():
 def test_typer_marks_regions_unknown_when_the_images_cannot_be_read():
     top, ref, foot = _part(9)
     res = LayerResult(layer=2, z=0.9, outside_regions=[_region(122.0, 96.0, 126.0, 104.0)])
-    four = np.dstack([_colour(top), top])  # a 4-channel "colour" top view: no CIELAB conversion
-    FailureTyper(None, TOPVIEW).type_result(res, four, top, ref, foot)
+    two = np.dstack([top, top])  # a 2-channel "colour" top view: no CIELAB conversion
+    FailureTyper(None, TOPVIEW).type_result(res, two, top, ref, foot)
     r = res.outside_regions[0]
     assert r.kind == "unknown" and r.kind_confidence == 0.0 and "failure typing skipped" in res.message
