@@ -76,6 +76,15 @@ def test_run_evaluation_small(job, tmp_path):
     for t, rows in s.auc_surface.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
     assert 0.0 <= s.clean_flat_share <= 1.0
+    # every photo is scored in both modes; every failure is typed or reported missed
+    from layerwatch.analysis.failure_kinds import FAILURE_KINDS
+    from layerwatch.evaluate.modes import MISSED
+
+    assert all(set(r.modes) == {"single", "series"} for r in data.records)
+    assert {r.modes[m].kind for r in data.records if r.kind != "clean" for m in r.modes} <= {*FAILURE_KINDS, MISSED}
+    assert set(s.modes) == {"single", "series"}
+    for f in s.modes.values():
+        assert sum(sum(row.values()) for row in f["confusion"].values()) == sum(s.n_failed.values())
     # a fixed setting's figures (the configured one) agree with the summary's at the same setting
     from layerwatch.evaluate.summary import at_setting
 
@@ -108,14 +117,31 @@ def test_clean_false_alarms_counts(job):
 
     tp, cam, _, _ = job
     cfg = recommended_config()  # the monitor's policy with the recommended analysis: no pause on a clean print
-    never = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=1.0)
+    never = clean_false_alarms(tp, cfg, cam, n_layers=8, pause_ratio=1.0, window_share=0.0)
     assert never["prints"] == 1 and never["layers"] == tp.n_layers
     assert never["layer_alarms"] == 0 and never["pauses"] == 0 and never["policy_alarms"] == 0
     # every block anomalous (T_S = 1): every judged layer alarms and the policy pauses once
     everything = recommended_config(analysis={"threshold": 1.0})
-    always = clean_false_alarms(tp, everything, cam, n_layers=8, pause_ratio=0.0)
+    always = clean_false_alarms(tp, everything, cam, n_layers=8, pause_ratio=0.0, window_share=0.0)
     assert always["layer_alarms"] == tp.n_layers - 1 and always["pauses"] == 1
     assert always["policy_alarms"] >= 1  # the pause itself (and the notice before it)
+    assert len(always["parts"]) == 1  # window_share 0: the part alone
+
+
+@pytest.mark.slow
+def test_clean_prints_include_the_window_part(job):
+    """A share of the clean layers are prints of the window part (window, bridge, overhang), counted per part."""
+    from layerwatch.evaluate.harness import clean_false_alarms
+    from layerwatch.pipeline.config import recommended_config
+
+    tp, cam, _, _ = job
+    cfg = recommended_config()
+    run = clean_false_alarms(tp, cfg, cam, n_layers=20, pause_ratio=1.0, window_share=0.5)
+    assert list(run["parts"])[1] == "window part"
+    window = run["parts"]["window part"]
+    assert window["prints"] == 1 and window["layers"] == 70  # the whole window part, every layer analysed
+    assert run["layers"] == sum(p["layers"] for p in run["parts"].values())
+    assert run["pauses"] == 0 and len(run["a"]) == run["layers"]
 
 
 def test_grown_iou_scores_what_the_overlay_draws(job):

@@ -25,7 +25,7 @@ from layerwatch.analysis.scoring import grey_u8
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "block_tiles", "anomalous_blocks"]
+__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "block_tiles", "anomalous_blocks", "region_label"]
 
 _CMAP = "RdYlGn"
 _FOOTPRINT_RGB = (0, 220, 255)
@@ -171,11 +171,26 @@ def overlay_image(
         text = f"layer {result.layer}  {result.metric} < {result.threshold:.2f}  a% = {100 * result.anomaly_ratio:.1f}"
         if result.outside_anomalous_mm2 > 0:
             text += f"  beside {result.outside_anomalous_mm2:.0f} mm2"
+        kind = region_label(result)
+        if kind:
+            text += f"  {kind}"
         scale = max(0.35, min(shape) / 1200)
         (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
         cv2.rectangle(img, (0, 0), (tw + 8, th + base + 8), (0, 0, 0), -1)
         cv2.putText(img, text, (4, th + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
     return img
+
+
+def region_label(result: LayerResult) -> str:
+    """The largest typed region's kind, confidence and displacement, e.g. ``"layer_shift 0.93 (2.1, -0.4) mm"``; ``""`` if none."""
+    typed = [r for r in (*result.regions, *result.outside_regions) if r.kind]
+    if not typed:
+        return ""
+    r = max(typed, key=lambda q: q.area_mm2)
+    text = f"{r.kind} {r.kind_confidence:.2f}"
+    if r.displacement_mm is not None:
+        text += f" ({r.displacement_mm[0]:.1f}, {r.displacement_mm[1]:.1f}) mm"
+    return text
 
 
 def heatmap_image(result: LayerResult, scale: int = 8) -> np.ndarray:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,12 +36,14 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import anomaly_ratio, block_hogs, grow_regions, growth_reach
 from layerwatch.analysis.settings import METRIC_NAMES
 from layerwatch.errors import AnalysisError
+from layerwatch.evaluate.modes import MODES, ModeScore, mode_score
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.step import LayerPipeline, judge_layers
 from layerwatch.simulate import FAILURE_TYPES, PrintSimulator, Scenario, random_scenarios
+from layerwatch.simulate.parts import window_part
 
 __all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "score_layer", "surface_under",
            "tile_fraction"]
@@ -81,6 +84,9 @@ class LayerRecord:
         0 when the channel is off.
     printed_mm2 : float
         The layer's printed area ``S_P`` (eq. 5), mm^2.
+    modes : dict of str to ModeScore
+        The photo's whole-view score, IoU, failure kind and displacement error in each mode
+        (:mod:`layerwatch.evaluate.modes`: ``"series"``, ``"single"``).
     """
 
     scenario: str
@@ -95,6 +101,7 @@ class LayerRecord:
     surface: str = ""
     outside_mm2: float = 0.0
     printed_mm2: float = 0.0
+    modes: dict[str, ModeScore] = field(default_factory=dict)
 
 
 #: toolpath features counted as a solid surface / as sparse infill by :func:`surface_under`
@@ -284,6 +291,7 @@ def run_evaluation(
     progress: Callable[[int, int], None] | None = None,
     match_camera: bool = False,
     beside_share: float = 0.0,
+    modes: tuple[str, ...] = MODES,
 ) -> EvalData:
     """Simulate about ``n_layers`` layer photos and score them (see module notes).
 
@@ -303,6 +311,10 @@ def run_evaluation(
         Camera-matched references (see :class:`~layerwatch.pipeline.step.LayerPipeline`).
     beside_share : float
         Share of the foreign bodies and spaghetti placed on the bed beside the part.
+    modes : tuple of str
+        Modes scored per photo (:mod:`layerwatch.evaluate.modes`): ``"series"`` is the
+        sweep's own pipeline; ``"single"`` runs each photo again through a second
+        pipeline that forgets the print before every photo (bed photo only).
 
     Returns
     -------
@@ -323,30 +335,75 @@ def run_evaluation(
         if t not in planned:
             data.errors.append(f"{t}: not injected, no layer of this part can take it (e.g. no infill or no "
                                "perimeters marked in the G-code); not scored")
+    data.setup["modes"] = list(modes)
     pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
+    single = (LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
+              if "single" in modes else None)
     done = 0
     for k, (scen, layers) in enumerate(plan):
         sim = PrintSimulator(toolpath, camera, tv, scen, seed=seed * 1000 + k)
-        pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)  # each print its own scene
+        bed = sim.bed_photo()
+        pipe.new_print(bed if pipe.scene is not None else None)  # each print its own scene
         size = scen.failures[0].size_mm if scen.failures else 0.0
+        moved = sim.failures[0].offset if scen.failures and scen.failures[0].type in ("layer_shift", "detachment") else None
         for i in layers:
             frame = sim.frame(i)
             res, scores = score_layer(pipe, frame, i)
             if scores is None:  # reported, the run continues
                 data.errors.append(f"{scen.name} layer {i}: {res.message}")
                 continue
+            by_mode = {"series": mode_score(res, frame.truth_area, tv, moved)} if "series" in modes else {}
+            if single is not None:  # the same photo with nothing of the print before it
+                single.new_print(bed if single.scene is not None else None)
+                by_mode["single"] = mode_score(single.process(frame.photo, i), frame.truth_area, tv, moved)
             a, iou, clean_high, region = scores
             kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
             since = int(i) - scen.failures[0].onset if kind != "clean" else -1
             surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
             data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
                                             a, iou, clean_high, region, since, surface,
-                                            float(res.outside_anomalous_mm2), float(res.printed_area_mm2)))
+                                            float(res.outside_anomalous_mm2), float(res.printed_area_mm2),
+                                            by_mode))
             done += 1
             if progress is not None:
                 progress(done, total)
     data.seconds = time.perf_counter() - t0
     return data
+
+
+#: the counts of :func:`clean_false_alarms`, per part and in all
+_CLEAN_COUNTS = ("layers", "prints", "layer_alarms", "policy_alarms", "pauses", "outside_layers")
+
+
+def _clean_prints(toolpath: Toolpath, config: JobConfig, camera: CameraModel, prints: int, policy_settings,
+                  seed: int, tick: Callable[[], None]) -> dict:
+    """Run ``prints`` whole clean prints of ``toolpath`` through the step and the policy; the counts of :func:`clean_false_alarms`."""
+    tv = config.topview.topview()
+    pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
+    out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"prints": prints, "max_a": 0.0, "a": [],
+                                                          "max_outside_mm2": 0.0}
+    for k in range(prints):
+        sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
+        pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
+        paused = False
+        photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
+        for res, decision in judge_layers(pipe, PausePolicy(policy_settings), photos):
+            tick()
+            if res.status != "ok":
+                continue
+            out["layers"] += 1
+            out["a"].append(float(res.anomaly_ratio))
+            out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
+            out["outside_layers"] += int(res.outside_anomalous_mm2 > 0)
+            out["max_outside_mm2"] = max(out["max_outside_mm2"], float(res.outside_anomalous_mm2))
+            if res.layer >= policy_settings.skip_first_layers:
+                out["layer_alarms"] += int(res.anomaly_ratio > policy_settings.pause_ratio)
+            if not paused:  # after a pause the policy waits for the operator: nothing more to count
+                out["policy_alarms"] += int(decision.action != "none")
+            if decision.stops and not paused:
+                out["pauses"] += 1
+                paused = True
+    return out
 
 
 def clean_false_alarms(
@@ -358,6 +415,7 @@ def clean_false_alarms(
     consecutive: int = 2,
     seed: int = 100,
     progress: Callable[[int, int], None] | None = None,
+    window_share: float = 0.25,
 ) -> dict:
     """Simulate whole clean prints (about ``n_layers`` photos) and count false alarms.
 
@@ -367,44 +425,44 @@ def clean_false_alarms(
     ``config.policy`` and that pause ratio and ``consecutive`` layers (a%
     above the ratio on consecutive layers with overlapping regions, or a
     strong event of material outside the part), counted once per print.
+    Prints run in series mode (one pipeline per print, as the monitor does).
+
+    ``window_share`` of the layers are prints of the simulator's
+    :func:`~layerwatch.simulate.parts.window_part` (a hollow box with a window
+    through its wall, a bridge and an overhang: what a height-map reference
+    cannot hold), centred on the observed square; the rest are prints of ``toolpath``.
 
     Returns
     -------
     dict
         ``layers``, ``prints``, ``layer_alarms`` (a% above the ratio), ``policy_alarms``
         (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list),
-        ``outside_layers`` (layers with any scene-channel change beside the print), ``max_outside_mm2``.
+        ``outside_layers`` (layers with any scene-channel change beside the print), ``max_outside_mm2``,
+        and ``parts``: the same counts per part (``{name: {...}}``, without ``a``).
     """
     config = config.for_camera(camera)  # the pipeline's top view
-    tv = config.topview.topview()
-    pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
     policy_settings = config.policy.model_copy(update={"pause_ratio": float(pause_ratio),
                                                        "consecutive_layers": int(consecutive)})
-    prints = max(1, int(round(n_layers / toolpath.n_layers)))
-    out: dict[str, Any] = {"layers": 0, "prints": prints, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0,
-                           "max_a": 0.0, "a": [], "outside_layers": 0, "max_outside_mm2": 0.0}
-    done = 0
-    for k in range(prints):
-        sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
-        pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
-        paused = False
-        photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
-        for res, decision in judge_layers(pipe, PausePolicy(policy_settings), photos):
-            done += 1
-            if progress is not None:
-                progress(done, prints * toolpath.n_layers)
-            if res.status != "ok":
-                continue
-            out["layers"] += 1
-            out["a"].append(float(res.anomaly_ratio))
-            out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
-            out["outside_layers"] += int(res.outside_anomalous_mm2 > 0)
-            out["max_outside_mm2"] = max(out["max_outside_mm2"], float(res.outside_anomalous_mm2))
-            if res.layer >= policy_settings.skip_first_layers:
-                out["layer_alarms"] += int(res.anomaly_ratio > pause_ratio)
-            if not paused:  # after a pause the policy waits for the operator: nothing more to count
-                out["policy_alarms"] += int(decision.action != "none")
-            if decision.stops and not paused:
-                out["pauses"] += 1
-                paused = True
+    share = min(max(float(window_share), 0.0), 1.0)
+    parts = [(Path(str(toolpath.source)).name or "part", toolpath, n_layers * (1.0 - share))]
+    if share > 0:
+        parts.append(("window part", window_part(center=(float(config.topview.center_mm[0]), float(config.topview.center_mm[1]))), n_layers * share))
+    plan = [(name, tp, max(1, int(round(n / tp.n_layers)))) for name, tp, n in parts if n > 0]
+    total = sum(p * tp.n_layers for _, tp, p in plan)
+    done = [0]
+
+    def tick() -> None:
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total)
+
+    out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"max_a": 0.0, "a": [], "max_outside_mm2": 0.0, "parts": {}}
+    for k, (name, tp, prints) in enumerate(plan):
+        got = _clean_prints(tp, config, camera, prints, policy_settings, seed + 1000 * k, tick)
+        for key in _CLEAN_COUNTS:
+            out[key] += got[key]
+        out["a"] += got.pop("a")
+        out["max_a"] = max(out["max_a"], got["max_a"])
+        out["max_outside_mm2"] = max(out["max_outside_mm2"], got["max_outside_mm2"])
+        out["parts"][name] = got
     return out

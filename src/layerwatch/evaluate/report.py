@@ -208,6 +208,105 @@ def _targets(s: Summary, clean_run: dict | None) -> list[str]:
     return L
 
 
+#: issue 18's targets: AUROC per type (both modes; infill and thin wall in series mode), IoU, displacement
+_STRONG_TYPES = ("foreign_body", "spaghetti", "detachment", "layer_shift")
+_WEAK_TYPES = ("infill_defect", "thin_wall")
+
+
+def _mode_targets(m: dict, clean_run: dict | None) -> list[str]:
+    """Issue 18's targets table from the per-mode figures (and the whole clean prints when run)."""
+    L = ["| target | goal | measured | met |", "|---|---|---|---|"]
+    for mode in ("single", "series"):
+        if mode not in m:
+            continue
+        auc = m[mode]["auroc"]
+        strong = {t: auc[t] for t in _STRONG_TYPES if t in auc}
+        if strong:
+            ok = all(np.isfinite(v) and v >= 0.97 for v in strong.values())
+            L.append(f"| AUROC {mode} mode: foreign body, spaghetti, detachment, layer shift | >= 0.97 | "
+                     + ", ".join(f"{t} {_fmt(v, nd=3)}" for t, v in strong.items()) + f" | {'yes' if ok else 'no'} |")
+    if "series" in m:
+        weak = {t: m["series"]["auroc"][t] for t in _WEAK_TYPES if t in m["series"]["auroc"]}
+        if weak:
+            ok = all(np.isfinite(v) and v >= 0.85 for v in weak.values())
+            L.append("| AUROC series mode: infill, thin wall | >= 0.85 | "
+                     + ", ".join(f"{t} {_fmt(v, nd=3)}" for t, v in weak.items()) + f" | {'yes' if ok else 'no'} |")
+        ious = {t: m["series"]["iou"][t] for t in _STRONG_TYPES if t in m["series"]["iou"]}
+        ok = all(n and v >= 0.5 for v, n in ious.values())
+        L.append("| IoU (failures >= 5 mm; every shift and detachment, series mode) | >= 0.5 | "
+                 + ", ".join(f"{t} {_fmt(v)} (n {n})" for t, (v, n) in ious.items()) + f" | {'yes' if ok else 'no'} |")
+        err = np.asarray(m["series"]["displacement"].get("layer_shift", []), float)
+        if err.size:
+            L.append(f"| layer-shift displacement error (series mode) | <= 0.5 mm | median {np.median(err):.2f} mm, "
+                     f"{100 * np.mean(err <= 0.5):.0f} % of {err.size} typed layer shifts within 0.5 mm, "
+                     f"90th percentile {np.percentile(err, 90):.2f} mm | {'yes' if np.percentile(err, 90) <= 0.5 else 'no'} |")
+    if clean_run:
+        n = clean_run["layers"]
+        L.append(f"| false pauses in >= 3000 clean layers (series mode) | 0 | {clean_run['pauses']} in {n} layers "
+                 f"| {'yes' if clean_run['pauses'] == 0 and n >= 3000 else ('no' if clean_run['pauses'] else 'not shown: fewer than 3000 layers')} |")
+        rate, up = false_alarm_rate(clean_run["layer_alarms"], n)
+        L.append(f"| single-layer alarms (a% above the pause ratio) | <= 1 / 1000 | {rate:.2f} / 1000 "
+                 f"({clean_run['layer_alarms']} in {n}; 95 % bound {up:.1f}) | {'yes' if rate <= 1 else 'no'} |")
+    return L
+
+
+def _modes(s: Summary, clean_run: dict | None) -> list[str]:
+    """The section on single-photo and series modes: targets, AUROC by onset, IoU, confusion matrix, displacement."""
+    m = s.modes
+    if not m:
+        return []
+    L = ["## Single-photo and series modes (configured setting)", "",
+         "Each simulated photo is judged twice with the configured setting: in **series mode** (one pipeline per "
+         "print, fed its photos in order, as the monitor runs: the scene channel compares each photo with the "
+         "print's own history, the failure typer sees the previous photo's regions) and in **single-photo mode** "
+         "(the pipeline forgets the print before every photo: rendered reference and empty-bed photo only). "
+         "The layer score is the whole-view score: a% (eq. 5) plus the area changed beside the printed layer "
+         "over the printed area.", ""]
+    L += _mode_targets(m, clean_run) + [""]
+    for mode in ("single", "series"):
+        if mode not in m:
+            continue
+        f = m[mode]
+        types = list(f["auroc"])
+        depths = sorted({d for rows in f["since"].values() for d, _, _ in rows})
+        L += [f"### {mode} mode", "", f"Clean photos: {f['n_clean']}; photos the pipeline refused: {f['errors']}.", "",
+              "AUROC by layers since the failure's onset (n in brackets; -1 is the layer before it, "
+              "a clean negative, not listed):", "",
+              "| type | all | " + " | ".join(f"+{d}" for d in depths) + " | IoU >= 5 mm (n) |",
+              "|---|---:|" + "---:|" * len(depths) + "---:|"]
+        for t in types:
+            by = {d: (n, a) for d, n, a in f["since"][t]}
+            v, n = f["iou"][t]
+            L.append(f"| {t} | {_fmt(f['auroc'][t], nd=3)} | "
+                     + " | ".join(f"{_fmt(by[d][1])} ({by[d][0]})" if d in by else "" for d in depths)
+                     + f" | {_fmt(v)} ({n}) |")
+        cols = f["kinds"]
+        L += ["", "Failure type confusion (rows: the simulated failure; columns: the kind of the region covering "
+              "most of it; `missed`: no region covers it):", "",
+              "| true \\ typed | " + " | ".join(cols) + " | correct |", "|---|" + "---:|" * (len(cols) + 1)]
+        for t in types:
+            row = f["confusion"][t]
+            tot = sum(row.values())
+            found = tot - row.get("missed", 0)
+            L.append(f"| {t} | " + " | ".join(str(row[c]) for c in cols)
+                     + f" | {_fmt(row.get(t, 0) / found if found else float('nan'), True)} % of {found} found |")
+        for t, err in f["displacement"].items():
+            e = np.asarray(err, float)
+            if e.size:
+                L.append(f"\n{t} displacement error (typed regions reporting one): median {np.median(e):.2f} mm, "
+                         f"{100 * np.mean(e <= 0.5):.0f} % within 0.5 mm, n {e.size}.")
+        L.append("")
+    if clean_run and clean_run.get("parts"):
+        L += ["Whole clean prints by part (series mode, configured setting):", "",
+              "| part | prints | layers | single-layer alarms | policy alerts | pauses | layers with a change beside the print |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
+        for name, c in clean_run["parts"].items():
+            L.append(f"| {name} | {c['prints']} | {c['layers']} | {c['layer_alarms']} | {c['policy_alarms']} | "
+                     f"{c['pauses']} | {c['outside_layers']} |")
+        L.append("")
+    return L
+
+
 def _configured(configured: dict | None) -> list[str]:
     """The configured setting's own section (empty without it)."""
     L: list[str] = []
@@ -294,7 +393,7 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = _charts(s, out)
-    L = _header(s, setup, seconds) + _targets(s, clean_run) + _configured(configured) + _per_measure(s)
+    L = _header(s, setup, seconds) + _targets(s, clean_run) + _modes(s, clean_run) + _configured(configured) + _per_measure(s)
     L += _DEFINITIONS_AND_LIMITS
     L += ["## Charts", ""] + [f"![{f}]({f})" for f in files] + [""]
     L += ["## Set-up", "", "```", *(f"{k}: {v}" for k, v in setup.items()), "```", ""]

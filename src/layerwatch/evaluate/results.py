@@ -24,7 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from layerwatch.analysis.overlay import overlay_image
+from layerwatch.analysis.overlay import overlay_image, region_label
 from layerwatch.analysis.result import LayerResult
 from layerwatch.geometry.stack import layer_stack
 from layerwatch.geometry.topview import TopView
@@ -124,7 +124,7 @@ class ResultsFolder:
             rows.append({
                 "layer": layer, "z": res.z, "status": res.status,
                 "anomaly_ratio": None if res.status != "ok" else round(float(res.anomaly_ratio), 4),
-                "regions": len(res.regions), "message": res.message,
+                "regions": len(res.regions), "kind": region_label(res), "message": res.message,
                 "ms": round(float(res.timings_ms.get("total", 0.0)), 1),
             })
         summary = {
@@ -141,11 +141,12 @@ class ResultsFolder:
             lines.append(f"- {k}: {v}")
         lines.append(f"- paused at layer: {paused_at if paused_at is not None else 'never'}"
                      + (f" ({reason})" if reason else ""))
-        lines += ["", "| layer | z (mm) | status | a% | regions | ms | note |", "|---:|---:|---|---:|---:|---:|---|"]
+        lines += ["", "| layer | z (mm) | status | a% | regions | failure | ms | note |",
+                  "|---:|---:|---|---:|---:|---|---:|---|"]
         for r in rows:
             a = "" if r["anomaly_ratio"] is None else f"{100 * r['anomaly_ratio']:.1f}"
             mark = " **pause**" if paused_at == r["layer"] else ""
-            lines.append(f"| {r['layer']} | {r['z']:.2f} | {r['status']}{mark} | {a} | {r['regions']} | "
+            lines.append(f"| {r['layer']} | {r['z']:.2f} | {r['status']}{mark} | {a} | {r['regions']} | {r['kind']} | "
                          f"{r['ms']} | {r['message']} |")
         _atomic_write(self.root / "summary.md", ("\n".join(lines) + "\n").encode())
         return summary

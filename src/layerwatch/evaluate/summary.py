@@ -20,6 +20,7 @@ from typing import cast
 import numpy as np
 
 from layerwatch.evaluate.harness import EvalData
+from layerwatch.evaluate.modes import summarize_modes
 from layerwatch.evaluate.stats import discriminative_power, false_alarm_rate, roc_auc
 from layerwatch.simulate import FAILURE_TYPES
 
@@ -60,6 +61,7 @@ class Summary:
     scores: dict               # raw a% arrays of the recommended setting: {"clean": ..., type: ...}
     auc_since: dict            # recommended setting: {type: [(layers since onset, n layers, AUROC), ...]}
     auc_surface: dict = field(default_factory=dict)  # recommended setting: {type: [(surface under the failure, n layers, AUROC), ...]}
+    modes: dict = field(default_factory=dict)  # configured setting per mode (:func:`~layerwatch.evaluate.modes.summarize_modes`)
 
 
 def _auc_region(recs: list, kinds: np.ndarray, types: tuple[str, ...], best_t: np.ndarray) -> np.ndarray:
@@ -171,6 +173,7 @@ def summarize(data: EvalData) -> Summary:
         clean_flat_share=flat / tot if tot else float("nan"),
         clean_textured_share=(hi - flat) / (tot - flat) if tot > flat else float("nan"),
         auc_region=auc_region, auc_since=auc_since, auc_surface=auc_surface,
+        modes=summarize_modes(recs, IOU_MIN_SIZE_MM),
     )
 
 

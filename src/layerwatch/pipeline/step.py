@@ -23,7 +23,11 @@ G-code (toolpath), camera pose and config are known:
    seeded by the empty-bed photo when given); what changed there is
    ``outside_anomalous_mm2`` and ``outside_regions`` (bed mm) of the result,
    beside a% (which stays eq. 5 over the printed area). A frame that does not
-   show the scene at all is rejected like a frame-gate rejection.
+   show the scene at all is rejected like a frame-gate rejection;
+5. **type** every failing region (``regions`` and ``outside_regions``):
+   its kind, confidence and, for a moved part, the displacement in mm
+   (:class:`~layerwatch.analysis.failure_typing.FailureTyper`; only on
+   layers with a region, ``timings_ms["typing"]``).
 
 This is the one per-layer step: the monitor, ``analyze``, the demo and the
 evaluation harness (which sweeps other measures and thresholds over the
@@ -58,6 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
+from layerwatch.analysis.failure_typing import FailureTyper
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
@@ -178,6 +183,8 @@ class LayerPipeline:
         #: the scene channel's model (``None`` when ``[scene] enabled`` is off)
         self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo)
                       if self.config.scene.enabled else None)
+        #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
+        self.typer = FailureTyper(toolpath, self.topview)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -257,6 +264,7 @@ class LayerPipeline:
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
         """Forget the scene of the previous print (the scene channel starts again from ``bed_photo``)."""
         self.previous_photo = None
+        self.typer.reset()
         if self.scene is not None:
             self.scene.reset(bed_photo)
 
@@ -285,10 +293,15 @@ class LayerPipeline:
         LayerwatchError
             The photo cannot be warped or shows nothing of the observed area.
         """
+        _, top, valid = self._top_views(photo, z)
+        return top, valid
+
+    def _top_views(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`top_view` with the colour top view first (as warped, for the failure typing's colour evidence)."""
         top, valid = self.warper.warp(photo, z)
         if not valid.any():
             raise LayerwatchError("the photo does not show the observed area; check the camera pose.")
-        return grey_u8(top), valid
+        return top, grey_u8(top), valid
 
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """Analyse the photo taken after layer ``layer_index``: the per-layer step.
@@ -332,13 +345,16 @@ class LayerPipeline:
                     return res
             t1 = time.perf_counter()
             timings["reference"] = (t1 - t0) * 1e3 - timings.get("scene", 0.0)
-            top, valid = self.top_view(photo, ref.z)
+            top_bgr, top, valid = self._top_views(photo, ref.z)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
             res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
                                 z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog)
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid)
+            t_type = time.perf_counter()
+            self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
+            res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
