@@ -35,6 +35,7 @@ from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
+from layerwatch.simulate.bed_scene import start_photo
 from layerwatch.storage.history import History
 
 __all__ = ["CameraSpec", "job_camera", "fit_topview", "JobService", "run_follow"]
@@ -76,7 +77,8 @@ def job_camera(spec: CameraSpec, toolpath: Any, cfg: JobConfig) -> tuple[Any, Ca
     fails = [Failure(spec.failure, onset=spec.onset, seed=spec.seed)] if spec.failure else []
     sim = PrintSimulator(toolpath, truth, tv, fails, seed=spec.seed)
     last = toolpath.n_layers - 1
-    source = SimCamera(lambda i: sim.frame(min(max(i, 0), last)).photo, settle_s=spec.settle_s)
+    # layer -1: the bed when the job starts (the empty-bed check), before anything is printed
+    source = SimCamera(lambda i: start_photo(sim) if i < 0 else sim.frame(min(i, last)).photo, settle_s=spec.settle_s)
     model = (CameraModel.load(spec.model) if spec.model else
              locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), sim.frame(0).photo, cfg.markers, tv))
     return source, model

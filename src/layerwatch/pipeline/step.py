@@ -23,7 +23,12 @@ G-code (toolpath), camera pose and config are known:
    seeded by the empty-bed photo when given); what changed there is
    ``outside_anomalous_mm2`` and ``outside_regions`` (bed mm) of the result,
    beside a% (which stays eq. 5 over the printed area). A frame that does not
-   show the scene at all is rejected like a frame-gate rejection.
+   show the scene at all is rejected like a frame-gate rejection;
+5. **checks** (:class:`~layerwatch.pipeline.checks.JobChecks`): the first
+   layer against its footprint and the empty bed, and nothing extruded on
+   the last two layers; a failure sets ``failed_check`` and
+   ``check_regions``. The empty-bed check of the frame taken at job start is
+   :meth:`LayerPipeline.check_bed`.
 
 This is the one per-layer step: the monitor, ``analyze``, the demo and the
 evaluation harness (which sweeps other measures and thresholds over the
@@ -65,6 +70,7 @@ from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.warp import TopViewWarper
+from layerwatch.pipeline.checks import JobChecks
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.scene import SceneModel, SceneObservation
@@ -170,6 +176,8 @@ class LayerPipeline:
         #: the scene channel's model (``None`` when ``[scene] enabled`` is off)
         self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo)
                       if self.config.scene.enabled else None)
+        #: the empty-bed, first-layer and nothing-extruded checks
+        self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -238,6 +246,18 @@ class LayerPipeline:
         self.previous_photo = None
         if self.scene is not None:
             self.scene.reset(bed_photo)
+        self.checks.new_print(bed_photo)
+
+    def check_bed(self, photo: np.ndarray) -> LayerResult | None:
+        """The empty-bed check of the frame taken when the job starts (layer -1; see :class:`JobChecks`).
+
+        ``None`` when the check is off or there is no bed photo. A bed that is not empty gives
+        ``failed_check = "empty_bed"`` (the policy holds the job); :attr:`JobChecks.image` shows it.
+        """
+        try:
+            return self.checks.check_bed(photo)
+        except LayerwatchError as exc:
+            return LayerResult(layer=-1, z=0.0, status="error", message=f"bed not checked: {exc}")
 
     def acknowledge(self) -> int:
         """The operator accepted the changes beside the print: the scene channel stops reporting them.
@@ -318,6 +338,7 @@ class LayerPipeline:
                                 z=ref.z, all_metrics=self.all_metrics)
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid)
+            self.checks.after_layer(res, photo, index, self.footprint)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
