@@ -13,8 +13,9 @@ cross-correlation** (NCC) of the high-passed grey images (a Gaussian of
 ``HIGHPASS_SIGMA`` px removed): a change of light multiplies a block by a
 smooth gain, which the high pass and the normalisation remove, so NCC stays
 near 1 for an unchanged surface under new light and noise; new beads give
-an unrelated texture (NCC near 0 for infill that turns, 0.5-0.9 for a
-perimeter laid on its twin). The layer's evidence is the **median block NCC**
+an unrelated texture (NCC near 0 for infill that turns, up to about 0.8 for
+perimeters laid on their twins). The beads must be resolved: the comparison
+runs on the photo at its own resolution (``[extrusion] working_px``). The layer's evidence is the **median block NCC**
 against the previous photo and against the one before it (two layers of
 growth also shift the surface by its height's parallax), and the check flags
 the layer when both are above ``min_similarity``: two layers in a row added

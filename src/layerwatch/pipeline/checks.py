@@ -81,7 +81,8 @@ class JobChecks:
     def __init__(self, camera: CameraModel, topview: TopView, warper: TopViewWarper, config: JobConfig,
                  bed_photo: np.ndarray | None = None) -> None:
         self.camera, self.topview, self.warper, self.config = camera, topview, warper, config
-        self.size = working_size(camera.image_size, config.scene.working_px)
+        #: the image the nothing-extruded check compares textures on (``[extrusion] working_px``)
+        self.size = working_size(camera.image_size, config.extrusion.working_px)
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
         #: RGB picture of the last failed check (``None`` when none failed)
         self.image: np.ndarray | None = None

@@ -79,6 +79,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "first_layer.margin_mm": (0.0, 10.0, "mm"), "first_layer.min_change": (0.0, 255.0, "grey levels"),
     "extrusion.min_similarity": (0.0, 1.0, "(NCC)"), "extrusion.min_area_mm2": (0.0, 2500.0, "mm^2"),
     "extrusion.margin_mm": (0.0, 10.0, "mm"), "extrusion.block_px": (2, 64, "px"),
+    "extrusion.working_px": (160, 4096, "px"),
 }
 STOP_KEYS = ("action", "strong_action")  # policy keys whose "notify" means: never pause
 
