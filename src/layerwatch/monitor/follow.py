@@ -33,6 +33,7 @@ from layerwatch.monitor.printers.base import Printer
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.scene import load_bed_photo
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
 from layerwatch.simulate.bed_scene import start_photo
@@ -154,7 +155,10 @@ class JobService:
         if self.history is not None:
             job_id = self.history.start_job(self.printer_name, job.path, hashlib.sha256(gcode).hexdigest(),
                                             part=job.name, config=cfg)
-        pipeline: Any = LayerPipeline(toolpath, model, cfg)
+        bed, note = load_bed_photo(model.bed_photo, model, given=False)  # the one `calibrate --markers` kept
+        if note and model.bed_photo:
+            log.warning("%s", note)
+        pipeline: Any = LayerPipeline(toolpath, model, cfg, bed_photo=bed)
         if self.store is not None and job_id is not None:
             self.store.prune(keep=job_id)
             pipeline = StoringPipeline(pipeline, self.store, job_id)
