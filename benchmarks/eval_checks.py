@@ -16,6 +16,8 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
+
 from layerwatch.evaluate.checks import bed_check_trials, extrusion_trials, first_layer_trials
 from layerwatch.examples import PART_GCODE
 
@@ -29,7 +31,8 @@ def main() -> None:
     ap.add_argument("--objects", type=int, default=200)
     ap.add_argument("--runs", type=int, default=120)
     ap.add_argument("--first", type=int, default=24)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--clean-prints", type=int, default=2, help="clean prints (seeds) per G-code")
     a = ap.parse_args()
     t = time.perf_counter()
     false, caught = bed_check_trials(PART_GCODE, a.clean, a.objects, a.seed)
@@ -38,9 +41,14 @@ def main() -> None:
     print(f"  ({time.perf_counter() - t:.0f} s)", flush=True)
     t = time.perf_counter()
     prints = [p for p in PRINTS if Path(p).is_file()]
-    caught, false = extrusion_trials(prints, a.runs, a.seed)
+    caught, false = extrusion_trials(prints, a.runs, a.seed, clean_prints=a.clean_prints)
     print(caught.line("nothing extruded: runs caught within 2 layers"))
     print(false.line("nothing extruded: false alarms over clean layers"))
+    for name, c in (("clean layers", false), ("second layer of a run", caught)):
+        v = np.asarray(c.values, float)
+        judged = v[np.isfinite(v)]
+        q = np.percentile(judged, [0, 5, 50, 95, 100]).round(3).tolist() if judged.size else []
+        print(f"  similarity on {name}: {judged.size}/{v.size} judged; min, 5 %, median, 95 %, max = {q}")
     print(f"  ({time.perf_counter() - t:.0f} s)", flush=True)
     t = time.perf_counter()
     for case, c in first_layer_trials(PART_GCODE, a.first, a.seed).items():

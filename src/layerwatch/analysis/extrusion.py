@@ -16,10 +16,10 @@ near 1 for an unchanged surface under new light and noise; new beads give
 an unrelated texture (NCC near 0 for infill that turns, up to about 0.8 for
 perimeters laid on their twins). The beads must be resolved: the comparison
 runs on the photo at its own resolution (``[extrusion] working_px``). The layer's evidence is the **median block NCC**
-against the previous photo and against the one before it (two layers of
-growth also shift the surface by its height's parallax), and the check flags
-the layer when both are above ``min_similarity``: two layers in a row added
-nothing, which is the failure caught within two layers of its onset.
+against the photo two layers back (two layers of growth also shift the
+surface by their height's parallax), and the check flags the layer when it
+is above ``min_similarity``: two layers in a row added nothing, which is the
+failure caught within two layers of its onset.
 
 References
 ----------

@@ -57,6 +57,8 @@ class Counts:
     hits: int = 0
     cases: int = 0
     groups: dict[str, list[int]] = field(default_factory=dict)
+    #: the score behind each verdict, where the check has one (the nothing-extruded similarity)
+    values: list[float] = field(default_factory=list)
 
     def add(self, hit: bool, *groups: str) -> None:
         self.hits += int(hit)
@@ -131,14 +133,13 @@ def bed_check_trials(gcode: str | Path, n_clean: int, n_objects: int, seed: int 
     return false, caught
 
 
-def _judge(checks: JobChecks, sim: PrintSimulator, layers: Sequence[int], footprint) -> list[int]:
-    """Layers flagged ``nothing_extruded`` among ``layers`` (photographed in order)."""
-    out = []
+def _judge(checks: JobChecks, sim: PrintSimulator, layers: Sequence[int], footprint) -> dict[int, tuple[bool, float]]:
+    """Per layer of ``layers`` (photographed in order): flagged ``nothing_extruded``, and the surface similarity."""
+    out = {}
     for i in layers:
         res = LayerResult(layer=i, z=float(sim.tp.layers[i].z))
         checks.after_layer(res, sim.frame(i).photo, i, footprint)
-        if res.failed_check == NOTHING_EXTRUDED:
-            out.append(i)
+        out[i] = (res.failed_check == NOTHING_EXTRUDED, checks.similarity[0])
     return out
 
 
@@ -160,7 +161,8 @@ def extrusion_trials(gcodes: Sequence[str | Path], n_cases: int, seed: int = 0, 
     caught : Counts
         Per G-code.
     false_alarms : Counts
-        Clean layers flagged (hits) over clean layers judged, per G-code.
+        Clean layers flagged (hits) over clean layers judged, per G-code; ``values`` also holds the
+        layers not judged (``nan``: surface too small, fewer than two photos before).
     """
     rng = np.random.default_rng(seed)
     caught, false = Counts(), Counts()
@@ -172,17 +174,20 @@ def extrusion_trials(gcodes: Sequence[str | Path], n_cases: int, seed: int = 0, 
         n = min(tp.n_layers, max_layers)
         for c in range(clean_prints):
             sim = PrintSimulator(tp, cam, tv, seed=seed * 100 + c)
-            flagged = set(_judge(job_checks(tp, cam, tv), sim, range(n), fpf))
-            for i in range(2, n):
-                false.add(i in flagged, name)
+            for flag, value in _judge(job_checks(tp, cam, tv), sim, range(n), fpf).values():
+                false.values.append(value)
+                if np.isfinite(value):  # a layer the check judged (its surface large enough, 2 photos before)
+                    false.add(flag, name)
         for k in range(g, n_cases, len(gcodes)):
             onset = int(rng.integers(2, n - 1))
             sim = PrintSimulator(tp, cam, tv, [Failure("nothing_extruded", onset=onset)], seed=seed * 100 + 50 + k)
-            flagged = _judge(job_checks(tp, cam, tv), sim, range(max(onset - 2, 0), onset + 2), fpf)
-            early = [i for i in flagged if i < onset]
-            for _ in early:
-                false.add(True, name)
-            caught.add(any(onset <= i <= onset + 1 for i in flagged), name)
+            judged = _judge(job_checks(tp, cam, tv), sim, range(max(onset - 2, 0), onset + 2), fpf)
+            for i, (flag, value) in judged.items():
+                if i < onset and np.isfinite(value):  # clean layers before the onset that were judged
+                    false.add(flag, name)
+                    false.values.append(value)
+            caught.add(any(judged[i][0] for i in (onset, onset + 1)), name)
+            caught.values.append(judged[onset + 1][1])
     return caught, false
 
 

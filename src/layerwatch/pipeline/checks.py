@@ -16,9 +16,9 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
   footprint and the empty bed (:func:`~layerwatch.analysis.first_layer.inspect_first_layer`);
 * **nothing extruded** (``[extrusion]``): from layer index 2 on, the layer's
   top surface against the two previous photos
-  (:func:`~layerwatch.analysis.extrusion.surface_similarity`): flagged when
-  neither of the last two layers added material, so a run-out is caught on
-  the second layer after its onset (the first layer's own "nothing extruded"
+  (:func:`~layerwatch.analysis.extrusion.surface_similarity` with the photo
+  two layers back): flagged when the last two layers added no material, so
+  a run-out is caught on the second layer after its onset (the first layer's own "nothing extruded"
   is the first-layer inspection's).
 
 The bed check and the first-layer inspection run only where a bed photo
@@ -86,6 +86,8 @@ class JobChecks:
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
         #: RGB picture of the last failed check (``None`` when none failed)
         self.image: np.ndarray | None = None
+        #: the last layer's surface similarity and blocks judged by the nothing-extruded check (nan, 0: not judged)
+        self.similarity: tuple[float, int] = (float("nan"), 0)
         self.new_print(bed_photo)
 
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
@@ -152,6 +154,7 @@ class JobChecks:
 
     def _extrusion(self, res: LayerResult, photo: np.ndarray, index: int, footprint: FootprintFn) -> None:
         st = self.config.extrusion
+        self.similarity = (float("nan"), 0)
         texture = highpass(to_working(photo, self.size))
         earlier = [t for i, t in reversed(self._textures) if i < index][:2]
         self._textures = [(i, t) for i, t in self._textures if i < index][-1:] + [(index, texture)]
@@ -164,14 +167,15 @@ class JobChecks:
         if area < st.min_area_mm2:
             return
         surface = predicted_change(fp, np.array([z]), self.maps, self.topview, -st.margin_mm) & self._observed(z)
-        sim, blocks = surface_similarity(texture, earlier, surface, st.block_px)
+        sim, blocks = surface_similarity(texture, earlier[1:], surface, st.block_px)
+        self.similarity = (sim, blocks)
         if blocks < MIN_BLOCKS or not np.isfinite(sim) or sim < st.min_similarity:
             return
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim)
         res.check_regions = [*res.check_regions, region]
         _append(res, f"nothing extruded: layer {index}'s top surface ({area:.0f} mm^2, {blocks} blocks) looks like "
-                     f"the last two photos (texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or "
+                     f"the photo two layers back (texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or "
                      "filament run-out?")
 
     def _marker_discs(self) -> np.ndarray:
