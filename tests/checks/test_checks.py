@@ -17,7 +17,10 @@ from layerwatch.evaluate.checks import (
 )
 from layerwatch.examples import PART_GCODE
 from layerwatch.gcode import read_toolpath
+from layerwatch.geometry.settings import TopViewSettings
+from layerwatch.pipeline.config import recommended_config
 from layerwatch.pipeline.policy import PausePolicy, PolicySettings
+from layerwatch.pipeline.step import LayerPipeline, judge_layers
 from layerwatch.simulate import Failure, PrintSimulator
 from layerwatch.simulate.bed_scene import Leftover, StartLight, start_photo
 
@@ -81,6 +84,24 @@ def test_nothing_extruded_is_flagged_on_the_second_layer_and_not_on_a_clean_prin
     assert not any(r.failed_check for r in flags([]).values())
 
 
+def test_pipeline_step_reports_nothing_extruded_and_the_policy_pauses(part):
+    tp, _, _ = part
+    tv, cam = _setup(tp, (1280, 720))
+    cfg = recommended_config().model_copy(update={"topview": TopViewSettings(
+        center_mm=tuple(tv.center_mm), width_mm=tv.width_mm, height_mm=tv.height_mm)})
+    sim = PrintSimulator(tp, cam, tv, [Failure("nothing_extruded", onset=11)], seed=5)
+    pipe = LayerPipeline(tp, cam, cfg, bed_photo=sim.bed_photo())
+    policy = PausePolicy(cfg.policy)
+    out = {i: (res, d) for i, (res, d) in zip(range(8, 13), judge_layers(
+        pipe, policy, ((i, sim.frame(i).photo) for i in range(8, 13))), strict=True)}
+    assert [i for i, (r, _) in out.items() if r.failed_check] == [12]
+    assert min(i for i, (_, d) in out.items() if d.stops) <= 12  # the HOG comparison may see it first (layer 11)
+    res = out[12][0]
+    assert res.check_regions[0].kind == "nothing_extruded"
+    decision = PausePolicy(cfg.policy).update(res)  # on its own, the failed check pauses at once
+    assert decision.action == "pause" and "nothing extruded" in decision.reason
+
+
 def test_first_layer_nothing_extruded_and_missing_lines_fail_a_clean_one_passes(part):
     tp, tv, cam = part
     fpf = _footprints(tp, tv)
@@ -105,7 +126,7 @@ def test_rates_on_a_small_sample():
     false, caught = bed_check_trials(PART_GCODE, 12, 12, seed=7, size=SIZE)
     assert false.hits == 0 and false.cases == 12
     assert caught.hits >= 11, caught.line("caught")
-    caught, false = extrusion_trials([PART_GCODE], 6, seed=7, size=SIZE)
+    caught, false = extrusion_trials([PART_GCODE], 6, seed=7)  # 1280 x 720: the bead texture must be resolved
     assert caught.hits >= 5 and false.hits == 0, (caught.line("caught"), false.line("false"))
     fl = first_layer_trials(PART_GCODE, 2, seed=7, size=SIZE)
     assert fl["nothing_extruded"].hits == 2 and fl["missing_lines"].hits >= 1
