@@ -13,9 +13,7 @@ scene channel's normalisation
 (:func:`~layerwatch.analysis.scene_change.photometric_fit`), and the block
 residuals (:func:`~layerwatch.analysis.scene_change.change_blocks`) on the
 footprint are held against the noise threshold of the bed beside it. A
-footprint block above it is **covered**. Dark filament on a near-black
-bed hardly differs from it (the simulator's glass-like bed): the inspection
-then reports thin coverage of a clean layer (``evaluate/checks.py`` counts it).
+footprint block above it is **covered**.
 
 * **coverage**: covered blocks over footprint blocks; below ``min_coverage``
   the layer failed; below :data:`NOTHING_COVERAGE` nothing was extruded
@@ -24,6 +22,11 @@ then reports thin coverage of a clean layer (``evaluate/checks.py`` counts it).
   bed, at least ``max_missing_mm2``: a missing line or patch inside the
   footprint (kind ``infill_defect``), or at its outline, where a lifted or
   unstuck corner leaves the bed bare (kind ``detachment``).
+
+Dark filament on a dark bed hardly differs from it: when the footprint's
+median residual is below :data:`MIN_CONTRAST` times the bare bed's threshold,
+only "nothing extruded" (coverage below :data:`NOTHING_COVERAGE`) is judged;
+missing lines are not (the simulator's dark variants: ``evaluate/checks.py``).
 """
 
 from __future__ import annotations
@@ -46,10 +49,13 @@ from layerwatch.analysis.scene_change import (
 from layerwatch.analysis.settings import SceneSettings
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["FirstLayerCheck", "NOTHING_COVERAGE", "OUTSIDE_MM", "inspect_first_layer"]
+__all__ = ["FirstLayerCheck", "MIN_CONTRAST", "NOTHING_COVERAGE", "OUTSIDE_MM", "inspect_first_layer"]
 
-#: coverage below which the first layer counts as not extruded at all
-NOTHING_COVERAGE = 0.2
+#: coverage below which the first layer counts as not extruded at all (clean dark-on-dark layers: >= 0.17)
+NOTHING_COVERAGE = 0.1
+#: median residual of the footprint over the bare bed's threshold below which missing lines are not judged
+#: (on the simulator: dark filament 0.8-1.7, orange or white filament 8-16)
+MIN_CONTRAST = 4.0
 #: the light and the noise are measured on the bed this far beside the footprint, mm
 OUTSIDE_MM = 3.0
 
@@ -64,6 +70,8 @@ class FirstLayerCheck:
         ``None`` when the layer could not be judged (no footprint seen, no bed beside it).
     coverage : float
         Covered footprint blocks over footprint blocks, in [0, 1].
+    contrast : float
+        Median residual of the footprint blocks over the bare bed's threshold.
     regions : list of Region
         Missing areas (bed mm, largest first) with their kind.
     message : str
@@ -73,6 +81,7 @@ class FirstLayerCheck:
 
     ok: bool | None
     coverage: float = 1.0
+    contrast: float = 0.0
     regions: list[Region] = field(default_factory=list)
     message: str = ""
     missing: np.ndarray | None = None
@@ -138,6 +147,7 @@ def inspect_first_layer(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndar
     if n == 0:
         return FirstLayerCheck(None, message="first layer not inspected: its footprint is too thin to judge")
     coverage = float(covered.sum()) / n
+    contrast = float(np.median(layer.score[layer.scored])) / max(bed.threshold, 1e-6)
     bare = layer.scored & ~covered
     full = np.repeat(np.repeat(bare, block_px, 0), block_px, 1)
     missing = np.zeros(topview.shape, bool)
@@ -147,9 +157,14 @@ def inspect_first_layer(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndar
     regions = [r for r in change_regions(missing, np.where(missing, 0.0, 1.0).astype(np.float32), topview, 0.0)
                if r.area_mm2 >= settings.max_missing_mm2]
     _type_regions(regions, fp.astype(bool), topview, coverage)
-    ok = coverage >= settings.min_coverage and not regions
-    if ok:
-        return FirstLayerCheck(True, coverage, [], f"first layer covers {coverage:.0%} of its footprint", missing)
+    faint = contrast < MIN_CONTRAST and coverage >= NOTHING_COVERAGE
+    if faint:  # dark filament on a dark bed: thin coverage is the camera's, not the layer's
+        return FirstLayerCheck(True, coverage, contrast, [], (
+            f"first layer hardly differs from the bed (contrast {contrast:.1f} x the bed's noise): only "
+            "'nothing extruded' is judged"), missing)
+    if coverage >= settings.min_coverage and not regions:
+        return FirstLayerCheck(True, coverage, contrast, [], f"first layer covers {coverage:.0%} of its footprint",
+                               missing)
     if coverage < NOTHING_COVERAGE:
         what = "nothing was extruded (clog, no filament, nozzle too high?)"
     elif regions:
@@ -158,5 +173,5 @@ def inspect_first_layer(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndar
                 f"{big.centroid_mm[1]:.0f}) mm ({'lifted or unstuck corner' if big.kind == 'detachment' else 'missing lines'}?)")
     else:
         what = "lines are missing or thin (under-extrusion, nozzle too high?)"
-    return FirstLayerCheck(False, coverage, regions,
+    return FirstLayerCheck(False, coverage, contrast, regions,
                            f"first layer failed: it covers {coverage:.0%} of its footprint; {what}", missing)
