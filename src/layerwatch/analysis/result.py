@@ -246,6 +246,13 @@ class LayerResult:
         Scene channel: the connected changed areas (bed mm), largest first.
     scene : SceneStats or None
         Scene channel's figures for this photo; ``None`` when it is off.
+    failed_check : str
+        The check that failed on this photo (:mod:`layerwatch.pipeline.checks`):
+        ``"empty_bed"`` (job start, ``layer`` -1), ``"first_layer"`` or
+        ``"nothing_extruded"``; ``""`` when none failed. The pause policy
+        acts on it at once.
+    check_regions : list of Region
+        What the checks found (bed mm), each with its ``kind``.
     """
 
     layer: int
@@ -279,6 +286,8 @@ class LayerResult:
     outside_anomalous_mm2: float = 0.0
     outside_regions: list[Region] = field(default_factory=list)
     scene: SceneStats | None = None
+    failed_check: str = ""
+    check_regions: list[Region] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -307,6 +316,7 @@ class LayerResult:
         d = dict(d)
         regions = [_region(r) for r in d.pop("regions", [])]
         d["outside_regions"] = [_region(r) for r in d.get("outside_regions") or []]
+        d["check_regions"] = [_region(r) for r in d.get("check_regions") or []]
         if isinstance(d.get("scene"), dict):
             sc = d["scene"]
             fields: dict[str, Any] = {k: v for k, v in sc.items() if k in SceneStats.__dataclass_fields__}

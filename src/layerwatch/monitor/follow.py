@@ -34,8 +34,10 @@ from layerwatch.monitor.printers.base import Printer
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.scene import load_bed_photo
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
+from layerwatch.simulate.bed_scene import start_photo
 from layerwatch.storage.history import History
 
 __all__ = ["CameraSpec", "job_camera", "fit_topview", "JobService", "run_follow"]
@@ -77,7 +79,8 @@ def job_camera(spec: CameraSpec, toolpath: Any, cfg: JobConfig) -> tuple[Any, Ca
     fails = [Failure(spec.failure, onset=spec.onset, seed=spec.seed)] if spec.failure else []
     sim = PrintSimulator(toolpath, truth, tv, fails, seed=spec.seed)
     last = toolpath.n_layers - 1
-    source = SimCamera(lambda i: sim.frame(min(max(i, 0), last)).photo, settle_s=spec.settle_s)
+    # layer -1: the bed when the job starts (the empty-bed check), before anything is printed
+    source = SimCamera(lambda i: start_photo(sim) if i < 0 else sim.frame(min(i, last)).photo, settle_s=spec.settle_s)
     model = (CameraModel.load(spec.model) if spec.model else
              locate_bed(dataclasses.replace(truth, rvec=None, tvec=None), sim.frame(0).photo, cfg.markers, tv))
     return source, model
@@ -153,7 +156,10 @@ class JobService:
         if self.history is not None:
             job_id = self.history.start_job(self.printer_name, job.path, hashlib.sha256(gcode).hexdigest(),
                                             part=job.name, config=cfg)
-        pipeline: Any = LayerPipeline(toolpath, model, cfg)
+        bed, note = load_bed_photo(model.bed_photo, model, given=False)  # the one `calibrate --markers` kept
+        if note and model.bed_photo:
+            log.warning("%s", note)
+        pipeline: Any = LayerPipeline(toolpath, model, cfg, bed_photo=bed)
         if self.store is not None and job_id is not None:
             self.store.prune(keep=job_id)
             pipeline = StoringPipeline(pipeline, self.store, job_id)

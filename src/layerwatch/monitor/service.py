@@ -8,6 +8,11 @@ analysis of the next layer or a pause (the pause request is sent first, from
 the analysis thread); :meth:`Monitor.close` (called by :meth:`Monitor.run`)
 waits for the queued alerts.
 
+When the job starts (:meth:`Monitor.run`, before layer 1) the pipeline's
+empty-bed check runs on a fresh frame (:meth:`Monitor.check_bed`): a bed
+that is not empty holds the job through the same policy and printer call as
+a failing layer, with the picture of what was found in the alert.
+
 Faults are never print failures. A printer host that does not answer, or
 answers nonsense, is retried with exponential back-off capped at the poll
 interval (so the monitor sees the host again within one poll interval of its
@@ -266,6 +271,31 @@ class Monitor:
         self._futures = [f for f in self._futures if not f.done()]
         self._futures.append(self._pool.submit(fn, *args))
 
+    def check_bed(self) -> LayerResult | None:
+        """Job start: the pipeline's empty-bed check on a fresh frame, judged by the policy (layer -1).
+
+        ``None`` when the pipeline has no such check (or it is off, or there is no bed photo) or the
+        camera gave no usable frame (a warning: the job is watched as before, never held for it).
+        """
+        check = getattr(self.pipeline, "check_bed", None)
+        if check is None:
+            return None
+        try:
+            if hasattr(self.camera, "set_layer"):
+                self.camera.set_layer(-1)
+            photo = self.camera.grab()
+            problem = frame_problem(photo)
+        except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a hold
+            problem = f"camera error: {type(exc).__name__}: {exc}"
+        if problem is not None:
+            log.warning("bed not checked at job start: %s", problem)
+            return None
+        res = check(photo)
+        if res is None:
+            return None
+        _log("bed_check", status=res.status, failed=res.failed_check or "no")
+        return self.finish_layer(SnapshotTrigger(layer=-1, z=0.0, source="job start"), res)
+
     def _photo_done(self, trigger: SnapshotTrigger) -> None:
         """Release the printer's hold for the photo (Klipper), with or without a usable frame."""
         try:
@@ -378,6 +408,10 @@ class Monitor:
 
     def _overlay(self, res: LayerResult, top: np.ndarray | None) -> np.ndarray | str | None:
         """The failing regions over the photo's top view for an alert (RGB), or a saved overlay's path."""
+        checks = getattr(self.pipeline, "checks", None)
+        found = getattr(checks, "image", None)
+        if res.failed_check and found is not None:  # what the check found
+            return found
         if res.images.get("overlay"):  # stored by StoringPipeline, relative to its image folder
             return str(Path(getattr(self.pipeline, "image_root", ""), res.images["overlay"]))
         if top is None or res.heatmap is None:
@@ -516,6 +550,7 @@ class Monitor:
         backoff = self.initial_backoff_s
         settled = last_seen = ""  # last settled state (not pausing/resuming/cancelling), last state seen
         try:
+            self.check_bed()
             while not self.stop_event.is_set():
                 self.poll_acknowledgements()  # the dashboard's acknowledge button (shared history)
                 try:
@@ -535,7 +570,7 @@ class Monitor:
                 self._printer_answered(state)
                 settled = self._follow_state(state, settled, last_seen)
                 last_seen = state
-                if state in ("finished", "cancelled", "idle") and self.report.results:
+                if state in ("finished", "cancelled", "idle") and any(r.layer >= 0 for r in self.report.results):
                     break
                 self.stop_event.wait(poll_s)
         finally:

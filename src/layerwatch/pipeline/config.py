@@ -41,6 +41,11 @@ from typing import Any
 
 from pydantic import Field, ValidationError
 
+from layerwatch.analysis.check_settings import (
+    BedCheckSettings,
+    ExtrusionSettings,
+    FirstLayerSettings,
+)
 from layerwatch.analysis.frame_quality import FrameQualitySettings
 from layerwatch.analysis.settings import AnalysisSettings, SceneSettings
 from layerwatch.errors import ConfigError
@@ -64,6 +69,9 @@ RECOMMENDED: dict[str, dict] = {
                  "presmooth_px": 1.25, "flat_tolerance": 1.5, "grow_threshold": 0.2, "grow_margin_mm": 5.0},
     "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1, "outside_pause_mm2": 12.0},
     "scene": {"enabled": True},
+    "bed_check": {"enabled": True},
+    "first_layer": {"enabled": True},
+    "extrusion": {"enabled": True},
 }
 
 
@@ -82,6 +90,9 @@ class JobConfig(Section):
     host: HostSettings = Field(default_factory=HostSettings)
     faults: FaultSettings = Field(default_factory=FaultSettings)
     frame_quality: FrameQualitySettings = Field(default_factory=FrameQualitySettings)
+    bed_check: BedCheckSettings = Field(default_factory=BedCheckSettings)
+    first_layer: FirstLayerSettings = Field(default_factory=FirstLayerSettings)
+    extrusion: ExtrusionSettings = Field(default_factory=ExtrusionSettings)
 
     def for_camera(self, camera: CameraModel) -> JobConfig:
         """This config with the top view's scale resolved for ``camera`` (``[topview] scale = "camera"``).

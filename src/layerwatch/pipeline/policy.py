@@ -21,6 +21,12 @@ Rules (all thresholds in :class:`PolicySettings`):
    layers in a row, in overlapping places -> ``settings.action``; one such
    layer -> ``notify``.
 
+5. A failed check (:attr:`LayerResult.failed_check`: the bed is not empty at
+   job start, the first layer failed, nothing extruded on two layers in a
+   row; :mod:`layerwatch.pipeline.checks`) -> ``settings.action`` at once:
+   each check already asks for its own evidence, and what it found is in
+   ``check_regions`` with its kind.
+
 Errors (camera, warp, printer) never pause: they give ``notify``. After a
 pause the policy stays quiet until :meth:`PausePolicy.acknowledge` (the
 operator resumed); the regions seen at that moment are then ignored unless
@@ -384,6 +390,9 @@ class PausePolicy:
         layer = int(result.layer)
         if result.status == "error":
             return Decision("notify", f"layer {layer} not analysed: {result.message or 'error'}", layer)
+        if result.failed_check and result.status == "ok" and not self._halted:
+            reason = result.message or f"layer {layer}: check {result.failed_check} failed"
+            return self._act(s.action, reason, layer, result.check_regions, own=True)  # the found kind's action
         if result.status != "ok" or layer < s.skip_first_layers:
             return Decision("none", f"layer {layer} not judged ({result.status})", layer)
         regions = self._fresh(list(result.regions))

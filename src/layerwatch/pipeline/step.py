@@ -28,6 +28,11 @@ G-code (toolpath), camera pose and config are known:
    its kind, confidence and, for a moved part, the displacement in mm
    (:class:`~layerwatch.analysis.failure_typing.FailureTyper`; only on
    layers with a region, ``timings_ms["typing"]``).
+6. **checks** (:class:`~layerwatch.pipeline.checks.JobChecks`): the first
+   layer against its footprint and the empty bed, and nothing extruded on
+   the last two layers; a failure sets ``failed_check`` and
+   ``check_regions``. The empty-bed check of the frame taken at job start is
+   :meth:`LayerPipeline.check_bed`.
 
 This is the one per-layer step: the monitor, ``analyze``, the demo and the
 evaluation harness (which sweeps other measures and thresholds over the
@@ -70,6 +75,7 @@ from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.warp import TopViewWarper
+from layerwatch.pipeline.checks import JobChecks
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.scene import SceneModel, SceneObservation
@@ -185,6 +191,8 @@ class LayerPipeline:
                       if self.config.scene.enabled else None)
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview)
+        #: the empty-bed, first-layer and nothing-extruded checks
+        self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -267,6 +275,18 @@ class LayerPipeline:
         self.typer.reset()
         if self.scene is not None:
             self.scene.reset(bed_photo)
+        self.checks.new_print(bed_photo)
+
+    def check_bed(self, photo: np.ndarray) -> LayerResult | None:
+        """The empty-bed check of the frame taken when the job starts (layer -1; see :class:`JobChecks`).
+
+        ``None`` when the check is off or there is no bed photo. A bed that is not empty gives
+        ``failed_check = "empty_bed"`` (the policy holds the job); :attr:`JobChecks.image` shows it.
+        """
+        try:
+            return self.checks.check_bed(photo)
+        except LayerwatchError as exc:
+            return LayerResult(layer=-1, z=0.0, status="error", message=f"bed not checked: {exc}")
 
     def acknowledge(self) -> int:
         """The operator accepted the changes beside the print: the scene channel stops reporting them.
@@ -355,6 +375,7 @@ class LayerPipeline:
             t_type = time.perf_counter()
             self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
+            self.checks.after_layer(res, photo, index, self.footprint)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input

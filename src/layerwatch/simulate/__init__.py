@@ -12,7 +12,9 @@ from layerwatch.simulate.camera_sim import (
     simulate_print,
 )
 from layerwatch.simulate.failures import (
+    EXTRA_TYPES,
     FAILURE_TYPES,
+    SIMULATED_TYPES,
     Failure,
     Scenario,
     random_scenarios,
@@ -22,7 +24,9 @@ from layerwatch.simulate.scene import default_camera, default_markers
 from layerwatch.simulate.settings import SimSettings
 
 __all__ = [
+    "EXTRA_TYPES",
     "FAILURE_TYPES",
+    "SIMULATED_TYPES",
     "Failure",
     "PrintSimulator",
     "Scenario",

@@ -37,7 +37,9 @@ in the *top view of the top layer's plane*: footprints of removed segments
 (``infill_defect``, ``thin_wall``), footprint XOR displaced footprint
 (``layer_shift``, ``detachment``), and for raised things (``foreign_body``,
 ``spaghetti``) the region where the object appears in the warped photo: its
-footprint and its top projected through the camera centre onto the plane.
+footprint and its top projected through the camera centre onto the plane;
+for ``nothing_extruded`` the footprint of the layer that was not printed
+(no material is deposited on the layers where it is active).
 """
 
 from __future__ import annotations
@@ -175,7 +177,13 @@ class PrintSimulator:
                 p0, p1 = p0 + rf.offset, p1 + rf.offset
         return p0, p1, w, scale, removed, fx
 
+    def extruded(self, i: int) -> bool:
+        """False when a ``nothing_extruded`` failure is active on layer ``i`` (the nozzle prints in the air)."""
+        return not any(rf.type == "nothing_extruded" and rf.failure.active(i) for rf in self.failures)
+
     def _deposit(self, i: int) -> None:
+        if not self.extruded(i):
+            return
         st = self.settings
         lay = self.tp.layers[i]
         lh = lay.height if lay.height > 0 else 0.2
@@ -331,6 +339,9 @@ class PrintSimulator:
             if f.type in ("infill_defect", "thin_wall"):
                 a0, a1, w = self.layer_segments(index)[4][k]
                 truth |= capsule_mask(a0, a1, w / 2.0, tv)
+            elif f.type == "nothing_extruded":
+                sl = tp.layer_slice(index)
+                truth |= solid_area(tp.start[sl], tp.end[sl], tp.width[sl] / 2.0, tv)
             elif f.type in ("foreign_body", "spaghetti"):
                 # resolve() builds the capsules and their materials for these types
                 assert rf.capsules is not None and rf.capsule_mat is not None

@@ -7,7 +7,10 @@ deterministically from its seed. A :class:`Scenario` is a named tuple of
 failures (empty = clean control).
 
 Failure types (paper, Section 3): ``infill_defect`` (a), ``foreign_body`` (b),
-``spaghetti`` (c), ``detachment`` (d), ``thin_wall`` (e), ``layer_shift`` (f).
+``spaghetti`` (c), ``detachment`` (d), ``thin_wall`` (e), ``layer_shift`` (f);
+beyond the paper, ``nothing_extruded`` (:data:`EXTRA_TYPES`): from the onset
+on the nozzle prints in the air (clog, filament run-out), so the layers after
+it add no material and every photo shows the last layer that was printed.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from layerwatch.simulate.raster import solid_area
 
 __all__ = [
     "FAILURE_TYPES",
+    "EXTRA_TYPES",
+    "SIMULATED_TYPES",
     "Failure",
     "Scenario",
     "ResolvedFailure",
@@ -41,6 +46,10 @@ FAILURE_TYPES: tuple[str, ...] = (
     "thin_wall",
     "layer_shift",
 )
+#: Failures the simulator makes beyond the paper's six (not in :func:`random_scenarios`' default mix).
+EXTRA_TYPES: tuple[str, ...] = ("nothing_extruded",)
+#: Every type a :class:`Failure` may have.
+SIMULATED_TYPES: tuple[str, ...] = FAILURE_TYPES + EXTRA_TYPES
 #: Default number of layers a patch defect stays missing: the hole deepens by one layer per
 #: frame, so a sparse-infill patch (which looks like the layer below when one layer deep)
 #: becomes visible as a pit.
@@ -58,7 +67,7 @@ class Failure:
     Parameters
     ----------
     type : str
-        One of :data:`FAILURE_TYPES`.
+        One of :data:`SIMULATED_TYPES`.
     onset : int
         First layer index (0-based) where the failure is present.
     size_mm : float
@@ -70,8 +79,9 @@ class Failure:
         Where it happens on the bed, mm; None draws a point on the onset layer.
     duration : int or None
         Layers the patch stays missing (``infill_defect`` default 6,
-        ``thin_wall`` default 4; the hole deepens layer by layer);
-        other types last until the end of the print.
+        ``thin_wall`` default 4; the hole deepens layer by layer), or that
+        ``nothing_extruded`` lasts (a clog that clears; default: to the end,
+        a run-out); other types last until the end of the print.
     offset_mm : tuple of float or None
         Displacement ``(dx, dy)`` for ``layer_shift``/``detachment``; None draws
         a random direction of length ``size_mm``.
@@ -96,9 +106,9 @@ class Failure:
     place: str = "on"
 
     def __post_init__(self) -> None:
-        if self.type not in FAILURE_TYPES:
+        if self.type not in SIMULATED_TYPES:
             raise ConfigError(
-                f"unknown failure type '{self.type}'; use one of {', '.join(FAILURE_TYPES)}."
+                f"unknown failure type '{self.type}'; use one of {', '.join(SIMULATED_TYPES)}."
             )
         if self.onset < 0 or not (self.size_mm > 0 and np.isfinite(self.size_mm)):
             raise ConfigError("a failure needs onset >= 0 and a finite size_mm > 0; fix the scenario.")
@@ -120,7 +130,7 @@ class Failure:
         """True when the failure is present in the frame taken after layer ``index``."""
         if index < self.onset:
             return False
-        if self.type in ("infill_defect", "thin_wall"):
+        if self.type in ("infill_defect", "thin_wall", "nothing_extruded"):
             return index < self.onset + self.layers
         return True
 
@@ -291,7 +301,7 @@ def resolve(f: Failure, tp: Toolpath) -> ResolvedFailure:
         raise ConfigError(
             f"failure onset layer {f.onset} is beyond the print's {tp.n_layers} layers; lower it."
         )
-    rng = np.random.default_rng([f.seed, FAILURE_TYPES.index(f.type)])
+    rng = np.random.default_rng([f.seed, SIMULATED_TYPES.index(f.type)])
     sel = _selection(tp, f) if f.type in ("infill_defect", "thin_wall") else None
     if f.center_mm is not None:
         center = np.asarray(f.center_mm, float)

@@ -160,7 +160,7 @@ class Photographer:
         expo = st.exposure * (1 + st.exposure_drift * np.sin(2 * np.pi * index / 37 + ph[0])
                               + rng.normal(0, st.exposure_drift / 3))
         wb = 1 + st.colour_drift * np.sin(2 * np.pi * index / 53 + ph[1:]) + rng.normal(0, 0.01, 3)
-        gain = (expo * wb).astype(np.float32)
+        gain = (expo * wb * np.asarray(st.white_balance, float)).astype(np.float32)
         sigma = float(rng.uniform(*st.blur_px))
         img = cv2.GaussianBlur(rad, (0, 0), sigma)
         oy, ox = (int(v) for v in rng.integers(0, 32, 2))

@@ -29,6 +29,7 @@ class SimSettings(Section):
     exposure: float = Field(1.0, gt=0)
     exposure_drift: float = Field(0.06, ge=0)
     colour_drift: float = Field(0.03, ge=0)
+    white_balance: tuple[float, float, float] = Field((1.0, 1.0, 1.0), description="fixed per-channel gain (BGR)")
     vignetting: float = Field(0.3, ge=0, le=1)
     blur_px: tuple[float, float] = (0.5, 1.1)
     read_noise: float = Field(0.012, ge=0)

@@ -76,6 +76,14 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "scene.noise_k": (0.1, 100.0, ""), "scene.min_change": (0.0, 255.0, "grey levels"),
     "scene.min_region_mm2": (0.0, 2500.0, "mm^2"), "scene.max_changed_share": (0.01, 1.0, ""),
     "notify.min_interval_s": (0.0, 86400.0, "s"),
+    "bed_check.min_area_mm2": (0.0, 2500.0, "mm^2"), "bed_check.block_px": (2, 64, "px"),
+    "bed_check.noise_k": (0.1, 100.0, ""), "bed_check.min_change": (0.0, 255.0, "grey levels"),
+    "bed_check.max_changed_share": (0.01, 1.0, ""),
+    "first_layer.min_coverage": (0.0, 1.0, ""), "first_layer.max_missing_mm2": (0.0, 2500.0, "mm^2"),
+    "first_layer.margin_mm": (0.0, 10.0, "mm"), "first_layer.min_change": (0.0, 255.0, "grey levels"),
+    "extrusion.min_similarity": (0.0, 1.0, "(NCC)"), "extrusion.min_area_mm2": (0.0, 2500.0, "mm^2"),
+    "extrusion.margin_mm": (0.0, 10.0, "mm"), "extrusion.block_px": (2, 64, "px"),
+    "extrusion.working_px": (160, 4096, "px"),
 }
 STOP_KEYS = ("action", "strong_action")  # policy keys whose "notify" means: never pause
 

@@ -1,0 +1,112 @@
+"""Settings of the checks around the layer comparison (config sections ``[bed_check]``, ``[first_layer]``, ``[extrusion]``).
+
+Each check is off in the built-in (paper) values and on in the recommended
+ones (:data:`layerwatch.pipeline.config.RECOMMENDED`), like the scene
+channel, so ``--paper-settings`` reproduces the paper's method. The bed check
+and the first-layer inspection need the empty-bed photo (``calibrate
+--markers`` keeps it, ``--bed-photo``); without one they do not run.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from layerwatch.settings_base import Section
+
+__all__ = ["BedCheckSettings", "ExtrusionSettings", "FirstLayerSettings"]
+
+
+class BedCheckSettings(Section):
+    """The empty-bed check at job start (:mod:`layerwatch.analysis.bed_check`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Compare the bed at job start with the empty-bed photo and hold the job
+        when something lies on it (default False: the paper's method; on in
+        the recommended settings).
+    min_area_mm2 : float
+        Changed area on the bed (mm^2, bed plane) from which the bed counts as
+        occupied: a 10 mm hex key covers about 15 mm^2.
+    block_px : int
+        Side of a change block, top-view px (8 px = 1.2 mm at 6.67 px/mm).
+    noise_k : float
+        Block threshold = median + ``noise_k`` x 1.4826 MAD of the block scores, grey levels.
+    min_change : float
+        Lowest block threshold, grey levels (mean absolute residual after the light is fitted).
+    max_changed_share : float
+        More than this share of the observed bed changed: the view does not
+        match the bed photo (camera moved, covered, light switched); the bed is
+        reported as not checked (an alert, never a hold).
+    """
+
+    enabled: bool = False
+    min_area_mm2: float = Field(8.0, ge=0, le=2500)
+    block_px: int = Field(8, ge=2, le=64)
+    noise_k: float = Field(6.0, gt=0, le=100)
+    min_change: float = Field(8.0, ge=0, le=255)
+    max_changed_share: float = Field(0.5, gt=0, le=1)
+
+
+class FirstLayerSettings(Section):
+    """The first-layer inspection (:mod:`layerwatch.analysis.first_layer`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Check the photo of the first layer against its G-code and the empty
+        bed (default False; on in the recommended settings).
+    min_coverage : float
+        Share of the first layer's footprint (in [0, 1]) where the photo must
+        differ from the empty bed (new material); below it the layer failed.
+    max_missing_mm2 : float
+        Largest connected area of the footprint left like the empty bed (a
+        missing line, a lifted or unstuck corner), mm^2.
+    margin_mm : float
+        Erosion of the footprint before it is judged (the bead's rounded edge), mm.
+    min_change : float
+        Lowest grey-level residual of a block that counts as new material.
+    """
+
+    enabled: bool = False
+    min_coverage: float = Field(0.85, ge=0, le=1)
+    max_missing_mm2: float = Field(12.0, ge=0, le=2500)
+    margin_mm: float = Field(0.6, ge=0, le=10)
+    min_change: float = Field(6.0, ge=0, le=255)
+
+
+class ExtrusionSettings(Section):
+    """The nothing-extruded check, layer to layer (:mod:`layerwatch.analysis.extrusion`).
+
+    Attributes
+    ----------
+    enabled : bool
+        Flag layers on which the G-code adds plastic and the photo shows none
+        (default False; on in the recommended settings).
+    min_similarity : float
+        Median block NCC of the layer's top surface against the photo two
+        layers back from which the last two layers added nothing. Chosen on
+        the simulator (1280 x 720 camera, ``benchmarks/eval_checks.py --seed 0``):
+        clean layers reached 0.79, the second layer of a nothing-extruded run
+        was above 0.865 in 95 % of the runs (the rest: a moving light's
+        highlights on a shiny top surface). A sharper high pass (0.7 px) with
+        0.70 separated seed 0 better but gave a false alarm on seed 1.
+    min_area_mm2 : float
+        Layers whose footprint (eroded by ``margin_mm``) is smaller are not judged, mm^2.
+    margin_mm : float
+        Erosion of the layer's footprint before it is projected into the image
+        (the beads' rounded edges and the wall below them), mm.
+    working_px : int
+        Long side of the image the texture is compared on, px; the photo's own
+        resolution up to this (bead lines 0.4-0.5 mm apart must be resolved:
+        the scene channel's 640 px blur them into the same texture every layer).
+    block_px : int
+        Block side of the comparison, px of that image.
+    """
+
+    enabled: bool = False
+    min_similarity: float = Field(0.84, ge=0, le=1)
+    min_area_mm2: float = Field(10.0, ge=0, le=2500)
+    margin_mm: float = Field(0.3, ge=0, le=10)
+    working_px: int = Field(1920, ge=160, le=4096)
+    block_px: int = Field(16, ge=2, le=64)
