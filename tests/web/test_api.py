@@ -201,3 +201,17 @@ def test_index_names_the_newest_job(seeded, printer, tmp_path):
     r = dashboard_client(create_app(empty), csrf=False).get("/")
     assert r.status_code == 200 and "<body>" in r.text and "data-newest" not in r.text
     empty.close()
+
+
+def test_report_names_the_largest_region_kind(tmp_path):
+    from layerwatch.analysis.result import LayerResult, Region
+    from layerwatch.storage.history import History
+    from layerwatch.web.report import build_report
+
+    h = History(tmp_path / "h.db")
+    job = h.start_job("virtual", "part.gcode")
+    shift = Region(40.0, (10, 10, 20, 20), (15, 15), 4, 0.2, kind="layer_shift", kind_confidence=0.9,
+                   displacement_mm=(2.0, -0.5))
+    h.add_layer(job, LayerResult(layer=3, z=0.8, anomaly_ratio=0.4, regions=[shift], decision="pause"))
+    text = build_report(h, job, tmp_path / "r").read_text()
+    assert "largest: layer_shift 0.90 (2.0, -0.5) mm" in text

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
+from layerwatch.analysis.overlay import region_label
 from layerwatch.errors import StorageError
 from layerwatch.pipeline.policy import STOPPING
 from layerwatch.storage.history import History
@@ -112,8 +113,10 @@ def build_report(history: History, job_id: int, out_dir: str | Path, image_root:
             f"<figure>{_file_tag(root, im.get(k), k)}<figcaption>{k}</figcaption></figure>"
             for k in ("top", "reference", "overlay")
         )
+        label = region_label(r)
+        kind = f", largest: {html.escape(label)}" if label else ""
         return (f"<h3>{html.escape(title)}: layer {r.layer} (z {r.z:.2f} mm), a% {100 * r.anomaly_ratio:.1f} %, "
-                f"{len(r.regions)} region(s)</h3><div class='row'>{figs}</div>")
+                f"{len(r.regions)} region(s){kind}</h3><div class='row'>{figs}</div>")
 
     stack_rel = next((r.images.get("stack") for r in reversed(results) if r.images and r.images.get("stack")), None)
     started = time.strftime("%Y-%m-%d %H:%M", time.localtime(job["started"]))
