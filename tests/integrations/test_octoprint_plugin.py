@@ -21,6 +21,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+
 from octoprint_stack import free_port, octoprint_server, require_plugin, until
 
 pytestmark = [pytest.mark.octoprint, pytest.mark.slow]
