@@ -333,7 +333,8 @@ def soak(scene: Scene, n: int) -> float:
                 ctx = JobContext(f"soak/{k}", scene.toolpath, scene.camera, scene.cfg)
                 new.append(FarmMonitor(VirtualPrinter(gcode), SimCamera(lambda i, k=k: scene.photo(k, i)),
                                        PoolPipeline(pool, ctx.pipeline()), PausePolicy(scene.cfg.policy),
-                                       wait_for_verdict=True))
+                                       wait_for_verdict=True, faults=scene.cfg.faults,
+                                       frame_quality=scene.cfg.frame_quality))  # as a farm station builds it
             mons += new
             for layer in range(scene.layers):
                 for mon in new:
