@@ -23,7 +23,11 @@ from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.printers.virtual import VirtualPrinter
 from layerwatch.pipeline.config import resolve_config
 from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.simulate import PrintSimulator, default_camera
 from layerwatch.storage.history import History
+
+#: the issue's target: 500 printers in 5 GB
+MB_PER_PRINTER = 10.0
 
 
 class _Camera:
@@ -87,6 +91,54 @@ def test_farm_pipeline_memory_does_not_grow_with_layers():
         tracemalloc.stop()
     # 12 more layers: a remap table per layer height (~2.5 MB each) would add ~30 MB
     assert late - early < 3e6, (late - early) / 1e6
+
+
+def _array_bytes(obj, seen: set[int]) -> dict[str, int]:
+    """``{attribute path: nbytes}`` of every NumPy array reachable from ``obj`` through attributes and
+    containers, each buffer counted once (views count their base; ids in ``seen`` are skipped)."""
+    out: dict[str, int] = {}
+    stack = [(obj, "")]
+    while stack:
+        o, path = stack.pop()
+        if id(o) in seen or isinstance(o, (str, bytes, int, float, bool, type(None), type)):
+            continue
+        seen.add(id(o))
+        if isinstance(o, np.ndarray):
+            base = o
+            while isinstance(base.base, np.ndarray):
+                base = base.base
+            if base is o or id(base) not in seen:
+                seen.add(id(base))
+                out[path] = base.nbytes
+            continue
+        if isinstance(o, dict):
+            stack += [(v, f"{path}[{k!r}]") for k, v in o.items()]
+        elif isinstance(o, (list, tuple, set, frozenset)):
+            stack += [(v, f"{path}[{i}]") for i, v in enumerate(o)]
+        elif hasattr(o, "__dict__"):
+            stack += [(v, f"{path}.{k}") for k, v in vars(o).items()]
+    return out
+
+
+def test_a_farm_pipeline_holds_at_most_10_mb_of_arrays_after_analysing_layers():
+    """What a printer's pipeline keeps between layers of a 1080p camera (scene model, warper, renderer,
+    references), counted as array bytes: the job's toolpath, camera and settings are shared, not counted."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    tv = cfg.topview.topview()
+    camera = default_camera(tv, image_size=(1920, 1080))
+    sim = PrintSimulator(tp, camera, tv, [], seed=1)
+    pipe = JobContext("mem", tp, camera, cfg).pipeline()
+    for i in range(4):
+        assert analyse_on(pipe, sim.frame(i).photo, i).result.status == "ok"
+    seen: set[int] = set()
+    for shared in (pipe.toolpath, pipe.camera, pipe.config, pipe.topview):
+        _array_bytes(shared, seen)
+    held = _array_bytes(pipe, seen)
+    total = sum(held.values()) / 2**20
+    top = sorted(held.items(), key=lambda kv: -kv[1])[:6]
+    assert total <= MB_PER_PRINTER, f"{total:.1f} MB: " + ", ".join(f"{k} {v / 2**20:.1f}" for k, v in top)
+    assert pipe.scene is not None and pipe.scene.expected is not None  # the scene channel is on and has a baseline
 
 
 class _FakeClient:

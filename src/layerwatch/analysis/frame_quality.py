@@ -36,7 +36,7 @@ from pydantic import Field
 
 from layerwatch.settings_base import Section
 
-__all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "grey_of", "noise_sigma", "blockiness",
+__all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
            "sharpness", "change_from", "marker_shift_px"]
 
 #: width of the reduced grey image the exposure, sharpness and change checks use, px
@@ -131,12 +131,26 @@ def grey_of(image: np.ndarray) -> np.ndarray:
     return img[..., 0] if img.shape[2] == 1 else cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_BGR2GRAY)
 
 
-def _reduced(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
-    """``grey`` area-averaged to ``width`` px wide (not enlarged), float32."""
+def _shrunk(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
+    """``grey`` area-averaged to ``width`` px wide (not enlarged), uint8 as given."""
     h, w = grey.shape
     if w > width:
         grey = cv2.resize(grey, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
-    return grey.astype(np.float32)
+    return grey
+
+
+def _reduced(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
+    """``grey`` area-averaged to ``width`` px wide (not enlarged), float32."""
+    return _shrunk(grey, width).astype(np.float32)
+
+
+def compact_previous(image_bgr: np.ndarray) -> np.ndarray:
+    """What :func:`assess_frame` needs of a frame passed later as ``previous``: its grey at ``WORK_WIDTH``.
+
+    uint8 (h, w), 640 px wide: about 20x smaller than a 1080p BGR frame, and judged
+    exactly as the frame itself (``assess_frame`` reduces ``previous`` the same way).
+    """
+    return _shrunk(grey_of(image_bgr))
 
 
 def noise_sigma(grey: np.ndarray) -> float:

@@ -48,7 +48,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame
+from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame, compact_previous
 from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
@@ -313,7 +313,7 @@ class Monitor:
             log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", trigger.layer)
             return None
         if quality.ok:
-            self._last_good = photo
+            self._last_good = compact_previous(photo)  # not the frame: a farm holds one per printer
             return None
         res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT,
                           message="unusable frame: " + "; ".join(quality.reasons))

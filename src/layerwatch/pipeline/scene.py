@@ -252,6 +252,26 @@ class SceneObservation:
                           ms=round(self.ms, 3))
 
 
+@dataclass(frozen=True)
+class _AckPatch:
+    """The pixels of ``E`` that :meth:`SceneModel.acknowledge` sets, and their values.
+
+    Attributes
+    ----------
+    rows, cols : slice
+        Their bounding box in ``E`` (:attr:`SceneModel.box` coordinates).
+    where : ndarray, bool, shape (r, c)
+        The pixels in it.
+    values : ndarray, float32, shape (k, 3)
+        The accepted photo in ``E``'s photometric frame at those pixels.
+    """
+
+    rows: slice
+    cols: slice
+    where: np.ndarray
+    values: np.ndarray
+
+
 class SceneModel:
     """The expected appearance ``E`` of the camera view and its update rule (module notes).
 
@@ -271,11 +291,16 @@ class SceneModel:
         self.camera, self.topview = camera, topview
         self.settings = settings or SceneSettings()
         self.size = working_size(camera.image_size, self.settings.working_px)
-        self.maps = plane_maps(image_rays(camera, self.size), camera.center_mm, topview)
-        mx, my = top_coords(self.maps, 0.0)
+        A, B = plane_maps(image_rays(camera, self.size), camera.center_mm, topview)
+        mx, my = top_coords((A, B), 0.0)
         H, W = topview.shape
         #: working-image pixels that see the observed square on the bed
         self.observed = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
+        #: the bounding box of :attr:`observed` (rows, columns): ``E`` and the plane maps are kept on it only
+        self.box = _box(self.observed)
+        #: :func:`plane_maps` on :attr:`box` (what lies outside it is never scored)
+        self.maps = (np.ascontiguousarray(A[:, self.box[0], self.box[1]]),
+                     np.ascontiguousarray(B[:, self.box[0], self.box[1]]))
         self.reset(bed_photo)
 
     def reset(self, bed_photo: np.ndarray | None = None) -> None:
@@ -289,10 +314,33 @@ class SceneModel:
         self.body_layer = -1
         self._confirmed = False
         self._rejections = 0
-        self._last: SceneObservation | None = None
+        self._ack: _AckPatch | None = None
         if bed_photo is not None:
-            self.expected = to_working(check_bed_photo(bed_photo, self.camera), self.size)
+            self.expected = self._crop(to_working(check_bed_photo(bed_photo, self.camera), self.size))
             self.baseline = "bed photo"
+
+    def _crop(self, image: np.ndarray) -> np.ndarray:
+        """A working image (h, w, 3) on :attr:`box`, a contiguous copy: how ``E`` is stored."""
+        return np.ascontiguousarray(image[self.box]).copy()
+
+    def _expected_full(self) -> np.ndarray:
+        """``E`` as a working-size image (h, w, 3), 0 outside :attr:`box` (a per-photo temporary).
+
+        Nothing outside the box is observed, so nothing there is fitted or scored
+        (:func:`photometric_fit` and :func:`change_blocks` weigh such pixels by 0).
+        """
+        assert self.expected is not None
+        full = np.zeros((self.size[1], self.size[0], 3), np.float32)
+        full[self.box] = self.expected
+        return full
+
+    def _predicted(self, footprint: np.ndarray, z_planes: np.ndarray, margin_mm: float) -> np.ndarray:
+        """:func:`predicted_change` as a working-size bool mask (False outside :attr:`box`)."""
+        out = np.zeros(self.observed.shape, bool)
+        if self.maps[0].size == 0:  # the camera does not see the observed square at all
+            return out
+        out[self.box] = predicted_change(footprint, z_planes, self.maps, self.topview, margin_mm)
+        return out
 
     # ------------------------------------------------------------ per photo
     def observe(self, photo: np.ndarray, layer: int, footprints: FootprintFn) -> SceneObservation:
@@ -333,17 +381,17 @@ class SceneModel:
         return None
 
     def _compare(self, obs: SceneObservation, footprints: FootprintFn) -> None:
-        st, E = self.settings, self.expected
-        assert E is not None, "_compare runs only with a baseline"
+        st = self.settings
+        assert self.expected is not None, "_compare runs only with a baseline"
+        E = self._expected_full()
         first = self.body_layer + 1 if self.body_layer < obs.layer else obs.layer
         predicted = np.zeros(self.observed.shape, bool)
         ledges = self.ledges.copy()
         for j in range(first, obs.layer + 1):
             fp, z0, z1 = footprints(j)
-            band = predicted_change(fp, np.array([z0, z1]), self.maps, self.topview, st.margin_mm)
+            band = self._predicted(fp, np.array([z0, z1]), st.margin_mm)
             predicted |= band
-            ledges = (ledges & ~band) | predicted_change(fp, np.array([z1]), self.maps, self.topview,
-                                                         -st.margin_mm)
+            ledges = (ledges & ~band) | self._predicted(fp, np.array([z1]), -st.margin_mm)
         obs.predicted, obs.body, obs.ledges = predicted, self.body | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
@@ -386,20 +434,24 @@ class SceneModel:
         if obs.rejected is not None:
             return
         self._rejections = 0
+        self._ack = None
         if self.expected is None:
-            self.expected, self.baseline = obs.image.copy(), "first photo"
+            self.expected, self.baseline = self._crop(obs.image), "first photo"
         elif obs.body is not None:
             assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
-            take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)
-            box = _box(take)  # the division only where E takes the photo
-            np.copyto(self.expected[box], self._in_expected_frame(obs, box), where=take[box][..., None])
+            take = (obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs))[self.box]
+            rows, cols = _box(take)  # the division only where E takes the photo (E's own coordinates)
+            r0, c0 = self.box[0].start, self.box[1].start
+            img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
+            np.copyto(self.expected[rows, cols], self._in_expected_frame(obs, img_box),
+                      where=take[rows, cols][..., None])
+            self._ack = self._ack_patch(obs)
             self._confirmed = True
             self.body, self.ledges = obs.body, obs.ledges
             self.body_layer = max(self.body_layer, obs.layer)
         self.last_layer = max(self.last_layer, obs.layer) if obs.body is not None else obs.layer
         if obs.body is None:  # this photo is the baseline: what it shows is the scene (the body included)
             self.body_layer = obs.layer
-        self._last = obs
 
     def _quiet(self, obs: SceneObservation) -> np.ndarray:
         """Working-image pixels outside ``P`` of scored blocks that did not change and do not touch a change."""
@@ -417,6 +469,24 @@ class SceneModel:
         assert obs.ratio is not None  # set by photometric_fit before any photo is accepted into E
         return obs.image[box] / np.maximum(obs.ratio[box], 1e-3)
 
+    def _ack_patch(self, obs: SceneObservation) -> _AckPatch | None:
+        """What :meth:`acknowledge` writes into ``E`` for the accepted ``obs``: its changed blocks (grown by a
+        block) on the observed pixels, in ``E``'s photometric frame; ``None`` when nothing changed.
+
+        Kept instead of the observation itself: a few changed blocks, not two working-size images.
+        """
+        c = obs.change
+        if c is None or not c.changed.any():
+            return None
+        blocks = c.pixels(obs.image.shape[:2]).astype(np.uint8)
+        b = c.block_px
+        px = (cv2.dilate(blocks, np.ones((2 * b + 1, 2 * b + 1), np.uint8)).astype(bool) & self.observed)[self.box]
+        rows, cols = _box(px)
+        r0, c0 = self.box[0].start, self.box[1].start
+        img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
+        where = px[rows, cols]
+        return _AckPatch(rows, cols, where, self._in_expected_frame(obs, img_box)[where])
+
     def acknowledge(self) -> int:
         """The operator accepted what changed: ``E`` takes the last accepted photo on its changed blocks.
 
@@ -425,15 +495,11 @@ class SceneModel:
         int
             Working-image pixels updated (0 when nothing was changed).
         """
-        obs = self._last
-        if obs is None or obs.change is None or self.expected is None:
+        patch, self._ack = self._ack, None
+        if patch is None or self.expected is None:
             return 0
-        blocks = obs.change.pixels(obs.image.shape[:2]).astype(np.uint8)
-        b = obs.change.block_px
-        px = cv2.dilate(blocks, np.ones((2 * b + 1, 2 * b + 1), np.uint8)).astype(bool) & self.observed
-        self.expected[px] = self._in_expected_frame(obs)[px]
-        obs.change.changed[:] = False
-        return int(px.sum())
+        self.expected[patch.rows, patch.cols][patch.where] = patch.values
+        return int(patch.where.sum())
 
     # ------------------------------------------------------------ reporting
     def fill_result(self, res: LayerResult, obs: SceneObservation, warper: TopViewWarper, z: float,
