@@ -38,7 +38,7 @@ from layerwatch.gcode import read_toolpath
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.settings import TopViewSettings
 from layerwatch.geometry.warp import TopViewWarper
-from layerwatch.pipeline.checks import NOTHING_EXTRUDED, JobChecks
+from layerwatch.pipeline.checks import NOTHING_EXTRUDED, JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.simulate import Failure, PrintSimulator, SimSettings, default_camera
 from layerwatch.simulate.bed_scene import BED_VARIANTS, random_leftover, random_light, start_photo
@@ -89,7 +89,7 @@ def job_checks(tp: Toolpath, camera, tv, bed_photo=None, **sections) -> JobCheck
     on = {"bed_check": BedCheckSettings(enabled=True), "first_layer": FirstLayerSettings(enabled=True),
           "extrusion": ExtrusionSettings(enabled=True)}
     cfg = JobConfig(**{**on, **sections})
-    return JobChecks(camera, tv, TopViewWarper(camera, tv), cfg, bed_photo)
+    return JobChecks(camera, tv, TopViewWarper(camera, tv), cfg, bed_photo, reach_mm=print_reach_mm(tp), top_z_mm=print_top_z_mm(tp))
 
 
 def _footprints(tp: Toolpath, tv):

@@ -44,12 +44,13 @@ from layerwatch.analysis.scene_change import (
     top_coords,
     working_size,
 )
+from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.config import JobConfig
 
-__all__ = ["EMPTY_BED", "FIRST_LAYER", "NOTHING_EXTRUDED", "JobChecks"]
+__all__ = ["EMPTY_BED", "FIRST_LAYER", "NOTHING_EXTRUDED", "JobChecks", "print_reach_mm", "print_top_z_mm"]
 
 EMPTY_BED, FIRST_LAYER, NOTHING_EXTRUDED = "empty_bed", "first_layer", "nothing_extruded"
 
@@ -77,14 +78,25 @@ class JobChecks:
     config : JobConfig
     bed_photo : ndarray, optional
         Empty-bed photo of the same camera and pose.
+    reach_mm : (float, float, float, float), optional
+        ``(xmin, ymin, xmax, ymax)`` bed mm that the print's extrusion covers, with
+    top_z_mm : float, optional
+        its highest layer, mm: the nothing-extruded check then keeps its plane maps and
+        textures only on the working-image box whose rays can meet that prism (a
+        block-aligned crop: the same blocks and the same result as the whole image, a
+        fraction of the memory). Without them the whole image is kept.
     """
 
     def __init__(self, camera: CameraModel, topview: TopView, warper: TopViewWarper, config: JobConfig,
-                 bed_photo: np.ndarray | None = None) -> None:
+                 bed_photo: np.ndarray | None = None, *,
+                 reach_mm: tuple[float, float, float, float] | None = None, top_z_mm: float | None = None) -> None:
         self.camera, self.topview, self.warper, self.config = camera, topview, warper, config
         #: the image the nothing-extruded check compares textures on (``[extrusion] working_px``)
         self.size = working_size(camera.image_size, config.extrusion.working_px)
+        self._reach = (reach_mm, top_z_mm)
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
+        #: rows and columns of the working image the check keeps (:meth:`_crop_box`)
+        self.box: tuple[slice, slice] = (slice(0, self.size[1]), slice(0, self.size[0]))
         #: RGB picture of the last failed check (``None`` when none failed)
         self.image: np.ndarray | None = None
         #: the last layer's surface similarity and blocks judged by the nothing-extruded check (nan, 0: not judged)
@@ -99,10 +111,45 @@ class JobChecks:
 
     @property
     def maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """The working image's rays on the layer planes (:func:`~layerwatch.analysis.scene_change.plane_maps`)."""
+        """The rays of :attr:`box` on the layer planes (:func:`~layerwatch.analysis.scene_change.plane_maps`)."""
         if self._maps is None:
-            self._maps = plane_maps(image_rays(self.camera, self.size), self.camera.center_mm, self.topview)
+            A, B = plane_maps(image_rays(self.camera, self.size), self.camera.center_mm, self.topview)
+            self.box = self._crop_box(A, B)
+            rows, cols = self.box
+            self._maps = (np.ascontiguousarray(A[:, rows, cols]), np.ascontiguousarray(B[:, rows, cols]))
         return self._maps
+
+    def _crop_box(self, A: np.ndarray, B: np.ndarray) -> tuple[slice, slice]:
+        """The block-aligned box of working-image pixels whose ray meets the print's prism.
+
+        A pixel's ray meets the plane ``Z = z`` at ``A + z B`` (top-view px); it is kept when
+        that segment for ``z`` in [0, top] crosses the reach (plus 2 mm). Outside the box no
+        surface pixel can lie, so :func:`block_ncc` on the crop scores the same blocks.
+        """
+        reach, top = self._reach
+        h, w = self.size[1], self.size[0]
+        if reach is None or top is None or not np.all(np.isfinite([*reach, top])):
+            return (slice(0, h), slice(0, w))
+        pad = 2.0
+        (u0, v0), (u1, v1) = self.topview.to_px(np.array([[reach[0] - pad, reach[1] - pad],
+                                                          [reach[2] + pad, reach[3] + pad]], float))
+        lo_t, hi_t = np.zeros((h, w), np.float32), np.ones((h, w), np.float32)
+        for k, (a, b) in enumerate(((min(u0, u1), max(u0, u1)), (min(v0, v1), max(v0, v1)))):
+            start, d = A[k], B[k] * np.float32(top + pad)  # the segment A + t d, t in [0, 1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1, t2 = (a - start) / d, (b - start) / d
+            flat = np.abs(d) < 1e-9
+            t_in = np.where(flat, np.where((start >= a) & (start <= b), 0.0, np.inf), np.minimum(t1, t2))
+            t_out = np.where(flat, np.where((start >= a) & (start <= b), 1.0, -np.inf), np.maximum(t1, t2))
+            lo_t, hi_t = np.maximum(lo_t, t_in), np.minimum(hi_t, t_out)
+        rows = np.flatnonzero((lo_t <= hi_t).any(axis=1))
+        cols = np.flatnonzero((lo_t <= hi_t).any(axis=0))
+        if rows.size == 0:
+            return (slice(0, 0), slice(0, 0))
+        bp = int(self.config.extrusion.block_px)
+        r0, c0 = max(rows[0] - bp, 0) // bp * bp, max(cols[0] - bp, 0) // bp * bp  # block-aligned starts
+        r1, c1 = min(-(-(rows[-1] + 1 + bp) // bp) * bp, h), min(-(-(cols[-1] + 1 + bp) // bp) * bp, w)
+        return (slice(int(r0), int(r1)), slice(int(c0), int(c1)))
 
     # ------------------------------------------------------------ job start
     def check_bed(self, photo: np.ndarray) -> LayerResult | None:
@@ -157,7 +204,8 @@ class JobChecks:
     def _extrusion(self, res: LayerResult, photo: np.ndarray, index: int, footprint: FootprintFn) -> None:
         st = self.config.extrusion
         self.similarity = (float("nan"), 0)
-        texture = highpass(to_working(photo, self.size))
+        maps = self.maps  # sets self.box
+        texture = np.ascontiguousarray(highpass(to_working(photo, self.size))[self.box])
         earlier = [t for i, t in reversed(self._textures) if i < index][:2]
         self._textures = [(i, t) for i, t in self._textures if i < index][-1:] + [(index, texture)]
         if len(earlier) < 2 or index < 2:
@@ -168,7 +216,7 @@ class JobChecks:
         area = float(inner.sum()) / self.topview.px_per_mm ** 2
         if area < st.min_area_mm2:
             return
-        surface = predicted_change(fp, np.array([z]), self.maps, self.topview, -st.margin_mm) & self._observed(z)
+        surface = predicted_change(fp, np.array([z]), maps, self.topview, -st.margin_mm) & self._observed(z)
         sim, blocks = surface_similarity(texture, earlier[1:], surface, st.block_px)
         if blocks < MIN_BLOCKS:  # not judged
             return
@@ -207,3 +255,16 @@ class JobChecks:
                       centroid_mm=(float(cx), float(cy)), n_blocks=int(np.ceil(area / 4.0)),
                       mean_similarity=float(sim), min_similarity=float(sim), kind=NOTHING_EXTRUDED,
                       kind_confidence=round(float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1)), 3))
+
+def print_reach_mm(toolpath: Toolpath) -> tuple[float, float, float, float] | None:
+    """``(xmin, ymin, xmax, ymax)`` of every segment of ``toolpath`` (skirt, brim, tower included), mm."""
+    if toolpath.n_segments == 0:
+        return None
+    xy = np.concatenate([toolpath.start[:, :2], toolpath.end[:, :2]])
+    lo, hi = np.nanmin(xy, axis=0), np.nanmax(xy, axis=0)
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+def print_top_z_mm(toolpath: Toolpath) -> float | None:
+    """The highest layer of ``toolpath``, mm."""
+    return float(np.nanmax(toolpath.z)) if toolpath.n_segments else None

@@ -75,7 +75,7 @@ from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.warp import TopViewWarper
-from layerwatch.pipeline.checks import JobChecks
+from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.scene import SceneModel, SceneObservation
@@ -192,7 +192,8 @@ class LayerPipeline:
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview)
         #: the empty-bed, first-layer and nothing-extruded checks
-        self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo)
+        self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo,
+                                reach_mm=print_reach_mm(toolpath), top_z_mm=print_top_z_mm(toolpath))
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -443,3 +444,4 @@ def judge_layers(
         decision = policy.update(res)
         res.decision, res.decision_reason = decision.action, decision.reason
         yield res, decision
+
