@@ -61,9 +61,16 @@ def test_twenty_printers_one_failure_pauses_exactly_that_one(farm_server, shots)
             assert farm.stations[FAILING].printer.pause_count == 1
             # the other 19 keep printing: their layers advance after the pause
             before = {n: cards[n]["layer"] for n in others}
-            page.wait_for_timeout(4500)
-            after = {c["name"]: c for c in farm.summaries()}
-            assert all(after[n]["layer"] > before[n] for n in others), (before, {n: after[n]["layer"] for n in others})
+            after: dict = {}
+            for _ in range(120):  # a layer each 2 s; a loaded machine analyses late, so wait up to 60 s
+                page.wait_for_timeout(500)
+                after = {c["name"]: c for c in farm.summaries()}
+                if all((after[n]["layer"] or -1) > (before[n] or -1) for n in others):
+                    break
+            assert all((after[n]["layer"] or -1) > (before[n] or -1) for n in others), (
+                before, {n: after[n]["layer"] for n in others})
+            assert farm.stations[FAILING].printer.pause_count == 1 and all(
+                farm.stations[n].printer.pause_count == 0 for n in others)
             for n in (FAILING, "p01"):  # overlay thumbnails arrive
                 page.wait_for_function(
                     "(n) => { const i = document.querySelector(`.farm-card[data-printer='${n}'] img.thumb`);"

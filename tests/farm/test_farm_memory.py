@@ -11,7 +11,6 @@ import tracemalloc
 import zlib
 
 import numpy as np
-import pytest
 
 from layerwatch.analysis.result import LayerResult
 from layerwatch.examples import PART_CONFIG, PART_GCODE
@@ -121,8 +120,6 @@ def _array_bytes(obj, seen: set[int]) -> dict[str, int]:
     return out
 
 
-@pytest.mark.xfail(strict=True, reason="issue 23 target not met yet: the nothing-extruded check keeps its plane maps "
-                   "(7 MB) and two textures (3.5 MB) of a 1080p camera; 15.8 MB in all (was 52.7 before cropping)")
 def test_a_farm_pipeline_holds_at_most_10_mb_of_arrays_after_analysing_layers():
     """What a printer's pipeline keeps between layers of a 1080p camera (scene model, warper, renderer,
     references), counted as array bytes: the job's toolpath, camera and settings are shared, not counted."""

@@ -102,12 +102,12 @@ def _lagged(from_layer: int = 1, blob_from: int | None = None):
     return frame
 
 
-def _watch_lag(frames, gate: bool = True, turns: frozenset[int] | None = None):
+def _watch_lag(frames, gate: bool = True, turns: frozenset[int] | None = None, excuse: bool = True):
     rec = Recorder()
     mon = Monitor(VirtualPrinter(_gcode(N_LAYERS)), SimCamera(frames), TopViewPipeline(turns),
                   PausePolicy(PolicySettings(skip_first_layers=1)), notifier=rec, wait_for_verdict=True,
                   faults=FaultSettings(camera_alert_after=3),
-                  frame_quality=FrameQualitySettings() if gate else None)
+                  frame_quality=FrameQualitySettings(excuse_late_frames=excuse) if gate else None)
     return mon.run(poll_s=0.001), rec
 
 
@@ -136,6 +136,15 @@ def test_a_camera_one_layer_late_for_the_whole_print_never_pauses():
     assert all(r.frame_quality["lag_previous_area_mm2"] < r.frame_quality["lag_area_mm2"] for r in late)
     alerts = [m for _, m in rec.sent if m.startswith("camera")]
     assert len(alerts) == 1 and alerts[0].startswith("camera lagging: 3 frames")  # consistent: alerted once
+
+
+def test_by_default_a_frame_like_the_previous_layer_is_judged_as_it_is_and_alerted():
+    """Off by default: a late camera cannot be told from a layer that added nothing, so the policy decides."""
+    rep, rec = _watch_lag(_lagged(), excuse=False)
+    assert rep.pauses == 1  # as without the check: a missed failure costs more than one false pause
+    late = [r for r in rep.results if "looks like the previous layer" in r.message]
+    assert late and all(r.status == "ok" for r in late)  # said on the record, judged as analysed
+    assert any(m.endswith("pause") for _, m in rec.sent)
 
 
 def test_a_late_camera_is_alerted_when_its_frames_are_far_apart():

@@ -100,6 +100,9 @@ class ExtrusionSettings(Section):
         Long side of the image the texture is compared on, px; the photo's own
         resolution up to this (bead lines 0.4-0.5 mm apart must be resolved:
         the scene channel's 640 px blur them into the same texture every layer).
+        1280: the size the check's thresholds were chosen and evaluated at
+        (720p photos); a 1080p photo is compared at that size too (a farm
+        printer then holds 3.3 MB for the check instead of 7.4).
     block_px : int
         Block side of the comparison, px of that image.
     """
@@ -108,5 +111,5 @@ class ExtrusionSettings(Section):
     min_similarity: float = Field(0.84, ge=0, le=1)
     min_area_mm2: float = Field(10.0, ge=0, le=2500)
     margin_mm: float = Field(0.3, ge=0, le=10)
-    working_px: int = Field(1920, ge=160, le=4096)
+    working_px: int = Field(1280, ge=160, le=4096)
     block_px: int = Field(16, ge=2, le=64)

@@ -352,6 +352,10 @@ class Monitor:
             self._alert(message, res, force=True)
         if not verdict.lagged or verdict.previous is None:
             return res
+        if not self.frame_quality.excuse_late_frames:  # a late camera or a layer that added nothing: judged as is
+            res.message = (res.message + "; " if res.message else "") + (
+                "the photo looks like the previous layer (a late camera, or nothing printed on this layer)")
+            return res
         if res.outside_anomalous_mm2 > 0 and hasattr(self.pipeline, "acknowledge"):
             with self._lock:  # as Monitor.acknowledge: the change beside the print was the previous layer
                 self.pipeline.acknowledge()

@@ -94,7 +94,7 @@ class JobChecks:
         #: the image the nothing-extruded check compares textures on (``[extrusion] working_px``)
         self.size = working_size(camera.image_size, config.extrusion.working_px)
         self._reach = (reach_mm, top_z_mm)
-        self._maps: tuple[np.ndarray, np.ndarray] | None = None
+        self._maps: tuple[np.ndarray | None, np.ndarray] | None = None
         #: rows and columns of the working image the check keeps (:meth:`_crop_box`)
         self.box: tuple[slice, slice] = (slice(0, self.size[1]), slice(0, self.size[0]))
         #: RGB picture of the last failed check (``None`` when none failed)
@@ -111,13 +111,25 @@ class JobChecks:
 
     @property
     def maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """The rays of :attr:`box` on the layer planes (:func:`~layerwatch.analysis.scene_change.plane_maps`)."""
+        """The rays of :attr:`box` on the layer planes (:func:`~layerwatch.analysis.scene_change.plane_maps`).
+
+        Only ``B`` is kept: for a ray that goes down, ``A = c - C_z B`` with ``c`` the top-view
+        position under the camera (``A`` rebuilt per call, a per-layer temporary; it agrees with
+        the stored one to ~1e-4 px). A box with a ray that does not go down keeps ``A`` too.
+        """
         if self._maps is None:
             A, B = plane_maps(image_rays(self.camera, self.size), self.camera.center_mm, self.topview)
             self.box = self._crop_box(A, B)
             rows, cols = self.box
-            self._maps = (np.ascontiguousarray(A[:, rows, cols]), np.ascontiguousarray(B[:, rows, cols]))
-        return self._maps
+            a, b = np.ascontiguousarray(A[:, rows, cols]), np.ascontiguousarray(B[:, rows, cols])
+            self._maps = (a if bool((a <= -1e5).any()) else None, b)
+        stored, b = self._maps
+        if stored is not None:
+            return stored, b
+        C = np.asarray(self.camera.center_mm, np.float64)
+        T = self.topview.top_from_bed
+        c = np.array([T[0, 0] * C[0] + T[0, 2], T[1, 1] * C[1] + T[1, 2]]).reshape(2, 1, 1)
+        return (c - C[2] * b.astype(np.float64)).astype(np.float32), b
 
     def _crop_box(self, A: np.ndarray, B: np.ndarray) -> tuple[slice, slice]:
         """The block-aligned box of working-image pixels whose ray meets the print's prism.
@@ -216,7 +228,7 @@ class JobChecks:
         area = float(inner.sum()) / self.topview.px_per_mm ** 2
         if area < st.min_area_mm2:
             return
-        surface = predicted_change(fp, np.array([z]), maps, self.topview, -st.margin_mm) & self._observed(z)
+        surface = predicted_change(fp, np.array([z]), maps, self.topview, -st.margin_mm) & self._observed(maps, z)
         sim, blocks = surface_similarity(texture, earlier[1:], surface, st.block_px)
         if blocks < MIN_BLOCKS:  # not judged
             return
@@ -241,8 +253,8 @@ class JobChecks:
             cv2.circle(out, (int(u), int(v)), r, 1, -1)
         return out.astype(bool)
 
-    def _observed(self, z: float) -> np.ndarray:
-        mx, my = top_coords(self.maps, z)
+    def _observed(self, maps: tuple[np.ndarray, np.ndarray], z: float) -> np.ndarray:
+        mx, my = top_coords(maps, z)
         H, W = self.topview.shape
         return (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
 
