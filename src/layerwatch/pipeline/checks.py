@@ -57,6 +57,9 @@ EMPTY_BED, FIRST_LAYER, NOTHING_EXTRUDED = "empty_bed", "first_layer", "nothing_
 #: fewest textured blocks of a layer's top surface the nothing-extruded check judges (5 left the sparse
 #: layers of a 12 mm cube unjudged; 3 raised the runs caught on seed 0 from 53 to 57 of 60, no false alarm)
 MIN_BLOCKS = 3
+#: fewer blocks than this are thin evidence: such a layer fails only when the layer before it looked alike
+#: too (4 alike blocks under the window part's bridge paused a clean print)
+CONFIRM_BELOW_BLOCKS = 6
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)`` (the pipeline's references)
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
 
@@ -107,6 +110,7 @@ class JobChecks:
         """Start a job: forget the earlier photos; ``bed_photo`` is the empty bed (``None``: none)."""
         self.bed_photo = None if bed_photo is None else np.asarray(bed_photo)
         self._textures: list[tuple[int, np.ndarray]] = []
+        self._alike = -10  # the last layer whose surface looked like the photo two layers back
         self.image = None
 
     @property
@@ -234,6 +238,9 @@ class JobChecks:
             return
         self.similarity = (sim, blocks)
         if not np.isfinite(sim) or sim < st.min_similarity:
+            return
+        alike_before, self._alike = self._alike, index
+        if blocks < CONFIRM_BELOW_BLOCKS and alike_before != index - 1:  # thin evidence: wait for the next layer
             return
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim)
