@@ -11,15 +11,15 @@ import contextlib
 import json
 import os
 import secrets
-import socket
 import subprocess
 import sys
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
+
+from polling import free_port, until
 
 ROOT = Path(__file__).resolve().parents[1]
 VENV = Path(os.environ.get("LAYERWATCH_OCTOPRINT_VENV", ROOT / ".venv-octoprint"))
@@ -38,27 +38,6 @@ def require_plugin() -> None:
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(msg + " (CI=true: .ci/run must have installed it)")
         pytest.skip(msg)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def until(fn: Callable[[], object], deadline_s: float, what: str, every_s: float = 0.2):
-    """Poll ``fn`` until it returns something truthy (HTTP errors count as "not yet"); fail after ``deadline_s``."""
-    end = time.monotonic() + deadline_s
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except (httpx.HTTPError, KeyError, ValueError):
-            pass
-        time.sleep(every_s)
-    pytest.fail(f"timed out waiting for {what} (last: {last!r})")
 
 
 @contextlib.contextmanager

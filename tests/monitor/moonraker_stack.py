@@ -28,9 +28,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import subprocess
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -39,6 +37,7 @@ import httpx
 import pytest
 
 from layerwatch.gcode.postprocess import KLIPPER_MACRO
+from polling import free_port, until
 
 ROOT = Path(__file__).resolve().parents[2]
 MOONRAKER_VENV = Path(os.environ.get("LAYERWATCH_MOONRAKER_VENV", ROOT / ".venv-moonraker"))
@@ -78,12 +77,6 @@ def require_installed() -> None:
     pytest.skip(msg)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def printer_cfg(gcodes: Path, extra: str = "") -> str:
     """Klipper config: no MCU pins, no kinematics, SD card in Moonraker's gcodes folder, our macro
     (and ``extra`` sections)."""
@@ -116,21 +109,6 @@ def klipper_gcode(n_layers: int, layer_s: float, layer_h: float = 0.3) -> str:
         lines.append(f"LAYERWATCH_TEST_LAYER_TIME SECONDS={layer_s}")
         lines += trigger_lines("klipper", i, z, snap)
     return "\n".join(lines) + "\n"
-
-
-def until(fn, deadline_s: float, what: str):
-    """Poll ``fn`` every 0.1 s until it returns something truthy; fail the test after ``deadline_s``."""
-    end = time.monotonic() + deadline_s
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except (httpx.HTTPError, KeyError, OSError) as exc:
-            last = exc
-        time.sleep(0.1)
-    pytest.fail(f"timed out after {deadline_s} s waiting for {what} (last: {last!r})")
 
 
 class MoonrakerStack:

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import pytest
 
+from polling import free_port
+
 MOSQUITTO = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
 
 
@@ -30,12 +32,6 @@ def need_mqtt():
     if MOSQUITTO is None or shutil.which("mosquitto_passwd") is None or shutil.which("openssl") is None:
         pytest.skip("mosquitto (and mosquitto_passwd, openssl) not installed: apt-get install mosquitto openssl")
     pytest.importorskip("paho.mqtt.client", reason="paho-mqtt not installed: pip install 'layerwatch[mqtt]'")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Broker:
@@ -52,7 +48,7 @@ class Broker:
         subprocess.run(["mosquitto_passwd", "-b", str(pw), "bblp", password], check=True, capture_output=True)
         pw.chmod(0o600)
         key.chmod(0o600)
-        self.port, self.tls_port = _free_port(), _free_port()
+        self.port, self.tls_port = free_port(), free_port()
         self.conf = folder / "mosquitto.conf"
         self.conf.write_text(
             # run as us: started as root, mosquitto would switch to a user that cannot read this folder
