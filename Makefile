@@ -19,7 +19,7 @@ demo: $(STAMP)
 	$(VENV)/bin/layerwatch demo --out $(OUT)
 
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest --durations=20
 
 # Fast feedback (issue 17): lint + types + every test not marked `slow`.
 check: lint types
