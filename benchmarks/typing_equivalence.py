@@ -157,8 +157,10 @@ def run(rev: str, layers: int, beside: float, seed: int = 0) -> None:
     print(f"  largest |confidence difference| {dconf:.3f}, largest displacement difference {ddisp:.3f} mm")
     print("  kind of the region covering the failure, same before and after: "
           + ", ".join(f"{m} {same_kind[m]}/{len(failed)}" for m in MODES))
-    print(f"typing per typed layer, median CPU ms (one thread): before {np.median(shadow.ms['old']):.1f}, "
-          f"after {np.median(shadow.ms['new']):.1f} ({len(shadow.ms['new'])} typed layers)")
+    o, c = np.asarray(shadow.ms["old"]), np.asarray(shadow.ms["new"])
+    print(f"typing per typed layer, CPU ms (one thread), median / 90th percentile / max: "
+          f"before {np.median(o):.1f} / {np.percentile(o, 90):.1f} / {o.max():.1f}, "
+          f"after {np.median(c):.1f} / {np.percentile(c, 90):.1f} / {c.max():.1f} ({len(c)} typed layers)")
     print(f"before ({rev}):\n{_confusion(before)}")
     print(f"after (current):\n{_confusion(after)}")
 
