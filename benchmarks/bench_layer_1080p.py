@@ -1,6 +1,6 @@
 """The per-layer budget of issue 18: full analysis of a 1080p layer, all channels, <= 60 ms on one core.
 
-Run: ``python benchmarks/bench_layer_1080p.py [--rev e74a860] [--rounds 3]``.
+Run: ``python benchmarks/bench_layer_1080p.py [--rev e74a860] [--typing-rev 74c3e36] [--rounds 3]``.
 
 What is timed: :meth:`LayerPipeline.process` with the recommended settings
 (the default pipeline of ``analyze`` and ``monitor``: the warp, the HOG
@@ -19,7 +19,12 @@ when the issue-18 speed work started), loaded in this same process with
 ``git archive`` (``benchmarks/baseline_revision.py``), fed the same photos.
 The two are interleaved layer by layer (old, new, old, new, ...) so that the
 load of a shared machine hits both alike; medians over ``--rounds`` passes.
-Also printed: the paper-only step (``--paper-settings``: no scene channel) of
+Also printed: the current step with the failure typer of ``--typing-rev``
+(default ``74c3e36``, before the typing was made cheap: whole-top-view
+medians, morphology and phase correlation; loaded the same way and put in
+the current pipeline, so only the typer differs), with the median CPU time
+of the typer on the layers with regions for both and whether they gave every region the
+same kind; the paper-only step (``--paper-settings``: no scene channel) of
 the current code, the current step with ``[topview] scale = "camera"`` (the
 camera's own resolution, 8.8 px/mm here), and whether the old and new results
 agree (a%, outside area, region count per layer).
@@ -49,6 +54,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline_revision import load_revision  # noqa: E402
 
+import layerwatch.analysis.failure_typing as lw_typing  # noqa: E402
 import layerwatch.gcode as lw_gcode  # noqa: E402
 import layerwatch.pipeline.config as lw_config  # noqa: E402
 import layerwatch.pipeline.step as lw_step  # noqa: E402
@@ -58,6 +64,7 @@ from layerwatch.simulate import Failure, PrintSimulator  # noqa: E402
 
 BUDGET_MS = 60.0
 LAYERS = range(2, 20)
+TYPING_MODULE = "layerwatch.analysis.failure_typing"
 OLD_MODULES = ["layerwatch.gcode", "layerwatch.pipeline.config", "layerwatch.pipeline.step", "layerwatch.simulate"]
 
 
@@ -89,6 +96,20 @@ def _pipeline(mods, paper: bool, bed: np.ndarray, size: tuple[int, int], camera_
     return pipe
 
 
+def _time_typing(pipe, ms: list[float]) -> None:
+    """Record the CPU time of each call of ``pipe``'s failure typer on a layer with regions into ``ms``."""
+    type_result = pipe.typer.type_result
+
+    def timed(res, *args, **kwargs):
+        c = time.process_time()
+        out = type_result(res, *args, **kwargs)
+        if res.regions or res.outside_regions:
+            ms.append((time.process_time() - c) * 1e3)
+        return out
+
+    pipe.typer.type_result = timed
+
+
 def _pass(pipes: dict, photos: dict[int, np.ndarray], bed: np.ndarray, times: dict, cpu: dict,
           results: dict) -> None:
     """One pass over the layers, the pipelines interleaved layer by layer."""
@@ -101,11 +122,14 @@ def _pass(pipes: dict, photos: dict[int, np.ndarray], bed: np.ndarray, times: di
             times[name].append((time.perf_counter() - t) * 1e3)
             cpu[name].append((time.process_time() - c) * 1e3)
             assert res.status == "ok", f"{name} layer {i}: {res.message}"
-            results[name][i] = (res.anomaly_ratio, res.outside_anomalous_mm2, len(res.regions), len(res.outside_regions))
+            results[name][i] = (res.anomaly_ratio, res.outside_anomalous_mm2, len(res.regions), len(res.outside_regions),
+                                tuple(r.kind for r in (*res.regions, *res.outside_regions)))
 
 
-def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 1080)) -> dict:
-    """Median ms per layer of the current step, the step at ``rev`` and the paper-only step."""
+def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 1080),
+        typing_rev: str | None = "74c3e36") -> dict:
+    """Median ms per layer of the current step, the step at ``rev``, the current step with the typer of
+    ``typing_rev`` and the paper-only step."""
     threads = _threads()
     current = {"gcode": lw_gcode, "config": lw_config, "step": lw_step, "simulate": lw_simulate}
     old = load_revision(rev, OLD_MODULES)
@@ -116,19 +140,30 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
         assert old["layerwatch.pipeline.step"].__file__ != lw_step.__file__, "the baseline is the current code"
         oldm = dict(zip(("gcode", "config", "step", "simulate"), (old[m] for m in OLD_MODULES), strict=True))
         pipes["old"] = _pipeline(oldm, False, bed, size)
+    old_typing = load_revision(typing_rev, [TYPING_MODULE]) if typing_rev else None
+    if old_typing is not None:
+        typer_cls = old_typing[TYPING_MODULE].FailureTyper
+        assert old_typing[TYPING_MODULE].__file__ != lw_typing.__file__, "the baseline typer is the current code"
+        pipes["old_typing"] = _pipeline(current, False, bed, size)
+        pipes["old_typing"].typer = typer_cls(pipes["old_typing"].toolpath, pipes["old_typing"].topview)
     times = {k: [] for k in pipes}
     cpu = {k: [] for k in pipes}
     results = {k: {} for k in pipes}
+    typing: dict[str, list[float]] = {k: [] for k in pipes}
     first = LAYERS[0]
     for pipe in pipes.values():  # JIT, lookup tables
         pipe.process(photos[first], first)
+    for name, pipe in pipes.items():
+        if hasattr(pipe, "typer"):  # the step at --rev may predate failure typing
+            _time_typing(pipe, typing[name])
     for _ in range(rounds):
         _pass(pipes, photos, bed, times, cpu, results)
     out = {k: float(np.median(v)) for k, v in cpu.items()}
     out["wall"] = {k: float(np.median(v)) for k, v in times.items()}
     out["load"] = os.getloadavg()[0]
+    out["typing"] = {k: (float(np.median(v)) if v else float("nan"), len(v)) for k, v in typing.items()}
     out.update(camera_px_per_mm=pipes["camera"].topview.px_per_mm, threads=threads, rev=rev if old is not None else None, layers=len(photos), rounds=rounds,
-               results=results)
+               results=results, typing_rev=typing_rev if old_typing is not None else None)
     return out
 
 
@@ -147,11 +182,23 @@ def report(r: dict) -> None:
         a, b = r["results"]["ours"], r["results"]["old"]
         da = max(abs(a[i][0] - b[i][0]) for i in a)
         dout = max(abs(a[i][1] - b[i][1]) for i in a)
-        same_regions = all(a[i][2:] == b[i][2:] for i in a)
+        same_regions = all(a[i][2:4] == b[i][2:4] for i in a)
         print(f"  results vs baseline: max |a% diff| {100 * da:.3f} points, max |outside area diff| {dout:.2f} mm^2, "
               f"region counts {'identical' if same_regions else 'DIFFER'}")
     else:
         print("  baseline revision: not available (git archive failed); the paper-only step below is the baseline")
+    t = r["typing"]
+    if r["typing_rev"] is not None:
+        a, b = r["results"]["ours"], r["results"]["old_typing"]
+        same = sum(a[i][4] == b[i][4] for i in a)
+        print(f"  current step with the failure typer at {r['typing_rev']}: {r['old_typing']:7.1f} ms  [{w['old_typing']:6.1f}]  "
+              f"-> ratio {r['old_typing'] / r['ours']:.2f}x faster (wall {w['old_typing'] / w['ours']:.2f}x)")
+        print(f"    typing alone, median CPU time over the typed layers: current {t['ours'][0]:.1f} ms, "
+              f"at {r['typing_rev']} {t['old_typing'][0]:.1f} ms ({t['ours'][1]} typed layer calls); "
+              f"kinds of every region identical on {same}/{len(a)} layers")
+    else:
+        print(f"  typing alone, median CPU time over the typed layers: current {t['ours'][0]:.1f} ms "
+              "(typer baseline revision not available)")
     print(f"  paper-only step (--paper-settings, no scene channel), current code: {r['paper']:7.1f} ms  [{w['paper']:6.1f}]")
     print(f"  current with [topview] scale = \"camera\" ({r['camera_px_per_mm']:.2f} px/mm):  "
           f"{r['camera']:7.1f} ms  [{w['camera']:6.1f}]")
@@ -160,9 +207,10 @@ def report(r: dict) -> None:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rev", default="e74a860", help="git revision of the baseline step")
+    ap.add_argument("--typing-rev", default="74c3e36", help="git revision of the failure typer compared in the current step")
     ap.add_argument("--rounds", type=int, default=3, help="passes over the layers")
     args = ap.parse_args(argv)
-    r = run(args.rev, args.rounds)
+    r = run(args.rev, args.rounds, typing_rev=args.typing_rev)
     report(r)
     return r
 

@@ -1,4 +1,5 @@
-"""Failure typing: part registration (translation, rotation), the typing rules, the evidence and the per-layer step."""
+"""Failure typing: part registration (translation, rotation), the typing rules, the evidence and the per-layer step;
+the cropped, lazy evidence equals the whole view's."""
 
 from __future__ import annotations
 
@@ -6,18 +7,28 @@ import cv2
 import numpy as np
 import pytest
 from analysis_scenes import TOPVIEW
+from scipy import ndimage
 
+from layerwatch.analysis import failure_typing
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS
 from layerwatch.analysis.failure_typing import (
     MOVE_MIN_MM,
     FailureTyper,
     PartMotion,
     RegionEvidence,
+    _hist_median,
+    _lab,
+    _lab_hist,
+    _lab_u8,
     _plan_wall_share,
+    _Scene,
+    fill_holes,
     kind_scores,
     part_motion,
+    region_evidence,
 )
 from layerwatch.analysis.overlay import overlay_image, region_label
+from layerwatch.analysis.part_registration import edges, mask_box
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.simulate.parts import box_part
 
@@ -219,3 +230,100 @@ def test_typer_marks_regions_unknown_when_the_images_cannot_be_read():
     FailureTyper(None, TOPVIEW).type_result(res, two, top, ref, foot)
     r = res.outside_regions[0]
     assert r.kind == "unknown" and r.kind_confidence == 0.0 and "failure typing skipped" in res.message
+
+
+# --- the cropped, lazy evaluation gives the whole view's values (issue 18 speed) ---------------------------
+
+
+def test_fill_holes_is_scipys_binary_fill_holes():
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        m = rng.random((int(rng.integers(1, 40)), int(rng.integers(1, 40)))) < rng.uniform(0.2, 0.8)
+        assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
+
+
+@pytest.mark.parametrize("n_px", [1, 2, 51, 400])
+def test_median_from_histograms_is_numpys_median(n_px):
+    rng = np.random.default_rng(n_px)
+    lab_u8 = rng.integers(0, 256, (30, 30, 3)).astype(np.uint8)
+    mask = np.zeros((30, 30), bool)
+    mask.flat[rng.choice(900, n_px, replace=False)] = True
+    expect = np.median(_lab(lab_u8[mask]), axis=0)
+    assert np.allclose(_hist_median(_lab_hist(lab_u8, mask)), expect, atol=1e-4)
+
+
+def _whole_view_scene(bgr, top, ref, foot, valid):
+    """The evidence the typer read before it cropped: every quantity over the whole top view."""
+    lab = _lab(_lab_u8(bgr))
+    k = max(3, int(round(2.0 * TOPVIEW.px_per_mm)) | 1)
+    inner = cv2.erode(foot.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & valid
+    far = ~cv2.dilate(foot.astype(np.uint8), np.ones((4 * k, 4 * k), np.uint8)).astype(bool) & valid
+    part = np.median(lab[inner if inner.sum() > 50 else foot & valid], axis=0)
+    bed = np.median(lab[far], axis=0)
+    k2 = max(3, int(round(3.0 * TOPVIEW.px_per_mm)) | 1)
+    solid = ndimage.binary_fill_holes(cv2.morphologyEx(foot.astype(np.uint8), cv2.MORPH_CLOSE,
+                                                       np.ones((k2, k2), np.uint8)).astype(bool))
+    return part, bed, solid, edges(top), edges(ref)
+
+
+@pytest.mark.parametrize("at_border", [False, True])
+def test_the_cropped_scene_reads_the_whole_views_values(at_border):
+    """Part and bed colour, closed outline and edge strengths on crops equal those of the whole top view."""
+    top, ref, foot = _part(11)
+    if at_border:  # the part against the view's left edge: crops clipped by the image
+        shift = int(np.nonzero(foot.any(axis=0))[0][0]) - 2
+        top, ref, foot = (np.roll(x, -shift, axis=1) for x in (top, ref, foot))
+    foot = foot.copy()
+    vv, uu = np.nonzero(foot)
+    vc, uc = int(vv.mean()), int(uu.mean())
+    foot[vc - 25: vc + 25, uc - 30: uc + 30] = False  # a hole wider than the closing: filled as "inside"
+    foot[vc - 2: vc + 2, : uc] = False  # a slit from the hole to the outline: not filled
+    bgr = _colour(top)
+    valid = np.ones(foot.shape, bool)
+    valid[:40, :] = False  # a strip the camera did not see
+    part, bed, solid, top_e, ref_e = _whole_view_scene(bgr, top, ref, foot, valid)
+    scene = _Scene(bgr, top, ref, foot, TOPVIEW, valid)
+    assert np.allclose(scene.part_colour, part, atol=1e-4) and np.allclose(scene.bed_colour, bed, atol=1e-4)
+    h, w = foot.shape
+    for box in [(slice(0, h), slice(0, w)), (slice(30, 90), slice(0, 25)), (slice(200, 260), slice(w - 30, w)),
+                (slice(h // 2 - 40, h // 2 + 10), slice(40, 140))]:
+        assert np.array_equal(scene.solid(box), solid[box])
+        seen = valid[box]
+        if seen.any():
+            expect = np.log2((top_e[box][seen].mean() + 1.0) / (ref_e[box][seen].mean() + 1.0))
+            assert scene.texture(box, seen) == pytest.approx(expect, abs=1e-5)
+
+
+def test_mask_box_is_the_bounding_box_of_the_set_pixels():
+    m = np.zeros((40, 50), bool)
+    assert mask_box(m) is None
+    m[7, 3] = m[20, 44] = True
+    assert mask_box(m) == (7, 21, 3, 45) and mask_box(m.astype(np.uint8) * 9) == (7, 21, 3, 45)
+
+
+def test_part_motion_of_a_part_at_the_views_edge():
+    """The registered box clipped by the image still measures the shift."""
+    top, ref, foot = _part(2, shift_mm=(2.0, -1.5))
+    shift = int(np.nonzero(foot.any(axis=0))[0][0]) - 30
+    top, ref, foot = (np.roll(x, -shift, axis=1) for x in (top, ref, foot))
+    m = part_motion(top, ref, foot, TOPVIEW)
+    assert m.moved and np.hypot(m.dx_mm - 2.0, m.dy_mm + 1.5) < 0.5
+
+
+def test_typer_measures_nothing_on_a_layer_without_regions(monkeypatch):
+    def fail(*args, **kwargs):
+        raise AssertionError("measured a layer without regions")
+
+    monkeypatch.setattr(failure_typing, "part_motion", fail)
+    monkeypatch.setattr(failure_typing, "_Scene", fail)
+    top, ref, foot = _part(12)
+    assert FailureTyper(None, TOPVIEW).type_result(LayerResult(layer=2, z=0.9), _colour(top), top, ref, foot) is None
+
+
+def test_the_scene_is_not_built_for_a_layer_of_only_outside_regions_beyond_what_they_read():
+    """A layer with regions beside the print only: the closed outline (inside/outside) is never computed."""
+    top, ref, foot = _part(13)
+    scene = _Scene(_colour(top), top, ref, foot, TOPVIEW, None)
+    r = _region(122.0, 96.0, 126.0, 104.0)
+    region_evidence(r, scene, 0.5, PartMotion(), 1.0)
+    assert "_solid" not in scene.__dict__ and "part_colour" in scene.__dict__

@@ -54,37 +54,53 @@ prints. The evaluation reports the resulting confusion matrix on held-out
 simulated prints (``docs/evaluation/report.md``); on real photos the
 colour and texture evidence is what carries over, the simulator's own
 shading is not used.
+
+Cost
+----
+Nothing is measured on a layer without regions. Otherwise each quantity is
+computed when a region first needs it and on the smallest crop that gives
+the whole view's value (``_Scene``): the part's colour on the footprint's
+box, the bed's colour as the exact median from 8-bit CIELAB histograms
+(whole view minus the footprint's neighbourhood), the closed outline on the
+footprint's box (and only for regions on the printed layer), edge strengths
+on each region's box; the registration as described in
+:mod:`~layerwatch.analysis.part_registration`. The evidence is the same as
+computed over the whole top view (``benchmarks/typing_equivalence.py``:
+every region of the evaluation typed alike, same confidence and
+displacement), about a quarter of the time.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 from layerwatch.analysis.failure_kinds import UNKNOWN
+from layerwatch.analysis.part_registration import (
+    EDGE_PAD_PX,
+    MOVE_MAX_MM,
+    MOVE_MIN_MM,
+    ROTATION_GAIN,
+    ROTATION_MIN_DEG,
+    ROTATIONS_DEG,
+    SECOND_PEAK,
+    PartMotion,
+    edges,
+    mask_box,
+    pad_box,
+    part_motion,
+)
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["MOVE_MIN_MM", "ROTATION_MIN_DEG", "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores",
-           "part_motion", "region_evidence"]
+__all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTATION_MIN_DEG", "SECOND_PEAK",
+           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_motion", "region_evidence"]
 
-#: smallest displacement of the part's top layer reported as a move, mm (registration noise is ~0.2 mm)
-MOVE_MIN_MM = 0.75
-#: a correlation peak away from zero shift wins over the zero-shift peak when at least this high a share of it
-SECOND_PEAK = 0.6
-#: rotation that tells a detached part from a layer shift (a pure translation), degrees
-ROTATION_MIN_DEG = 2.5
-#: ... when the best rotated reference correlates this many times better than the unrotated one
-ROTATION_GAIN = 1.45
-#: largest displacement searched, mm (the crop around the footprint is widened by it)
-MOVE_MAX_MM = 12.0
-#: rotations searched for a moved part, degrees
-ROTATIONS_DEG = np.arange(-10.0, 10.01, 1.0)
 #: CIELAB distance (lightness half weighted) above which a pixel is unlike a reference colour
 COLOUR_DELTA = 22.0
 #: median CIELAB distance of a region's material from the part: 0 (the part's filament) to 1 (another material)
@@ -92,173 +108,6 @@ PART_DELTA = (20.0, 40.0)
 
 _WALL = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
-
-
-@dataclass(frozen=True)
-class PartMotion:
-    """How far the printed part's top layer sits from where the plan puts it.
-
-    Attributes
-    ----------
-    dx_mm, dy_mm : float
-        Translation of the photo's part against the reference, bed mm.
-    rotation_deg : float
-        Rotation of the part about its centre, degrees (counter-clockwise in
-        the top view; 0 unless the part moved: the search runs only then).
-    rotation_gain : float
-        Correlation peak of the best rotation over that of no rotation (1 = no evidence of a turn).
-    peak : float
-        Height of the chosen correlation peak (phase correlation, 0-1; higher = clearer).
-    """
-
-    dx_mm: float = 0.0
-    dy_mm: float = 0.0
-    rotation_deg: float = 0.0
-    rotation_gain: float = 1.0
-    peak: float = 0.0
-
-    @property
-    def magnitude_mm(self) -> float:
-        return float(math.hypot(self.dx_mm, self.dy_mm))
-
-    @property
-    def moved(self) -> bool:
-        """A move of at least :data:`MOVE_MIN_MM`."""
-        return self.magnitude_mm >= MOVE_MIN_MM and self.peak > 0
-
-    @property
-    def turned(self) -> bool:
-        """The part turned by :data:`ROTATION_MIN_DEG` or more, clearly (a detachment, not a shift)."""
-        return abs(self.rotation_deg) >= ROTATION_MIN_DEG and self.rotation_gain >= ROTATION_GAIN
-
-
-def _edges(grey: np.ndarray) -> np.ndarray:
-    """Gradient magnitude of a grey image smoothed at 1.5 px, float32 (H, W)."""
-    g = cv2.GaussianBlur(np.asarray(grey, np.float32), (0, 0), 1.5)
-    return cv2.magnitude(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3))
-
-
-def _crop(mask: np.ndarray, pad_px: int) -> tuple[slice, slice] | None:
-    vv, uu = np.nonzero(mask)
-    if vv.size == 0:
-        return None
-    h, w = mask.shape
-    return (slice(max(0, vv.min() - pad_px), min(h, vv.max() + pad_px + 1)),
-            slice(max(0, uu.min() - pad_px), min(w, uu.max() + pad_px + 1)))
-
-
-def _correlation(a: np.ndarray, b: np.ndarray, window: np.ndarray) -> np.ndarray:
-    """Phase-correlation surface of ``b`` against ``a`` (same shape), zero shift at the centre, float32."""
-    A = np.fft.rfft2(a * window)
-    B = np.fft.rfft2(b * window)
-    R = B * np.conj(A)
-    R /= np.maximum(np.abs(R), 1e-12)
-    r = np.fft.fftshift(np.fft.irfft2(R, s=a.shape)).astype(np.float32)
-    return cv2.GaussianBlur(r, (0, 0), 1.0)
-
-
-def _peak(r: np.ndarray, reach_px: float, exclude_px: float = 0.0) -> tuple[float, float, float]:
-    """Highest point ``(du, dv, height)`` of a correlation surface within ``reach_px`` of zero shift (sub-pixel).
-
-    Shifts closer than ``exclude_px`` to zero are not considered.
-    """
-    h, w = r.shape
-    cy, cx = h // 2, w // 2
-    yy, xx = np.ogrid[:h, :w]
-    dist = np.maximum(np.abs(yy - cy), np.abs(xx - cx))
-    rr = np.where((dist <= reach_px) & (np.hypot(yy - cy, xx - cx) >= exclude_px), r, -np.inf)
-    v, u = np.unravel_index(int(np.argmax(rr)), rr.shape)
-    p = r[max(v - 1, 0): v + 2, max(u - 1, 0): u + 2]
-    p = p - p.min()
-    vy, vx = np.mgrid[max(v - 1, 0): v + 2, max(u - 1, 0): u + 2]
-    s = float(p.sum()) or 1.0
-    return float((vx * p).sum() / s - cx), float((vy * p).sum() / s - cy), float(r[v, u])
-
-
-def _rotation(a: np.ndarray, b: np.ndarray, centre: tuple[float, float]) -> tuple[float, float]:
-    """Best rotation of ``a`` about ``centre`` (px) to match ``b``, searched at half resolution: ``(degrees, gain)``."""
-    a2 = cv2.resize(a, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    b2 = cv2.resize(b, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    h, w = a2.shape
-    window = cv2.createHanningWindow((w, h), cv2.CV_32F)
-    c = (centre[0] / 2, centre[1] / 2)
-    heights = []
-    for ang in ROTATIONS_DEG:
-        turned = cv2.warpAffine(a2, cv2.getRotationMatrix2D(c, float(ang), 1.0), (w, h))
-        heights.append(float(_correlation(turned, b2, window).max()))
-    k = int(np.argmax(heights))
-    zero = heights[int(np.argmin(np.abs(ROTATIONS_DEG)))]
-    return float(ROTATIONS_DEG[k]), heights[k] / max(zero, 1e-9)
-
-
-def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, topview: TopView,
-                valid: np.ndarray | None = None) -> PartMotion:
-    """Register the printed part's top layer in the top view against its reference: translation (mm) and rotation.
-
-    Parameters
-    ----------
-    top : ndarray, uint8, shape (H, W)
-        Grey top view of the photo on the layer's plane.
-    reference : ndarray, uint8, shape (H, W)
-        The layer's rendered reference (same view).
-    footprint : ndarray, bool, shape (H, W)
-        Pixels printed in the layer.
-    topview : TopView
-    valid : ndarray, bool, shape (H, W), optional
-        Pixels the camera saw (others do not count).
-
-    Returns
-    -------
-    PartMotion
-        No motion (peak 0) when there is no footprint or nothing to register.
-
-    Notes
-    -----
-    Phase correlation (Kuglin & Hassler 1975) of edge images (gradient
-    magnitude: a rendering and a photo differ in shading but agree on where
-    beads and walls are) inside the footprint's bounding box widened by
-    :data:`MOVE_MAX_MM`, Hanning windowed. Only the reference's *top layer*
-    (its footprint widened by 1 mm) is registered, against the whole photo
-    crop. The lower layers, which stay where they were when only the top
-    layers shifted, give a peak at zero shift: a peak at least
-    :data:`MOVE_MIN_MM` away that reaches :data:`SECOND_PEAK` of it is taken
-    as the top layer's move. For a moved part the reference is also turned
-    in 1 degree steps about the footprint's centre (:data:`ROTATIONS_DEG`):
-    a clear gain at a large angle is a part that turned (a detachment).
-    """
-    fp = np.asarray(footprint, bool)
-    box = _crop(fp, int(round(MOVE_MAX_MM * topview.px_per_mm)))
-    if box is None:
-        return PartMotion()
-    seen = np.ones(fp[box].shape, bool) if valid is None else np.asarray(valid, bool)[box]
-    k = int(round(topview.px_per_mm)) * 2 + 1
-    top_layer = cv2.GaussianBlur(cv2.dilate(fp[box].astype(np.uint8), np.ones((k, k), np.uint8)).astype(np.float32),
-                                 (0, 0), 2.0)
-    a = np.where(seen, _edges(reference[box]) * top_layer, 0).astype(np.float32)
-    b = np.where(seen, _edges(top[box]), 0).astype(np.float32)
-    h, w = a.shape
-    if h < 16 or w < 16 or not a.any() or not b.any():
-        return PartMotion()
-    r = _correlation(a, b, cv2.createHanningWindow((w, h), cv2.CV_32F))
-    reach, near = MOVE_MAX_MM * topview.px_per_mm, MOVE_MIN_MM * topview.px_per_mm
-    du, dv, height = _peak(r, reach)
-    if math.hypot(du, dv) < near:
-        du2, dv2, height2 = _peak(r, reach, exclude_px=near)
-        if height2 >= SECOND_PEAK * height:
-            du, dv, height = du2, dv2, height2
-    d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
-    if math.hypot(du, dv) < near:
-        return PartMotion(float(d[0]), float(d[1]), peak=height)
-    vv, uu = np.nonzero(fp[box])
-    centre = (float(uu.mean()), float(vv.mean()))
-    angle, gain = _rotation(a, b, centre)
-    motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height)
-    if motion.turned:  # the translation of the turned part: register the turned reference
-        turned = cv2.warpAffine(a, cv2.getRotationMatrix2D(centre, angle, 1.0), (w, h))
-        du, dv, height = _peak(_correlation(turned, b, cv2.createHanningWindow((w, h), cv2.CV_32F)), reach)
-        d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
-        motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height)
-    return motion
 
 
 @dataclass(frozen=True)
@@ -289,12 +138,51 @@ class RegionEvidence:
     near_moved_part: bool = False
 
 
-def _lab(top_bgr: np.ndarray) -> np.ndarray:
+def _lab_u8(top_bgr: np.ndarray) -> np.ndarray:
+    """OpenCV's 8-bit CIELAB of a BGR (or grey) image, uint8 (H, W, 3): L scaled to 0-255, a/b offset by 128."""
     img = np.asarray(top_bgr, np.uint8)
     bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img
-    lab = cv2.cvtColor(bgr, cv2.COLOR_BGR2LAB).astype(np.float32)
-    lab[..., 0] *= 100.0 / 255.0  # L in 0-100, a/b offset by 128 (differences only)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2LAB)
+
+
+def _lab(lab_u8: np.ndarray) -> np.ndarray:
+    """:func:`_lab_u8` as float32 with L in 0-100 (a/b offset by 128: differences only)."""
+    lab = lab_u8.astype(np.float32)
+    lab[..., 0] *= 100.0 / 255.0
     return lab
+
+
+def _lab_hist(lab_u8: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """Histograms of the three 8-bit CIELAB channels over ``mask`` (all pixels when None), float64 (3, 256)."""
+    m = None if mask is None else np.ascontiguousarray(mask).view(np.uint8)
+    return np.stack([cv2.calcHist([lab_u8], [c], m, [256], [0, 256]).reshape(-1) for c in range(3)]).astype(np.float64)
+
+
+def _hist_median(hist: np.ndarray) -> np.ndarray:
+    """Per-channel median of the 8-bit CIELAB values counted in ``hist`` (3, 256), as :func:`_lab` scales them.
+
+    The same as ``np.median(_lab(values), axis=0)`` of the values (the mean
+    of the two middle values for an even count), from the counts alone.
+    """
+    n = int(round(hist[0].sum()))
+    c = np.cumsum(hist, axis=1)
+    lo = np.array([np.searchsorted(c[i], (n - 1) // 2, side="right") for i in range(3)], np.float32)
+    hi = np.array([np.searchsorted(c[i], n // 2, side="right") for i in range(3)], np.float32)
+    scale = np.array([100.0 / 255.0, 1.0, 1.0], np.float32)
+    return (lo * scale + hi * scale) / np.float32(2.0)
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with its holes filled, bool (H, W): the background not 4-connected to the image border becomes set.
+
+    The same as :func:`scipy.ndimage.binary_fill_holes` with its default
+    structure, by one flood fill of the background from a one-pixel frame
+    around the image.
+    """
+    m = (np.asarray(mask) != 0).astype(np.uint8)
+    framed = cv2.copyMakeBorder(m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    cv2.floodFill(framed, None, (0, 0), 2, flags=4)
+    return framed[1:-1, 1:-1] != 2
 
 
 def _unlike(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
@@ -303,42 +191,106 @@ def _unlike(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
 
 
 class _Scene:
-    """Per-photo quantities every region's evidence reads (computed once per typed layer)."""
+    """Per-photo quantities the regions' evidence reads, each computed when first needed and on crops only.
+
+    The part's colour reads the footprint's box, the bed's colour the whole
+    view (as 8-bit CIELAB histograms: its exact median without sorting),
+    the closed outline the footprint's box, the edge strengths each
+    region's box (padded by :data:`~layerwatch.analysis.part_registration.EDGE_PAD_PX`).
+    Every crop is padded so that its values are those of the whole top view.
+    """
 
     def __init__(self, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
-                 topview: TopView, valid: np.ndarray | None) -> None:
+                 topview: TopView, valid: np.ndarray | None,
+                 footprint_box: tuple[int, int, int, int] | None = None) -> None:
         self.topview = topview
+        self.top_bgr, self.top, self.reference = top_bgr, top, reference
         self.fp = np.asarray(footprint, bool)
-        self.valid = np.ones(self.fp.shape, bool) if valid is None else np.asarray(valid, bool)
-        self.lab = _lab(top_bgr)
-        k = max(3, int(round(2.0 * topview.px_per_mm)) | 1)
-        inner = cv2.erode(self.fp.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & self.valid
-        far = ~cv2.dilate(self.fp.astype(np.uint8), np.ones((4 * k, 4 * k), np.uint8)).astype(bool) & self.valid
-        self.part_colour = np.median(self.lab[inner if inner.sum() > 50 else self.fp & self.valid], axis=0) \
-            if (self.fp & self.valid).any() else None
-        self.bed_colour = np.median(self.lab[far], axis=0) if far.sum() > 50 else None
-        self.top_e, self.ref_e = _edges(top), _edges(reference)
-        # the part's outline with the gaps of sparse infill and holes closed: "inside the part"
-        k2 = max(3, int(round(3.0 * topview.px_per_mm)) | 1)
-        closed = cv2.morphologyEx(self.fp.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8))
-        self.solid = ndimage.binary_fill_holes(closed.astype(bool))
+        self.shape = self.fp.shape
+        self.valid = None if valid is None else np.asarray(valid, bool)
+        self.fp_box = mask_box(self.fp) if footprint_box is None else footprint_box
+        self.k = max(3, int(round(2.0 * topview.px_per_mm)) | 1)
+
+    def seen(self, box: tuple[slice, slice]) -> np.ndarray:
+        """Pixels of ``box`` the camera saw, bool."""
+        if self.valid is None:
+            return np.ones((box[0].stop - box[0].start, box[1].stop - box[1].start), bool)
+        return self.valid[box]
+
+    @cached_property
+    def lab_u8(self) -> np.ndarray:
+        """8-bit CIELAB of the colour top view (H, W, 3)."""
+        return _lab_u8(self.top_bgr)
+
+    @cached_property
+    def part_colour(self) -> np.ndarray | None:
+        """Median CIELAB of the part: its footprint eroded by 2 mm (all of it when that leaves <= 50 px); None: no part seen."""
+        if self.fp_box is None:
+            return None
+        crop = pad_box(self.fp_box, self.k, self.shape)
+        fp, seen = self.fp[crop], self.seen(crop)
+        if not (fp & seen).any():
+            return None
+        inner = cv2.erode(fp.astype(np.uint8), np.ones((self.k, self.k), np.uint8)).astype(bool) & seen
+        return _hist_median(_lab_hist(self.lab_u8[crop], inner if inner.sum() > 50 else fp & seen))
+
+    @cached_property
+    def bed_colour(self) -> np.ndarray | None:
+        """Median CIELAB of the seen pixels beyond the footprint widened by 4 x 2 mm; None when <= 50 px."""
+        hist = _lab_hist(self.lab_u8, None if self.valid is None else self.valid)
+        if self.fp_box is not None:  # take out the footprint's neighbourhood, counted on its box
+            kk = 4 * self.k
+            crop = pad_box(self.fp_box, kk, self.shape)
+            near = cv2.dilate(self.fp[crop].astype(np.uint8), np.ones((kk, kk), np.uint8)).astype(bool)
+            hist -= _lab_hist(self.lab_u8[crop], near & self.seen(crop))
+        return _hist_median(hist) if hist[0].sum() > 50 else None
+
+    @cached_property
+    def _solid(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """The part's outline with the gaps of sparse infill and holes closed ("inside the part"), on its box."""
+        if self.fp_box is None:
+            return None
+        k2 = max(3, int(round(3.0 * self.topview.px_per_mm)) | 1)
+        crop = pad_box(self.fp_box, k2 + 1, self.shape)
+        closed = cv2.morphologyEx(self.fp[crop].astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8))
+        return crop, fill_holes(closed)
+
+    def solid(self, box: tuple[slice, slice]) -> np.ndarray:
+        """The closed outline (:attr:`_solid`) on ``box``, bool."""
+        out = np.zeros((box[0].stop - box[0].start, box[1].stop - box[1].start), bool)
+        if self._solid is not None:
+            (cv, cu), solid = self._solid
+            v0, v1 = max(box[0].start, cv.start), min(box[0].stop, cv.stop)
+            u0, u1 = max(box[1].start, cu.start), min(box[1].stop, cu.stop)
+            if v1 > v0 and u1 > u0:
+                out[v0 - box[0].start: v1 - box[0].start, u0 - box[1].start: u1 - box[1].start] = \
+                    solid[v0 - cv.start: v1 - cv.start, u0 - cu.start: u1 - cu.start]
+        return out
+
+    def texture(self, box: tuple[slice, slice], seen: np.ndarray) -> float:
+        """log2 of the photo's mean edge strength over the reference's on the seen pixels of ``box``."""
+        pad = pad_box((box[0].start, box[0].stop, box[1].start, box[1].stop), EDGE_PAD_PX, self.shape)
+        inner = (slice(box[0].start - pad[0].start, box[0].stop - pad[0].start),
+                 slice(box[1].start - pad[1].start, box[1].stop - pad[1].start))
+        top_e, ref_e = edges(self.top[pad])[inner][seen], edges(self.reference[pad])[inner][seen]
+        return float(np.log2((top_e.mean() + 1.0) / (ref_e.mean() + 1.0)))
 
     def outside(self, r: Region) -> float:
         """Share of the region's box (seen pixels) outside the part's closed outline."""
         box = self.box(r)
         if box is None:
             return float(r.outside_fraction)
-        seen = self.valid[box]
-        return float((~self.solid[box] & seen).sum() / max(int(seen.sum()), 1))
+        seen = self.seen(box)
+        return float((~self.solid(box) & seen).sum() / max(int(seen.sum()), 1))
 
     def box(self, r: Region) -> tuple[slice, slice] | None:
         (u0, v0), (u1, v1) = np.round(self.topview.to_px(np.array([r.bbox_mm[:2], r.bbox_mm[2:]], float))).astype(int)
-        h, w = self.fp.shape
+        h, w = self.shape
         us, vs = sorted((u0, u1)), sorted((v0, v1))
         u_lo, u_hi, v_lo, v_hi = max(0, us[0]), min(w, us[1] + 1), max(0, vs[0]), min(h, vs[1] + 1)
         if u_hi <= u_lo or v_hi <= v_lo:
             return None
-        return slice(v_lo, v_hi), slice(u_lo, u_hi)
+        return slice(int(v_lo), int(v_hi)), slice(int(u_lo), int(u_hi))
 
 
 def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float, float, float, float]) -> float:
@@ -378,15 +330,15 @@ def region_evidence(r: Region, scene: _Scene, wall: float, motion: PartMotion, o
     box = scene.box(r)
     foreign, texture = 0.0, 0.0
     if box is not None:
-        seen = scene.valid[box]
+        seen = scene.seen(box)
         if seen.any():
-            foreign = _unlike_part(scene.lab[box][seen], scene)
-            texture = float(np.log2((scene.top_e[box][seen].mean() + 1.0) / (scene.ref_e[box][seen].mean() + 1.0)))
+            foreign = _unlike_part(_lab(scene.lab_u8[box][seen]), scene) if scene.part_colour is not None else 0.0
+            texture = scene.texture(box, seen)
     near = False
-    if motion.moved:
+    if motion.moved and scene.fp_box is not None:
         reach_mm = motion.magnitude_mm + 3.0
-        fp_box = _crop(scene.fp, int(round(reach_mm * scene.topview.px_per_mm)))
-        if fp_box is not None and box is not None:
+        fp_box = pad_box(scene.fp_box, int(round(reach_mm * scene.topview.px_per_mm)), scene.shape)
+        if box is not None:
             near = (box[0].start < fp_box[0].stop and fp_box[0].start < box[0].stop
                     and box[1].start < fp_box[1].stop and fp_box[1].start < box[1].stop)
     return RegionEvidence(outside=outside, foreign=foreign, texture=texture, wall=wall, near_moved_part=near)
@@ -488,8 +440,11 @@ class FailureTyper:
             self.previous = []
             return None
         try:
-            motion = part_motion(top, reference, footprint, self.topview, valid)
-            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid)
+            fp_box = mask_box(footprint)
+            motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box)
+            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box)
+            for r in regions:
+                self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
         except (cv2.error, ValueError, IndexError) as exc:  # odd images: the regions stay reported, untyped
             for r in regions:
                 r.kind, r.kind_confidence, r.displacement_mm = UNKNOWN, 0.0, None
@@ -497,15 +452,17 @@ class FailureTyper:
             res.message = f"{res.message}; {note}" if res.message else note
             self.previous = regions
             return None
-        for r in regions:
-            outside = 1.0 if any(r is q for q in res.outside_regions) else scene.outside(r)
-            e = region_evidence(r, scene, _plan_wall_share(self.toolpath, res.layer, r.bbox_mm), motion, outside)
-            before = _match(r, self.previous)
-            if before is not None and before.area_mm2 > 0:
-                e = RegionEvidence(e.outside, e.foreign, e.texture, e.wall,
-                                   float(np.log2(max(r.area_mm2, 1e-3) / before.area_mm2)), e.near_moved_part)
-            r.kind, r.kind_confidence = _decide(kind_scores(e, motion))
-            r.displacement_mm = ((round(motion.dx_mm, 3), round(motion.dy_mm, 3))
-                                 if r.kind in ("layer_shift", "detachment") else None)
         self.previous = regions
         return motion
+
+    def _type_region(self, r: Region, beside: bool, layer: int, scene: _Scene, motion: PartMotion) -> None:
+        """Fill ``r.kind``, ``r.kind_confidence`` and ``r.displacement_mm`` (``beside``: a scene-channel region)."""
+        outside = 1.0 if beside else scene.outside(r)
+        e = region_evidence(r, scene, _plan_wall_share(self.toolpath, layer, r.bbox_mm), motion, outside)
+        before = _match(r, self.previous)
+        if before is not None and before.area_mm2 > 0:
+            e = RegionEvidence(e.outside, e.foreign, e.texture, e.wall,
+                               float(np.log2(max(r.area_mm2, 1e-3) / before.area_mm2)), e.near_moved_part)
+        r.kind, r.kind_confidence = _decide(kind_scores(e, motion))
+        r.displacement_mm = ((round(motion.dx_mm, 3), round(motion.dy_mm, 3))
+                             if r.kind in ("layer_shift", "detachment") else None)
