@@ -59,6 +59,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from layerwatch.analysis.extrusion import block_ncc, highpass
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer
 from layerwatch.geometry.camera import CameraModel
@@ -66,8 +67,8 @@ from layerwatch.geometry.markers import detect_aruco, detect_dots
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.pipeline.policy import PolicySettings
 
-__all__ = ["LAG_EXPLAINED_SHARE", "LagTracker", "LagVerdict", "MarkerWatch", "counts_toward_pause",
-           "previous_layer_explains"]
+__all__ = ["LAG_EXPLAINED_SHARE", "STILL_SIMILARITY", "LagVerdict", "LateStream", "MarkerWatch", "Progress",
+           "counts_toward_pause", "lag_checkable", "previous_layer_explains", "progress_between"]
 
 log = logging.getLogger("layerwatch.monitor")
 
@@ -96,6 +97,11 @@ def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
     return (res.anomalous_area_mm2 >= _least_area(policy)
             or bool(strong) and res.outside_area_mm2 > strong
             or bool(beside) and res.outside_anomalous_mm2 >= beside)
+
+
+def lag_checkable(pipeline: Any) -> bool:
+    """Whether the pipeline gives what the late-camera check needs (references, top views, analysis settings)."""
+    return all(hasattr(pipeline, n) for n in ("reference", "top_view", "topview", "config"))
 
 
 def _least_area(policy: PolicySettings) -> float:
@@ -161,8 +167,8 @@ class LagVerdict:
         return {"lag_area_mm2": round(self.area_mm2, 3), "lag_previous_area_mm2": round(self.previous_area_mm2, 3)}
 
 
-def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
-                            policy: PolicySettings) -> LagVerdict | None:
+def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, policy: PolicySettings,
+                            top: tuple[np.ndarray, np.ndarray] | None = None) -> LagVerdict | None:
     """Analyse ``photo`` (taken for ``res.layer``) against the previous layer's reference.
 
     Parameters
@@ -177,6 +183,9 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
         The pipeline's result for this frame against its own layer.
     policy : PolicySettings
         ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
+    top : (ndarray, ndarray), optional
+        ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it
+        (:meth:`LateStream.progress` warps there too).
 
     Returns
     -------
@@ -185,12 +194,11 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
         the pipeline cannot be asked.
     """
     k = int(res.layer)
-    needed = ("reference", "top_view", "topview", "config")
-    if k < 1 or not all(hasattr(pipeline, n) for n in needed):
+    if k < 1 or not lag_checkable(pipeline):
         return None
     ref = pipeline.reference(k - 1)
-    top, valid = pipeline.top_view(photo, ref.z)
-    before = analyze_layer(top, ref.image, ref.footprint, pipeline.topview, pipeline.config.analysis,
+    top_prev, valid = top if top is not None else pipeline.top_view(photo, ref.z)
+    before = analyze_layer(top_prev, ref.image, ref.footprint, pipeline.topview, pipeline.config.analysis,
                            valid=valid, layer=k - 1, z=ref.z)
     here, prev = float(res.anomalous_area_mm2), float(before.anomalous_area_mm2)
     least = _least_area(policy)
@@ -204,33 +212,230 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
     return LagVerdict(lagged, here, prev, msg, before)
 
 
-class LagTracker:
-    """Is the stream consistently one layer late? (lagged frames with no contrary evidence between).
+#: median block NCC of the high-passed top views at or above which nothing new was printed between two frames
+#: (simulated example part: 0.86-0.98 for a stall or a repeated layer, 0.04-0.65 for a printed layer)
+STILL_SIMILARITY = 0.8
 
-    Only the layers the lag check ran on count: a lagged frame adds one, a frame that its
-    own layer explained better (a real anomaly) starts the count again. Layers that did
-    not need the check (nothing to explain) leave it alone.
+#: fewest textured blocks of the zone the progress between two frames is judged on
+MIN_PROGRESS_BLOCKS = 4
+
+#: side of the blocks the progress is judged on, top-view px
+PROGRESS_BLOCK_PX = 8
+
+#: the zone where a layer's new material may change the picture: its footprint dilated by this, mm
+PROGRESS_MARGIN_MM = 1.0
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What changed between two frames where the G-code printed in between.
+
+    Attributes
+    ----------
+    similarity : float
+        Median zero-mean NCC of the high-passed top views per block of the zone
+        (:func:`~layerwatch.analysis.extrusion.block_ncc`), ``nan`` when not judged: near 1
+        when the surface is the same (new light and noise aside), low when new beads
+        replaced it.
+    blocks : int
+        Textured blocks compared.
+    """
+
+    similarity: float
+    blocks: int
+
+    @property
+    def judged(self) -> bool:
+        """Enough texture in the zone to say anything."""
+        return self.blocks >= MIN_PROGRESS_BLOCKS and bool(np.isfinite(self.similarity))
+
+    @property
+    def printed(self) -> bool:
+        """New material where the G-code printed: the print (or the late picture of it) advanced."""
+        return self.judged and self.similarity < STILL_SIMILARITY
+
+    @property
+    def still(self) -> bool:
+        """Nothing new where the G-code printed: a stall, or the first frame of a stream that fell behind."""
+        return self.judged and self.similarity >= STILL_SIMILARITY
+
+
+def _disk(radius_px: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+
+
+def progress_between(top: np.ndarray, before: np.ndarray, valid: np.ndarray, zone: np.ndarray) -> Progress:
+    """How much two top views of the same plane differ on ``zone`` (:class:`Progress`).
+
+    Parameters
+    ----------
+    top, before : ndarray, uint8, shape (h, w)
+        Grey top views of this frame and of the frame before, warped to the same plane.
+    valid : ndarray, bool, shape (h, w)
+        Pixels both frames saw.
+    zone : ndarray, bool, shape (h, w)
+        Where the layers printed between the two frames lie (footprints dilated by
+        :data:`PROGRESS_MARGIN_MM`).
+    """
+    ncc, scored = block_ncc(highpass(top), highpass(before), zone & valid, PROGRESS_BLOCK_PX)
+    n = int(scored.sum())
+    return Progress(float(np.median(ncc[scored])) if n else float("nan"), n)
+
+
+@dataclass
+class _Seen:
+    """The last analysed frame near the print: its top view on the plane of ``layer``, cropped to ``box``."""
+
+    layer: int
+    z: float
+    box: tuple[slice, slice]
+    top: np.ndarray
+    valid: np.ndarray
+
+
+class LateStream:
+    """Is the stream one layer late? Told over the series, not from one photo.
+
+    One photo cannot tell a camera that delivers the previous layer's picture from a
+    layer that added nothing (a clog, a part torn off into spaghetti): both look like
+    the previous layer's reference. Two consecutive frames can. A late camera still
+    shows progress: frame ``k`` (the picture of layer ``k - 1``) differs from frame
+    ``k - 1`` (layer ``k - 2``) by new material where layer ``k - 1`` printed; a stalled
+    print shows none. And a camera falls behind at some frame: that frame repeats the
+    previous picture (it shows no progress, or the gate refuses it as a repeat).
+
+    A frame explained by the previous layer's reference (:func:`previous_layer_explains`)
+    is *excused* (judged against the layer it shows) when the pipeline's own checks
+    (nothing extruded, first layer) found nothing in it and the series says so:
+
+    * **a late frame**: it shows progress since the previous analysed frame where the
+      layers in between printed (:func:`progress_between` on the zone of their
+      footprints), and the stream *slipped* before it: since the last frame judged as it
+      was with an anomaly that counted (:meth:`judged`), a frame showed no progress or
+      was unusable (refused by the gate, no image), or the job-start frame (the bed) came
+      again at layer 0; or
+    * **the first frame of a slip**: it shows no progress at all (the previous picture
+      again, as a new exposure; the gate refuses the same picture with only new noise),
+      and the frame before it did show progress. One such frame cannot be told from the
+      first layer of a stall; it is taken as the slip, and the next frame tells: a stall
+      shows no progress again and is judged as it is (and the nothing-extruded check,
+      whose verdict is never excused, compares it with the photo two layers back).
+
+    A camera on time never slips, so a failure that makes layer ``k`` look like layer
+    ``k - 1`` while the part still grows is judged as it is; a print that stopped
+    growing shows no progress twice in a row, so from its second layer it is judged as
+    it is; spaghetti stays anomalous against the layer the frame shows, so an excused
+    frame still pauses for it.
 
     Parameters
     ----------
     after_n : int
-        Lagged frames in a row (in that sense) before :meth:`lagged` says to alert.
+        Excused frames in a row before :meth:`excused` says to alert ("camera lagging").
     """
 
     def __init__(self, after_n: int) -> None:
         self.after_n = int(after_n)
         self.count = 0
         self.alerted = False
+        #: the stream slipped and has not been judged as it was since: its frames may be one layer late
+        self.slipped = False
+        #: the last frame showed no progress or was unusable (a second such frame is a stall's)
+        self.still = False
+        self._seen: _Seen | None = None
 
-    def update(self, verdict: LagVerdict) -> bool:
-        """Count one checked frame; True exactly when the lag just became consistent (alert once)."""
-        if not verdict.lagged:
+    # ---------------------------------------------------------------- frames
+    def remember(self, pipeline: Any, layer: int, top: np.ndarray | None, valid: np.ndarray | None) -> None:
+        """Keep frame ``layer``'s top view (warped on that layer's plane; ``layer = -1``: the job-start frame,
+        warped on layer 0's plane) around the zone the next frame is compared on."""
+        if top is None or valid is None:
+            return
+        ref = pipeline.reference(max(layer, 0))
+        box = _box(_zone(ref.footprint, pipeline.topview), pipeline.topview)
+        if box is None:
+            return
+        self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]), np.ascontiguousarray(valid[box]))
+
+    def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> tuple[Progress, Any] | None:
+        """Progress of frame ``layer`` since the remembered frame, and this frame's top view on that frame's
+        plane (``(top, valid)``); None when no frame is remembered or the view cannot be made."""
+        seen = self._seen
+        if seen is None or layer <= seen.layer:
+            return None
+        top, valid = pipeline.top_view(photo, seen.z)
+        zone = np.zeros(pipeline.topview.shape, bool)
+        for i in range(max(seen.layer, 0), max(layer, 1)):  # the layers printed between the two pictures
+            zone |= pipeline.reference(i).footprint
+        zone = _zone(zone, pipeline.topview)[seen.box]
+        p = progress_between(top[seen.box], seen.top, valid[seen.box] & seen.valid, zone)
+        return p, ((top, valid) if seen.layer == layer - 1 else None)
+
+    def interrupted(self) -> None:
+        """A frame was unusable (repeat, black, no image...): the stream may come back late."""
+        self.slipped = self.still = True
+
+    def judged(self, counted: bool, progress: Progress | None) -> None:
+        """After a frame judged as it was: ``counted``, its anomaly counted toward a pause (the stream is
+        taken to be on time again); ``progress`` showed nothing new (the stream may have slipped here)."""
+        if counted:
+            self.slipped = False
             self.count, self.alerted = 0, False
-            return False
+        self._saw(progress)
+
+    def _saw(self, progress: Progress | None) -> None:
+        self.still = progress is not None and progress.still
+        self.slipped = self.slipped or self.still
+
+    def start(self, pipeline: Any, photo: np.ndarray) -> None:
+        """The job-start frame (the empty bed): frame ``-1`` of the series."""
+        ref = pipeline.reference(0)
+        top, valid = pipeline.top_view(photo, ref.z)
+        self.remember(pipeline, -1, top, valid)
+
+    # ---------------------------------------------------------------- verdict
+    def excuse(self, verdict: LagVerdict, progress: Progress | None, res: LayerResult) -> str | None:
+        """Why a frame the previous layer explains is *not* excused, or None when it is (module notes)."""
+        if res.failed_check:
+            return f"the {res.failed_check.replace('_', '-')} check failed on it"
+        if progress is None or not progress.judged:
+            return "no earlier frame to tell a late camera from a layer that printed nothing"
+        if progress.still and self.still:
+            return (f"nothing new since the previous frame, twice in a row (similarity {progress.similarity:.2f}):"
+                    " nothing extruded, or the print stopped growing")
+        if progress.printed and not self.slipped:
+            return "the camera was on time so far (no repeated or unusable frame before it)"
+        return None
+
+    @staticmethod
+    def figures(progress: Progress | None) -> dict[str, float]:
+        """The progress figures for ``LayerResult.frame_quality``."""
+        if progress is None:
+            return {}
+        return {"lag_progress_similarity": round(progress.similarity, 3), "lag_progress_blocks": progress.blocks}
+
+    def excused(self, progress: Progress) -> bool:
+        """Count one excused frame; True exactly when the lag just became consistent (alert once)."""
+        self._saw(progress)
         self.count += 1
         due = self.count >= self.after_n and not self.alerted
         self.alerted = self.alerted or due
         return due
+
+
+def _zone(footprint: np.ndarray, topview: Any) -> np.ndarray:
+    """``footprint`` dilated by :data:`PROGRESS_MARGIN_MM` (bool, same shape)."""
+    r = max(1, round(PROGRESS_MARGIN_MM * topview.px_per_mm))
+    return cv2.dilate(footprint.astype(np.uint8), _disk(r)).astype(bool)
+
+
+def _box(mask: np.ndarray, topview: Any) -> tuple[slice, slice] | None:
+    """Bounding box of ``mask`` grown by :data:`PROGRESS_MARGIN_MM` (rows, cols), None when empty."""
+    rows, cols = np.any(mask, axis=1), np.any(mask, axis=0)
+    if not rows.any():
+        return None
+    r = max(1, round(PROGRESS_MARGIN_MM * topview.px_per_mm))
+    (v0, v1), (u0, u1) = np.flatnonzero(rows)[[0, -1]], np.flatnonzero(cols)[[0, -1]]
+    h, w = mask.shape
+    return slice(max(v0 - r, 0), min(v1 + r + 1, h)), slice(max(u0 - r, 0), min(u1 + r + 1, w))
 
 
 class MarkerWatch:

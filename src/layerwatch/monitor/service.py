@@ -55,9 +55,10 @@ from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.camera_checks import (
-    LagTracker,
+    LateStream,
     MarkerWatch,
     counts_toward_pause,
+    lag_checkable,
     previous_layer_explains,
 )
 from layerwatch.monitor.health import FaultSettings, FaultTracker
@@ -197,7 +198,8 @@ class Monitor:
         self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
         self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
         self._markers = MarkerWatch.of_pipeline(pipeline) if self.frame_quality is not None else None
-        self._lag = LagTracker(self.faults.camera_alert_after)
+        self._late = LateStream(self.faults.camera_alert_after)  # analysis thread only
+        self._lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
 
     def health(self) -> dict[str, dict | None]:
         """Ongoing faults: ``{"printer": {...} or None, "camera": {...} or None}`` (see :class:`Fault`)."""
@@ -278,7 +280,7 @@ class Monitor:
         camera gave no usable frame (a warning: the job is watched as before, never held for it).
         """
         check = getattr(self.pipeline, "check_bed", None)
-        if check is None:
+        if check is None and not self._lag_checks:
             return None
         try:
             if hasattr(self.camera, "set_layer"):
@@ -288,7 +290,14 @@ class Monitor:
         except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a hold
             problem = f"camera error: {type(exc).__name__}: {exc}"
         if problem is not None:
-            log.warning("bed not checked at job start: %s", problem)
+            log.warning("no job-start frame (bed not checked, late camera told from layer 1 on): %s", problem)
+            return None
+        if self._lag_checks:  # frame -1 of the series: a camera late from the start shows it again at layer 0
+            try:
+                self._late.start(self.pipeline, photo)
+            except Exception:  # noqa: BLE001 - a check bug must not hold the job
+                log.exception("job-start frame not kept for the late-camera check")
+        if check is None:
             return None
         res = check(photo)
         if res is None:
@@ -331,40 +340,59 @@ class Monitor:
             return {}
 
     def _lag_check(self, trigger: SnapshotTrigger, photo: np.ndarray, res: LayerResult) -> LayerResult:
-        """A result that would count toward a pause but shows the previous layer -> judged against that layer.
+        """A frame that shows the previous layer, told over the series (:class:`LateStream`): judged against it.
 
-        See :mod:`~layerwatch.monitor.camera_checks`; the returned result keeps this trigger's
-        layer and height, its message and ``frame_quality`` say what the frame showed.
+        A result that would count toward a pause is analysed against the previous layer's
+        reference; when that explains it and the series says the camera is late (progress
+        since the previous frame, a slip before), the returned result is that analysis, with
+        this trigger's layer and height, its message and ``frame_quality`` saying what the
+        frame showed. Otherwise the result is judged as it is (its message says why).
         """
-        if self.frame_quality is None or not counts_toward_pause(res, self.policy.settings):
+        if not self._lag_checks or res.status != "ok":
             return res
+        late, counts = self._late, counts_toward_pause(res, self.policy.settings)
         try:
-            verdict = previous_layer_explains(self.pipeline, photo, res, self.policy.settings)
+            seen = late.progress(self.pipeline, photo, res.layer)
+            progress, top = seen if seen is not None else (None, None)
+            verdict = previous_layer_explains(self.pipeline, photo, res, self.policy.settings, top) if counts else None
+            late.remember(self.pipeline, res.layer, *self._top_of(photo, res))
         except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
             log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
             return res
-        if verdict is None:
+        lagged = verdict is not None and verdict.lagged
+        why = late.excuse(verdict, progress, res) if lagged else None
+        if lagged and why is None and not self.frame_quality.excuse_late_frames:
+            why = "[frame_quality] excuse_late_frames is off"
+        if not lagged or why is not None:
+            if why is not None:
+                res.message = (res.message + "; " if res.message else "") + (
+                    f"the photo looks like layer {res.layer - 1} (a late camera?) but is judged as it is: {why}")
+            late.judged(counts, progress)
             return res
-        if self._lag.update(verdict):
-            message = (f"camera lagging: {self._lag.count} frames showed the layer before theirs (each judged "
+        assert verdict is not None and verdict.previous is not None and progress is not None  # excused: both
+        if late.excused(progress):
+            message = (f"camera lagging: {late.count} frames showed the layer before theirs (each judged "
                        f"against the layer it shows): {verdict.message}")
             self.record_event("camera_fault", message, {"layer": res.layer, **verdict.figures})
             self._alert(message, res, force=True)
-        if not verdict.lagged or verdict.previous is None:
-            return res
-        if not self.frame_quality.excuse_late_frames:  # a late camera or a layer that added nothing: judged as is
-            res.message = (res.message + "; " if res.message else "") + (
-                "the photo looks like the previous layer (a late camera, or nothing printed on this layer)")
-            return res
         if res.outside_anomalous_mm2 > 0 and hasattr(self.pipeline, "acknowledge"):
             with self._lock:  # as Monitor.acknowledge: the change beside the print was the previous layer
                 self.pipeline.acknowledge()
         judged = verdict.previous
         judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
-        judged.message, judged.frame_quality = verdict.message, verdict.figures
+        judged.message = verdict.message + ("; no change since the previous frame: the first late frame, or nothing "
+                                            "printed on this layer (the next frame tells)" if progress.still else "")
+        judged.frame_quality = {**verdict.figures, **late.figures(progress)}
         self.report.lagged_frames += 1
         self._warn.warning("lag", "layer %d: %s", res.layer, verdict.message)
         return judged
+
+    def _top_of(self, photo: np.ndarray, res: LayerResult) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The analysed photo's grey top view on its layer's plane and its valid mask (the pipeline's, or warped)."""
+        top, valid = getattr(self.pipeline, "last_top", None), getattr(self.pipeline, "last_valid", None)
+        if top is None or valid is None:
+            top, valid = self.pipeline.top_view(photo, self.pipeline.reference(res.layer).z)
+        return top, valid
 
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
         res = self._gate(trigger, photo)
@@ -441,14 +469,17 @@ class Monitor:
                                 force=True)
             return
         self.report.camera_faults += 1
+        self._late.interrupted()  # the stream may come back one layer late
         started, notify = self._camera_fault.failed(res.message)
         self._warn.warning("camera", "camera fault on layer %d (never a pause): %s", res.layer, res.message)
         if started:
             self.record_event("camera_fault", res.message, {"layer": res.layer, **res.frame_quality})
         if notify:
             n = self._camera_fault.current.count if self._camera_fault.current else 0
-            self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}",
-                        res, force=True)
+            still = ("; if the printer is printing, the print may have stopped growing (clog, filament run-out): "
+                     "look at it" if "same picture" in res.message else "")
+            self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}"
+                        f"{still}", res, force=True)
 
     def record_event(self, kind: str, message: str, data: dict | None = None) -> None:
         """Append an event to this job's history (none without a history; a failed write is a warning)."""
