@@ -57,7 +57,9 @@ def _layer_picture(layer: int, blob: bool = False, seed: int = 0, turns: frozens
     foot = np.zeros((h, w), bool)
     long_side = 40 + (3 * layer if turns is None else layer)
     turned = layer % 2 if turns is None else sum(t <= layer for t in turns) % 2
-    if turned:
+    if layer < 0:  # the empty bed, before the first layer
+        pass
+    elif turned:
         foot[90 - long_side // 2:90 + long_side // 2, 70:110] = True
     else:
         foot[70:110, 90 - long_side // 2:90 + long_side // 2] = True
@@ -165,9 +167,18 @@ def test_a_camera_that_falls_behind_at_layer_k_never_pauses_and_is_alerted():
         else:
             assert first.status == CAMERA_FAULT and "same picture" in first.message
         assert _excused(rep) == list(range(6 - fresh, N_LAYERS)), fresh
-        assert all(r.frame_quality["lag_progress_similarity"] < 0.8 for r in _late(rep) if r.layer > 5)
+        assert all(r.frame_quality["lag_progress_changed"] > 0.5 for r in _late(rep) if r.layer > 5)
         alerts = [m for _, m in rec.sent if m.startswith("camera lagging")]
         assert len(alerts) == 1 and alerts[0].startswith("camera lagging: 3 frames"), alerts
+
+
+def test_a_camera_late_from_the_job_start_never_pauses():
+    """Layer 0 gets the empty bed: the first layer is not in the picture (the slip), layer 1 on are excused."""
+    for fresh in (False, True):
+        rep, rec = _watch_lag(_lagged(0, fresh=fresh))
+        assert rep.pauses == 0 and rep.outcome == "done", fresh
+        assert _excused(rep) == list(range(1, N_LAYERS)), (fresh, _excused(rep))
+        assert len([m for _, m in rec.sent if m.startswith("camera lagging")]) == 1
 
 
 def test_a_stalled_print_is_never_excused_and_pauses():
@@ -205,7 +216,7 @@ def test_late_stream_state():
     pipe, late = TopViewPipeline(), LateStream(after_n=2)
     res = LayerResult(layer=4, z=1.0, status="ok")
     lagged = LagVerdict(True, 50.0, 1.0, "late", res)
-    moving, still = Progress(0.1, 40), Progress(0.95, 40)
+    moving, still = Progress(0.6, 40), Progress(0.0, 40)
     assert "on time so far" in late.excuse(lagged, moving, res)  # no slip yet
     assert late.excuse(lagged, still, res) is None  # the first frame without progress: taken as the slip
     assert "no earlier frame" in late.excuse(lagged, Progress(float("nan"), 0), res)
@@ -213,9 +224,9 @@ def test_late_stream_state():
     assert late.excuse(lagged, moving, res) is None
     assert "twice in a row" in late.excuse(lagged, still, res)  # a stall, not a slip
     assert [late.excused(moving), late.excused(moving), late.excused(moving)] == [False, True, False]  # once
-    late.judged(counted=True, progress=moving)  # judged as it was with an anomaly: on time again
+    late.judged(res, counted=True, progress=moving)  # judged as it was with an anomaly: on time again
     assert not late.slipped and not late.still and late.count == 0
-    late.judged(counted=False, progress=still)  # a frame without progress: slipped here
+    late.judged(res, counted=False, progress=still)  # a frame without progress: slipped here
     assert late.slipped and "twice in a row" in late.excuse(lagged, still, res)
     res.failed_check = "nothing_extruded"
     assert "nothing-extruded check failed" in late.excuse(lagged, moving, res)

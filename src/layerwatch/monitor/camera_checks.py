@@ -67,7 +67,7 @@ from layerwatch.geometry.markers import detect_aruco, detect_dots
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.pipeline.policy import PolicySettings
 
-__all__ = ["LAG_EXPLAINED_SHARE", "STILL_SIMILARITY", "LagVerdict", "LateStream", "MarkerWatch", "Progress",
+__all__ = ["LAG_EXPLAINED_SHARE", "STILL_SHARE", "PRINTED_SHARE", "LagVerdict", "LateStream", "MarkerWatch", "Progress",
            "counts_toward_pause", "lag_checkable", "previous_layer_explains", "progress_between"]
 
 log = logging.getLogger("layerwatch.monitor")
@@ -212,18 +212,26 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     return LagVerdict(lagged, here, prev, msg, before)
 
 
-#: median block NCC of the high-passed top views at or above which nothing new was printed between two frames
-#: (simulated example part: 0.86-0.98 for a stall or a repeated layer, 0.04-0.65 for a printed layer)
-STILL_SIMILARITY = 0.8
-
+#: a block of the zone changed between two frames when the NCC of their band-passed top views is below this
+CHANGED_NCC = 0.5
+#: at most this share of the zone's blocks changed: nothing new was printed (simulated example part: 0-0.01
+#: for a new exposure of the same layer or a stall)
+STILL_SHARE = 0.05
+#: at least this share changed: new material (0.21-0.34 where a thin wall grew by a layer, 0.56-0.92 on
+#: infill and on the first layer); in between, no verdict
+PRINTED_SHARE = 0.15
 #: fewest textured blocks of the zone the progress between two frames is judged on
 MIN_PROGRESS_BLOCKS = 4
-
 #: side of the blocks the progress is judged on, top-view px
 PROGRESS_BLOCK_PX = 8
-
+#: Gaussian (top-view px) applied to the high-passed top views: sensor noise out, bead and edge texture kept
+PROGRESS_BLUR_PX = 1.5
 #: the zone where a layer's new material may change the picture: its footprint dilated by this, mm
 PROGRESS_MARGIN_MM = 1.0
+#: a first layer whose anomaly ratio against its reference is at least this is not in the picture yet (a
+#: camera late from the job start shows the empty bed there; a first layer that failed is the first-layer
+#: check's, and a frame a check failed on is never excused)
+MISSING_FIRST_LAYER_RATIO = 0.25
 
 
 @dataclass(frozen=True)
@@ -232,32 +240,32 @@ class Progress:
 
     Attributes
     ----------
-    similarity : float
-        Median zero-mean NCC of the high-passed top views per block of the zone
-        (:func:`~layerwatch.analysis.extrusion.block_ncc`), ``nan`` when not judged: near 1
-        when the surface is the same (new light and noise aside), low when new beads
-        replaced it.
+    changed : float
+        Share of the zone's textured blocks whose band-passed texture changed (zero-mean NCC
+        below :data:`CHANGED_NCC`, :func:`~layerwatch.analysis.extrusion.block_ncc`): near 0
+        when the surface is the same (new light and noise aside), high where new beads
+        replaced it; ``nan`` when not judged.
     blocks : int
         Textured blocks compared.
     """
 
-    similarity: float
+    changed: float
     blocks: int
 
     @property
     def judged(self) -> bool:
         """Enough texture in the zone to say anything."""
-        return self.blocks >= MIN_PROGRESS_BLOCKS and bool(np.isfinite(self.similarity))
+        return self.blocks >= MIN_PROGRESS_BLOCKS and bool(np.isfinite(self.changed))
 
     @property
     def printed(self) -> bool:
         """New material where the G-code printed: the print (or the late picture of it) advanced."""
-        return self.judged and self.similarity < STILL_SIMILARITY
+        return self.judged and self.changed >= PRINTED_SHARE
 
     @property
     def still(self) -> bool:
         """Nothing new where the G-code printed: a stall, or the first frame of a stream that fell behind."""
-        return self.judged and self.similarity >= STILL_SIMILARITY
+        return self.judged and self.changed <= STILL_SHARE
 
 
 def _disk(radius_px: int) -> np.ndarray:
@@ -277,9 +285,10 @@ def progress_between(top: np.ndarray, before: np.ndarray, valid: np.ndarray, zon
         Where the layers printed between the two frames lie (footprints dilated by
         :data:`PROGRESS_MARGIN_MM`).
     """
-    ncc, scored = block_ncc(highpass(top), highpass(before), zone & valid, PROGRESS_BLOCK_PX)
+    a, b = (cv2.GaussianBlur(highpass(t), (0, 0), PROGRESS_BLUR_PX) for t in (top, before))
+    ncc, scored = block_ncc(a, b, zone & valid, PROGRESS_BLOCK_PX)
     n = int(scored.sum())
-    return Progress(float(np.median(ncc[scored])) if n else float("nan"), n)
+    return Progress(float(np.mean(ncc[scored] < CHANGED_NCC)) if n else float("nan"), n)
 
 
 @dataclass
@@ -312,8 +321,8 @@ class LateStream:
       layers in between printed (:func:`progress_between` on the zone of their
       footprints), and the stream *slipped* before it: since the last frame judged as it
       was with an anomaly that counted (:meth:`judged`), a frame showed no progress or
-      was unusable (refused by the gate, no image), or the job-start frame (the bed) came
-      again at layer 0; or
+      was unusable (refused by the gate, no image), or the first layer was not in the
+      picture (a camera late from the job start shows the empty bed there); or
     * **the first frame of a slip**: it shows no progress at all (the previous picture
       again, as a new exposure; the gate refuses the same picture with only new noise),
       and the frame before it did show progress. One such frame cannot be told from the
@@ -345,11 +354,11 @@ class LateStream:
 
     # ---------------------------------------------------------------- frames
     def remember(self, pipeline: Any, layer: int, top: np.ndarray | None, valid: np.ndarray | None) -> None:
-        """Keep frame ``layer``'s top view (warped on that layer's plane; ``layer = -1``: the job-start frame,
-        warped on layer 0's plane) around the zone the next frame is compared on."""
+        """Keep frame ``layer``'s top view (warped on that layer's plane) around the zone the next frame is
+        compared on."""
         if top is None or valid is None:
             return
-        ref = pipeline.reference(max(layer, 0))
+        ref = pipeline.reference(layer)
         box = _box(_zone(ref.footprint, pipeline.topview), pipeline.topview)
         if box is None:
             return
@@ -363,7 +372,7 @@ class LateStream:
             return None
         top, valid = pipeline.top_view(photo, seen.z)
         zone = np.zeros(pipeline.topview.shape, bool)
-        for i in range(max(seen.layer, 0), max(layer, 1)):  # the layers printed between the two pictures
+        for i in range(seen.layer, layer):  # the layers printed between the two pictures
             zone |= pipeline.reference(i).footprint
         zone = _zone(zone, pipeline.topview)[seen.box]
         p = progress_between(top[seen.box], seen.top, valid[seen.box] & seen.valid, zone)
@@ -373,23 +382,20 @@ class LateStream:
         """A frame was unusable (repeat, black, no image...): the stream may come back late."""
         self.slipped = self.still = True
 
-    def judged(self, counted: bool, progress: Progress | None) -> None:
+    def judged(self, res: LayerResult, counted: bool, progress: Progress | None) -> None:
         """After a frame judged as it was: ``counted``, its anomaly counted toward a pause (the stream is
-        taken to be on time again); ``progress`` showed nothing new (the stream may have slipped here)."""
+        taken to be on time again); ``progress`` showed nothing new, or the first layer is not in the
+        picture (:data:`MISSING_FIRST_LAYER_RATIO`): the stream may have slipped here."""
         if counted:
             self.slipped = False
             self.count, self.alerted = 0, False
         self._saw(progress)
+        if res.layer == 0 and res.anomaly_ratio >= MISSING_FIRST_LAYER_RATIO:
+            self.slipped = True
 
     def _saw(self, progress: Progress | None) -> None:
         self.still = progress is not None and progress.still
         self.slipped = self.slipped or self.still
-
-    def start(self, pipeline: Any, photo: np.ndarray) -> None:
-        """The job-start frame (the empty bed): frame ``-1`` of the series."""
-        ref = pipeline.reference(0)
-        top, valid = pipeline.top_view(photo, ref.z)
-        self.remember(pipeline, -1, top, valid)
 
     # ---------------------------------------------------------------- verdict
     def excuse(self, verdict: LagVerdict, progress: Progress | None, res: LayerResult) -> str | None:
@@ -399,8 +405,8 @@ class LateStream:
         if progress is None or not progress.judged:
             return "no earlier frame to tell a late camera from a layer that printed nothing"
         if progress.still and self.still:
-            return (f"nothing new since the previous frame, twice in a row (similarity {progress.similarity:.2f}):"
-                    " nothing extruded, or the print stopped growing")
+            return (f"nothing new since the previous frame, twice in a row ({progress.changed:.0%} of the surface "
+                    "changed): nothing extruded, or the print stopped growing")
         if progress.printed and not self.slipped:
             return "the camera was on time so far (no repeated or unusable frame before it)"
         return None
@@ -410,7 +416,7 @@ class LateStream:
         """The progress figures for ``LayerResult.frame_quality``."""
         if progress is None:
             return {}
-        return {"lag_progress_similarity": round(progress.similarity, 3), "lag_progress_blocks": progress.blocks}
+        return {"lag_progress_changed": round(progress.changed, 3), "lag_progress_blocks": progress.blocks}
 
     def excused(self, progress: Progress) -> bool:
         """Count one excused frame; True exactly when the lag just became consistent (alert once)."""

@@ -280,7 +280,7 @@ class Monitor:
         camera gave no usable frame (a warning: the job is watched as before, never held for it).
         """
         check = getattr(self.pipeline, "check_bed", None)
-        if check is None and not self._lag_checks:
+        if check is None:
             return None
         try:
             if hasattr(self.camera, "set_layer"):
@@ -290,14 +290,7 @@ class Monitor:
         except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a hold
             problem = f"camera error: {type(exc).__name__}: {exc}"
         if problem is not None:
-            log.warning("no job-start frame (bed not checked, late camera told from layer 1 on): %s", problem)
-            return None
-        if self._lag_checks:  # frame -1 of the series: a camera late from the start shows it again at layer 0
-            try:
-                self._late.start(self.pipeline, photo)
-            except Exception:  # noqa: BLE001 - a check bug must not hold the job
-                log.exception("job-start frame not kept for the late-camera check")
-        if check is None:
+            log.warning("bed not checked at job start: %s", problem)
             return None
         res = check(photo)
         if res is None:
@@ -367,7 +360,7 @@ class Monitor:
             if why is not None:
                 res.message = (res.message + "; " if res.message else "") + (
                     f"the photo looks like layer {res.layer - 1} (a late camera?) but is judged as it is: {why}")
-            late.judged(counts, progress)
+            late.judged(res, counts, progress)
             return res
         assert verdict is not None and verdict.previous is not None and progress is not None  # excused: both
         if late.excused(progress):
