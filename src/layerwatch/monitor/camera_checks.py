@@ -67,7 +67,7 @@ from layerwatch.geometry.markers import detect_aruco, detect_dots
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.pipeline.policy import PolicySettings
 
-__all__ = ["LAG_EXPLAINED_SHARE", "STILL_SHARE", "PRINTED_SHARE", "LagVerdict", "LateStream", "MarkerWatch", "Progress",
+__all__ = ["LAG_EXPLAINED_SHARE", "STILL_SHARE", "PRINTED_SHARE", "LagVerdict", "LateCheck", "LateStream", "MarkerWatch", "Progress",
            "counts_toward_pause", "lag_checkable", "previous_layer_explains", "progress_between"]
 
 log = logging.getLogger("layerwatch.monitor")
@@ -291,6 +291,32 @@ def progress_between(top: np.ndarray, before: np.ndarray, valid: np.ndarray, zon
     return Progress(float(np.mean(ncc[scored] < CHANGED_NCC)) if n else float("nan"), n)
 
 
+@dataclass(frozen=True)
+class LateCheck:
+    """What :meth:`LateStream.check` made of one analysed frame.
+
+    Attributes
+    ----------
+    judged : LayerResult or None
+        The frame's analysis against the layer it shows (layer ``k - 1``), carrying this
+        trigger's layer and height, when the frame is excused as late; None: judge it as it is.
+    why : str
+        Why a frame the previous layer explains is judged as it is (empty otherwise).
+    alert : bool
+        The lag just became consistent (``after_n`` excused frames): alert once.
+    progress : Progress or None
+        Progress since the previous analysed frame (None: no earlier frame).
+    verdict : LagVerdict or None
+        The previous layer's verdict (None: the frame would not count toward a pause).
+    """
+
+    judged: LayerResult | None = None
+    why: str = ""
+    alert: bool = False
+    progress: Progress | None = None
+    verdict: LagVerdict | None = None
+
+
 @dataclass
 class _Seen:
     """The last analysed frame near the print: its top view on the plane of ``layer``, cropped to ``box``."""
@@ -398,6 +424,35 @@ class LateStream:
         self.slipped = self.slipped or self.still
 
     # ---------------------------------------------------------------- verdict
+    def check(self, pipeline: Any, photo: np.ndarray, res: LayerResult, policy: PolicySettings,
+              excuse: bool = True) -> LateCheck:
+        """One analysed frame (``res``: ``status`` ok, against its own layer): is it a late one to excuse?
+
+        Measures the progress since the remembered frame, runs :func:`previous_layer_explains`
+        when ``res`` would count toward a pause, decides (:meth:`excuse`; ``excuse=False``:
+        never), updates the series and remembers this frame. Raises what the pipeline raises.
+        """
+        counts = counts_toward_pause(res, policy)
+        seen = self.progress(pipeline, photo, res.layer)
+        progress, top = seen if seen is not None else (None, None)
+        verdict = previous_layer_explains(pipeline, photo, res, policy, top) if counts else None
+        self.remember(pipeline, res.layer, *_top_of(pipeline, photo, res))
+        lagged = verdict is not None and verdict.lagged
+        why = self.excuse(verdict, progress, res) if lagged else None
+        if lagged and why is None and not excuse:
+            why = "[frame_quality] excuse_late_frames is off"
+        if not lagged or why is not None:
+            self.judged(res, counts, progress)
+            text = f"the photo looks like layer {res.layer - 1} (a late camera?) but is judged as it is: {why}"
+            return LateCheck(None, text if why else "", False, progress, verdict)
+        assert verdict is not None and verdict.previous is not None and progress is not None  # lagged, excused
+        judged = verdict.previous
+        judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
+        judged.message = verdict.message + ("; no change since the previous frame: the first late frame, or nothing "
+                                            "printed on this layer (the next frame tells)" if progress.still else "")
+        judged.frame_quality = {**verdict.figures, **self.figures(progress)}
+        return LateCheck(judged, "", self.excused(progress), progress, verdict)
+
     def excuse(self, verdict: LagVerdict, progress: Progress | None, res: LayerResult) -> str | None:
         """Why a frame the previous layer explains is *not* excused, or None when it is (module notes)."""
         if res.failed_check:
@@ -425,6 +480,14 @@ class LateStream:
         due = self.count >= self.after_n and not self.alerted
         self.alerted = self.alerted or due
         return due
+
+
+def _top_of(pipeline: Any, photo: np.ndarray, res: LayerResult) -> tuple[np.ndarray, np.ndarray]:
+    """The analysed photo's grey top view on its layer's plane and its valid mask (the pipeline's, or warped)."""
+    top, valid = getattr(pipeline, "last_top", None), getattr(pipeline, "last_valid", None)
+    if top is None or valid is None:
+        top, valid = pipeline.top_view(photo, pipeline.reference(res.layer).z)
+    return top, valid
 
 
 def _zone(footprint: np.ndarray, topview: Any) -> np.ndarray:

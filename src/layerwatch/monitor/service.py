@@ -54,13 +54,7 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
-from layerwatch.monitor.camera_checks import (
-    LateStream,
-    MarkerWatch,
-    counts_toward_pause,
-    lag_checkable,
-    previous_layer_explains,
-)
+from layerwatch.monitor.camera_checks import LateStream, MarkerWatch, lag_checkable
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
@@ -333,59 +327,35 @@ class Monitor:
             return {}
 
     def _lag_check(self, trigger: SnapshotTrigger, photo: np.ndarray, res: LayerResult) -> LayerResult:
-        """A frame that shows the previous layer, told over the series (:class:`LateStream`): judged against it.
+        """A frame that shows the previous layer, told over the series (:meth:`LateStream.check`): judged against it.
 
-        A result that would count toward a pause is analysed against the previous layer's
-        reference; when that explains it and the series says the camera is late (progress
-        since the previous frame, a slip before), the returned result is that analysis, with
-        this trigger's layer and height, its message and ``frame_quality`` saying what the
-        frame showed. Otherwise the result is judged as it is (its message says why).
+        The returned result is then the analysis against that layer, with this trigger's layer
+        and height, its message and ``frame_quality`` saying what the frame showed; otherwise
+        ``res`` (its message says why a frame that looked late was judged as it is).
         """
         if not self._lag_checks or res.status != "ok":
             return res
-        late, counts = self._late, counts_toward_pause(res, self.policy.settings)
         try:
-            seen = late.progress(self.pipeline, photo, res.layer)
-            progress, top = seen if seen is not None else (None, None)
-            verdict = previous_layer_explains(self.pipeline, photo, res, self.policy.settings, top) if counts else None
-            late.remember(self.pipeline, res.layer, *self._top_of(photo, res))
+            late = self._late.check(self.pipeline, photo, res, self.policy.settings,
+                                    excuse=self.frame_quality.excuse_late_frames)
         except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
             log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
             return res
-        lagged = verdict is not None and verdict.lagged
-        why = late.excuse(verdict, progress, res) if lagged else None
-        if lagged and why is None and not self.frame_quality.excuse_late_frames:
-            why = "[frame_quality] excuse_late_frames is off"
-        if not lagged or why is not None:
-            if why is not None:
-                res.message = (res.message + "; " if res.message else "") + (
-                    f"the photo looks like layer {res.layer - 1} (a late camera?) but is judged as it is: {why}")
-            late.judged(res, counts, progress)
+        if late.judged is None:
+            if late.why:
+                res.message = (res.message + "; " if res.message else "") + late.why
             return res
-        assert verdict is not None and verdict.previous is not None and progress is not None  # excused: both
-        if late.excused(progress):
-            message = (f"camera lagging: {late.count} frames showed the layer before theirs (each judged "
-                       f"against the layer it shows): {verdict.message}")
-            self.record_event("camera_fault", message, {"layer": res.layer, **verdict.figures})
+        if late.alert:
+            message = (f"camera lagging: {self._late.count} frames showed the layer before theirs (each judged "
+                       f"against the layer it shows): {late.judged.message}")
+            self.record_event("camera_fault", message, {"layer": res.layer, **late.judged.frame_quality})
             self._alert(message, res, force=True)
         if res.outside_anomalous_mm2 > 0 and hasattr(self.pipeline, "acknowledge"):
             with self._lock:  # as Monitor.acknowledge: the change beside the print was the previous layer
                 self.pipeline.acknowledge()
-        judged = verdict.previous
-        judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
-        judged.message = verdict.message + ("; no change since the previous frame: the first late frame, or nothing "
-                                            "printed on this layer (the next frame tells)" if progress.still else "")
-        judged.frame_quality = {**verdict.figures, **late.figures(progress)}
         self.report.lagged_frames += 1
-        self._warn.warning("lag", "layer %d: %s", res.layer, verdict.message)
-        return judged
-
-    def _top_of(self, photo: np.ndarray, res: LayerResult) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The analysed photo's grey top view on its layer's plane and its valid mask (the pipeline's, or warped)."""
-        top, valid = getattr(self.pipeline, "last_top", None), getattr(self.pipeline, "last_valid", None)
-        if top is None or valid is None:
-            top, valid = self.pipeline.top_view(photo, self.pipeline.reference(res.layer).z)
-        return top, valid
+        self._warn.warning("lag", "layer %d: %s", res.layer, late.judged.message)
+        return late.judged
 
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
         res = self._gate(trigger, photo)
