@@ -10,15 +10,19 @@ monitor runs with the default ``[frame_quality]`` settings (``excuse_late_frames
    kind of camera fault is injected (black, over-exposed, pure noise, JPEG
    quality 5, the previous layer's frame again with fresh noise, a frozen noisy
    stream, a defocused frame, every frame one layer late from layer 8 on, a camera
-   bumped 30 px). The late stream comes twice: as copies of the previous layer's
-   frame with fresh noise (``lagging_stream``: its first late frame is a repeat the
-   gate refuses) and as new exposures of the previous layer (``lagging_stream_fresh``:
-   the light and sensor of the trigger's own moment, so its first late frame is no
-   repeat and must be told over the series). Three whole-print faults follow:
+   bumped 30 px). The late stream comes three times: as copies of the previous
+   layer's frame with fresh noise (``lagging_stream``: its first late frame is a
+   repeat the gate refuses), as new exposures of the previous layer
+   (``lagging_stream_fresh``: the light and sensor of the trigger's own moment, so
+   its first late frame is no repeat and must be told over the series), and as new
+   exposures from layer 10 to the end (``late_from_10_fresh``: the part widens at
+   layer 10, so that first late frame, a picture of layer 9 without progress, is far
+   from layer 10's reference). Three whole-print faults follow:
    ``lagged_whole_print`` and ``lagged_whole_print_fresh`` (from the first layer on,
    every frame is a photo of the layer before: the empty bed at layer 0) and
    ``bumped_whole_print`` (the camera shifted by 30 px from layer 1 on). Pauses are
-   counted with the gate on and, as the baseline, off. Target: 0 pauses with the gate on.
+   counted with the gate on, off (the baseline), and on with ``excuse_late_frames`` off
+   (the old default). Target: 0 pauses with the gate on.
 2. **Real failures still pause through the monitor.** The same print with a real
    failure and the gate on: nothing extruded from layer 8 (a stall: frames stop
    changing, each a new exposure), spaghetti from layer 8, and both behind a camera
@@ -143,8 +147,11 @@ def late_frames(tp, truth, tv, late: range, failures=(), seed: int = 3) -> list[
 def fresh_faults(tp, truth, tv) -> dict:
     """Kind -> ``frame(layer)`` for a late camera whose pictures are new exposures (no repeats)."""
     stretch = late_frames(tp, truth, tv, FAULT_LAYERS)
+    # from layer 10 on (where the part widens again: the first late frame is far from layer 10's reference)
+    behind = late_frames(tp, truth, tv, range(10, N_LAYERS))
     whole = late_frames(tp, truth, tv, range(N_LAYERS))
-    return {"lagging_stream_fresh": stretch.__getitem__, "lagged_whole_print_fresh": whole.__getitem__}
+    return {"lagging_stream_fresh": stretch.__getitem__, "late_from_10_fresh": behind.__getitem__,
+            "lagged_whole_print_fresh": whole.__getitem__}
 
 
 def _job():
@@ -173,7 +180,8 @@ def watch(cfg, pipe, gcode, frame, bed: np.ndarray, gate: bool = True, **quality
 
 
 def clean_print_pauses(cfg, pipe, gcode, frames, bed, kinds=None, extra=None) -> dict[str, dict[str, int]]:
-    """Per fault kind: pauses with the gate on and off, frames refused, frames judged one layer late, alerts.
+    """Per fault kind: pauses with the gate on and off (and on with ``excuse_late_frames`` off), frames refused,
+    frames judged one layer late, alerts.
 
     ``kinds``: the kinds to run (all of :func:`camera_faults`, :func:`whole_print_faults` and
     ``extra``). ``refused_clean`` counts refused frames outside :data:`FAULT_LAYERS` (for the
@@ -185,6 +193,7 @@ def clean_print_pauses(cfg, pipe, gcode, frames, bed, kinds=None, extra=None) ->
         if kinds is not None and kind not in kinds:
             continue
         row = {}
+        row["pauses_excuse_off"] = watch(cfg, pipe, gcode, frame, bed, excuse_late_frames=False).pauses
         for gate in (True, False):
             rep = watch(cfg, pipe, gcode, frame, bed, gate)
             row["pauses_gate_on" if gate else "pauses_gate_off"] = rep.pauses
@@ -299,7 +308,7 @@ def main() -> None:
     rows = clean_print_pauses(cfg, pipe, gcode, frames, bed, extra=fresh_faults(tp, truth, tv))
     for kind, r in rows.items():
         print(f"   {kind:24s} pauses gate on {r['pauses_gate_on']}  gate off {r['pauses_gate_off']}  "
-              f"frames refused {r['refused']} (of which clean {r['refused_clean']}), judged as one layer late "
+              f"excuse off {r['pauses_excuse_off']}  frames refused {r['refused']} (of which clean {r['refused_clean']}), judged as one layer late "
               f"{r['lagged']}, alerts {r['alerts']}")
     print(f"   total pauses: gate on {sum(r['pauses_gate_on'] for r in rows.values())}, "
           f"gate off {sum(r['pauses_gate_off'] for r in rows.values())}")

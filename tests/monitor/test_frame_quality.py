@@ -105,8 +105,8 @@ def test_simulator_measurement():
     cfg, tp, truth, pipe, gcode, frames, bed = bench._job()
     extra = bench.fresh_faults(tp, truth, cfg.topview.topview())
     rows = bench.clean_print_pauses(cfg, pipe, gcode, frames, bed, extra=extra)
-    assert {"lagging_stream", "lagging_stream_fresh", "bumped", "lagged_whole_print", "lagged_whole_print_fresh",
-            "bumped_whole_print"} <= set(rows)
+    assert {"lagging_stream", "lagging_stream_fresh", "late_from_10_fresh", "bumped", "lagged_whole_print",
+            "lagged_whole_print_fresh", "bumped_whole_print"} <= set(rows)
     for kind, r in rows.items():
         assert r["pauses_gate_on"] == 0 and r["refused"] + r["lagged"] >= 1 and r["refused_clean"] == 0, (kind, r)
     for kind in ("lagged_whole_print", "lagged_whole_print_fresh", "bumped_whole_print"):

@@ -20,23 +20,28 @@ below the policy's ``min_area_mm2``; not "below ``min_area_mm2``" alone, as
 a part on which the analysis sees a few blocks of clean-print noise keeps
 them against either layer; and the scene channel's change beside the print,
 if it counts, lies where layer ``k - 1`` was printed and layer ``k`` is
-not: a first layer's skirt or brim seen one layer late), the frame is a *lagged frame*: the monitor
-judges the analysis against the layer the frame shows (layer ``k - 1``)
-instead, records the lag with the layer (its reason in the message, both
-areas in ``frame_quality``) and lets the scene channel take the frame's
+not: a first layer's skirt or brim seen one layer late), the frame *looks* one
+layer late. From that one photo a late camera cannot be told from a layer that
+added nothing (a clog, a part torn off into spaghetti): both look like the
+previous layer. :class:`LateStream` tells them apart over the series
+(:meth:`LateStream.check`): a late camera still shows *progress* between
+consecutive frames where the G-code printed (:func:`progress_between`), and it
+fell behind at some frame that showed none (a repeat, or a new exposure of the
+same layer); a stalled print shows no progress frame after frame, and an on-time
+camera never slips. Only a frame the series calls late is *excused*: the
+monitor judges the analysis against the layer the frame shows (layer ``k - 1``)
+instead, records it with the layer (its reason in the message, the areas and
+the progress in ``frame_quality``) and lets the scene channel take the frame's
 change beside the print as the scene, as when the operator acknowledges it,
-so that it does not count on the next layers. The lag itself never counts
-toward a pause, yet a late camera still watches the print: a failure in a
-late frame is anomalous against the layer it shows and pauses as on time. A real failure
-is not explained by the layer below: spaghetti, a foreign body, a shifted or
-detached part and a missing patch are as anomalous against layer ``k - 1``
-as against layer ``k`` (the patch is a pit in both), so a frame on time with
-a failure is never called late. A print on which nothing new was printed
-(layer ``k`` looks like ``k - 1`` because the extruder stopped) gives a frame
-that repeats the previous one, which the gate's repeat check sees before
-this check runs. :class:`LagTracker` says when the lag is *consistent*
-(``after_n`` lagged frames with no layer in between that its own reference
-explained better) and the monitor alerts then, as a camera fault. No timestamps are used: the
+so that it does not count on the next layers. Any other frame is judged as it
+is, its message saying why. The lag itself never counts toward a pause, yet a
+late camera still watches the print: a failure in a late frame is anomalous
+against the layer it shows and pauses as on time. A real failure is not
+explained by the layer below: spaghetti, a foreign body, a shifted or detached
+part and a missing patch are as anomalous against layer ``k - 1`` as against
+layer ``k`` (the patch is a pit in both). After ``after_n`` excused frames with
+no frame judged as it was with an anomaly between them, the monitor alerts
+once, as a camera fault ("camera lagging"). No timestamps are used: the
 cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
 that can be trusted against the printer's trigger.
 
