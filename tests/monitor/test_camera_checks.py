@@ -192,6 +192,15 @@ def test_a_stalled_print_is_never_excused_and_pauses():
     assert not any(m.startswith("camera lagging") for _, m in rec.sent)
 
 
+def test_a_stall_under_steady_light_is_a_repeat_alerted_as_a_possible_stall():
+    """Frames that differ by sensor noise alone are repeats (a frozen camera gives the same pixels): a camera
+    fault, never a pause, and the alert says the print may have stopped growing (docs/security.md, gaps)."""
+    rep, rec = _watch_lag(lambda layer: _photo(min(layer, 6)))  # the same picture from layer 7 on
+    assert rep.pauses == 0 and [r.layer for r in rep.results if r.status == CAMERA_FAULT] == list(range(7, N_LAYERS))
+    alerts = [m for _, m in rec.sent if m.startswith("camera fault")]
+    assert len(alerts) == 1 and "may have stopped growing" in alerts[0], alerts
+
+
 def test_a_stalled_print_behind_a_late_camera_is_not_excused():
     """Late from layer 3, nothing printed from layer 7 on: the late frames stop showing progress."""
     stall = 7
@@ -231,7 +240,7 @@ def test_late_stream_state():
     res.failed_check = "nothing_extruded"
     assert "nothing-extruded check failed" in late.excuse(lagged, moving, res)
     # progress on the real top views: a new exposure of the same layer is still, the next layer is not
-    late.remember(pipe, 4, *pipe.top_view(_photo(4, light=1), 1.0))
+    late.remember(pipe, 4, pipe.top_view(_photo(4, light=1), 1.0)[0])
     p_same, _ = late.progress(pipe, _photo(4, light=2), 5)
     p_next, top = late.progress(pipe, _photo(5, light=2), 5)
     assert p_same.still and p_next.printed and top is not None, (p_same, p_next)

@@ -324,13 +324,16 @@ class LateCheck:
 
 @dataclass
 class _Seen:
-    """The last analysed frame near the print: its top view on the plane of ``layer``, cropped to ``box``."""
+    """The last analysed frame near the print: its top view on the plane of ``layer``, cropped to ``box``.
+
+    Its valid mask is not kept: the camera did not move (or the gate refuses the frame), so the next
+    frame's, on a plane a layer away, stands for it.
+    """
 
     layer: int
     z: float
     box: tuple[slice, slice]
     top: np.ndarray
-    valid: np.ndarray
 
 
 class LateStream:
@@ -384,16 +387,16 @@ class LateStream:
         self._seen: _Seen | None = None
 
     # ---------------------------------------------------------------- frames
-    def remember(self, pipeline: Any, layer: int, top: np.ndarray | None, valid: np.ndarray | None) -> None:
-        """Keep frame ``layer``'s top view (warped on that layer's plane) around the zone the next frame is
-        compared on."""
-        if top is None or valid is None:
+    def remember(self, pipeline: Any, layer: int, top: np.ndarray | None) -> None:
+        """Keep frame ``layer``'s grey top view (warped on that layer's plane) around the zone the next frame
+        is compared on (a copy of that box only: a farm holds one per printer)."""
+        if top is None:
             return
         ref = pipeline.reference(layer)
         box = _box(_zone(ref.footprint, pipeline.topview), pipeline.topview)
         if box is None:
             return
-        self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]), np.ascontiguousarray(valid[box]))
+        self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]))
 
     def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> tuple[Progress, Any] | None:
         """Progress of frame ``layer`` since the remembered frame, and this frame's top view on that frame's
@@ -406,7 +409,7 @@ class LateStream:
         for i in range(seen.layer, layer):  # the layers printed between the two pictures
             zone |= pipeline.reference(i).footprint
         zone = _zone(zone, pipeline.topview)[seen.box]
-        p = progress_between(top[seen.box], seen.top, valid[seen.box] & seen.valid, zone)
+        p = progress_between(top[seen.box], seen.top, valid[seen.box], zone)
         return p, ((top, valid) if seen.layer == layer - 1 else None)
 
     def interrupted(self) -> None:
@@ -441,7 +444,7 @@ class LateStream:
         seen = self.progress(pipeline, photo, res.layer)
         progress, top = seen if seen is not None else (None, None)
         verdict = previous_layer_explains(pipeline, photo, res, policy, top) if counts else None
-        self.remember(pipeline, res.layer, *_top_of(pipeline, photo, res))
+        self.remember(pipeline, res.layer, _top_of(pipeline, photo, res))
         lagged = verdict is not None and verdict.lagged
         why = self.excuse(verdict, progress, res) if lagged else None
         if lagged and why is None and not excuse:
@@ -487,12 +490,10 @@ class LateStream:
         return due
 
 
-def _top_of(pipeline: Any, photo: np.ndarray, res: LayerResult) -> tuple[np.ndarray, np.ndarray]:
-    """The analysed photo's grey top view on its layer's plane and its valid mask (the pipeline's, or warped)."""
-    top, valid = getattr(pipeline, "last_top", None), getattr(pipeline, "last_valid", None)
-    if top is None or valid is None:
-        top, valid = pipeline.top_view(photo, pipeline.reference(res.layer).z)
-    return top, valid
+def _top_of(pipeline: Any, photo: np.ndarray, res: LayerResult) -> np.ndarray:
+    """The analysed photo's grey top view on its layer's plane (the pipeline's, or warped)."""
+    top = getattr(pipeline, "last_top", None)
+    return top if top is not None else pipeline.top_view(photo, pipeline.reference(res.layer).z)[0]
 
 
 def _zone(footprint: np.ndarray, topview: Any) -> np.ndarray:

@@ -24,9 +24,12 @@ judge. With the gate on, two checks that need the job run beside it
 calibration are looked for in each frame (a camera that moved), and a layer
 whose analysis would count toward a pause is analysed once more against the
 previous layer's reference (a stream that stays one layer late). A moved
-camera gives ``camera_fault`` records; a late frame is judged against the
-layer it shows (the lag never counts toward a pause, a failure in the frame
-still does), and a consistently late stream is a camera fault alerted once.
+camera gives ``camera_fault`` records; a frame the series shows to be one
+layer late (:class:`~layerwatch.monitor.camera_checks.LateStream`: progress
+since the previous frame, a slip before it; not a print that stopped growing)
+is judged against the layer it shows (the lag never counts toward a pause, a
+failure in the frame still does), and a consistently late stream is a camera
+fault alerted once.
 Printer and camera faults are logged as rate-limited warnings, written to the history as
 ``printer_fault``/``camera_fault`` events (and ``..._recovered`` when they end)
 and notified after a grace period or a number of bad frames in a row
