@@ -233,9 +233,12 @@ def test_late_stream_state():
     assert late.excuse(lagged, moving, res) is None
     assert "twice in a row" in late.excuse(lagged, still, res)  # a stall, not a slip
     assert [late.excused(moving), late.excused(moving), late.excused(moving)] == [False, True, False]  # once
-    late.judged(res, counted=True, progress=moving)  # judged as it was with an anomaly: on time again
+    assert "too little to tell" in late.excuse(lagged, Progress(0.1, 40), res)  # between still and printed
+    late.judged(res, LagVerdict(False, 5.0, 9.0), moving)  # judged as it was, its own layer explained it better
     assert not late.slipped and not late.still and late.count == 0
-    late.judged(res, counted=False, progress=still)  # a frame without progress: slipped here
+    late.judged(res, LagVerdict(False, 9.0, 5.0), moving)  # not explained, not better by its own layer either
+    assert not late.slipped
+    late.judged(res, None, still)  # a frame without progress: slipped here
     assert late.slipped and "twice in a row" in late.excuse(lagged, still, res)
     res.failed_check = "nothing_extruded"
     assert "nothing-extruded check failed" in late.excuse(lagged, moving, res)

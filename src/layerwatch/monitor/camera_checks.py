@@ -40,7 +40,7 @@ against the layer it shows and pauses as on time. A real failure is not
 explained by the layer below: spaghetti, a foreign body, a shifted or detached
 part and a missing patch are as anomalous against layer ``k - 1`` as against
 layer ``k`` (the patch is a pit in both). After ``after_n`` excused frames with
-no frame judged as it was with an anomaly between them, the monitor alerts
+no frame between them that its own layer explained better, the monitor alerts
 once, as a camera fault ("camera lagging"). No timestamps are used: the
 cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
 that can be trusted against the printer's trigger.
@@ -353,9 +353,9 @@ class LateStream:
 
     * **a late frame**: it shows progress since the previous analysed frame where the
       layers in between printed (:func:`progress_between` on the zone of their
-      footprints), and the stream *slipped* before it: since the last frame judged as it
-      was with an anomaly that counted (:meth:`judged`), a frame showed no progress or
-      was unusable (refused by the gate, no image), or the first layer was not in the
+      footprints), and the stream *slipped* before it: since the last frame that its own
+      layer explained better than the previous one (:meth:`judged`), a frame showed no
+      progress or was unusable (refused by the gate, no image), or the first layer was not in the
       picture (a camera late from the job start shows the empty bed there); or
     * **the first frame of a slip**: it shows no progress at all (the previous picture
       again, as a new exposure; the gate refuses the same picture with only new noise),
@@ -416,11 +416,11 @@ class LateStream:
         """A frame was unusable (repeat, black, no image...): the stream may come back late."""
         self.slipped = self.still = True
 
-    def judged(self, res: LayerResult, counted: bool, progress: Progress | None) -> None:
-        """After a frame judged as it was: ``counted``, its anomaly counted toward a pause (the stream is
-        taken to be on time again); ``progress`` showed nothing new, or the first layer is not in the
-        picture (:data:`MISSING_FIRST_LAYER_RATIO`): the stream may have slipped here."""
-        if counted:
+    def judged(self, res: LayerResult, verdict: LagVerdict | None, progress: Progress | None) -> None:
+        """After a frame judged as it was: its own layer explained it better than the previous one
+        (``verdict``), the stream is taken to be on time again; ``progress`` showed nothing new, or the
+        first layer is not in the picture (:data:`MISSING_FIRST_LAYER_RATIO`): it may have slipped here."""
+        if verdict is not None and verdict.previous_area_mm2 > verdict.area_mm2:
             self.slipped = False
             self.count, self.alerted = 0, False
         self._saw(progress)
@@ -450,7 +450,7 @@ class LateStream:
         if lagged and why is None and not excuse:
             why = "[frame_quality] excuse_late_frames is off"
         if not lagged or why is not None:
-            self.judged(res, counts, progress)
+            self.judged(res, verdict, progress)
             text = f"the photo looks like layer {res.layer - 1} (a late camera?) but is judged as it is: {why}"
             return LateCheck(None, text if why else "", False, progress, verdict)
         assert verdict is not None and verdict.previous is not None and progress is not None  # lagged, excused
@@ -467,10 +467,14 @@ class LateStream:
             return f"the {res.failed_check.replace('_', '-')} check failed on it"
         if progress is None or not progress.judged:
             return "no earlier frame to tell a late camera from a layer that printed nothing"
-        if progress.still and self.still:
-            return (f"nothing new since the previous frame, twice in a row ({progress.changed:.0%} of the surface "
-                    "changed): nothing extruded, or the print stopped growing")
-        if progress.printed and not self.slipped:
+        if progress.still:  # the slip itself, unless the frame before showed nothing new either
+            return None if not self.still else (
+                f"nothing new since the previous frame, twice in a row ({progress.changed:.0%} of the surface "
+                "changed): nothing extruded, or the print stopped growing")
+        if not progress.printed:
+            return (f"{progress.changed:.0%} of the surface changed since the previous frame: too little to tell "
+                    "new material from new light")
+        if not self.slipped:
             return "the camera was on time so far (no repeated or unusable frame before it)"
         return None
 
