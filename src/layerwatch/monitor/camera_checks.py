@@ -285,7 +285,7 @@ def progress_between(top: np.ndarray, before: np.ndarray, valid: np.ndarray, zon
     top, before : ndarray, uint8, shape (h, w)
         Grey top views of this frame and of the frame before, warped to the same plane.
     valid : ndarray, bool, shape (h, w)
-        Pixels both frames saw.
+        Pixels this frame saw (the camera did not move, so the frame before saw them too).
     zone : ndarray, bool, shape (h, w)
         Where the layers printed between the two frames lie (footprints dilated by
         :data:`PROGRESS_MARGIN_MM`).
