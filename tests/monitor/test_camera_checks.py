@@ -21,11 +21,12 @@ import numpy as np
 from test_camera_faults import PausingPipeline, Recorder, _gcode, _good
 
 from layerwatch.analysis.frame_quality import FrameQualitySettings
+from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer
 from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.geometry.topview import TopView
-from layerwatch.monitor.camera_checks import LagTracker, LagVerdict, MarkerWatch
+from layerwatch.monitor.camera_checks import LagVerdict, LateStream, MarkerWatch, Progress
 from layerwatch.monitor.cameras import SimCamera
 from layerwatch.monitor.health import FaultSettings
 from layerwatch.monitor.printers.virtual import VirtualPrinter
@@ -39,13 +40,16 @@ N_LAYERS = 12
 TV = TopView(3.0, 60.0, 60.0, (0.0, 0.0))  # 180 x 180 px top view
 
 
-def _layer_picture(layer: int, blob: bool = False, seed: int = 0,
-                   turns: frozenset[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _layer_picture(layer: int, blob: bool = False, seed: int = 0, turns: frozenset[int] | None = None,
+                   light: int | None = None, beads: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Grey top view of the part after ``layer`` and its footprint.
 
     The part is a bar that grows by 1 mm a layer and turns by 90 degrees on every layer, its
     infill lines at +-45 degrees in turn; or (``turns``) a bar that turns only on the layers in
     ``turns``, grows by 1/3 mm a layer and whose infill lines move sideways from layer to layer.
+    ``light``: a new exposure taken at that trigger (the light falls differently, new sensor
+    noise), so a picture of an unchanged scene is no repeat for the gate. ``beads``: the infill
+    lines moved sideways by that many px (new beads on the same shape).
     """
     h, w = TV.shape
     y, x = np.mgrid[0:h, 0:w]
@@ -53,16 +57,20 @@ def _layer_picture(layer: int, blob: bool = False, seed: int = 0,
     foot = np.zeros((h, w), bool)
     long_side = 40 + (3 * layer if turns is None else layer)
     turned = layer % 2 if turns is None else sum(t <= layer for t in turns) % 2
-    if turned:
+    if layer < 0:  # the empty bed, before the first layer
+        pass
+    elif turned:
         foot[90 - long_side // 2:90 + long_side // 2, 70:110] = True
     else:
         foot[70:110, 90 - long_side // 2:90 + long_side // 2] = True
-    lines = (x + y if layer % 2 else x - y) if turns is None else x - y + 5 * layer
+    lines = ((x + y if layer % 2 else x - y) if turns is None else x - y + 5 * layer) + beads
     stripes = 170 + 50 * np.sign(np.sin(lines / 2.0))  # infill lines
     img = np.where(foot, stripes, img)
     if blob:  # a dark clump of spaghetti on and beside the part
         cv2.circle(img, (120, 80), 18, 20, -1)
-    img = img + np.random.default_rng([layer, seed]).normal(0, 2, img.shape)
+    if light is not None:  # a smooth fall-off of the light that moves from exposure to exposure
+        img = img * (1.0 + 0.12 * np.cos(2 * np.pi * (x + 0.5 * y) / w + light))
+    img = img + np.random.default_rng([max(layer, 0), seed, 0 if light is None else light + 1]).normal(0, 2, img.shape)
     return np.clip(img, 0, 255).astype(np.uint8), foot
 
 
@@ -90,24 +98,28 @@ class TopViewPipeline:
                              layer=layer_index, z=ref.z)
 
 
-def _photo(layer: int, blob: bool = False, turns: frozenset[int] | None = None) -> np.ndarray:
-    return cv2.cvtColor(_layer_picture(layer, blob, turns=turns)[0], cv2.COLOR_GRAY2BGR)
+def _photo(layer: int, blob: bool = False, turns: frozenset[int] | None = None, light: int | None = None,
+           beads: int = 0) -> np.ndarray:
+    return cv2.cvtColor(_layer_picture(layer, blob, turns=turns, light=light, beads=beads)[0], cv2.COLOR_GRAY2BGR)
 
 
-def _lagged(from_layer: int = 1, blob_from: int | None = None):
-    """A camera one layer late from ``from_layer`` on (layer k gets the picture of layer k-1)."""
+def _lagged(from_layer: int = 1, blob_from: int | None = None, fresh: bool = False):
+    """A camera one layer late from ``from_layer`` on (layer k gets the picture of layer k-1).
+
+    ``fresh``: every picture is a new exposure (the first late one is then no repeat for the gate).
+    """
     def frame(layer: int) -> np.ndarray:
         shown = layer - 1 if layer >= from_layer else layer
-        return _photo(shown, blob=blob_from is not None and shown >= blob_from)
+        return _photo(shown, blob=blob_from is not None and shown >= blob_from, light=layer if fresh else None)
     return frame
 
 
-def _watch_lag(frames, gate: bool = True, turns: frozenset[int] | None = None, excuse: bool = True):
+def _watch_lag(frames, gate: bool = True, turns: frozenset[int] | None = None, **quality):
     rec = Recorder()
     mon = Monitor(VirtualPrinter(_gcode(N_LAYERS)), SimCamera(frames), TopViewPipeline(turns),
                   PausePolicy(PolicySettings(skip_first_layers=1)), notifier=rec, wait_for_verdict=True,
                   faults=FaultSettings(camera_alert_after=3),
-                  frame_quality=FrameQualitySettings(excuse_late_frames=excuse) if gate else None)
+                  frame_quality=FrameQualitySettings(**quality) if gate else None)
     return mon.run(poll_s=0.001), rec
 
 
@@ -138,13 +150,103 @@ def test_a_camera_one_layer_late_for_the_whole_print_never_pauses():
     assert len(alerts) == 1 and alerts[0].startswith("camera lagging: 3 frames")  # consistent: alerted once
 
 
-def test_by_default_a_frame_like_the_previous_layer_is_judged_as_it_is_and_alerted():
-    """Off by default: a late camera cannot be told from a layer that added nothing, so the policy decides."""
-    rep, rec = _watch_lag(_lagged(), excuse=False)
-    assert rep.pauses == 1  # as without the check: a missed failure costs more than one false pause
-    late = [r for r in rep.results if "looks like the previous layer" in r.message]
-    assert late and all(r.status == "ok" for r in late)  # said on the record, judged as analysed
-    assert any(m.endswith("pause") for _, m in rec.sent)
+def _excused(rep) -> list[int]:
+    return [r.layer for r in _late(rep)]
+
+
+def test_a_camera_that_falls_behind_at_layer_k_never_pauses_and_is_alerted():
+    """The first late frame repeats the picture before it (a repeat, or a new exposure without progress)."""
+    for fresh in (False, True):
+        rep_off, _ = _watch_lag(_lagged(5, fresh=fresh), gate=False)
+        assert rep_off.pauses == 1  # without the checks the late frames pause this clean print
+        rep, rec = _watch_lag(_lagged(5, fresh=fresh))
+        assert rep.pauses == 0 and rep.outcome == "done", fresh
+        first = rep.results[5]  # the picture of layer 4 again
+        if fresh:  # a new exposure without progress: taken as the slip, judged against layer 4
+            assert first.status == "ok" and "the next frame tells" in first.message
+        else:
+            assert first.status == CAMERA_FAULT and "same picture" in first.message
+        assert _excused(rep) == list(range(6 - fresh, N_LAYERS)), fresh
+        assert all(r.frame_quality["lag_progress_changed"] > 0.5 for r in _late(rep) if r.layer > 5)
+        alerts = [m for _, m in rec.sent if m.startswith("camera lagging")]
+        assert len(alerts) == 1 and alerts[0].startswith("camera lagging: 3 frames"), alerts
+
+
+def test_a_camera_late_from_the_job_start_never_pauses():
+    """Layer 0 gets the empty bed: the first layer is not in the picture (the slip), layer 1 on are excused."""
+    for fresh in (False, True):
+        rep, rec = _watch_lag(_lagged(0, fresh=fresh))
+        assert rep.pauses == 0 and rep.outcome == "done", fresh
+        assert _excused(rep) == list(range(1, N_LAYERS)), (fresh, _excused(rep))
+        assert len([m for _, m in rec.sent if m.startswith("camera lagging")]) == 1
+
+
+def test_a_stalled_print_is_never_excused_and_pauses():
+    """Nothing printed from layer 7 on: each frame is a new exposure of layer 6 (so the gate passes it)."""
+    stall = 7
+    rep, rec = _watch_lag(lambda layer: _photo(min(layer, stall - 1), light=layer))
+    assert _excused(rep) == [stall]  # its first layer cannot be told from a camera that fell behind
+    stops = [d.layer for d in rep.decisions if d.stops]
+    assert rep.pauses == 1 and stops[0] in (stall + 1, stall + 2), stops
+    assert "twice in a row" in rep.results[stops[0]].message
+    assert not any(m.startswith("camera lagging") for _, m in rec.sent)
+
+
+def test_a_stall_under_steady_light_is_a_repeat_alerted_as_a_possible_stall():
+    """Frames that differ by sensor noise alone are repeats (a frozen camera gives the same pixels): a camera
+    fault, never a pause, and the alert says the print may have stopped growing (docs/security.md, gaps)."""
+    rep, rec = _watch_lag(lambda layer: _photo(min(layer, 6)))  # the same picture from layer 7 on
+    assert rep.pauses == 0 and [r.layer for r in rep.results if r.status == CAMERA_FAULT] == list(range(7, N_LAYERS))
+    alerts = [m for _, m in rec.sent if m.startswith("camera fault")]
+    assert len(alerts) == 1 and "may have stopped growing" in alerts[0], alerts
+
+
+def test_a_stalled_print_behind_a_late_camera_is_not_excused():
+    """Late from layer 3, nothing printed from layer 7 on: the late frames stop showing progress."""
+    stall = 7
+    rep, _ = _watch_lag(lambda layer: _photo(min(layer - 1 if layer >= 3 else layer, stall - 1), light=layer))
+    assert _excused(rep) == list(range(3, stall + 1))  # the slip at 3, then up to the last picture with progress
+    stops = [d.layer for d in rep.decisions if d.stops]
+    assert rep.pauses == 1 and stops[0] in (stall + 1, stall + 2), stops
+
+
+def test_a_failure_on_time_that_looks_like_the_previous_layer_is_not_excused():
+    """From layer 6 the part stops turning but new beads go on it: each frame looks like layer 5's reference
+    and shows progress; the camera never slipped, so it is judged as it is."""
+    def frame(layer: int) -> np.ndarray:
+        return _photo(layer, light=layer) if layer < 6 else _photo(5, light=layer, beads=3 * (layer - 5))
+    rep, _ = _watch_lag(frame)
+    assert "the camera was on time so far" in rep.results[6].message and not _late(rep)
+    stops = [d.layer for d in rep.decisions if d.stops]
+    assert rep.pauses == 1 and stops[0] in (6, 7), stops
+
+
+def test_late_stream_state():
+    pipe, late = TopViewPipeline(), LateStream(after_n=2)
+    res = LayerResult(layer=4, z=1.0, status="ok")
+    lagged = LagVerdict(True, 50.0, 1.0, "late", res)
+    moving, still = Progress(0.6, 40), Progress(0.0, 40)
+    assert "on time so far" in late.excuse(lagged, moving, res)  # no slip yet
+    assert late.excuse(lagged, still, res) is None  # the first frame without progress: taken as the slip
+    assert "no earlier frame" in late.excuse(lagged, Progress(float("nan"), 0), res)
+    late.interrupted()  # a refused frame: the stream may come back late
+    assert late.excuse(lagged, moving, res) is None
+    assert "twice in a row" in late.excuse(lagged, still, res)  # a stall, not a slip
+    assert [late.excused(moving), late.excused(moving), late.excused(moving)] == [False, True, False]  # once
+    assert "too little to tell" in late.excuse(lagged, Progress(0.1, 40), res)  # between still and printed
+    late.judged(res, LagVerdict(False, 5.0, 9.0), moving)  # judged as it was, its own layer explained it better
+    assert not late.slipped and not late.still and late.count == 0
+    late.judged(res, LagVerdict(False, 9.0, 5.0), moving)  # not explained, not better by its own layer either
+    assert not late.slipped
+    late.judged(res, None, still)  # a frame without progress: slipped here
+    assert late.slipped and "twice in a row" in late.excuse(lagged, still, res)
+    res.failed_check = "nothing_extruded"
+    assert "nothing-extruded check failed" in late.excuse(lagged, moving, res)
+    # progress on the real top views: a new exposure of the same layer is still, the next layer is not
+    late.remember(pipe, 4, pipe.top_view(_photo(4, light=1), 1.0)[0])
+    p_same, _ = late.progress(pipe, _photo(4, light=2), 5)
+    p_next, top = late.progress(pipe, _photo(5, light=2), 5)
+    assert p_same.still and p_next.printed and top is not None, (p_same, p_next)
 
 
 def test_a_late_camera_is_alerted_when_its_frames_are_far_apart():
@@ -167,13 +269,6 @@ def test_a_real_failure_still_pauses_through_a_late_camera_and_on_time():
     assert "lag_area_mm2" in rep.results[stops[0]].frame_quality  # the pausing frame was a late one
     rep, _ = _watch_lag(lambda layer: _photo(layer, blob=layer >= 6))  # gate on, camera on time
     assert rep.pauses == 1 and not _late(rep) and not any(r.status == CAMERA_FAULT for r in rep.results)
-
-
-def test_lag_tracker_alerts_once_per_consistent_run():
-    lag, real = LagVerdict(True, 50, 0, "late"), LagVerdict(False, 50, 50)
-    t = LagTracker(2)
-    assert [t.update(v) for v in (lag, real, lag, lag, lag)] == [False, False, False, True, False]
-    assert [t.update(v) for v in (real, lag, lag)] == [False, False, True]
 
 
 # ---------------------------------------------------------------- markers

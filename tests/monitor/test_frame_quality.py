@@ -95,19 +95,27 @@ def test_real_photos_pass():
 
 @pytest.mark.slow
 def test_simulator_measurement():
-    """Issue 19's targets on the simulator: 0 pauses from camera faults (a camera one layer late or bumped for
-    the whole print included), >= 0.97 of failure frames pass the monitor's camera-fault checks."""
+    """Issue 19's targets on the simulator with the default gate: 0 pauses from camera faults (a camera one
+    layer late, as repeats or as new exposures, for a stretch or the whole print, and a bumped one), real
+    failures still pause (a stall and spaghetti, on time and behind a late camera), >= 0.97 of failure
+    frames pass the monitor's camera-fault checks."""
     spec = importlib.util.spec_from_file_location("frame_quality_gate", BENCH)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     cfg, tp, truth, pipe, gcode, frames, bed = bench._job()
-    rows = bench.clean_print_pauses(cfg, pipe, gcode, frames, bed)
-    assert {"lagging_stream", "bumped", "lagged_whole_print", "bumped_whole_print"} <= set(rows)
+    extra = bench.fresh_faults(tp, truth, cfg.topview.topview())
+    rows = bench.clean_print_pauses(cfg, pipe, gcode, frames, bed, extra=extra)
+    assert {"lagging_stream", "lagging_stream_fresh", "late_from_10_fresh", "bumped", "lagged_whole_print",
+            "lagged_whole_print_fresh", "bumped_whole_print"} <= set(rows)
     for kind, r in rows.items():
         assert r["pauses_gate_on"] == 0 and r["refused"] + r["lagged"] >= 1 and r["refused_clean"] == 0, (kind, r)
-    for kind in ("lagged_whole_print", "bumped_whole_print"):
+    for kind in ("lagged_whole_print", "lagged_whole_print_fresh", "bumped_whole_print"):
         assert rows[kind]["pauses_gate_off"] >= 1 and rows[kind]["alerts"] >= 1, (kind, rows[kind])
     assert sum(r["pauses_gate_off"] for r in rows.values()) >= 5  # the faults do pause without the gate
-    passed, total, _, lag_checked = bench.failure_frames_passed(tp, truth, cfg, pipe)
-    assert len(total) >= 5 and sum(passed.values()) / sum(total.values()) >= 0.97
-    assert lag_checked >= 10  # the lag check did judge failure frames (and let them through)
+    for name, (pauses, stop, seen) in bench.failure_pauses(cfg, tp, truth, pipe, gcode, bed).items():
+        assert pauses == 1 and stop is not None and seen <= stop <= seen + 2, (name, pauses, stop)
+    res = bench.failure_frames_passed(tp, truth, cfg, pipe)
+    total = sum(res["total"].values())
+    assert len(res["total"]) >= 5 and sum(res["passed"].values()) / total >= 0.97
+    assert sum(res["passed_slipped"].values()) / total >= 0.97  # even as if the camera had just slipped
+    assert res["checked"] >= 10  # the previous layer's reference did judge failure frames (and let them through)

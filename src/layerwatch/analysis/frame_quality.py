@@ -81,12 +81,12 @@ class FrameQualitySettings(Section):
     max_marker_shift_px : float
         Largest shift of a visible bed marker from its expected place, px (at the frame's size).
     excuse_late_frames : bool
-        A frame that shows the previous layer (:mod:`layerwatch.monitor.camera_checks`) is
-        judged against that layer, so a camera one layer late never pauses. Off by default:
-        from one photo a late camera cannot be told from a layer that added nothing (a
-        clog, a part torn off into spaghetti), and a missed failure costs more than one
-        false pause; the monitor then alerts "looks like the previous layer" and the policy
-        decides. Turn it on for a stream known to lag.
+        A frame that shows the previous layer is judged against that layer, so a camera one
+        layer late does not pause a clean print. The monitor tells a late camera from a layer
+        that added nothing (a clog, a part torn off into spaghetti) over the series, not from
+        one photo (:class:`~layerwatch.monitor.camera_checks.LateStream`: progress since the
+        previous frame where the G-code printed, and a repeated or unusable frame before the
+        stretch). Off: such a frame is alerted and judged as it is.
     """
 
     enabled: bool = True
@@ -99,7 +99,7 @@ class FrameQualitySettings(Section):
     min_change: float = Field(2.0, ge=0, le=255)
     max_repeat_spread: float = Field(1.5, ge=0, le=255)
     max_marker_shift_px: float = Field(12.0, gt=0, le=10_000)
-    excuse_late_frames: bool = False
+    excuse_late_frames: bool = True
 
 
 @dataclass(frozen=True)

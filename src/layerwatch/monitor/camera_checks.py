@@ -20,23 +20,28 @@ below the policy's ``min_area_mm2``; not "below ``min_area_mm2``" alone, as
 a part on which the analysis sees a few blocks of clean-print noise keeps
 them against either layer; and the scene channel's change beside the print,
 if it counts, lies where layer ``k - 1`` was printed and layer ``k`` is
-not: a first layer's skirt or brim seen one layer late), the frame is a *lagged frame*: the monitor
-judges the analysis against the layer the frame shows (layer ``k - 1``)
-instead, records the lag with the layer (its reason in the message, both
-areas in ``frame_quality``) and lets the scene channel take the frame's
+not: a first layer's skirt or brim seen one layer late), the frame *looks* one
+layer late. From that one photo a late camera cannot be told from a layer that
+added nothing (a clog, a part torn off into spaghetti): both look like the
+previous layer. :class:`LateStream` tells them apart over the series
+(:meth:`LateStream.check`): a late camera still shows *progress* between
+consecutive frames where the G-code printed (:func:`progress_between`), and it
+fell behind at some frame that showed none (a repeat, or a new exposure of the
+same layer); a stalled print shows no progress frame after frame, and an on-time
+camera never slips. Only a frame the series calls late is *excused*: the
+monitor judges the analysis against the layer the frame shows (layer ``k - 1``)
+instead, records it with the layer (its reason in the message, the areas and
+the progress in ``frame_quality``) and lets the scene channel take the frame's
 change beside the print as the scene, as when the operator acknowledges it,
-so that it does not count on the next layers. The lag itself never counts
-toward a pause, yet a late camera still watches the print: a failure in a
-late frame is anomalous against the layer it shows and pauses as on time. A real failure
-is not explained by the layer below: spaghetti, a foreign body, a shifted or
-detached part and a missing patch are as anomalous against layer ``k - 1``
-as against layer ``k`` (the patch is a pit in both), so a frame on time with
-a failure is never called late. A print on which nothing new was printed
-(layer ``k`` looks like ``k - 1`` because the extruder stopped) gives a frame
-that repeats the previous one, which the gate's repeat check sees before
-this check runs. :class:`LagTracker` says when the lag is *consistent*
-(``after_n`` lagged frames with no layer in between that its own reference
-explained better) and the monitor alerts then, as a camera fault. No timestamps are used: the
+so that it does not count on the next layers. Any other frame is judged as it
+is, its message saying why. The lag itself never counts toward a pause, yet a
+late camera still watches the print: a failure in a late frame is anomalous
+against the layer it shows and pauses as on time. A real failure is not
+explained by the layer below: spaghetti, a foreign body, a shifted or detached
+part and a missing patch are as anomalous against layer ``k - 1`` as against
+layer ``k`` (the patch is a pit in both). After ``after_n`` excused frames with
+no frame between them that its own layer explained better, the monitor alerts
+once, as a camera fault ("camera lagging"). No timestamps are used: the
 cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
 that can be trusted against the printer's trigger.
 
@@ -59,6 +64,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from layerwatch.analysis.extrusion import block_ncc, highpass
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer
 from layerwatch.geometry.camera import CameraModel
@@ -66,8 +72,8 @@ from layerwatch.geometry.markers import detect_aruco, detect_dots
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.pipeline.policy import PolicySettings
 
-__all__ = ["LAG_EXPLAINED_SHARE", "LagTracker", "LagVerdict", "MarkerWatch", "counts_toward_pause",
-           "previous_layer_explains"]
+__all__ = ["LAG_EXPLAINED_SHARE", "STILL_SHARE", "PRINTED_SHARE", "LagVerdict", "LateCheck", "LateStream", "MarkerWatch", "Progress",
+           "counts_toward_pause", "lag_checkable", "previous_layer_explains", "progress_between"]
 
 log = logging.getLogger("layerwatch.monitor")
 
@@ -96,6 +102,11 @@ def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
     return (res.anomalous_area_mm2 >= _least_area(policy)
             or bool(strong) and res.outside_area_mm2 > strong
             or bool(beside) and res.outside_anomalous_mm2 >= beside)
+
+
+def lag_checkable(pipeline: Any) -> bool:
+    """Whether the pipeline gives what the late-camera check needs (references, top views, analysis settings)."""
+    return all(hasattr(pipeline, n) for n in ("reference", "top_view", "topview", "config"))
 
 
 def _least_area(policy: PolicySettings) -> float:
@@ -161,8 +172,8 @@ class LagVerdict:
         return {"lag_area_mm2": round(self.area_mm2, 3), "lag_previous_area_mm2": round(self.previous_area_mm2, 3)}
 
 
-def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
-                            policy: PolicySettings) -> LagVerdict | None:
+def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, policy: PolicySettings,
+                            top: tuple[np.ndarray, np.ndarray] | None = None) -> LagVerdict | None:
     """Analyse ``photo`` (taken for ``res.layer``) against the previous layer's reference.
 
     Parameters
@@ -177,6 +188,9 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
         The pipeline's result for this frame against its own layer.
     policy : PolicySettings
         ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
+    top : (ndarray, ndarray), optional
+        ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it
+        (:meth:`LateStream.progress` warps there too).
 
     Returns
     -------
@@ -185,12 +199,11 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
         the pipeline cannot be asked.
     """
     k = int(res.layer)
-    needed = ("reference", "top_view", "topview", "config")
-    if k < 1 or not all(hasattr(pipeline, n) for n in needed):
+    if k < 1 or not lag_checkable(pipeline):
         return None
     ref = pipeline.reference(k - 1)
-    top, valid = pipeline.top_view(photo, ref.z)
-    before = analyze_layer(top, ref.image, ref.footprint, pipeline.topview, pipeline.config.analysis,
+    top_prev, valid = top if top is not None else pipeline.top_view(photo, ref.z)
+    before = analyze_layer(top_prev, ref.image, ref.footprint, pipeline.topview, pipeline.config.analysis,
                            valid=valid, layer=k - 1, z=ref.z)
     here, prev = float(res.anomalous_area_mm2), float(before.anomalous_area_mm2)
     least = _least_area(policy)
@@ -204,33 +217,304 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult,
     return LagVerdict(lagged, here, prev, msg, before)
 
 
-class LagTracker:
-    """Is the stream consistently one layer late? (lagged frames with no contrary evidence between).
+#: a block of the zone changed between two frames when the NCC of their band-passed top views is below this
+CHANGED_NCC = 0.5
+#: at most this share of the zone's blocks changed: nothing new was printed (simulated example part: 0-0.01
+#: for a new exposure of the same layer or a stall)
+STILL_SHARE = 0.05
+#: at least this share changed: new material (0.21-0.34 where a thin wall grew by a layer, 0.56-0.92 on
+#: infill and on the first layer); in between, no verdict
+PRINTED_SHARE = 0.15
+#: fewest textured blocks of the zone the progress between two frames is judged on
+MIN_PROGRESS_BLOCKS = 4
+#: side of the blocks the progress is judged on, top-view px
+PROGRESS_BLOCK_PX = 8
+#: Gaussian (top-view px) applied to the high-passed top views: sensor noise out, bead and edge texture kept
+PROGRESS_BLUR_PX = 1.5
+#: the zone where a layer's new material may change the picture: its footprint dilated by this, mm
+PROGRESS_MARGIN_MM = 1.0
+#: a first layer whose anomaly ratio against its reference is at least this is not in the picture yet (a
+#: camera late from the job start shows the empty bed there; a first layer that failed is the first-layer
+#: check's, and a frame a check failed on is never excused)
+MISSING_FIRST_LAYER_RATIO = 0.25
 
-    Only the layers the lag check ran on count: a lagged frame adds one, a frame that its
-    own layer explained better (a real anomaly) starts the count again. Layers that did
-    not need the check (nothing to explain) leave it alone.
+
+@dataclass(frozen=True)
+class Progress:
+    """What changed between two frames where the G-code printed in between.
+
+    Attributes
+    ----------
+    changed : float
+        Share of the zone's textured blocks whose band-passed texture changed (zero-mean NCC
+        below :data:`CHANGED_NCC`, :func:`~layerwatch.analysis.extrusion.block_ncc`): near 0
+        when the surface is the same (new light and noise aside), high where new beads
+        replaced it; ``nan`` when not judged.
+    blocks : int
+        Textured blocks compared.
+    """
+
+    changed: float
+    blocks: int
+
+    @property
+    def judged(self) -> bool:
+        """Enough texture in the zone to say anything."""
+        return self.blocks >= MIN_PROGRESS_BLOCKS and bool(np.isfinite(self.changed))
+
+    @property
+    def printed(self) -> bool:
+        """New material where the G-code printed: the print (or the late picture of it) advanced."""
+        return self.judged and self.changed >= PRINTED_SHARE
+
+    @property
+    def still(self) -> bool:
+        """Nothing new where the G-code printed: a stall, or the first frame of a stream that fell behind."""
+        return self.judged and self.changed <= STILL_SHARE
+
+
+def _disk(radius_px: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+
+
+def progress_between(top: np.ndarray, before: np.ndarray, valid: np.ndarray, zone: np.ndarray) -> Progress:
+    """How much two top views of the same plane differ on ``zone`` (:class:`Progress`).
+
+    Parameters
+    ----------
+    top, before : ndarray, uint8, shape (h, w)
+        Grey top views of this frame and of the frame before, warped to the same plane.
+    valid : ndarray, bool, shape (h, w)
+        Pixels this frame saw (the camera did not move, so the frame before saw them too).
+    zone : ndarray, bool, shape (h, w)
+        Where the layers printed between the two frames lie (footprints dilated by
+        :data:`PROGRESS_MARGIN_MM`).
+    """
+    a, b = (cv2.GaussianBlur(highpass(t), (0, 0), PROGRESS_BLUR_PX) for t in (top, before))
+    ncc, scored = block_ncc(a, b, zone & valid, PROGRESS_BLOCK_PX)
+    n = int(scored.sum())
+    return Progress(float(np.mean(ncc[scored] < CHANGED_NCC)) if n else float("nan"), n)
+
+
+@dataclass(frozen=True)
+class LateCheck:
+    """What :meth:`LateStream.check` made of one analysed frame.
+
+    Attributes
+    ----------
+    judged : LayerResult or None
+        The frame's analysis against the layer it shows (layer ``k - 1``), carrying this
+        trigger's layer and height, when the frame is excused as late; None: judge it as it is.
+    why : str
+        Why a frame the previous layer explains is judged as it is (empty otherwise).
+    alert : bool
+        The lag just became consistent (``after_n`` excused frames): alert once.
+    progress : Progress or None
+        Progress since the previous analysed frame (None: no earlier frame).
+    verdict : LagVerdict or None
+        The previous layer's verdict (None: the frame would not count toward a pause).
+    """
+
+    judged: LayerResult | None = None
+    why: str = ""
+    alert: bool = False
+    progress: Progress | None = None
+    verdict: LagVerdict | None = None
+
+
+@dataclass
+class _Seen:
+    """The last analysed frame near the print: its top view on the plane of ``layer``, cropped to ``box``.
+
+    Its valid mask is not kept: the camera did not move (or the gate refuses the frame), so the next
+    frame's, on a plane a layer away, stands for it.
+    """
+
+    layer: int
+    z: float
+    box: tuple[slice, slice]
+    top: np.ndarray
+
+
+class LateStream:
+    """Is the stream one layer late? Told over the series, not from one photo.
+
+    One photo cannot tell a camera that delivers the previous layer's picture from a
+    layer that added nothing (a clog, a part torn off into spaghetti): both look like
+    the previous layer's reference. Two consecutive frames can. A late camera still
+    shows progress: frame ``k`` (the picture of layer ``k - 1``) differs from frame
+    ``k - 1`` (layer ``k - 2``) by new material where layer ``k - 1`` printed; a stalled
+    print shows none. And a camera falls behind at some frame: that frame repeats the
+    previous picture (it shows no progress, or the gate refuses it as a repeat).
+
+    A frame explained by the previous layer's reference (:func:`previous_layer_explains`)
+    is *excused* (judged against the layer it shows) when the pipeline's own checks
+    (nothing extruded, first layer) found nothing in it and the series says so:
+
+    * **a late frame**: it shows progress since the previous analysed frame where the
+      layers in between printed (:func:`progress_between` on the zone of their
+      footprints), and the stream *slipped* before it: since the last frame that its own
+      layer explained better than the previous one (:meth:`judged`), a frame showed no
+      progress or was unusable (refused by the gate, no image), or the first layer was not in the
+      picture (a camera late from the job start shows the empty bed there); or
+    * **the first frame of a slip**: it shows no progress at all (the previous picture
+      again, as a new exposure; the gate refuses the same picture with only new noise),
+      and the frame before it did show progress. One such frame cannot be told from the
+      first layer of a stall; it is taken as the slip, and the next frame tells: a stall
+      shows no progress again and is judged as it is (and the nothing-extruded check,
+      whose verdict is never excused, compares it with the photo two layers back).
+
+    A camera on time never slips, so a failure that makes layer ``k`` look like layer
+    ``k - 1`` while the part still grows is judged as it is; a print that stopped
+    growing shows no progress twice in a row, so from its second layer it is judged as
+    it is; spaghetti stays anomalous against the layer the frame shows, so an excused
+    frame still pauses for it.
 
     Parameters
     ----------
     after_n : int
-        Lagged frames in a row (in that sense) before :meth:`lagged` says to alert.
+        Excused frames in a row before :meth:`excused` says to alert ("camera lagging").
     """
 
     def __init__(self, after_n: int) -> None:
         self.after_n = int(after_n)
         self.count = 0
         self.alerted = False
+        #: the stream slipped and has not been judged as it was since: its frames may be one layer late
+        self.slipped = False
+        #: the last frame showed no progress or was unusable (a second such frame is a stall's)
+        self.still = False
+        self._seen: _Seen | None = None
 
-    def update(self, verdict: LagVerdict) -> bool:
-        """Count one checked frame; True exactly when the lag just became consistent (alert once)."""
-        if not verdict.lagged:
+    # ---------------------------------------------------------------- frames
+    def remember(self, pipeline: Any, layer: int, top: np.ndarray | None) -> None:
+        """Keep frame ``layer``'s grey top view (warped on that layer's plane) around the zone the next frame
+        is compared on (a copy of that box only: a farm holds one per printer)."""
+        if top is None:
+            return
+        ref = pipeline.reference(layer)
+        box = _box(_zone(ref.footprint, pipeline.topview), pipeline.topview)
+        if box is None:
+            return
+        self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]))
+
+    def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> tuple[Progress, Any] | None:
+        """Progress of frame ``layer`` since the remembered frame, and this frame's top view on that frame's
+        plane (``(top, valid)``); None when no frame is remembered or the view cannot be made."""
+        seen = self._seen
+        if seen is None or layer <= seen.layer:
+            return None
+        top, valid = pipeline.top_view(photo, seen.z)
+        zone = np.zeros(pipeline.topview.shape, bool)
+        for i in range(seen.layer, layer):  # the layers printed between the two pictures
+            zone |= pipeline.reference(i).footprint
+        zone = _zone(zone, pipeline.topview)[seen.box]
+        p = progress_between(top[seen.box], seen.top, valid[seen.box], zone)
+        return p, ((top, valid) if seen.layer == layer - 1 else None)
+
+    def interrupted(self) -> None:
+        """A frame was unusable (repeat, black, no image...): the stream may come back late."""
+        self.slipped = self.still = True
+
+    def judged(self, res: LayerResult, verdict: LagVerdict | None, progress: Progress | None) -> None:
+        """After a frame judged as it was: its own layer explained it better than the previous one
+        (``verdict``), the stream is taken to be on time again; ``progress`` showed nothing new, or the
+        first layer is not in the picture (:data:`MISSING_FIRST_LAYER_RATIO`): it may have slipped here."""
+        if verdict is not None and verdict.previous_area_mm2 > verdict.area_mm2:
+            self.slipped = False
             self.count, self.alerted = 0, False
-            return False
+        self._saw(progress)
+        if res.layer == 0 and res.anomaly_ratio >= MISSING_FIRST_LAYER_RATIO:
+            self.slipped = True
+
+    def _saw(self, progress: Progress | None) -> None:
+        self.still = progress is not None and progress.still
+        self.slipped = self.slipped or self.still
+
+    # ---------------------------------------------------------------- verdict
+    def check(self, pipeline: Any, photo: np.ndarray, res: LayerResult, policy: PolicySettings,
+              excuse: bool = True) -> LateCheck:
+        """One analysed frame (``res``: ``status`` ok, against its own layer): is it a late one to excuse?
+
+        Measures the progress since the remembered frame, runs :func:`previous_layer_explains`
+        when ``res`` would count toward a pause, decides (:meth:`excuse`; ``excuse=False``:
+        never), updates the series and remembers this frame. Raises what the pipeline raises.
+        """
+        counts = counts_toward_pause(res, policy)
+        seen = self.progress(pipeline, photo, res.layer)
+        progress, top = seen if seen is not None else (None, None)
+        verdict = previous_layer_explains(pipeline, photo, res, policy, top) if counts else None
+        self.remember(pipeline, res.layer, _top_of(pipeline, photo, res))
+        lagged = verdict is not None and verdict.lagged
+        why = self.excuse(verdict, progress, res) if lagged else None
+        if lagged and why is None and not excuse:
+            why = "[frame_quality] excuse_late_frames is off"
+        if not lagged or why is not None:
+            self.judged(res, verdict, progress)
+            text = f"the photo looks like layer {res.layer - 1} (a late camera?) but is judged as it is: {why}"
+            return LateCheck(None, text if why else "", False, progress, verdict)
+        assert verdict is not None and verdict.previous is not None and progress is not None  # lagged, excused
+        judged = verdict.previous
+        judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
+        judged.message = verdict.message + ("; no change since the previous frame: the first late frame, or nothing "
+                                            "printed on this layer (the next frame tells)" if progress.still else "")
+        judged.frame_quality = {**verdict.figures, **self.figures(progress)}
+        return LateCheck(judged, "", self.excused(progress), progress, verdict)
+
+    def excuse(self, verdict: LagVerdict, progress: Progress | None, res: LayerResult) -> str | None:
+        """Why a frame the previous layer explains is *not* excused, or None when it is (module notes)."""
+        if res.failed_check:
+            return f"the {res.failed_check.replace('_', '-')} check failed on it"
+        if progress is None or not progress.judged:
+            return "no earlier frame to tell a late camera from a layer that printed nothing"
+        if progress.still:  # the slip itself, unless the frame before showed nothing new either
+            return None if not self.still else (
+                f"nothing new since the previous frame, twice in a row ({progress.changed:.0%} of the surface "
+                "changed): nothing extruded, or the print stopped growing")
+        if not progress.printed:
+            return (f"{progress.changed:.0%} of the surface changed since the previous frame: too little to tell "
+                    "new material from new light")
+        if not self.slipped:
+            return "the camera was on time so far (no repeated or unusable frame before it)"
+        return None
+
+    @staticmethod
+    def figures(progress: Progress | None) -> dict[str, float]:
+        """The progress figures for ``LayerResult.frame_quality``."""
+        if progress is None:
+            return {}
+        return {"lag_progress_changed": round(progress.changed, 3), "lag_progress_blocks": progress.blocks}
+
+    def excused(self, progress: Progress) -> bool:
+        """Count one excused frame; True exactly when the lag just became consistent (alert once)."""
+        self._saw(progress)
         self.count += 1
         due = self.count >= self.after_n and not self.alerted
         self.alerted = self.alerted or due
         return due
+
+
+def _top_of(pipeline: Any, photo: np.ndarray, res: LayerResult) -> np.ndarray:
+    """The analysed photo's grey top view on its layer's plane (the pipeline's, or warped)."""
+    top = getattr(pipeline, "last_top", None)
+    return top if top is not None else pipeline.top_view(photo, pipeline.reference(res.layer).z)[0]
+
+
+def _zone(footprint: np.ndarray, topview: Any) -> np.ndarray:
+    """``footprint`` dilated by :data:`PROGRESS_MARGIN_MM` (bool, same shape)."""
+    r = max(1, round(PROGRESS_MARGIN_MM * topview.px_per_mm))
+    return cv2.dilate(footprint.astype(np.uint8), _disk(r)).astype(bool)
+
+
+def _box(mask: np.ndarray, topview: Any) -> tuple[slice, slice] | None:
+    """Bounding box of ``mask`` grown by :data:`PROGRESS_MARGIN_MM` (rows, cols), None when empty."""
+    rows, cols = np.any(mask, axis=1), np.any(mask, axis=0)
+    if not rows.any():
+        return None
+    r = max(1, round(PROGRESS_MARGIN_MM * topview.px_per_mm))
+    (v0, v1), (u0, u1) = np.flatnonzero(rows)[[0, -1]], np.flatnonzero(cols)[[0, -1]]
+    h, w = mask.shape
+    return slice(max(v0 - r, 0), min(v1 + r + 1, h)), slice(max(u0 - r, 0), min(u1 + r + 1, w))
 
 
 class MarkerWatch:

@@ -24,9 +24,12 @@ judge. With the gate on, two checks that need the job run beside it
 calibration are looked for in each frame (a camera that moved), and a layer
 whose analysis would count toward a pause is analysed once more against the
 previous layer's reference (a stream that stays one layer late). A moved
-camera gives ``camera_fault`` records; a late frame is judged against the
-layer it shows (the lag never counts toward a pause, a failure in the frame
-still does), and a consistently late stream is a camera fault alerted once.
+camera gives ``camera_fault`` records; a frame the series shows to be one
+layer late (:class:`~layerwatch.monitor.camera_checks.LateStream`: progress
+since the previous frame, a slip before it; not a print that stopped growing)
+is judged against the layer it shows (the lag never counts toward a pause, a
+failure in the frame still does), and a consistently late stream is a camera
+fault alerted once.
 Printer and camera faults are logged as rate-limited warnings, written to the history as
 ``printer_fault``/``camera_fault`` events (and ``..._recovered`` when they end)
 and notified after a grace period or a number of bad frames in a row
@@ -54,12 +57,7 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
-from layerwatch.monitor.camera_checks import (
-    LagTracker,
-    MarkerWatch,
-    counts_toward_pause,
-    previous_layer_explains,
-)
+from layerwatch.monitor.camera_checks import LateStream, MarkerWatch, lag_checkable
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
@@ -197,7 +195,8 @@ class Monitor:
         self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
         self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
         self._markers = MarkerWatch.of_pipeline(pipeline) if self.frame_quality is not None else None
-        self._lag = LagTracker(self.faults.camera_alert_after)
+        self._late = LateStream(self.faults.camera_alert_after)  # analysis thread only
+        self._lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
 
     def health(self) -> dict[str, dict | None]:
         """Ongoing faults: ``{"printer": {...} or None, "camera": {...} or None}`` (see :class:`Fault`)."""
@@ -331,40 +330,35 @@ class Monitor:
             return {}
 
     def _lag_check(self, trigger: SnapshotTrigger, photo: np.ndarray, res: LayerResult) -> LayerResult:
-        """A result that would count toward a pause but shows the previous layer -> judged against that layer.
+        """A frame that shows the previous layer, told over the series (:meth:`LateStream.check`): judged against it.
 
-        See :mod:`~layerwatch.monitor.camera_checks`; the returned result keeps this trigger's
-        layer and height, its message and ``frame_quality`` say what the frame showed.
+        The returned result is then the analysis against that layer, with this trigger's layer
+        and height, its message and ``frame_quality`` saying what the frame showed; otherwise
+        ``res`` (its message says why a frame that looked late was judged as it is).
         """
-        if self.frame_quality is None or not counts_toward_pause(res, self.policy.settings):
+        if not self._lag_checks or res.status != "ok":
             return res
         try:
-            verdict = previous_layer_explains(self.pipeline, photo, res, self.policy.settings)
+            late = self._late.check(self.pipeline, photo, res, self.policy.settings,
+                                    excuse=self.frame_quality.excuse_late_frames)
         except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
             log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
             return res
-        if verdict is None:
+        if late.judged is None:
+            if late.why:
+                res.message = (res.message + "; " if res.message else "") + late.why
             return res
-        if self._lag.update(verdict):
-            message = (f"camera lagging: {self._lag.count} frames showed the layer before theirs (each judged "
-                       f"against the layer it shows): {verdict.message}")
-            self.record_event("camera_fault", message, {"layer": res.layer, **verdict.figures})
+        if late.alert:
+            message = (f"camera lagging: {self._late.count} frames showed the layer before theirs (each judged "
+                       f"against the layer it shows): {late.judged.message}")
+            self.record_event("camera_fault", message, {"layer": res.layer, **late.judged.frame_quality})
             self._alert(message, res, force=True)
-        if not verdict.lagged or verdict.previous is None:
-            return res
-        if not self.frame_quality.excuse_late_frames:  # a late camera or a layer that added nothing: judged as is
-            res.message = (res.message + "; " if res.message else "") + (
-                "the photo looks like the previous layer (a late camera, or nothing printed on this layer)")
-            return res
         if res.outside_anomalous_mm2 > 0 and hasattr(self.pipeline, "acknowledge"):
             with self._lock:  # as Monitor.acknowledge: the change beside the print was the previous layer
                 self.pipeline.acknowledge()
-        judged = verdict.previous
-        judged.layer, judged.z, judged.photo_ms = res.layer, res.z, res.photo_ms
-        judged.message, judged.frame_quality = verdict.message, verdict.figures
         self.report.lagged_frames += 1
-        self._warn.warning("lag", "layer %d: %s", res.layer, verdict.message)
-        return judged
+        self._warn.warning("lag", "layer %d: %s", res.layer, late.judged.message)
+        return late.judged
 
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
         res = self._gate(trigger, photo)
@@ -441,14 +435,17 @@ class Monitor:
                                 force=True)
             return
         self.report.camera_faults += 1
+        self._late.interrupted()  # the stream may come back one layer late
         started, notify = self._camera_fault.failed(res.message)
         self._warn.warning("camera", "camera fault on layer %d (never a pause): %s", res.layer, res.message)
         if started:
             self.record_event("camera_fault", res.message, {"layer": res.layer, **res.frame_quality})
         if notify:
             n = self._camera_fault.current.count if self._camera_fault.current else 0
-            self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}",
-                        res, force=True)
+            still = ("; if the printer is printing, the print may have stopped growing (clog, filament run-out): "
+                     "look at it" if "same picture" in res.message else "")
+            self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}"
+                        f"{still}", res, force=True)
 
     def record_event(self, kind: str, message: str, data: dict | None = None) -> None:
         """Append an event to this job's history (none without a history; a failed write is a warning)."""
