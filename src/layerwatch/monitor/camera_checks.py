@@ -446,7 +446,7 @@ class LateStream:
         verdict = previous_layer_explains(pipeline, photo, res, policy, top) if counts else None
         self.remember(pipeline, res.layer, _top_of(pipeline, photo, res))
         lagged = verdict is not None and verdict.lagged
-        why = self.excuse(verdict, progress, res) if lagged else None
+        why = self.excuse(verdict, progress, res) if verdict is not None and lagged else None
         if lagged and why is None and not excuse:
             why = "[frame_quality] excuse_late_frames is off"
         if not lagged or why is not None:

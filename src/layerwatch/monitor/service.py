@@ -195,7 +195,7 @@ class Monitor:
         self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
         self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
         self._markers = MarkerWatch.of_pipeline(pipeline) if self.frame_quality is not None else None
-        self._late = LateStream(self.faults.camera_alert_after)  # analysis thread only
+        self._late_stream = LateStream(self.faults.camera_alert_after)  # analysis thread only
         self._lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
 
     def health(self) -> dict[str, dict | None]:
@@ -339,8 +339,8 @@ class Monitor:
         if not self._lag_checks or res.status != "ok":
             return res
         try:
-            late = self._late.check(self.pipeline, photo, res, self.policy.settings,
-                                    excuse=self.frame_quality.excuse_late_frames)
+            late = self._late_stream.check(self.pipeline, photo, res, self.policy.settings,
+                                    excuse=bool(self.frame_quality and self.frame_quality.excuse_late_frames))
         except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
             log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
             return res
@@ -349,7 +349,7 @@ class Monitor:
                 res.message = (res.message + "; " if res.message else "") + late.why
             return res
         if late.alert:
-            message = (f"camera lagging: {self._late.count} frames showed the layer before theirs (each judged "
+            message = (f"camera lagging: {self._late_stream.count} frames showed the layer before theirs (each judged "
                        f"against the layer it shows): {late.judged.message}")
             self.record_event("camera_fault", message, {"layer": res.layer, **late.judged.frame_quality})
             self._alert(message, res, force=True)
@@ -435,7 +435,7 @@ class Monitor:
                                 force=True)
             return
         self.report.camera_faults += 1
-        self._late.interrupted()  # the stream may come back one layer late
+        self._late_stream.interrupted()  # the stream may come back one layer late
         started, notify = self._camera_fault.failed(res.message)
         self._warn.warning("camera", "camera fault on layer %d (never a pause): %s", res.layer, res.message)
         if started:
