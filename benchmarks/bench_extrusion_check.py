@@ -30,7 +30,7 @@ from baseline_revision import load_revision  # noqa: E402
 
 import layerwatch.pipeline.checks as lw_checks  # noqa: E402
 from layerwatch.analysis.result import LayerResult  # noqa: E402
-from layerwatch.evaluate.checks import _footprints, _setup, job_checks  # noqa: E402
+from layerwatch.evaluate.checks import _pipeline_footprints, _setup, job_checks  # noqa: E402
 from layerwatch.examples import PART_GCODE  # noqa: E402
 from layerwatch.gcode import read_toolpath  # noqa: E402
 from layerwatch.geometry.warp import TopViewWarper  # noqa: E402
@@ -44,7 +44,7 @@ def run(rev: str = "74c3e36", rounds: int = 5, size: tuple[int, int] = (1920, 10
     cv2.setNumThreads(1)
     tp = read_toolpath(PART_GCODE.read_bytes())
     tv, cam = _setup(tp, size)
-    footprint = _footprints(tp, tv)
+    footprint = _pipeline_footprints(tp, cam, tv)  # what the pipeline hands the check
     sim = PrintSimulator(tp, cam, tv, seed=7)
     photos = {i: sim.frame(i).photo for i in LAYERS}
     ours = job_checks(tp, cam, tv)

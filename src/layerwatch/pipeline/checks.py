@@ -22,8 +22,8 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
   inspection's). A layer whose surface is too small to judge alone (fewer than
   :data:`POOL_BELOW_BLOCKS` textured blocks, or less than ``min_area_mm2``: a
   ring of perimeters, thin walls) is judged together with the layer before it:
-  both surfaces were printed since that photo, so both must have changed; such
-  pooled evidence needs :data:`POOLED_MARGIN` more similarity. The texture is
+  both surfaces (not eroded: the beads' edges change with the beads) were
+  printed since that photo, so both must have changed. The texture is
   computed on the crop of the photo that the print can cover only
   (:func:`~layerwatch.analysis.extrusion.box_texture`).
 
@@ -61,15 +61,16 @@ EMPTY_BED, FIRST_LAYER, NOTHING_EXTRUDED = "empty_bed", "first_layer", "nothing_
 #: fewest textured blocks of the surface judged by the nothing-extruded check
 MIN_BLOCKS = 3
 #: a layer whose own top surface has fewer textured blocks than this, or less area than ``min_area_mm2``, is
-#: thin evidence (a 12 mm cube's sparse layers: a 0.7 mm ring of perimeters; the window part's thin walls):
-#: it is judged together with the layer before it, both surfaces against the photo two layers back
+#: thin evidence (a 12 mm cube's sparse layers: a 0.7 mm ring of perimeters; a box's sparse infill lines, which
+#: the erosion by ``margin_mm`` removes): it is judged together with the layer before it
 POOL_BELOW_BLOCKS = 10
-#: share of a block the pooled surface must cover for the block to be scored (a single layer's: 0.5; a thin
+#: share of a block the pooled surfaces must cover for the block to be scored (a single layer's: 0.5; a thin
 #: ring covers few blocks by half)
 POOLED_MIN_SHARE = 0.25
-#: pooled evidence must be this much more alike than ``min_similarity``: a few blocks of perimeters laid on
-#: their twins looked alike up to 0.88 in clean prints of the window part at 960 px
-POOLED_MARGIN = 0.04
+#: pooled surfaces are eroded by at most this, mm: none (a bead's edges change with the bead; eroded by 0.3 mm,
+#: sparse infill lines vanish and two layers of thin walls looked alike up to 0.88 in clean prints, not eroded
+#: up to 0.80)
+POOLED_EROSION_MM = 0.0
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)`` (the pipeline's references)
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
 
@@ -122,7 +123,7 @@ class JobChecks:
         """Start a job: forget the earlier photos; ``bed_photo`` is the empty bed (``None``: none)."""
         self.bed_photo = None if bed_photo is None else np.asarray(bed_photo)
         self._textures: list[tuple[int, np.ndarray]] = []
-        #: the last layer's index, eroded area (mm^2) and top surface in :attr:`box` (bits, :func:`numpy.packbits`)
+        #: the last layer's index, top (mm) and footprint (bits, :func:`numpy.packbits`), to pool thin evidence with
         self._surface: tuple[int, float, np.ndarray] | None = None
         self.image = None
 
@@ -240,50 +241,55 @@ class JobChecks:
         before, self._surface = self._surface, None
         if not earlier:
             return
-        fp, area, surface = self._layer_surface(index, footprint, maps)
-        self._surface = (index, area, np.packbits(surface))
+        fp, _, z = footprint(index)
+        self._surface = (index, z, np.packbits(fp))
         if len(earlier) < 2 or index < 2:
             return
+        area, surface = self._layer_surface(fp, z, maps, st.margin_mm)
         # earlier[1]: the photo before the last two layers were printed
         ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px)
-        blocks, judged, threshold = int(scored.sum()), f"layer {index}'s top surface ({area:.0f} mm^2", st.min_similarity
+        blocks, judged = int(scored.sum()), f"layer {index}'s top surface ({area:.0f} mm^2"
         if blocks < POOL_BELOW_BLOCKS or area < st.min_area_mm2:  # thin evidence: pool it with the layer before
             if before is None or before[0] != index - 1:
                 return
-            area += before[1]
-            surface |= np.unpackbits(before[2], count=surface.size).reshape(surface.shape).astype(bool)
+            margin = min(st.margin_mm, POOLED_EROSION_MM)
+            if margin != st.margin_mm:
+                area, surface = self._layer_surface(fp, z, maps, margin)
+            prev = np.unpackbits(before[2], count=fp.size).reshape(fp.shape).astype(bool)
+            area_before, surface_before = self._layer_surface(prev, before[1], maps, margin)
+            area, surface = area + area_before, surface | surface_before
             ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=POOLED_MIN_SHARE)
             blocks, judged = int(scored.sum()), f"the top surfaces of layers {index - 1} and {index} ({area:.0f} mm^2"
-            threshold, self.pooled = st.min_similarity + POOLED_MARGIN, True
+            self.pooled = True
         if blocks < MIN_BLOCKS or area < st.min_area_mm2:  # not judged
             return
         sim = float(np.median(ncc[scored]))
         self.similarity = (sim, blocks)
-        if sim < threshold:
+        if sim < st.min_similarity:
             return
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim)
         res.check_regions = [*res.check_regions, region]
         _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
-                     f"(texture similarity {sim:.2f} >= {threshold:.2f}); clog or filament run-out?")
+                     f"(texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or filament run-out?")
 
-    def _layer_surface(self, index: int, footprint: FootprintFn,
-                       maps: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float, np.ndarray]:
-        """Layer ``index``'s footprint, its area eroded by ``margin_mm`` (mm^2) and its top surface in :attr:`box`.
+    def _layer_surface(self, fp: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],
+                       margin_mm: float) -> tuple[float, np.ndarray]:
+        """A layer's footprint ``fp`` eroded by ``margin_mm``: its area (mm^2) and its top surface in :attr:`box`.
 
-        The top surface: the eroded footprint on the layer's plane, seen through the camera
+        The top surface: the eroded footprint on the layer's plane ``z`` seen through the camera
         (:func:`~layerwatch.analysis.scene_change.predicted_change` of one plane), where the
         top view covers it.
         """
-        st = self.config.extrusion
-        fp, _, z = footprint(index)
-        k = int(round(2 * st.margin_mm * self.topview.px_per_mm)) | 1
-        inner = cv2.erode(fp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        k = int(round(2 * margin_mm * self.topview.px_per_mm)) | 1
+        inner = np.asarray(fp, np.uint8)
+        if k > 1:
+            inner = cv2.erode(inner, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
         area = float(np.count_nonzero(inner)) / self.topview.px_per_mm ** 2
         mx, my = top_coords(maps, z)
         H, W = self.topview.shape
         surface = cv2.remap(inner, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        return fp, area, surface & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
+        return area, surface & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
 
     def _marker_discs(self) -> np.ndarray:
         """Top-view pixels of the bed markers and 3 mm around them: white dots clip differently under new light."""
