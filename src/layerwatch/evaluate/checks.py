@@ -15,7 +15,8 @@ tests run smaller samples.
 * :func:`extrusion_trials`: clean prints (every layer judged: false alarms)
   and nothing-extruded runs starting at a random layer >= 2, caught when a
   layer up to onset + 1 is flagged (within two layers), missed otherwise
-  (a flag before the onset counts as a false alarm).
+  (a flag before the onset counts as a false alarm); the check gets the
+  footprints the pipeline gives it (its references' masks).
 * :func:`first_layer_trials`: clean first layers, first layers with nothing
   extruded and with missing lines (a patch of 8-14 mm without its infill).
 """

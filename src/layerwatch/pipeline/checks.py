@@ -124,7 +124,7 @@ class JobChecks:
         self.bed_photo = None if bed_photo is None else np.asarray(bed_photo)
         self._textures: list[tuple[int, np.ndarray]] = []
         #: the last layer's index, top (mm) and footprint (bits, :func:`numpy.packbits`), to pool thin evidence with
-        self._surface: tuple[int, float, np.ndarray] | None = None
+        self._last_footprint: tuple[int, float, np.ndarray] | None = None
         self.image = None
 
     @property
@@ -238,11 +238,11 @@ class JobChecks:
         texture = np.ascontiguousarray(box_texture(photo, self.size, self.box))
         earlier = [t for i, t in reversed(self._textures) if i < index][:2]
         self._textures = [(i, t) for i, t in self._textures if i < index][-1:] + [(index, texture)]
-        before, self._surface = self._surface, None
+        before, self._last_footprint = self._last_footprint, None
         if not earlier:
             return
         fp, _, z = footprint(index)
-        self._surface = (index, z, np.packbits(fp))
+        self._last_footprint = (index, z, np.packbits(fp))
         if len(earlier) < 2 or index < 2:
             return
         area, surface = self._layer_surface(fp, z, maps, st.margin_mm)
