@@ -2,12 +2,14 @@
 
 Counts over simulated cases (:mod:`layerwatch.evaluate.checks`): leftover objects of 10-40 mm caught
 and false holds over clean starts under changed light, on four bed/filament variants; nothing-extruded
-runs caught within two layers and false alarms over every layer of clean prints; first-layer verdicts.
+runs caught within two layers and false alarms over every layer of clean prints (the example part, a 12 mm
+cube, a 20 mm box and the simulator's window part: a window, a bridge, thin walls); first-layer verdicts.
 Targets: >= 97 % of objects caught, 0 false holds over >= 200 clean starts; >= 97 % of nothing-extruded
 runs caught within 2 layers, 0 false alarms.
 
-Run: ``python benchmarks/eval_checks.py [--clean 200 --objects 200 --runs 120 --first 24]``
-(about 15 minutes on one core).
+Run: ``python benchmarks/eval_checks.py [--clean 200 --objects 200 --runs 160 --first 24 --seed 1]``
+(about 15 minutes on one core; ``--clean 0 --objects 0 --first 0``: the nothing-extruded trials alone, a few
+minutes).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 
 from layerwatch.evaluate.checks import bed_check_trials, extrusion_trials, first_layer_trials
 from layerwatch.examples import PART_GCODE
+from layerwatch.simulate.parts import window_part
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "gcode"
 PRINTS = [PART_GCODE, DATA / "prusaslicer-2.8.1_mini-cube_ascii.gcode", DATA / "miraclegrue_20mm-box.gcode"]
@@ -29,7 +32,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clean", type=int, default=200)
     ap.add_argument("--objects", type=int, default=200)
-    ap.add_argument("--runs", type=int, default=120)
+    ap.add_argument("--runs", type=int, default=160, help="nothing-extruded runs (cycling through the 4 prints)")
     ap.add_argument("--first", type=int, default=24)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clean-prints", type=int, default=2, help="clean prints (seeds) per G-code")
@@ -40,7 +43,7 @@ def main() -> None:
     print(caught.line("empty bed: leftover objects >= 10 mm caught"))
     print(f"  ({time.perf_counter() - t:.0f} s)", flush=True)
     t = time.perf_counter()
-    prints = [p for p in PRINTS if Path(p).is_file()]
+    prints = [*(p for p in PRINTS if Path(p).is_file()), window_part()]
     caught, false = extrusion_trials(prints, a.runs, a.seed, clean_prints=a.clean_prints)
     print(caught.line("nothing extruded: runs caught within 2 layers"))
     print(false.line("nothing extruded: false alarms over clean layers"))

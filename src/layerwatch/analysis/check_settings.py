@@ -92,7 +92,8 @@ class ExtrusionSettings(Section):
         highlights on a shiny top surface). A sharper high pass (0.7 px) with
         0.70 separated seed 0 better but gave a false alarm on seed 1.
     min_area_mm2 : float
-        Layers whose footprint (eroded by ``margin_mm``) is smaller are not judged, mm^2.
+        Layers whose footprint (eroded by ``margin_mm``) is smaller are judged together with
+        the layer before them (:data:`layerwatch.pipeline.checks.POOL_BELOW_BLOCKS`), mm^2.
     margin_mm : float
         Erosion of the layer's footprint before it is projected into the image
         (the beads' rounded edges and the wall below them), mm.

@@ -19,7 +19,9 @@ runs on the photo at its own resolution (``[extrusion] working_px``). The layer'
 against the photo two layers back (two layers of growth also shift the
 surface by their height's parallax), and the check flags the layer when it
 is above ``min_similarity``: two layers in a row added nothing, which is the
-failure caught within two layers of its onset.
+failure caught within two layers of its onset. A layer too small to judge on
+its own is judged with the layer before it (both top surfaces against that
+photo; :class:`~layerwatch.pipeline.checks.JobChecks`).
 
 References
 ----------
@@ -29,13 +31,14 @@ Lewis (1995), "Fast normalized cross-correlation" (zero-mean NCC).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 
 import cv2
 import numpy as np
 
-from layerwatch.analysis.scene_change import channel_mean
+from layerwatch.analysis.scene_change import channel_mean, to_working
 
-__all__ = ["HIGHPASS_SIGMA", "ExtrusionEvidence", "block_ncc", "highpass", "surface_similarity"]
+__all__ = ["HIGHPASS_SIGMA", "ExtrusionEvidence", "block_ncc", "box_texture", "highpass"]
 
 #: Gaussian (working px) removed from the grey image before the NCC: the shading, not the bead texture
 HIGHPASS_SIGMA = 2.0
@@ -49,7 +52,48 @@ def highpass(image: np.ndarray) -> np.ndarray:
     return g - cv2.GaussianBlur(g, (0, 0), HIGHPASS_SIGMA)
 
 
-def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int) -> tuple[np.ndarray, np.ndarray]:
+#: working px beyond a box that its texture depends on: the radii of to_working's blur (sigma 0.7: 3 px) and of
+#: the high pass (sigma 2: 8 px), plus one
+BLUR_REACH_PX = 12
+
+
+def box_texture(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
+    """``highpass(to_working(photo, size))[box]``, resizing and blurring only the box and the blurs' reach.
+
+    The frame is cut at the working pixels ``box`` grown by :data:`BLUR_REACH_PX` and aligned to whole
+    source pixels (the area resize then averages the same source pixels with the same weights), so
+    the result equals the whole-image computation (to float rounding); a scale that aligns only every
+    more than 8 px, or differs between the axes, takes the whole image.
+
+    Parameters
+    ----------
+    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
+        Frame as captured.
+    size : (int, int)
+        Working ``(width, height)`` px.
+    box : (slice, slice)
+        Rows and columns of the working image (steps of 1, bounds within it).
+
+    Returns
+    -------
+    ndarray, float32, shape (rows, cols)
+    """
+    arr = np.asarray(photo)
+    W, H = size
+    fx, fy = Fraction(arr.shape[1], W), Fraction(arr.shape[0], H)
+    if fx != fy or fx.denominator > 8 or arr.ndim < 2:
+        return highpass(to_working(arr, size))[box]
+    d = fx.denominator
+    (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
+    y0, x0 = max(0, (r0 - BLUR_REACH_PX) // d * d), max(0, (c0 - BLUR_REACH_PX) // d * d)
+    y1, x1 = min(H, -(-(r1 + BLUR_REACH_PX) // d) * d), min(W, -(-(c1 + BLUR_REACH_PX) // d) * d)
+    crop = arr[int(y0 * fy):int(y1 * fy), int(x0 * fx):int(x1 * fx)]
+    grey = highpass(to_working(crop, (x1 - x0, y1 - y0)))
+    return grey[r0 - y0:r1 - y0, c0 - x0:c1 - x0]
+
+
+def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int,
+              min_share: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Zero-mean normalised cross-correlation of two images per block, over the masked pixels.
 
     Parameters
@@ -60,13 +104,15 @@ def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int) -> 
         Pixels compared.
     block_px : int
         Block side, px.
+    min_share : float
+        Share of a block that must be masked for it to be scored.
 
     Returns
     -------
     ncc : ndarray, float32, shape (h // block_px, w // block_px)
         In [-1, 1] (0 where undefined).
     scored : ndarray, bool, same shape
-        Blocks at least half masked with texture above :data:`MIN_TEXTURE` in either image.
+        Blocks at least ``min_share`` masked with texture above :data:`MIN_TEXTURE` in either image.
     """
     h, w = mask.shape
     n, m = h // block_px, w // block_px
@@ -84,7 +130,7 @@ def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int) -> 
     cov = mean(x * y) / f - mx * my
     ncc = np.where(vx * vy > 0, cov / np.sqrt(np.maximum(vx * vy, 1e-12)), 0.0).astype(np.float32)
     texture = np.sqrt(np.maximum(vx, vy))
-    return np.clip(ncc, -1, 1), (frac >= 0.5) & (texture > MIN_TEXTURE)
+    return np.clip(ncc, -1, 1), (frac >= min_share) & (texture > MIN_TEXTURE)
 
 
 @dataclass(frozen=True)
@@ -105,35 +151,3 @@ class ExtrusionEvidence:
     similarity: float
     blocks: int
     area_mm2: float
-
-
-def surface_similarity(current: np.ndarray, earlier: list[np.ndarray], surface: np.ndarray,
-                       block_px: int) -> tuple[float, int]:
-    """The smallest median block NCC of ``current`` against each of the ``earlier`` photos on ``surface``.
-
-    Parameters
-    ----------
-    current : ndarray, float32, shape (h, w)
-        High-passed working image of this layer's photo (:func:`highpass`).
-    earlier : list of ndarray
-        High-passed working images of the previous photos (newest first).
-    surface : ndarray, bool, shape (h, w)
-        The layer's top surface in the working image.
-    block_px : int
-
-    Returns
-    -------
-    similarity : float
-        ``nan`` when no block is compared.
-    blocks : int
-        Blocks compared (against the newest earlier photo).
-    """
-    sims, blocks = [], 0
-    for k, prev in enumerate(earlier):
-        ncc, scored = block_ncc(current, prev, surface, block_px)
-        if not scored.any():
-            return float("nan"), 0
-        if k == 0:
-            blocks = int(scored.sum())
-        sims.append(float(np.median(ncc[scored])))
-    return (min(sims) if sims else float("nan")), blocks

@@ -15,7 +15,8 @@ tests run smaller samples.
 * :func:`extrusion_trials`: clean prints (every layer judged: false alarms)
   and nothing-extruded runs starting at a random layer >= 2, caught when a
   layer up to onset + 1 is flagged (within two layers), missed otherwise
-  (a flag before the onset counts as a false alarm).
+  (a flag before the onset counts as a false alarm); the check gets the
+  footprints the pipeline gives it (its references' masks).
 * :func:`first_layer_trials`: clean first layers, first layers with nothing
   extruded and with missing lines (a patch of 8-14 mm without its infill).
 """
@@ -40,6 +41,7 @@ from layerwatch.geometry.settings import TopViewSettings
 from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.checks import NOTHING_EXTRUDED, JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, SimSettings, default_camera
 from layerwatch.simulate.bed_scene import BED_VARIANTS, random_leftover, random_light, start_photo
 from layerwatch.simulate.raster import solid_area
@@ -100,6 +102,14 @@ def _footprints(tp: Toolpath, tv):
     return footprint
 
 
+def _pipeline_footprints(tp: Toolpath, camera, tv):
+    """The footprints the pipeline hands the checks: its references' masks (:meth:`LayerPipeline.footprint`)."""
+    cfg = JobConfig(topview=TopViewSettings(center_mm=tuple(tv.center_mm), width_mm=tv.width_mm, height_mm=tv.height_mm))
+    pipe = LayerPipeline(tp, camera, cfg, memo=tp.n_layers)
+    assert pipe.topview.shape == tv.shape, "the pipeline's top view must be the trials' own"
+    return pipe.footprint
+
+
 def bed_check_trials(gcode: str | Path, n_clean: int, n_objects: int, seed: int = 0,
                      size: tuple[int, int] = (1280, 720)) -> tuple[Counts, Counts]:
     """False holds over ``n_clean`` clean starts and objects caught out of ``n_objects`` (module notes).
@@ -143,14 +153,16 @@ def _judge(checks: JobChecks, sim: PrintSimulator, layers: Sequence[int], footpr
     return out
 
 
-def extrusion_trials(gcodes: Sequence[str | Path], n_cases: int, seed: int = 0, clean_prints: int = 1,
-                     max_layers: int = 60, size: tuple[int, int] = (1280, 720)) -> tuple[Counts, Counts]:
+def extrusion_trials(gcodes: Sequence[str | Path | Toolpath], n_cases: int, seed: int = 0, clean_prints: int = 1,
+                     max_layers: int = 80, size: tuple[int, int] = (1280, 720)) -> tuple[Counts, Counts]:
     """Nothing-extruded runs caught within two layers, and false alarms on clean prints (module notes).
 
     Parameters
     ----------
-    gcodes : sequence of path
-        The prints (cases cycle through them).
+    gcodes : sequence of path or Toolpath
+        The prints (cases cycle through them), e.g. a G-code file or the simulator's
+        :func:`~layerwatch.simulate.parts.window_part`. The check gets the footprints the
+        pipeline gives it (its references' masks).
     n_cases : int
         Nothing-extruded runs.
     clean_prints : int
@@ -167,10 +179,10 @@ def extrusion_trials(gcodes: Sequence[str | Path], n_cases: int, seed: int = 0, 
     rng = np.random.default_rng(seed)
     caught, false = Counts(), Counts()
     for g, path in enumerate(gcodes):
-        tp = read_toolpath(Path(path).read_bytes())
+        tp = path if isinstance(path, Toolpath) else read_toolpath(Path(path).read_bytes())
         tv, cam = _setup(tp, size)
-        fpf = _footprints(tp, tv)
-        name = Path(path).stem
+        fpf = _pipeline_footprints(tp, cam, tv)
+        name = Path(str(tp.source)).stem.strip("<>") if isinstance(path, Toolpath) else Path(path).stem
         n = min(tp.n_layers, max_layers)
         for c in range(clean_prints):
             sim = PrintSimulator(tp, cam, tv, seed=seed * 100 + c)

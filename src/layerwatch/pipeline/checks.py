@@ -15,11 +15,17 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
 * **first layer** (``[first_layer]``): the photo of layer index 0 against its
   footprint and the empty bed (:func:`~layerwatch.analysis.first_layer.inspect_first_layer`);
 * **nothing extruded** (``[extrusion]``): from layer index 2 on, the layer's
-  top surface against the two previous photos
-  (:func:`~layerwatch.analysis.extrusion.surface_similarity` with the photo
-  two layers back): flagged when the last two layers added no material, so
-  a run-out is caught on the second layer after its onset (the first layer's own "nothing extruded"
-  is the first-layer inspection's).
+  top surface against the photo two layers back (median block NCC,
+  :func:`~layerwatch.analysis.extrusion.block_ncc`): flagged when the last two
+  layers added no material, so a run-out is caught on the second layer after
+  its onset (the first layer's own "nothing extruded" is the first-layer
+  inspection's). A layer whose surface is too small to judge alone (fewer than
+  :data:`POOL_BELOW_BLOCKS` textured blocks, or less than ``min_area_mm2``: a
+  ring of perimeters, thin walls) is judged together with the layer before it:
+  both surfaces (not eroded: the beads' edges change with the beads) were
+  printed since that photo, so both must have changed. The texture is
+  computed on the crop of the photo that the print can cover only
+  (:func:`~layerwatch.analysis.extrusion.box_texture`).
 
 The bed check and the first-layer inspection run only where a bed photo
 exists; each is switched by its section's ``enabled``.
@@ -33,14 +39,12 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.bed_check import check_empty_bed, regions_image
-from layerwatch.analysis.extrusion import highpass, surface_similarity
+from layerwatch.analysis.extrusion import block_ncc, box_texture
 from layerwatch.analysis.first_layer import inspect_first_layer
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
     image_rays,
     plane_maps,
-    predicted_change,
-    to_working,
     top_coords,
     working_size,
 )
@@ -54,12 +58,19 @@ __all__ = ["EMPTY_BED", "FIRST_LAYER", "NOTHING_EXTRUDED", "JobChecks", "print_r
 
 EMPTY_BED, FIRST_LAYER, NOTHING_EXTRUDED = "empty_bed", "first_layer", "nothing_extruded"
 
-#: fewest textured blocks of a layer's top surface the nothing-extruded check judges (5 left the sparse
-#: layers of a 12 mm cube unjudged; 3 raised the runs caught on seed 0 from 53 to 57 of 60, no false alarm)
+#: fewest textured blocks of the surface judged by the nothing-extruded check
 MIN_BLOCKS = 3
-#: fewer blocks than this are thin evidence: such a layer fails only when the layer before it looked alike
-#: too (4 alike blocks under the window part's bridge paused a clean print)
-CONFIRM_BELOW_BLOCKS = 6
+#: a layer whose own top surface has fewer textured blocks than this, or less area than ``min_area_mm2``, is
+#: thin evidence (a 12 mm cube's sparse layers: a 0.7 mm ring of perimeters; a box's sparse infill lines, which
+#: the erosion by ``margin_mm`` removes): it is judged together with the layer before it
+POOL_BELOW_BLOCKS = 10
+#: share of a block the pooled surfaces must cover for the block to be scored (a single layer's: 0.5; a thin
+#: ring covers few blocks by half)
+POOLED_MIN_SHARE = 0.25
+#: pooled surfaces are eroded by at most this, mm: none (a bead's edges change with the bead; eroded by 0.3 mm,
+#: sparse infill lines vanish and two layers of thin walls looked alike up to 0.88 in clean prints, not eroded
+#: up to 0.80)
+POOLED_EROSION_MM = 0.0
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)`` (the pipeline's references)
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
 
@@ -104,13 +115,16 @@ class JobChecks:
         self.image: np.ndarray | None = None
         #: the last layer's surface similarity and blocks judged by the nothing-extruded check (nan, 0: not judged)
         self.similarity: tuple[float, int] = (float("nan"), 0)
+        #: whether that layer was judged together with the layer before it (thin evidence, :data:`POOL_BELOW_BLOCKS`)
+        self.pooled = False
         self.new_print(bed_photo)
 
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
         """Start a job: forget the earlier photos; ``bed_photo`` is the empty bed (``None``: none)."""
         self.bed_photo = None if bed_photo is None else np.asarray(bed_photo)
         self._textures: list[tuple[int, np.ndarray]] = []
-        self._alike = -10  # the last layer whose surface looked like the photo two layers back
+        #: the last layer's index, top (mm) and footprint (bits, :func:`numpy.packbits`), to pool thin evidence with
+        self._last_footprint: tuple[int, float, np.ndarray] | None = None
         self.image = None
 
     @property
@@ -219,35 +233,63 @@ class JobChecks:
 
     def _extrusion(self, res: LayerResult, photo: np.ndarray, index: int, footprint: FootprintFn) -> None:
         st = self.config.extrusion
-        self.similarity = (float("nan"), 0)
+        self.similarity, self.pooled = (float("nan"), 0), False
         maps = self.maps  # sets self.box
-        texture = np.ascontiguousarray(highpass(to_working(photo, self.size))[self.box])
+        texture = np.ascontiguousarray(box_texture(photo, self.size, self.box))
         earlier = [t for i, t in reversed(self._textures) if i < index][:2]
         self._textures = [(i, t) for i, t in self._textures if i < index][-1:] + [(index, texture)]
-        if len(earlier) < 2 or index < 2:
+        before, self._last_footprint = self._last_footprint, None
+        if not earlier:
             return
         fp, _, z = footprint(index)
-        k = int(round(2 * st.margin_mm * self.topview.px_per_mm)) | 1
-        inner = cv2.erode(fp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-        area = float(inner.sum()) / self.topview.px_per_mm ** 2
-        if area < st.min_area_mm2:
+        self._last_footprint = (index, z, np.packbits(fp))
+        if len(earlier) < 2 or index < 2:
             return
-        surface = predicted_change(fp, np.array([z]), maps, self.topview, -st.margin_mm) & self._observed(maps, z)
-        sim, blocks = surface_similarity(texture, earlier[1:], surface, st.block_px)
-        if blocks < MIN_BLOCKS:  # not judged
+        area, surface = self._layer_surface(fp, z, maps, st.margin_mm)
+        # earlier[1]: the photo before the last two layers were printed
+        ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px)
+        blocks, judged = int(scored.sum()), f"layer {index}'s top surface ({area:.0f} mm^2"
+        if blocks < POOL_BELOW_BLOCKS or area < st.min_area_mm2:  # thin evidence: pool it with the layer before
+            if before is None or before[0] != index - 1:
+                return
+            margin = min(st.margin_mm, POOLED_EROSION_MM)
+            if margin != st.margin_mm:
+                area, surface = self._layer_surface(fp, z, maps, margin)
+            prev = np.unpackbits(before[2], count=fp.size).reshape(fp.shape).astype(bool)
+            area_before, surface_before = self._layer_surface(prev, before[1], maps, margin)
+            area, surface = area + area_before, surface | surface_before
+            ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=POOLED_MIN_SHARE)
+            blocks, judged = int(scored.sum()), f"the top surfaces of layers {index - 1} and {index} ({area:.0f} mm^2"
+            self.pooled = True
+        if blocks < MIN_BLOCKS or area < st.min_area_mm2:  # not judged
             return
+        sim = float(np.median(ncc[scored]))
         self.similarity = (sim, blocks)
-        if not np.isfinite(sim) or sim < st.min_similarity:
-            return
-        alike_before, self._alike = self._alike, index
-        if blocks < CONFIRM_BELOW_BLOCKS and alike_before != index - 1:  # thin evidence: wait for the next layer
+        if sim < st.min_similarity:
             return
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim)
         res.check_regions = [*res.check_regions, region]
-        _append(res, f"nothing extruded: layer {index}'s top surface ({area:.0f} mm^2, {blocks} blocks) looks like "
-                     f"the photo two layers back (texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or "
-                     "filament run-out?")
+        _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
+                     f"(texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or filament run-out?")
+
+    def _layer_surface(self, fp: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],
+                       margin_mm: float) -> tuple[float, np.ndarray]:
+        """A layer's footprint ``fp`` eroded by ``margin_mm``: its area (mm^2) and its top surface in :attr:`box`.
+
+        The top surface: the eroded footprint on the layer's plane ``z`` seen through the camera
+        (:func:`~layerwatch.analysis.scene_change.predicted_change` of one plane), where the
+        top view covers it.
+        """
+        k = int(round(2 * margin_mm * self.topview.px_per_mm)) | 1
+        inner = np.asarray(fp, np.uint8)
+        if k > 1:
+            inner = cv2.erode(inner, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        area = float(np.count_nonzero(inner)) / self.topview.px_per_mm ** 2
+        mx, my = top_coords(maps, z)
+        H, W = self.topview.shape
+        surface = cv2.remap(inner, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        return area, surface & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
 
     def _marker_discs(self) -> np.ndarray:
         """Top-view pixels of the bed markers and 3 mm around them: white dots clip differently under new light."""
@@ -259,11 +301,6 @@ class JobChecks:
         for u, v in np.round(self.topview.to_px(np.asarray(pts, float).reshape(-1, 2))).astype(int):
             cv2.circle(out, (int(u), int(v)), r, 1, -1)
         return out.astype(bool)
-
-    def _observed(self, maps: tuple[np.ndarray, np.ndarray], z: float) -> np.ndarray:
-        mx, my = top_coords(maps, z)
-        H, W = self.topview.shape
-        return (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
 
     def _footprint_region(self, fp: np.ndarray, area: float, sim: float) -> Region:
         vv, uu = np.nonzero(fp)
