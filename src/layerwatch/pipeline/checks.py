@@ -282,7 +282,7 @@ class JobChecks:
         top view covers it.
         """
         k = int(round(2 * margin_mm * self.topview.px_per_mm)) | 1
-        inner = np.asarray(fp, np.uint8)
+        inner: np.ndarray = np.asarray(fp, np.uint8)
         if k > 1:
             inner = cv2.erode(inner, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
         area = float(np.count_nonzero(inner)) / self.topview.px_per_mm ** 2
