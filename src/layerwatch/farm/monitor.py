@@ -115,6 +115,7 @@ class PoolPipeline:
     def layer_done(self) -> None:
         """The layer is recorded: drop its top view and reference (a printer holds nothing between layers)."""
         self.last_top = self._reference = None
+        self.local.forget_references()
 
     def close(self) -> None:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""

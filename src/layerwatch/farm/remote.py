@@ -31,7 +31,8 @@ from layerwatch.pipeline.step import LayerPipeline, Reference
 __all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "forget_pipeline", "MEMO", "PIPELINES_PER_WORKER",
            "THUMB_WIDTH", "WARP_MAPS"]
 
-#: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it); memory per printer
+#: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it; dropped once the
+#: layer is recorded, :meth:`LayerPipeline.forget_references`); memory per printer
 MEMO = 1
 #: per-height remap tables a farm pipeline keeps (about 2.5 MB each at 600 x 600 px): the layer being judged
 #: (its scene-channel step reuses it). Each layer has its own height, so more would only fill up over the
@@ -149,8 +150,15 @@ def _pipeline_for(ctx: JobContext) -> LayerPipeline:
 
 
 def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
-    """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task)."""
-    return analyse_on(_pipeline_for(ctx), photo, layer, with_reference)
+    """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task).
+
+    The layer's reference is not kept there after it (the verdict brings it when asked for;
+    the monitor's own uses of references render them in the service).
+    """
+    pipe = _pipeline_for(ctx)
+    verdict = analyse_on(pipe, photo, layer, with_reference)
+    pipe.forget_references()
+    return verdict
 
 
 def forget_pipeline(key: str) -> bool:

@@ -267,6 +267,14 @@ class LayerPipeline:
         if self._cache is not None:
             self._hash = toolpath_hash(toolpath)
 
+    def forget_references(self) -> None:
+        """Drop the memoised references (the renderer keeps its layer stack: the next layer stays incremental).
+
+        A farm printer calls it once a layer is recorded: the next photo is of another layer, so
+        the reference would only be held (about 1.1 MB at 600 x 600 px), never used.
+        """
+        self._memo.clear()
+
     def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
         """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
         lay = self.toolpath.layers[index]
