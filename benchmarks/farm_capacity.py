@@ -131,7 +131,7 @@ class Scene:
         dy, dx = rng.integers(-3, 4, 2)
         gain = 0.9 + 0.2 * rng.random()
         img = np.roll(self.frames[layer % self.layers], (int(dy), int(dx)), axis=(0, 1))
-        return np.clip(img * gain, 0, 255).astype(np.uint8)
+        return cv2.convertScaleAbs(img, alpha=gain)  # gain x grey, rounded and saturated to 0..255 (fast)
 
     def jpeg(self, printer: int, layer: int) -> bytes:
         """:meth:`photo` as the camera's JPEG snapshot."""
