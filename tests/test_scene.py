@@ -14,11 +14,12 @@ import pytest
 from layerwatch.cli import main
 from layerwatch.evaluate.results import ResultsFolder
 from layerwatch.examples import PART_CONFIG, PART_GCODE
+from layerwatch.farm.simcam import SimPrint
 from layerwatch.gcode import read_toolpath
 from layerwatch.geometry.camera import CameraModel
-from layerwatch.pipeline.config import load_config, recommended_config
+from layerwatch.pipeline.config import load_config, recommended_config, resolve_config
 from layerwatch.pipeline.policy import PausePolicy
-from layerwatch.pipeline.scene import load_bed_photo
+from layerwatch.pipeline.scene import SceneModel, load_bed_photo
 from layerwatch.pipeline.step import LayerPipeline, judge_layers
 from layerwatch.simulate import PrintSimulator, SimSettings, default_camera
 
@@ -167,3 +168,27 @@ def test_bad_bed_photos_at_the_command_line(tmp_path, capsys):
     (sim / "bed.png").unlink()  # recorded with the camera but gone: a note, and the analysis runs
     assert main(args) == 0
     assert "bed photo recorded with the camera" in capsys.readouterr().out.replace("\n", " ")
+
+
+@pytest.mark.slow
+def test_plane_maps_and_body_kept_where_the_print_can_be_seen_give_the_same_records():
+    """The scene model keeps its plane maps and printed body on the pixels whose rays can meet the
+    print (``reach_box``): the records equal those of a model that keeps them on the whole observed box."""
+    tp, cfg = read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config
+    sim = SimPrint(tp, cfg, "spaghetti", 6, 1, keep=16)
+    near = LayerPipeline(tp, sim.located, cfg, memo=2)
+    whole = LayerPipeline(tp, sim.located, cfg, memo=2)
+    whole.scene = SceneModel(sim.located, whole.topview, whole.config.scene)  # no reach: the whole box
+    held = [sum(m.nbytes for m in (*p.scene.maps, p.scene.body, p.scene.ledges)) for p in (near, whole)]
+    assert held[0] < 0.6 * held[1]
+    beside = 0.0
+    for i in range(14):
+        photo = sim.frame(i)
+        a, b = (p.process(photo, i).to_dict() for p in (near, whole))
+        for d in (a, b):
+            d.pop("timings_ms")
+            d["scene"].pop("ms")
+        assert a == b, i
+        beside += a["outside_anomalous_mm2"]
+        assert near.scene.body.shape == near.scene.maps[0].shape[1:]
+    assert beside > 0  # the scene channel found the strands beside the print

@@ -9,7 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame, marker_shift_px
+from layerwatch.analysis.frame_quality import (
+    _NOISE_KERNEL,
+    FrameQualitySettings,
+    assess_frame,
+    blockiness,
+    marker_shift_px,
+    noise_sigma,
+)
 
 PHOTOS = Path("/work/shared/data/photos")
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "frame_quality_gate.py"
@@ -119,3 +126,22 @@ def test_simulator_measurement():
     assert len(res["total"]) >= 5 and sum(res["passed"].values()) / total >= 0.97
     assert sum(res["passed_slipped"].values()) / total >= 0.97  # even as if the camera had just slipped
     assert res["checked"] >= 10  # the previous layer's reference did judge failure frames (and let them through)
+
+
+def test_noise_and_blockiness_are_their_definitions_on_uint8_frames():
+    """The histogram median and the integer step sums give the figures of the plain formulas."""
+    rng = np.random.default_rng(3)
+    for shape in ((1080, 1920), (31, 47), (30, 47), (6, 7)):
+        g = cv2.GaussianBlur(rng.integers(0, 256, shape, dtype=np.uint8), (0, 0), 1.2)
+        resp = cv2.filter2D(g.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
+        assert noise_sigma(g) == float(np.median(np.abs(resp)) / 0.6745 / 6.0)
+        f = g.astype(np.float64)
+        ratios = []
+        for d in (np.abs(np.diff(f, axis=1)), np.abs(np.diff(f, axis=0)).T):
+            n = d.shape[1] // 8 * 8
+            if n < 16:
+                ratios = [1.0]
+                break
+            per = d[:, :n].reshape(d.shape[0], -1, 8).mean(axis=(0, 1))
+            ratios.append((per[7] + 0.5) / (np.delete(per, 7).mean() + 0.5))
+        assert blockiness(g) == pytest.approx(float(np.mean(ratios)), rel=1e-12)

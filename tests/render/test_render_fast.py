@@ -16,6 +16,7 @@ from layerwatch.gcode.toolpath import Layer
 from layerwatch.geometry.topview import TopView
 from layerwatch.render.fast import StackRenderer, render_layer, render_stack
 from layerwatch.render.mask import gcode_mask
+from layerwatch.render.raster import directional_light, shade_height
 from layerwatch.render.settings import RenderSettings
 
 
@@ -178,3 +179,26 @@ def test_outside_observed_square_is_clipped_and_warned(caplog):
     assert r.clipped > 0
     assert "clipped" in caplog.text
     assert r.mask[:, -1].all() and not r.mask[:, 0].any()
+
+
+def test_shade_height_is_lamberts_law_on_slopes_and_level_ground():
+    """The level-pixel shortcut gives what the per-light sum gives (NumPy reference of the same formula)."""
+    rng = np.random.default_rng(5)
+    height = np.zeros((40, 50), np.float32)
+    height[5:30, 8:40] = 2.0  # a level top, its walls and the level bed
+    height[10:20, 12:25] += np.round(rng.random((10, 13)), 1).astype(np.float32)  # rough patch
+    lights = np.array([directional_light(a, 40.0)[0] for a in (0, 120, 240)] + [[0.0, 0.0, 1.0]])
+    out = np.empty_like(height)
+    shade_height(height, 2.4, 3.0, lights, 0.3, 0.6, 0.2, out)
+    p = np.pad(height.astype(np.float64), 1, mode="edge")
+    gx = (p[1:-1, 2:] - p[1:-1, :-2]) * 0.5 * 3.0
+    gy = -(p[2:, 1:-1] - p[:-2, 1:-1]) * 0.5 * 3.0
+    nz = 1.0 / np.sqrt(gx**2 + gy**2 + 1.0)
+    n = np.stack([-gx * nz, -gy * nz, nz], -1)
+    diff = np.clip(n @ lights.T, 0.0, None).sum(-1)
+    flat = np.clip(lights[:, 2], 0, None).mean()
+    light = np.minimum(0.3 + 0.7 * diff / (len(lights) * flat), 1.0)
+    depth = np.clip(2.4 - height, 0.0, None)
+    light = np.where(height > 0, light * (1.0 - 0.2 * np.minimum(depth / 0.6, 1.0)), light)
+    np.testing.assert_allclose(out, light, rtol=0, atol=1e-6)
+    assert (out == out[0, 0]).sum() > 0.5 * out.size  # most of it is level

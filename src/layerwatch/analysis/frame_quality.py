@@ -166,20 +166,46 @@ def noise_sigma(grey: np.ndarray) -> float:
 
     The median of ``|I * N|`` over the image, / 0.6745 / 6, is the std of white noise and
     ignores edges and texture that cover less than half the image (a spaghetti nest).
+    For a uint8 image the response is an integer (at most 16 x 255), so its median is read
+    from the histogram of ``|I * N|`` (the same value as sorting, a few ms at 1080p).
     """
-    resp = cv2.filter2D(grey.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
-    return float(np.median(np.abs(resp)) / 0.6745 / 6.0)
+    g = np.asarray(grey)
+    if g.dtype != np.uint8:
+        resp = cv2.filter2D(g.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
+        return float(np.median(np.abs(resp)) / 0.6745 / 6.0)
+    resp = cv2.filter2D(g, cv2.CV_16S, _NOISE_KERNEL)[1:-1, 1:-1]  # exact: integer kernel, |response| <= 4080
+    if resp.size == 0:
+        return float("nan")
+    return float(np.float32(_median_of_counts(np.bincount(np.abs(resp).ravel()))) / 0.6745 / 6.0)
+
+
+def _median_of_counts(counts: np.ndarray) -> float:
+    """The median of the values ``0..len(counts) - 1`` occurring ``counts`` times each (as :func:`numpy.median`)."""
+    n = int(counts.sum())
+    cum = np.cumsum(counts)
+    lo = int(np.searchsorted(cum, (n - 1) // 2, side="right"))  # the value at sorted position (n - 1) // 2
+    hi = int(np.searchsorted(cum, n // 2, side="right"))  # ... and at n // 2 (the same one when n is odd)
+    return (lo + hi) / 2.0
 
 
 def blockiness(grey: np.ndarray, block: int = 8) -> float:
-    """Ratio of mean grey steps across the JPEG block grid to steps inside blocks (1 = no blocking)."""
-    g = grey.astype(np.float32)
+    """Ratio of mean grey steps across the JPEG block grid to steps inside blocks (1 = no blocking).
+
+    The steps ``|I(x+1) - I(x)|`` are summed per column (rows for the vertical steps), then per
+    offset within the block; exactly, in integers, for a uint8 image.
+    """
+    g = np.asarray(grey)
+    exact = g.dtype == np.uint8
+    g = g if exact else g.astype(np.float32)
     ratios = []
-    for d in (np.abs(np.diff(g, axis=1)), np.abs(np.diff(g, axis=0)).T):
-        n = d.shape[1] // block * block
+    for steps, axis in ((cv2.absdiff(g[:, 1:], g[:, :-1]), 0), (cv2.absdiff(g[1:], g[:-1]), 1)):
+        length = steps.shape[1 - axis]  # steps along the direction judged
+        n = length // block * block
         if n < 2 * block:
             return 1.0
-        per = d[:, :n].reshape(d.shape[0], -1, block).mean(axis=(0, 1))  # mean step at each offset 0..7
+        sums = cv2.reduce(steps, axis, cv2.REDUCE_SUM, dtype=cv2.CV_32S if exact else cv2.CV_64F).ravel()[:n]
+        per = sums.astype(np.float64 if not exact else np.int64).reshape(-1, block).sum(axis=0) / (
+            steps.shape[axis] * (n // block))
         inside = np.delete(per, block - 1).mean()
         ratios.append(float((per[block - 1] + 0.5) / (inside + 0.5)))
     return float(np.mean(ratios))

@@ -10,6 +10,10 @@ public hooks (the ``executor`` it analyses on, :meth:`Monitor.finish_layer`,
   oldest is dropped and a ``frame_dropped`` event records its layer;
 * its pipeline is a :class:`PoolPipeline`: the per-layer compute runs on the
   farm's shared :class:`~layerwatch.farm.pool.WorkerPool` (threads or Dask);
+* its camera-fault gate is the monitor's: the pipeline gives the monitor the job's
+  camera model and settings (bed-marker check on every frame) and the top view and
+  references of the layers (lag check where a result would count toward a pause),
+  so a farm printer's frames are judged as ``layerwatch monitor`` judges them;
 * it keeps only the last :data:`RESULTS_KEPT` layer records in memory
   (:attr:`report`): the farm reads its layers from the history, and a printer's
   memory must not grow with the length of its prints;
@@ -80,6 +84,8 @@ class PoolPipeline:
         self.context = pool.scatter(context) if pool.distributed else None
         self.key = context.key if context is not None and self.context is not None else None  # the job's worker pin
         self.topview = pipeline.topview
+        #: the job's posed camera and settings (the monitor's marker and lag checks read them)
+        self.camera, self.config = pipeline.camera, pipeline.config
         self.last_top: np.ndarray | None = None
         self.last_thumb: bytes | None = None
 
@@ -100,9 +106,16 @@ class PoolPipeline:
             return self._reference[1]
         return self.local.reference(index)
 
+    def top_view(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`LayerPipeline.top_view` here (the monitor's lag check: the photo on the previous layer's plane)."""
+        top, valid = self.local.top_view(photo, z)
+        self.local.warper.clear(lookups=True)  # as after a layer: a printer holds no remap tables between frames
+        return top, valid
+
     def layer_done(self) -> None:
         """The layer is recorded: drop its top view and reference (a printer holds nothing between layers)."""
         self.last_top = self._reference = None
+        self.local.forget_references()
 
     def close(self) -> None:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""

@@ -13,6 +13,7 @@ The records are the same either way: the same code runs on the same inputs.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -21,17 +22,19 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.overlay import overlay_image
-from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.result import BlockGrid, LayerResult
 from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.topview import TopView
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.step import LayerPipeline, Reference
 
 __all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "forget_pipeline", "MEMO", "PIPELINES_PER_WORKER",
            "THUMB_WIDTH", "WARP_MAPS"]
 
-#: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it); memory per printer
+#: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it; dropped once the
+#: layer is recorded, :meth:`LayerPipeline.forget_references`); memory per printer
 MEMO = 1
 #: per-height remap tables a farm pipeline keeps (about 2.5 MB each at 600 x 600 px): the layer being judged
 #: (its scene-channel step reuses it). Each layer has its own height, so more would only fill up over the
@@ -97,9 +100,27 @@ class Verdict:
 
 
 def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes | None:
-    """PNG bytes of the overlay of ``res`` over ``top``, :data:`THUMB_WIDTH` px wide (``None`` if it cannot be drawn)."""
+    """PNG bytes of the overlay of ``res`` over ``top``, :data:`THUMB_WIDTH` px wide (``None`` if it cannot be drawn).
+
+    Drawn at the scale where a HOG cell is 2 px (a quarter of the default top view: the
+    heatmap's blocks land on whole pixels, the outlines stay one pixel wide), not at full size
+    and then shrunk: the card shows ~160 px. No caption: the card writes layer and a% itself.
+    """
+    grid = res.grid or BlockGrid()
+    f = grid.cell_px // 2 if grid.cell_px % 2 == 0 else 1
+    tv = pipe.topview
+    small_tv = TopView(tv.px_per_mm / f, tv.width_mm, tv.height_mm, tv.center_mm) if f > 1 else tv
+    h, w = tv.shape
+    if small_tv.shape != (h // f, w // f) or h % f or w % f:
+        f, small_tv = 1, tv
+    drawn = res
     try:
-        rgb = overlay_image(top, res, pipe.topview, pipe.reference(res.layer).footprint)
+        footprint = pipe.reference(res.layer).footprint
+        if f > 1:  # the top view and footprint area-averaged to the small scale, the grid's cells to 2 px
+            top = cv2.resize(top, (w // f, h // f), interpolation=cv2.INTER_AREA)
+            footprint = cv2.resize(footprint.astype(np.uint8), (w // f, h // f), interpolation=cv2.INTER_AREA) > 0
+            drawn = dataclasses.replace(res, grid=dataclasses.replace(grid, cell_px=2))
+        rgb = overlay_image(top, drawn, small_tv, footprint, caption=False)
     except (LayerwatchError, ValueError) as exc:  # the record counts, the picture is a nicety
         res.message = res.message or f"no overlay: {exc}"
         return None
@@ -149,8 +170,15 @@ def _pipeline_for(ctx: JobContext) -> LayerPipeline:
 
 
 def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
-    """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task)."""
-    return analyse_on(_pipeline_for(ctx), photo, layer, with_reference)
+    """:func:`analyse_on` with the worker process's pipeline of ``ctx``'s job (a Dask task).
+
+    The layer's reference is not kept there after it (the verdict brings it when asked for;
+    the monitor's own uses of references render them in the service).
+    """
+    pipe = _pipeline_for(ctx)
+    verdict = analyse_on(pipe, photo, layer, with_reference)
+    pipe.forget_references()
+    return verdict
 
 
 def forget_pipeline(key: str) -> bool:

@@ -284,10 +284,16 @@ class SceneModel:
     settings : SceneSettings
     bed_photo : ndarray, optional
         Empty-bed photo of the same camera and pose (:func:`check_bed_photo`).
+    reach_mm : (float, float, float, float), optional
+        ``(xmin, ymin, xmax, ymax)`` of the bed where the job puts material (beads included), mm;
+        with ``top_z_mm`` (the highest layer, mm) the plane maps are kept only for the pixels
+        whose ray can meet it (:attr:`reach_box`). Without them, for the whole :attr:`box`.
+    top_z_mm : float, optional
     """
 
     def __init__(self, camera: CameraModel, topview: TopView, settings: SceneSettings | None = None,
-                 bed_photo: np.ndarray | None = None) -> None:
+                 bed_photo: np.ndarray | None = None, *,
+                 reach_mm: tuple[float, float, float, float] | None = None, top_z_mm: float | None = None) -> None:
         self.camera, self.topview = camera, topview
         self.settings = settings or SceneSettings()
         self.size = working_size(camera.image_size, self.settings.working_px)
@@ -296,21 +302,49 @@ class SceneModel:
         H, W = topview.shape
         #: working-image pixels that see the observed square on the bed
         self.observed = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-        #: the bounding box of :attr:`observed` (rows, columns): ``E`` and the plane maps are kept on it only
+        #: the bounding box of :attr:`observed` (rows, columns): ``E`` is kept on it only
         self.box = _box(self.observed)
-        #: :func:`plane_maps` on :attr:`box` (what lies outside it is never scored)
-        self.maps = (np.ascontiguousarray(A[:, self.box[0], self.box[1]]),
-                     np.ascontiguousarray(B[:, self.box[0], self.box[1]]))
+        #: the part of :attr:`box` whose rays can meet the printed material (predicted change is
+        #: nowhere else): the plane maps are kept on it only
+        self.reach_box = self._reach_box(A, B, reach_mm, top_z_mm)
+        #: :func:`plane_maps` on :attr:`reach_box`
+        self.maps = (np.ascontiguousarray(A[:, self.reach_box[0], self.reach_box[1]]),
+                     np.ascontiguousarray(B[:, self.reach_box[0], self.reach_box[1]]))
         self.reset(bed_photo)
+
+    def _reach_box(self, A: np.ndarray, B: np.ndarray, reach_mm: tuple[float, float, float, float] | None,
+                   top_z_mm: float | None) -> tuple[slice, slice]:
+        """Rows and columns of :attr:`box` with a pixel whose ray, between 1 mm below the bed and 1 mm above
+        ``top_z_mm``, passes over ``reach_mm`` grown by the margin and 2 px (:attr:`box` when not given).
+
+        A pixel's ray meets the plane ``Z = z`` at ``A + z B`` (top-view px), a segment over the
+        heights; a pixel is kept when that segment's bounding box meets the grown reach (a superset of the
+        pixels that can see material), so :func:`predicted_change` is False outside the box as on the box.
+        """
+        rows, cols = self.box
+        if reach_mm is None or top_z_mm is None or not np.all(np.isfinite([*reach_mm, top_z_mm])):
+            return self.box
+        pad = abs(self.settings.margin_mm) + 2.0 / self.topview.px_per_mm + 1.0
+        (u0, v0), (u1, v1) = self.topview.to_px(np.array([[reach_mm[0] - pad, reach_mm[1] - pad],
+                                                          [reach_mm[2] + pad, reach_mm[3] + pad]], float))
+        a, b = A[:, rows, cols], B[:, rows, cols]
+        ends = (a - b, a + np.float32(top_z_mm + 1.0) * b)
+        lo, hi = np.minimum(*ends), np.maximum(*ends)
+        keep = ((hi[0] >= min(u0, u1)) & (lo[0] <= max(u0, u1)) & (hi[1] >= min(v0, v1)) & (lo[1] <= max(v0, v1)))
+        r, c = _box(keep)
+        if r.stop == 0:
+            return slice(0, 0), slice(0, 0)
+        return slice(rows.start + r.start, rows.start + r.stop), slice(cols.start + c.start, cols.start + c.stop)
 
     def reset(self, bed_photo: np.ndarray | None = None) -> None:
         """Start a new print: ``E`` is the bed photo when given, else the next accepted photo."""
         self.expected: np.ndarray | None = None
         self.baseline = ""
         self.last_layer = -1
-        #: the printed body seen so far (``P``) and the last layer in it
-        self.body = np.zeros(self.observed.shape, bool)
-        self.ledges = np.zeros(self.observed.shape, bool)
+        #: the printed body seen so far (``P``) and its ledges, on :attr:`reach_box` (nowhere else), and the
+        #: last layer in it
+        self.body = np.zeros(self.maps[0].shape[1:], bool)
+        self.ledges = np.zeros(self.maps[0].shape[1:], bool)
         self.body_layer = -1
         self._confirmed = False
         self._rejections = 0
@@ -334,12 +368,18 @@ class SceneModel:
         full[self.box] = self.expected
         return full
 
+    def _full(self, mask: np.ndarray) -> np.ndarray:
+        """A bool mask on :attr:`reach_box` as a working-size one (False elsewhere)."""
+        out = np.zeros(self.observed.shape, bool)
+        out[self.reach_box] = mask
+        return out
+
     def _predicted(self, footprint: np.ndarray, z_planes: np.ndarray, margin_mm: float) -> np.ndarray:
         """:func:`predicted_change` as a working-size bool mask (False outside :attr:`box`)."""
         out = np.zeros(self.observed.shape, bool)
-        if self.maps[0].size == 0:  # the camera does not see the observed square at all
+        if self.maps[0].size == 0:  # the camera does not see the observed square (or the print) at all
             return out
-        out[self.box] = predicted_change(footprint, z_planes, self.maps, self.topview, margin_mm)
+        out[self.reach_box] = predicted_change(footprint, z_planes, self.maps, self.topview, margin_mm)
         return out
 
     # ------------------------------------------------------------ per photo
@@ -386,13 +426,13 @@ class SceneModel:
         E = self._expected_full()
         first = self.body_layer + 1 if self.body_layer < obs.layer else obs.layer
         predicted = np.zeros(self.observed.shape, bool)
-        ledges = self.ledges.copy()
+        ledges = self._full(self.ledges)
         for j in range(first, obs.layer + 1):
             fp, z0, z1 = footprints(j)
             band = self._predicted(fp, np.array([z0, z1]), st.margin_mm)
             predicted |= band
             ledges = (ledges & ~band) | self._predicted(fp, np.array([z1]), -st.margin_mm)
-        obs.predicted, obs.body, obs.ledges = predicted, self.body | predicted, ledges
+        obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
         usable = self.observed & ~predicted & ~walls & ~_saturated(img) & ~_saturated(E)
@@ -447,7 +487,7 @@ class SceneModel:
                       where=take[rows, cols][..., None])
             self._ack = self._ack_patch(obs)
             self._confirmed = True
-            self.body, self.ledges = obs.body, obs.ledges
+            self.body, self.ledges = obs.body[self.reach_box].copy(), obs.ledges[self.reach_box].copy()
             self.body_layer = max(self.body_layer, obs.layer)
         self.last_layer = max(self.last_layer, obs.layer) if obs.body is not None else obs.layer
         if obs.body is None:  # this photo is the baseline: what it shows is the scene (the body included)

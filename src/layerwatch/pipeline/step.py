@@ -187,13 +187,15 @@ class LayerPipeline:
         self.last_top: np.ndarray | None = None
         self.last_valid: np.ndarray | None = None
         #: the scene channel's model (``None`` when ``[scene] enabled`` is off)
-        self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo)
+        reach, top_z = print_reach_mm(toolpath), print_top_z_mm(toolpath)
+        self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo,
+                                 reach_mm=_grown(reach, 0.5 * float(np.nanmax(toolpath.width))), top_z_mm=top_z)
                       if self.config.scene.enabled else None)
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview)
         #: the empty-bed, first-layer and nothing-extruded checks
         self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo,
-                                reach_mm=print_reach_mm(toolpath), top_z_mm=print_top_z_mm(toolpath))
+                                reach_mm=reach, top_z_mm=top_z)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -264,6 +266,14 @@ class LayerPipeline:
         self._memo.clear()
         if self._cache is not None:
             self._hash = toolpath_hash(toolpath)
+
+    def forget_references(self) -> None:
+        """Drop the memoised references (the renderer keeps its layer stack: the next layer stays incremental).
+
+        A farm printer calls it once a layer is recorded: the next photo is of another layer, so
+        the reference would only be held (about 1.1 MB at 600 x 600 px), never used.
+        """
+        self._memo.clear()
 
     def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
         """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
@@ -415,6 +425,14 @@ class LayerPipeline:
         res = LayerResult(status="error", message=message, **base)
         res.timings_ms = {**timings, "total": (time.perf_counter() - t0) * 1e3}
         return res
+
+
+def _grown(box: tuple[float, float, float, float] | None, mm: float) -> tuple[float, float, float, float] | None:
+    """``(xmin, ymin, xmax, ymax)`` grown by ``mm`` on every side (``None`` stays ``None``; a NaN ``mm`` as 0)."""
+    if box is None:
+        return None
+    d = mm if np.isfinite(mm) else 0.0
+    return (box[0] - d, box[1] - d, box[2] + d, box[3] + d)
 
 
 def judge_layers(

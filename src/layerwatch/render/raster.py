@@ -126,6 +126,21 @@ def directional_light(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return np.array([[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]])
 
 
+@njit(cache=True, inline="always")
+def _lambert(gx, gy, lights, ambient, k, flat):
+    """Light factor (<= 1) of a surface of slope ``(gx, gy)`` (mm per mm) under the lights (:func:`shade_height`)."""
+    nz = 1.0 / math.sqrt(gx * gx + gy * gy + 1.0)
+    nx = -gx * nz
+    ny = -gy * nz
+    diff = 0.0
+    for j in range(k):
+        d = nx * lights[j, 0] + ny * lights[j, 1] + nz * lights[j, 2]
+        if d > 0.0:
+            diff += d
+    light = ambient + (1.0 - ambient) * diff / (k * flat)
+    return 1.0 if light > 1.0 else light
+
+
 @njit(cache=True)
 def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_dark, out):
     """Lambertian shading of a height map under the given lights.
@@ -157,6 +172,7 @@ def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_d
         flat += max(lights[j, 2], 0.0)
     flat = max(flat / k, 1e-6)
     half_s = 0.5 * px_per_mm
+    level = _lambert(0.0, 0.0, lights, ambient, k, flat)  # a level pixel (most of the bed and of top surfaces)
     for v in range(H):
         vm = max(v - 1, 0)
         vp = min(v + 1, H - 1)
@@ -166,17 +182,7 @@ def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_d
             gx = (height[v, up] - height[v, um]) * half_s * (2.0 / max(up - um, 1))
             # image rows grow towards -Y of the bed
             gy = -(height[vp, u] - height[vm, u]) * half_s * (2.0 / max(vp - vm, 1))
-            nz = 1.0 / math.sqrt(gx * gx + gy * gy + 1.0)
-            nx = -gx * nz
-            ny = -gy * nz
-            diff = 0.0
-            for j in range(k):
-                d = nx * lights[j, 0] + ny * lights[j, 1] + nz * lights[j, 2]
-                if d > 0.0:
-                    diff += d
-            light = ambient + (1.0 - ambient) * diff / (k * flat)
-            if light > 1.0:
-                light = 1.0
+            light = level if gx == 0.0 and gy == 0.0 else _lambert(gx, gy, lights, ambient, k, flat)
             h = height[v, u]
             if h > 0.0:
                 depth = z_top - h
