@@ -17,7 +17,7 @@ from layerwatch.farm.pool import WorkerPool
 from layerwatch.farm.remote import JobContext
 from layerwatch.farm.simcam import SimPrint
 from layerwatch.gcode import read_toolpath
-from layerwatch.monitor import service
+from layerwatch.monitor import camera_checks
 from layerwatch.monitor.cameras import SimCamera
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.printers.virtual import VirtualPrinter
@@ -41,15 +41,15 @@ def test_farm_monitor_runs_the_marker_and_lag_checks_of_the_single_printer_monit
     sim = SimPrint(tp, cfg, None, 1, 1, keep=4)
     assert sim.located.markers_mm is not None and cfg.frame_quality.enabled
     lag_checked = []
-    real = service.previous_layer_explains
+    real = camera_checks.previous_layer_explains
 
-    def spy(pipeline, photo, res, policy):
+    def spy(pipeline, photo, res, policy, *args):
         lag_checked.append((type(pipeline).__name__, res.layer))
-        return real(pipeline, photo, res, policy)
+        return real(pipeline, photo, res, policy, *args)
 
-    monkeypatch.setattr(service, "previous_layer_explains", spy)
+    monkeypatch.setattr(camera_checks, "previous_layer_explains", spy)
     # every analysed layer past the first counts here, so that the lag check runs on each
-    monkeypatch.setattr(service, "counts_toward_pause", lambda res, policy: res.status == "ok" and res.layer >= 1)
+    monkeypatch.setattr(camera_checks, "counts_toward_pause", lambda res, policy: res.status == "ok" and res.layer >= 1)
     pool = WorkerPool(1)
     ctx = JobContext("gate", tp, sim.located, cfg)
     kw = dict(wait_for_verdict=True, faults=cfg.faults, frame_quality=cfg.frame_quality)

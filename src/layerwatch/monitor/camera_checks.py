@@ -334,6 +334,7 @@ class _Seen:
     z: float
     box: tuple[slice, slice]
     top: np.ndarray
+    zone: np.ndarray  # the layer's footprint dilated by PROGRESS_MARGIN_MM, cropped to ``box`` (bool)
 
 
 class LateStream:
@@ -393,10 +394,11 @@ class LateStream:
         if top is None:
             return
         ref = pipeline.reference(layer)
-        box = _box(_zone(ref.footprint, pipeline.topview), pipeline.topview)
+        zone = _zone(ref.footprint, pipeline.topview)
+        box = _box(zone, pipeline.topview)
         if box is None:
             return
-        self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]))
+        self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]), np.ascontiguousarray(zone[box]))
 
     def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> tuple[Progress, Any] | None:
         """Progress of frame ``layer`` since the remembered frame, and this frame's top view on that frame's
@@ -405,10 +407,9 @@ class LateStream:
         if seen is None or layer <= seen.layer:
             return None
         top, valid = pipeline.top_view(photo, seen.z)
-        zone = np.zeros(pipeline.topview.shape, bool)
-        for i in range(seen.layer, layer):  # the layers printed between the two pictures
-            zone |= pipeline.reference(i).footprint
-        zone = _zone(zone, pipeline.topview)[seen.box]
+        zone = seen.zone.copy()  # the layers printed between the two pictures (a dilation of a union is
+        for i in range(seen.layer + 1, layer):  # the union of the dilations: no re-render of the remembered one)
+            zone |= _zone(pipeline.reference(i).footprint, pipeline.topview)[seen.box]
         p = progress_between(top[seen.box], seen.top, valid[seen.box], zone)
         return p, ((top, valid) if seen.layer == layer - 1 else None)
 
