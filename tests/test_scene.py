@@ -192,3 +192,15 @@ def test_plane_maps_and_body_kept_where_the_print_can_be_seen_give_the_same_reco
         beside += a["outside_anomalous_mm2"]
         assert near.scene.body.shape == near.scene.maps[0].shape[1:]
     assert beside > 0  # the scene channel found the strands beside the print
+
+
+@pytest.mark.parametrize("dx, dy", [(1.0, 2.0), (-2.0, 1.0)])
+def test_a_camera_nudged_by_two_pixels_since_the_bed_photo_sees_no_change_beside_the_print(dx, dy):
+    """The mount flexed a little between the bed photo and the print: the bed photo is moved onto the
+    first frame's view, so the bed's dots and edges do not read as material beside the part."""
+    move = np.float32([[1, 0, dx], [0, 1, dy]])
+    pipe, judged = _series(lambda i, p: cv2.warpAffine(p, move, p.shape[1::-1], borderMode=cv2.BORDER_REPLICATE), n=6)
+    assert all(res.status == "ok" for res, _ in judged)
+    assert max(res.outside_anomalous_mm2 for res, _ in judged) == 0
+    assert not any(d.stops for _, d in judged)
+    assert "bed photo moved onto this camera view" in judged[0][0].message and pipe.scene.baseline == "bed photo"

@@ -90,6 +90,9 @@ __all__ = ["GAIN_RANGE", "REBASE_AFTER", "SceneModel", "SceneObservation", "bed_
 GAIN_RANGE = (0.4, 2.5)
 #: whole-view shift (working px) between the bed photo and the first frame that means another pose
 MAX_SHIFT_PX = 2.0
+#: smaller shifts (working px) from which the bed photo is moved onto the first frame's view, and the rounds
+ALIGN_SHIFT_PX = 0.1
+ALIGN_ROUNDS = 4
 #: rejected frames in a row after which the current view becomes the baseline (camera moved for good)
 REBASE_AFTER = 3
 
@@ -441,6 +444,7 @@ class SceneModel:
             if shift is not None:
                 obs.rejected = shift
                 return
+            E = self._align_bed_photo(obs, img, E, usable)
         obs.ratio, obs.gain = photometric_fit(img, E, usable)
         if np.any(obs.gain < GAIN_RANGE[0]) or np.any(obs.gain > GAIN_RANGE[1]):
             obs.rejected = (f"the frame does not show the expected scene (photometric gain "
@@ -453,8 +457,9 @@ class SceneModel:
                             "or the light changed")
 
     @staticmethod
-    def _shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> str | None:
-        """Why the baseline is not this camera view (shift of the usable area above ``MAX_SHIFT_PX``), or ``None``."""
+    def _view_shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> tuple[float, float] | None:
+        """Shift ``(dx, dy)`` of the photo's usable area against ``E``, working px (phase correlation);
+        None where the area is too small, dark or flat to tell."""
         a, b = channel_mean(img), channel_mean(E)
         if usable.sum() < 1000 or a[usable].std() < 3 or b[usable].std() < 3:
             return None  # dark, flat or hidden: the gain check decides
@@ -462,9 +467,36 @@ class SceneModel:
         b = np.where(usable, b, b[usable].mean())
         win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
         (dx, dy), _ = cv2.phaseCorrelate(b.astype(np.float32), a.astype(np.float32), win)
-        if np.hypot(dx, dy) > MAX_SHIFT_PX:
-            return f"the view is shifted by ({dx:.0f}, {dy:.0f}) working px against it: another camera pose"
+        return float(dx), float(dy)
+
+    @classmethod
+    def _shift(cls, img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> str | None:
+        """Why the baseline is not this camera view (shift of the usable area above ``MAX_SHIFT_PX``), or ``None``."""
+        d = cls._view_shift(img, E, usable)
+        if d is not None and np.hypot(*d) > MAX_SHIFT_PX:
+            return f"the view is shifted by ({d[0]:.0f}, {d[1]:.0f}) working px against it: another camera pose"
         return None
+
+    def _align_bed_photo(self, obs: SceneObservation, img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> np.ndarray:
+        """Move the bed photo (``E``) onto the first frame's view when the mount flexed by less than
+        ``MAX_SHIFT_PX`` since it was taken; returns ``E`` as a working-size image (moved or not).
+
+        Phase correlation of masked, windowed images underestimates a sub-pixel shift, so it is
+        measured again on the moved photo, :data:`ALIGN_ROUNDS` times at most.
+        """
+        total = np.zeros(2)
+        base = self.expected
+        for _ in range(ALIGN_ROUNDS):
+            d = self._view_shift(img, E, usable)
+            if d is None or np.hypot(*d) < ALIGN_SHIFT_PX:
+                break
+            total += d
+            self.expected = cv2.warpAffine(base, np.float32([[1, 0, total[0]], [0, 1, total[1]]]),
+                                           base.shape[1::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            E = self._expected_full()
+        if total.any():
+            obs.note = f"bed photo moved onto this camera view by ({total[0]:.2f}, {total[1]:.2f}) working px"
+        return E
 
     def update(self, obs: SceneObservation) -> None:
         """Accept the photo after its layer was analysed: ``E`` takes it inside ``M`` only.
