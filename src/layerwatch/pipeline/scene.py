@@ -486,12 +486,13 @@ class SceneModel:
         """
         total = np.zeros(2)
         base = self.expected
+        assert base is not None, "aligned only against a bed photo"
         for _ in range(ALIGN_ROUNDS):
             d = self._view_shift(img, E, usable)
             if d is None or np.hypot(*d) < ALIGN_SHIFT_PX:
                 break
             total += d
-            self.expected = cv2.warpAffine(base, np.float32([[1, 0, total[0]], [0, 1, total[1]]]),
+            self.expected = cv2.warpAffine(base, np.array([[1, 0, total[0]], [0, 1, total[1]]], np.float32),
                                            base.shape[1::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             E = self._expected_full()
         if total.any():
