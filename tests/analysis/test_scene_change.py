@@ -16,6 +16,7 @@ from layerwatch.analysis.scene_change import (
     photometric_fit,
     plane_maps,
     predicted_change,
+    rays_over,
     to_working,
     top_coords,
     working_size,
@@ -49,6 +50,21 @@ def test_plane_maps_put_each_pixel_where_the_camera_projects_its_bed_point():
             xy = TV.to_mm(np.array([mx[v, u], my[v, u]], float))
             uv = cv2.projectPoints(np.array([[*xy, z]]), cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(2)
             assert np.allclose(uv, (u, v), atol=0.05)
+
+
+def test_rays_over_keeps_exactly_the_pixels_whose_ray_crosses_the_rectangle_between_the_heights():
+    """Against the ray sampled at 401 heights: no pixel missed, none kept that the samples never put inside."""
+    cam = default_camera(TV, image_size=(320, 180))
+    maps = plane_maps(image_rays(cam, (320, 180)), cam.center_mm, TV)
+    rect = (250.0, 260.0, 330.0, 340.0)
+    keep = rays_over(maps, rect, -1.0, 20.0)
+    inside = np.zeros(keep.shape, bool)
+    for z in np.linspace(-1.0, 20.0, 401):
+        mx, my = top_coords(maps, z)
+        inside |= (mx >= rect[0]) & (mx <= rect[2]) & (my >= rect[1]) & (my <= rect[3])
+    assert inside.any() and not (inside & ~keep).any()  # every sampled crossing is kept
+    assert (keep & ~inside).sum() <= 0.02 * keep.sum()  # what the samples missed: grazing rays only
+    assert not rays_over(maps, (5000.0, 5000.0, 5100.0, 5100.0), 0.0, 10.0).any()  # where no ray goes
 
 
 def test_predicted_change_is_the_footprint_where_the_camera_sees_it_and_grows_with_the_margin():

@@ -54,7 +54,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
-           "predicted_change", "to_working", "top_coords", "working_size"]
+           "predicted_change", "rays_over", "to_working", "top_coords", "working_size"]
 
 #: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
 OUTLIER_LOG = 0.2
@@ -164,6 +164,40 @@ def top_coords(maps: tuple[np.ndarray, np.ndarray], z: float) -> tuple[np.ndarra
     A, B = maps
     z32 = np.float32(z)
     return A[0] + z32 * B[0], A[1] + z32 * B[1]
+
+
+def rays_over(maps: tuple[np.ndarray, np.ndarray], rect_px: tuple[float, float, float, float],
+              z0: float, z1: float) -> np.ndarray:
+    """Pixels whose ray, between the heights ``z0`` and ``z1`` (mm), passes over a top-view rectangle.
+
+    A pixel's ray meets the plane ``Z = z`` at ``A + z B`` (:func:`plane_maps`), a segment over
+    the heights; it is kept when that segment crosses the rectangle (slab test per axis).
+
+    Parameters
+    ----------
+    maps : (ndarray, ndarray)
+        :func:`plane_maps` (or a crop of it), shape (2, h, w) each.
+    rect_px : (float, float, float, float)
+        Two opposite corners ``(u0, v0, u1, v1)``, top-view px.
+    z0, z1 : float
+        Heights of the segment's ends, mm.
+
+    Returns
+    -------
+    ndarray, bool, shape (h, w)
+    """
+    A, B = maps
+    h, w = A.shape[1:]
+    lo_t, hi_t = np.zeros((h, w), np.float32), np.ones((h, w), np.float32)
+    u0, v0, u1, v1 = rect_px
+    for k, (a, b) in enumerate(((min(u0, u1), max(u0, u1)), (min(v0, v1), max(v0, v1)))):
+        start, d = A[k] + np.float32(z0) * B[k], B[k] * np.float32(z1 - z0)  # the segment start + t d, t in [0, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (a - start) / d, (b - start) / d
+        flat, inside = np.abs(d) < 1e-9, (start >= a) & (start <= b)
+        lo_t = np.maximum(lo_t, np.where(flat, np.where(inside, 0.0, np.inf), np.minimum(t1, t2)))
+        hi_t = np.minimum(hi_t, np.where(flat, np.where(inside, 1.0, -np.inf), np.maximum(t1, t2)))
+    return lo_t <= hi_t
 
 
 def _morph_near(mask: np.ndarray, se: np.ndarray, *, dilate: bool) -> np.ndarray:

@@ -45,6 +45,7 @@ from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
     image_rays,
     plane_maps,
+    rays_over,
     top_coords,
     working_size,
 )
@@ -163,17 +164,8 @@ class JobChecks:
         pad = 2.0
         (u0, v0), (u1, v1) = self.topview.to_px(np.array([[reach[0] - pad, reach[1] - pad],
                                                           [reach[2] + pad, reach[3] + pad]], float))
-        lo_t, hi_t = np.zeros((h, w), np.float32), np.ones((h, w), np.float32)
-        for k, (a, b) in enumerate(((min(u0, u1), max(u0, u1)), (min(v0, v1), max(v0, v1)))):
-            start, d = A[k], B[k] * np.float32(top + pad)  # the segment A + t d, t in [0, 1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t1, t2 = (a - start) / d, (b - start) / d
-            flat = np.abs(d) < 1e-9
-            t_in = np.where(flat, np.where((start >= a) & (start <= b), 0.0, np.inf), np.minimum(t1, t2))
-            t_out = np.where(flat, np.where((start >= a) & (start <= b), 1.0, -np.inf), np.maximum(t1, t2))
-            lo_t, hi_t = np.maximum(lo_t, t_in), np.minimum(hi_t, t_out)
-        rows = np.flatnonzero((lo_t <= hi_t).any(axis=1))
-        cols = np.flatnonzero((lo_t <= hi_t).any(axis=0))
+        keep = rays_over((A, B), (u0, v0, u1, v1), 0.0, top + pad)
+        rows, cols = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
         if rows.size == 0:
             return (slice(0, 0), slice(0, 0))
         bp = int(self.config.extrusion.block_px)
@@ -311,6 +303,7 @@ class JobChecks:
                       centroid_mm=(float(cx), float(cy)), n_blocks=int(np.ceil(area / 4.0)),
                       mean_similarity=float(sim), min_similarity=float(sim), kind=NOTHING_EXTRUDED,
                       kind_confidence=round(float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1)), 3))
+
 
 def print_reach_mm(toolpath: Toolpath) -> tuple[float, float, float, float] | None:
     """``(xmin, ymin, xmax, ymax)`` of every segment of ``toolpath`` (skirt, brim, tower included), mm."""

@@ -72,6 +72,7 @@ from layerwatch.analysis.scene_change import (
     photometric_fit,
     plane_maps,
     predicted_change,
+    rays_over,
     to_working,
     top_coords,
     working_size,
@@ -320,9 +321,8 @@ class SceneModel:
         """Rows and columns of :attr:`box` with a pixel whose ray, between 1 mm below the bed and 1 mm above
         ``top_z_mm``, passes over ``reach_mm`` grown by the margin and 2 px (:attr:`box` when not given).
 
-        A pixel's ray meets the plane ``Z = z`` at ``A + z B`` (top-view px), a segment over the
-        heights; a pixel is kept when that segment's bounding box meets the grown reach (a superset of the
-        pixels that can see material), so :func:`predicted_change` is False outside the box as on the box.
+        :func:`~layerwatch.analysis.scene_change.rays_over` keeps a superset of the pixels that can see
+        material, so :func:`predicted_change` is False outside the box as on the box.
         """
         rows, cols = self.box
         if reach_mm is None or top_z_mm is None or not np.all(np.isfinite([*reach_mm, top_z_mm])):
@@ -330,10 +330,7 @@ class SceneModel:
         pad = abs(self.settings.margin_mm) + 2.0 / self.topview.px_per_mm + 1.0
         (u0, v0), (u1, v1) = self.topview.to_px(np.array([[reach_mm[0] - pad, reach_mm[1] - pad],
                                                           [reach_mm[2] + pad, reach_mm[3] + pad]], float))
-        a, b = A[:, rows, cols], B[:, rows, cols]
-        ends = (a - b, a + np.float32(top_z_mm + 1.0) * b)
-        lo, hi = np.minimum(*ends), np.maximum(*ends)
-        keep = ((hi[0] >= min(u0, u1)) & (lo[0] <= max(u0, u1)) & (hi[1] >= min(v0, v1)) & (lo[1] <= max(v0, v1)))
+        keep = rays_over((A[:, rows, cols], B[:, rows, cols]), (u0, v0, u1, v1), -1.0, top_z_mm + 1.0)
         r, c = _box(keep)
         if r.stop == 0:
             return slice(0, 0), slice(0, 0)
