@@ -37,10 +37,12 @@ from pydantic import Field
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
-           "sharpness", "change_from", "marker_shift_px"]
+           "sharpness", "change_from", "marker_shift_px", "REPEATED_FRAME"]
 
 #: width of the reduced grey image the exposure, sharpness and change checks use, px
 WORK_WIDTH = 640
+#: how the reason of a frame refused as a repeat of the previous one begins (the monitor's alert reads it)
+REPEATED_FRAME = "same picture as the previous frame"
 
 #: The 3x3 kernel of Immerkaer's noise estimate (Immerkaer 1996, "Fast noise variance estimation"):
 #: it cancels planes and most edges; its response to white noise of std s has std 6 s.
@@ -323,7 +325,7 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
     if isinstance(prev, np.ndarray) and not reasons:
         fig["change"], fig["change_spread"] = change_from(small, _reduced(grey_of(prev)))
         if fig["change"] < s.min_change and fig["change_spread"] < s.max_repeat_spread:
-            reasons.append(f"same picture as the previous frame (change {fig['change']:.1f} grey levels): "
+            reasons.append(f"{REPEATED_FRAME} (change {fig['change']:.1f} grey levels): "
                            "the stream is lagging or frozen")
     if markers_px is not None and expected_markers_px is not None:
         shift = marker_shift_px(markers_px, expected_markers_px, 0.08 * float(np.hypot(*grey.shape)))

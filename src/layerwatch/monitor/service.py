@@ -51,7 +51,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from layerwatch.analysis.frame_quality import FrameQualitySettings, assess_frame, compact_previous
+from layerwatch.analysis.frame_quality import (
+    REPEATED_FRAME,
+    FrameQualitySettings,
+    assess_frame,
+    compact_previous,
+)
 from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
@@ -339,8 +344,8 @@ class Monitor:
         if not self._lag_checks or res.status != "ok":
             return res
         try:
-            late = self._late_stream.check(self.pipeline, photo, res, self.policy.settings,
-                                    excuse=bool(self.frame_quality and self.frame_quality.excuse_late_frames))
+            excuse = bool(self.frame_quality and self.frame_quality.excuse_late_frames)
+            late = self._late_stream.check(self.pipeline, photo, res, self.policy.settings, excuse=excuse)
         except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
             log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
             return res
@@ -443,7 +448,7 @@ class Monitor:
         if notify:
             n = self._camera_fault.current.count if self._camera_fault.current else 0
             still = ("; if the printer is printing, the print may have stopped growing (clog, filament run-out): "
-                     "look at it" if "same picture" in res.message else "")
+                     "look at it" if REPEATED_FRAME in res.message else "")
             self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}"
                         f"{still}", res, force=True)
 
