@@ -30,7 +30,6 @@ Lewis (1995), "Fast normalized cross-correlation" (zero-mean NCC).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from fractions import Fraction
 
 import cv2
@@ -38,7 +37,7 @@ import numpy as np
 
 from layerwatch.analysis.scene_change import channel_mean, to_working
 
-__all__ = ["HIGHPASS_SIGMA", "ExtrusionEvidence", "block_ncc", "box_texture", "highpass"]
+__all__ = ["HIGHPASS_SIGMA", "block_ncc", "box_texture", "highpass"]
 
 #: Gaussian (working px) removed from the grey image before the NCC: the shading, not the bead texture
 HIGHPASS_SIGMA = 2.0
@@ -131,23 +130,3 @@ def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int,
     ncc = np.where(vx * vy > 0, cov / np.sqrt(np.maximum(vx * vy, 1e-12)), 0.0).astype(np.float32)
     texture = np.sqrt(np.maximum(vx, vy))
     return np.clip(ncc, -1, 1), (frac >= min_share) & (texture > MIN_TEXTURE)
-
-
-@dataclass(frozen=True)
-class ExtrusionEvidence:
-    """How much a layer's top surface looks like the earlier photos.
-
-    Attributes
-    ----------
-    similarity : float
-        Median block NCC of the surface against the previous photo and the one
-        before it, the smaller of the two (``nan`` when not judged).
-    blocks : int
-        Blocks compared.
-    area_mm2 : float
-        The top surface judged, mm^2 (bed plane).
-    """
-
-    similarity: float
-    blocks: int
-    area_mm2: float
