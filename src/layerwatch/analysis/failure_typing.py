@@ -80,6 +80,7 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.failure_kinds import UNKNOWN
+from layerwatch.analysis.histogram import middle_values
 from layerwatch.analysis.part_registration import (
     EDGE_PAD_PX,
     MOVE_MAX_MM,
@@ -164,10 +165,7 @@ def _hist_median(hist: np.ndarray) -> np.ndarray:
     The same as ``np.median(_lab(values), axis=0)`` of the values (the mean
     of the two middle values for an even count), from the counts alone.
     """
-    n = int(round(hist[0].sum()))
-    c = np.cumsum(hist, axis=1)
-    lo = np.array([np.searchsorted(c[i], (n - 1) // 2, side="right") for i in range(3)], np.float32)
-    hi = np.array([np.searchsorted(c[i], n // 2, side="right") for i in range(3)], np.float32)
+    lo, hi = (np.array(v, np.float32) for v in zip(*(middle_values(h) for h in hist), strict=True))
     scale = np.array([100.0 / 255.0, 1.0, 1.0], np.float32)
     return (lo * scale + hi * scale) / np.float32(2.0)
 

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from layerwatch.analysis.histogram import middle_values
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
@@ -178,16 +179,8 @@ def noise_sigma(grey: np.ndarray) -> float:
     resp = cv2.filter2D(g, cv2.CV_16S, _NOISE_KERNEL)[1:-1, 1:-1]  # exact: integer kernel, |response| <= 4080
     if resp.size == 0:
         return float("nan")
-    return float(np.float32(_median_of_counts(np.bincount(np.abs(resp).ravel()))) / 0.6745 / 6.0)
-
-
-def _median_of_counts(counts: np.ndarray) -> float:
-    """The median of the values ``0..len(counts) - 1`` occurring ``counts`` times each (as :func:`numpy.median`)."""
-    n = int(counts.sum())
-    cum = np.cumsum(counts)
-    lo = int(np.searchsorted(cum, (n - 1) // 2, side="right"))  # the value at sorted position (n - 1) // 2
-    hi = int(np.searchsorted(cum, n // 2, side="right"))  # ... and at n // 2 (the same one when n is odd)
-    return (lo + hi) / 2.0
+    lo, hi = middle_values(np.bincount(np.abs(resp).ravel()))
+    return float(np.float32((lo + hi) / 2.0) / 0.6745 / 6.0)
 
 
 def blockiness(grey: np.ndarray, block: int = 8) -> float:
