@@ -153,6 +153,8 @@ def test_monitor_pauses_a_real_moonraker_print_and_acknowledges_the_operator_res
         t.start()
         until(lambda: stack.query("print_stats")["print_stats"]["state"] == "paused", 20,
               "Klippy paused by the monitor")
+        # Klippy can report "paused" before the monitor's pause request has returned and been counted
+        until(lambda: mon.report.pauses >= 1, 10, "the monitor to count its pause")
         assert mon.report.pauses == 1 and mon.policy.halted
         paused_on = next(r for r in mon.report.results if r.decision == "pause")
         assert 3 <= paused_on.layer <= 4  # k=2 consecutive layers from the onset at layer 3
