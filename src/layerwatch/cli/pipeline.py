@@ -180,6 +180,8 @@ def evaluate(
     paper: Annotated[bool, typer.Option("--paper-settings", help=PAPER_HELP)] = False,
     beside: Annotated[float, typer.Option("--beside-share", parser=Finite(0, 1), help="Share of the foreign bodies "
                                           "and spaghetti placed on the bed beside the part.")] = 0.0,
+    workers: Annotated[int, typer.Option("--workers", "-j", parser=Finite(0, 1024, integer=True), help="Worker processes "
+                                         "(0 = all cores); the report is the same for any number.")] = 1,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
     tp = _toolpath(gcode)
@@ -189,7 +191,7 @@ def evaluate(
     with _progress() as bar:
         task = bar.add_task("simulating + scoring", total=layers)
         data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera, beside_share=beside,
-                              progress=lambda d, n: bar.update(task, completed=d, total=n))
+                              progress=lambda d, n: bar.update(task, completed=d, total=n), workers=workers)
     s = summarize(data)
     notes = [f"{e}" for e in data.errors]
     clean_run = None
@@ -197,7 +199,7 @@ def evaluate(
         with _progress() as bar:
             task = bar.add_task("clean prints (false alarms)", total=clean_layers)
             clean_run = clean_false_alarms(tp, cfg, cam, clean_layers, float(cfg.policy.pause_ratio),
-                                           consecutive=cfg.policy.consecutive_layers,
+                                           consecutive=cfg.policy.consecutive_layers, workers=workers,
                                            progress=lambda d, n: bar.update(task, completed=d, total=n))
         clean_run.pop("a", None)
         clean_run["setting"] = (f"{cfg.analysis.metric} T_S {cfg.analysis.threshold:.2f}, pause a% > "

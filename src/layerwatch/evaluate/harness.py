@@ -37,6 +37,7 @@ from layerwatch.analysis.scoring import anomaly_ratio, block_hogs, grow_regions,
 from layerwatch.analysis.settings import METRIC_NAMES
 from layerwatch.errors import AnalysisError
 from layerwatch.evaluate.modes import MODES, ModeScore, mode_score
+from layerwatch.evaluate.parallel import map_prints
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
@@ -292,6 +293,7 @@ def run_evaluation(
     match_camera: bool = False,
     beside_share: float = 0.0,
     modes: tuple[str, ...] = MODES,
+    workers: int = 1,
 ) -> EvalData:
     """Simulate about ``n_layers`` layer photos and score them (see module notes).
 
@@ -315,6 +317,10 @@ def run_evaluation(
         Modes scored per photo (:mod:`layerwatch.evaluate.modes`): ``"series"`` is the
         sweep's own pipeline; ``"single"`` runs each photo again through a second
         pipeline that forgets the print before every photo (bed photo only).
+    workers : int
+        Processes that score the scenarios (:func:`~layerwatch.evaluate.parallel.map_prints`;
+        0 = every core). Each scenario has its own seed and pipelines, so the records are
+        the same for any number.
 
     Returns
     -------
@@ -322,13 +328,12 @@ def run_evaluation(
     """
     t0 = time.perf_counter()
     config = config.for_camera(camera)  # truth masks in the pipeline's top view
-    tv = config.topview.topview()
     plan = plan_frames(toolpath, n_layers, seed=seed, beside_share=beside_share)
     total = sum(len(ls) for _, ls in plan)
     data = EvalData(setup={
         "n_frames": total, "n_scenarios": len(plan), "image_size": list(camera.image_size),
         "analysis": config.analysis.model_dump(), "match_camera": match_camera, "scene": config.scene.enabled, "beside_share": beside_share,
-        "toolpath": toolpath.source, "toolpath_layers": toolpath.n_layers, "seed": seed,
+        "toolpath": Path(str(toolpath.source)).name, "toolpath_layers": toolpath.n_layers, "seed": seed,
     })
     planned = {sc.failures[0].type for sc, _ in plan if sc.failures}
     for t in FAILURE_TYPES:
@@ -336,74 +341,96 @@ def run_evaluation(
             data.errors.append(f"{t}: not injected, no layer of this part can take it (e.g. no infill or no "
                                "perimeters marked in the G-code); not scored")
     data.setup["modes"] = list(modes)
+    tasks = [(toolpath, camera, config, scen, layers, seed * 1000 + k, match_camera, modes)
+             for k, (scen, layers) in enumerate(plan)]
+    for records, errors in map_prints(_scenario_records, tasks, [len(ls) for _, ls in plan], workers, progress):
+        data.records += records
+        data.errors += errors
+    data.seconds = time.perf_counter() - t0
+    return data
+
+
+def _scenario_records(toolpath: Toolpath, camera: CameraModel, config: JobConfig, scen: Scenario, layers: list[int],
+                      sim_seed: int, match_camera: bool, modes: tuple[str, ...],
+                      tick: Callable[[], None]) -> tuple[list[LayerRecord], list[str]]:
+    """Simulate one scenario's photos and score them (one task of :func:`run_evaluation`).
+
+    Each scenario runs in a pipeline of its own (series mode: the print's own history;
+    single mode: a second pipeline that forgets the print before every photo), so a
+    scenario scores the same whichever worker runs it.
+    """
+    tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
     single = (LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
               if "single" in modes else None)
-    done = 0
-    for k, (scen, layers) in enumerate(plan):
-        sim = PrintSimulator(toolpath, camera, tv, scen, seed=seed * 1000 + k)
-        bed = sim.bed_photo()
-        pipe.new_print(bed if pipe.scene is not None else None)  # each print its own scene
-        size = scen.failures[0].size_mm if scen.failures else 0.0
-        moved = sim.failures[0].offset if scen.failures and scen.failures[0].type in ("layer_shift", "detachment") else None
-        for i in layers:
-            frame = sim.frame(i)
-            res, scores = score_layer(pipe, frame, i)
-            if scores is None:  # reported, the run continues
-                data.errors.append(f"{scen.name} layer {i}: {res.message}")
-                continue
-            by_mode = {"series": mode_score(res, frame.truth_area, tv, moved)} if "series" in modes else {}
-            if single is not None:  # the same photo with nothing of the print before it
-                single.new_print(bed if single.scene is not None else None)
-                by_mode["single"] = mode_score(single.process(frame.photo, i), frame.truth_area, tv, moved)
-            a, iou, clean_high, region = scores
-            kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
-            since = int(i) - scen.failures[0].onset if kind != "clean" else -1
-            surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
-            data.records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
-                                            a, iou, clean_high, region, since, surface,
-                                            float(res.outside_anomalous_mm2), float(res.printed_area_mm2),
-                                            by_mode))
-            done += 1
-            if progress is not None:
-                progress(done, total)
-    data.seconds = time.perf_counter() - t0
-    return data
+    sim = PrintSimulator(toolpath, camera, tv, scen, seed=sim_seed)
+    bed = sim.bed_photo()
+    pipe.new_print(bed if pipe.scene is not None else None)
+    size = scen.failures[0].size_mm if scen.failures else 0.0
+    moved = sim.failures[0].offset if scen.failures and scen.failures[0].type in ("layer_shift", "detachment") else None
+    records: list[LayerRecord] = []
+    errors: list[str] = []
+    for i in layers:
+        frame = sim.frame(i)
+        res, scores = score_layer(pipe, frame, i)
+        tick()
+        if scores is None:  # reported, the run continues
+            errors.append(f"{scen.name} layer {i}: {res.message}")
+            continue
+        by_mode = {"series": mode_score(res, frame.truth_area, tv, moved)} if "series" in modes else {}
+        if single is not None:  # the same photo with nothing of the print before it
+            single.new_print(bed if single.scene is not None else None)
+            by_mode["single"] = mode_score(single.process(frame.photo, i), frame.truth_area, tv, moved)
+        a, iou, clean_high, region = scores
+        kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
+        since = int(i) - scen.failures[0].onset if kind != "clean" else -1
+        surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
+        records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
+                                   a, iou, clean_high, region, since, surface,
+                                   float(res.outside_anomalous_mm2), float(res.printed_area_mm2), by_mode))
+    return records, errors
 
 
 #: the counts of :func:`clean_false_alarms`, per part and in all
 _CLEAN_COUNTS = ("layers", "prints", "layer_alarms", "policy_alarms", "pauses", "outside_layers")
 
 
-def _clean_prints(toolpath: Toolpath, config: JobConfig, camera: CameraModel, prints: int, policy_settings,
-                  seed: int, tick: Callable[[], None]) -> dict:
-    """Run ``prints`` whole clean prints of ``toolpath`` through the step and the policy; the counts of :func:`clean_false_alarms`."""
+def _clean_print(toolpath: Toolpath, config: JobConfig, camera: CameraModel, policy_settings, sim_seed: int,
+                 tick: Callable[[], None]) -> dict:
+    """Run one whole clean print of ``toolpath`` through the step and the policy; the counts of :func:`clean_false_alarms`."""
     tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
-    out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"prints": prints, "max_a": 0.0, "a": [],
-                                                          "max_outside_mm2": 0.0}
-    for k in range(prints):
-        sim = PrintSimulator(toolpath, camera, tv, (), seed=seed + k)
-        pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
-        paused = False
-        photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
-        for res, decision in judge_layers(pipe, PausePolicy(policy_settings), photos):
-            tick()
-            if res.status != "ok":
-                continue
-            out["layers"] += 1
-            out["a"].append(float(res.anomaly_ratio))
-            out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
-            out["outside_layers"] += int(res.outside_anomalous_mm2 > 0)
-            out["max_outside_mm2"] = max(out["max_outside_mm2"], float(res.outside_anomalous_mm2))
-            if res.layer >= policy_settings.skip_first_layers:
-                out["layer_alarms"] += int(res.anomaly_ratio > policy_settings.pause_ratio)
-            if not paused:  # after a pause the policy waits for the operator: nothing more to count
-                out["policy_alarms"] += int(decision.action != "none")
-            if decision.stops and not paused:
-                out["pauses"] += 1
-                paused = True
+    out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"prints": 1, "max_a": 0.0, "a": [], "max_outside_mm2": 0.0}
+    sim = PrintSimulator(toolpath, camera, tv, (), seed=sim_seed)
+    pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
+    paused = False
+    photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
+    for res, decision in judge_layers(pipe, PausePolicy(policy_settings), photos):
+        tick()
+        if res.status != "ok":
+            continue
+        out["layers"] += 1
+        out["a"].append(float(res.anomaly_ratio))
+        out["max_a"] = max(out["max_a"], float(res.anomaly_ratio))
+        out["outside_layers"] += int(res.outside_anomalous_mm2 > 0)
+        out["max_outside_mm2"] = max(out["max_outside_mm2"], float(res.outside_anomalous_mm2))
+        if res.layer >= policy_settings.skip_first_layers:
+            out["layer_alarms"] += int(res.anomaly_ratio > policy_settings.pause_ratio)
+        if not paused:  # after a pause the policy waits for the operator: nothing more to count
+            out["policy_alarms"] += int(decision.action != "none")
+        if decision.stops and not paused:
+            out["pauses"] += 1
+            paused = True
     return out
+
+
+def _add_counts(into: dict, got: dict) -> None:
+    """Add one print's (or part's) counts of :func:`clean_false_alarms` to ``into``."""
+    for key in _CLEAN_COUNTS:
+        into[key] += got[key]
+    into["a"] += got["a"]
+    into["max_a"] = max(into["max_a"], got["max_a"])
+    into["max_outside_mm2"] = max(into["max_outside_mm2"], got["max_outside_mm2"])
 
 
 def clean_false_alarms(
@@ -416,6 +443,7 @@ def clean_false_alarms(
     seed: int = 100,
     progress: Callable[[int, int], None] | None = None,
     window_share: float = 0.25,
+    workers: int = 1,
 ) -> dict:
     """Simulate whole clean prints (about ``n_layers`` photos) and count false alarms.
 
@@ -431,6 +459,8 @@ def clean_false_alarms(
     :func:`~layerwatch.simulate.parts.window_part` (a hollow box with a window
     through its wall, a bridge and an overhang: what a height-map reference
     cannot hold), centred on the observed square; the rest are prints of ``toolpath``.
+    Each print has its own seed and pipeline, so ``workers`` processes (0 = every core)
+    give the same counts as one.
 
     Returns
     -------
@@ -448,21 +478,15 @@ def clean_false_alarms(
     if share > 0:
         parts.append(("window part", window_part(center=(float(config.topview.center_mm[0]), float(config.topview.center_mm[1]))), n_layers * share))
     plan = [(name, tp, max(1, int(round(n / tp.n_layers)))) for name, tp, n in parts if n > 0]
-    total = sum(p * tp.n_layers for _, tp, p in plan)
-    done = [0]
-
-    def tick() -> None:
-        done[0] += 1
-        if progress is not None:
-            progress(done[0], total)
-
+    tasks = [(tp, config, camera, policy_settings, seed + 1000 * k + j)
+             for k, (_, tp, prints) in enumerate(plan) for j in range(prints)]
+    names = [name for name, _, prints in plan for _ in range(prints)]
     out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"max_a": 0.0, "a": [], "max_outside_mm2": 0.0, "parts": {}}
-    for k, (name, tp, prints) in enumerate(plan):
-        got = _clean_prints(tp, config, camera, prints, policy_settings, seed + 1000 * k, tick)
-        for key in _CLEAN_COUNTS:
-            out[key] += got[key]
-        out["a"] += got.pop("a")
-        out["max_a"] = max(out["max_a"], got["max_a"])
-        out["max_outside_mm2"] = max(out["max_outside_mm2"], got["max_outside_mm2"])
-        out["parts"][name] = got
+    blank = {k: 0 for k in _CLEAN_COUNTS} | {"max_a": 0.0, "a": [], "max_outside_mm2": 0.0}
+    results = map_prints(_clean_print, tasks, [t[0].n_layers for t in tasks], workers, progress)
+    for name, got in zip(names, results, strict=True):
+        _add_counts(out, got)
+        _add_counts(out["parts"].setdefault(name, {**blank, "a": []}), got)
+    for part in out["parts"].values():
+        part.pop("a")
     return out
