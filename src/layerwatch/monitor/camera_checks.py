@@ -45,14 +45,8 @@ once, as a camera fault ("camera lagging"). No timestamps are used: the
 cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
 that can be trusted against the printer's trigger.
 
-**A camera that moved** (:class:`MarkerWatch`). With a calibration that
-recorded the bed markers (``CameraModel.markers_mm``), each frame's markers
-are detected (:mod:`layerwatch.geometry.markers`, the dots on a copy at most
-:data:`MARKER_SIDE_PX` px wide, the centres refined at full size) and
-compared with the calibration's projection at the frame's size
-(:func:`~layerwatch.analysis.frame_quality.marker_shift_px`): visible markers
-away from their place are a camera fault; markers hidden (by spaghetti, the
-head, a part) give no verdict.
+**A camera that moved** (:class:`~layerwatch.monitor.marker_watch.MarkerWatch`,
+re-exported here): each frame's bed markers against the calibration's projection.
 """
 
 from __future__ import annotations
@@ -67,9 +61,7 @@ import numpy as np
 from layerwatch.analysis.extrusion import block_ncc, highpass
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer
-from layerwatch.geometry.camera import CameraModel
-from layerwatch.geometry.markers import detect_aruco, detect_dots
-from layerwatch.geometry.synthetic import project_points
+from layerwatch.monitor.marker_watch import MarkerWatch
 from layerwatch.pipeline.policy import PolicySettings
 
 __all__ = ["LAG_EXPLAINED_SHARE", "STILL_SHARE", "PRINTED_SHARE", "LagVerdict", "LateCheck", "LateStream", "MarkerWatch", "Progress",
@@ -83,10 +75,6 @@ LAG_EXPLAINED_SHARE = 0.25
 
 #: how far from the previous layer's own area a change beside the print may lie and still be that layer, mm
 BESIDE_MARGIN_MM = 2.0
-
-#: longest side of the copy the dot markers are looked for in, px (centres are refined at full size)
-MARKER_SIDE_PX = 960
-
 
 def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
     """Whether an analysed layer's result could count toward a pause (the lag check runs only then).
@@ -516,54 +504,3 @@ def _box(mask: np.ndarray, topview: Any) -> tuple[slice, slice] | None:
     (v0, v1), (u0, u1) = np.flatnonzero(rows)[[0, -1]], np.flatnonzero(cols)[[0, -1]]
     h, w = mask.shape
     return slice(max(v0 - r, 0), min(v1 + r + 1, h)), slice(max(u0 - r, 0), min(u1 + r + 1, w))
-
-
-class MarkerWatch:
-    """The calibration's bed markers: where a frame should show them, and where it does.
-
-    Parameters
-    ----------
-    camera : CameraModel
-        Calibrated with markers (``markers_mm`` and a pose).
-    kind : {"dots", "aruco"}
-        Marker kind (default: the camera model's).
-    dictionary : str
-        ArUco dictionary for ``kind="aruco"``.
-    """
-
-    def __init__(self, camera: CameraModel, kind: str | None = None, dictionary: str = "DICT_4X4_50") -> None:
-        if not camera.has_pose or camera.markers_mm is None:
-            raise ValueError("the camera model has no marker pose; calibrate with --markers")
-        self.camera, self.dictionary = camera, dictionary
-        self.kind = kind or camera.marker_kind or "dots"
-        self._expected: dict[tuple[int, int], np.ndarray] = {}
-
-    @classmethod
-    def of_pipeline(cls, pipeline: Any) -> MarkerWatch | None:
-        """The watch for a pipeline's camera (``pipeline.camera``, ``pipeline.config.markers``), or None."""
-        cam = getattr(pipeline, "camera", None)
-        if not isinstance(cam, CameraModel) or not cam.has_pose or cam.markers_mm is None:
-            return None
-        markers = getattr(getattr(pipeline, "config", None), "markers", None)
-        return cls(cam, getattr(markers, "kind", None), getattr(markers, "aruco_dictionary", "DICT_4X4_50"))
-
-    def expected_px(self, size: tuple[int, int]) -> np.ndarray:
-        """Marker centres the calibration predicts in a frame of ``size`` = (w, h), shape (M, 2) px."""
-        key = (int(size[0]), int(size[1]))
-        if key not in self._expected:
-            assert self.camera.markers_mm is not None  # checked in __init__
-            self._expected[key] = project_points(self.camera.scaled_to(key), self.camera.markers_mm)
-        return self._expected[key]
-
-    def found_px(self, photo: np.ndarray) -> np.ndarray:
-        """Marker candidates detected in ``photo``, shape (K, 2) px (K may be 0)."""
-        if self.kind == "aruco":
-            found = detect_aruco(photo, self.dictionary)
-            return np.array([v for _, v in sorted(found.items())], np.float64).reshape(-1, 2)
-        return np.array([b.center for b in detect_dots(photo, max_candidates=20, max_side_px=MARKER_SIDE_PX)],
-                        np.float64).reshape(-1, 2)
-
-    def __call__(self, photo: np.ndarray) -> dict[str, np.ndarray]:
-        """``markers_px`` and ``expected_markers_px`` for :func:`assess_frame` (at the photo's size)."""
-        h, w = photo.shape[:2]
-        return {"markers_px": self.found_px(photo), "expected_markers_px": self.expected_px((w, h))}
