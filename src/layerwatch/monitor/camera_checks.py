@@ -167,7 +167,7 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     Parameters
     ----------
     pipeline : LayerPipeline
-        Anything with ``reference(i)``, ``top_view(photo, z)``, ``topview`` and
+        Anything with ``reference(i)``, ``top_view(photo, z, box=None)``, ``topview`` and
         ``config.analysis`` (:class:`~layerwatch.pipeline.step.LayerPipeline`, or a wrapper
         that forwards them); its state (scene channel, last top view) is not touched.
     photo : ndarray, uint8, shape (h, w, 3)
@@ -177,8 +177,7 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     policy : PolicySettings
         ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
     top : (ndarray, ndarray), optional
-        ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it
-        (:meth:`LateStream.progress` warps there too).
+        ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it.
 
     Returns
     -------
@@ -388,18 +387,17 @@ class LateStream:
             return
         self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]), np.ascontiguousarray(zone[box]))
 
-    def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> tuple[Progress, Any] | None:
-        """Progress of frame ``layer`` since the remembered frame, and this frame's top view on that frame's
-        plane (``(top, valid)``); None when no frame is remembered or the view cannot be made."""
+    def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> Progress | None:
+        """Progress of frame ``layer`` since the remembered frame (this frame warped on that frame's plane,
+        only in the remembered box); None when no frame is remembered."""
         seen = self._seen
         if seen is None or layer <= seen.layer:
             return None
-        top, valid = pipeline.top_view(photo, seen.z)
+        top, valid = pipeline.top_view(photo, seen.z, seen.box)
         zone = seen.zone.copy()  # the layers printed between the two pictures (a dilation of a union is
         for i in range(seen.layer + 1, layer):  # the union of the dilations: no re-render of the remembered one)
             zone |= _zone(pipeline.reference(i).footprint, pipeline.topview)[seen.box]
-        p = progress_between(top[seen.box], seen.top, valid[seen.box], zone)
-        return p, ((top, valid) if seen.layer == layer - 1 else None)
+        return progress_between(top, seen.top, valid, zone)
 
     def interrupted(self) -> None:
         """A frame was unusable (repeat, black, no image...): the stream may come back late."""
@@ -430,9 +428,8 @@ class LateStream:
         never), updates the series and remembers this frame. Raises what the pipeline raises.
         """
         counts = counts_toward_pause(res, policy)
-        seen = self.progress(pipeline, photo, res.layer)
-        progress, top = seen if seen is not None else (None, None)
-        verdict = previous_layer_explains(pipeline, photo, res, policy, top) if counts else None
+        progress = self.progress(pipeline, photo, res.layer)
+        verdict = previous_layer_explains(pipeline, photo, res, policy) if counts else None
         self.remember(pipeline, res.layer, _top_of(pipeline, photo, res))
         lagged = verdict is not None and verdict.lagged
         why = self.excuse(verdict, progress, res) if verdict is not None and lagged else None
