@@ -145,3 +145,11 @@ def test_noise_and_blockiness_are_their_definitions_on_uint8_frames():
             per = d[:, :n].reshape(d.shape[0], -1, 8).mean(axis=(0, 1))
             ratios.append((per[7] + 0.5) / (np.delete(per, 7).mean() + 0.5))
         assert blockiness(g) == pytest.approx(float(np.mean(ratios)), rel=1e-12)
+
+
+def test_noise_of_a_pure_noise_frame_is_its_definition_past_the_histogram_of_small_responses():
+    """A median |response| of 255 or more (pure noise) is read from the full histogram: the same figure."""
+    g = np.random.default_rng(5).integers(0, 256, (240, 320), dtype=np.uint8)
+    resp = cv2.filter2D(g.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
+    assert np.median(np.abs(resp)) > 255
+    assert noise_sigma(g) == float(np.median(np.abs(resp)) / 0.6745 / 6.0)

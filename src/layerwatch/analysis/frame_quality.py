@@ -179,7 +179,12 @@ def noise_sigma(grey: np.ndarray) -> float:
     resp = cv2.filter2D(g, cv2.CV_16S, _NOISE_KERNEL)[1:-1, 1:-1]  # exact: integer kernel, |response| <= 4080
     if resp.size == 0:
         return float("nan")
-    lo, hi = middle_values(np.bincount(np.abs(resp).ravel()))
+    # |response| saturated to 255 keeps the order of every smaller value: its 256-bin histogram (one
+    # OpenCV pass) gives the median exactly unless the median itself reaches 255 (a pure-noise frame)
+    low = cv2.calcHist([cv2.convertScaleAbs(resp)], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+    lo, hi = middle_values(low)
+    if hi >= 255:
+        lo, hi = middle_values(np.bincount(np.abs(resp).ravel()))
     return float(np.float32((lo + hi) / 2.0) / 0.6745 / 6.0)
 
 
