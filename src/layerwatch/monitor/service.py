@@ -315,12 +315,14 @@ class Monitor:
             return None
         try:
             grey = grey_of(photo)  # converted once: the gate's checks, the markers and the next frame's "previous"
-            quality = assess_frame(grey, self._last_good, self.frame_quality, **self._marker_positions(grey))
+            small = compact_previous(grey)  # reduced once: the gate's and, if it passes, the next frame's previous
+            quality = assess_frame(grey, self._last_good, self.frame_quality, small=small,
+                                   **self._marker_positions(grey))
         except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
             log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", trigger.layer)
             return None
         if quality.ok:
-            self._last_good = compact_previous(grey)  # not the frame: a farm holds one per printer
+            self._last_good = small  # not the frame: a farm holds one per printer
             return None
         res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT,
                           message="unusable frame: " + "; ".join(quality.reasons))
