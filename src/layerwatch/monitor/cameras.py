@@ -50,7 +50,7 @@ def frame_digest(img: np.ndarray) -> tuple[int, int]:
     For the stale-frame check (the same frame twice), not against an adversary: two checksums in one
     pass each over a 1080p frame cost ~3.5 ms, half a cryptographic hash with the copy it needed.
     """
-    buf = memoryview(np.ascontiguousarray(img)).cast("B")
+    buf = np.ascontiguousarray(img).data.cast("B")
     return zlib.crc32(buf), zlib.adler32(buf)
 
 
