@@ -251,7 +251,7 @@ def failure_frames_passed(tp, truth, cfg, pipe, n_layers: int = 120, seed: int =
         (frames the previous layer's reference was asked about).
     """
     tv = cfg.topview.topview()
-    markers = MarkerWatch.of_pipeline(pipe)
+    markers = MarkerWatch.of_pipeline(pipe, FrameQualitySettings().max_marker_shift_px)  # as the monitor's
     out = {"total": Counter(), "passed": Counter(), "passed_slipped": Counter(), "refused": [],
            "refused_slipped": [], "checked": 0}
     for k, (scen, layers) in enumerate(plan_frames(tp, n_layers, seed=seed)):

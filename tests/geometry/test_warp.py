@@ -12,6 +12,7 @@ from layerwatch.errors import LayerwatchError, WarpError
 from layerwatch.geometry.homography import top_from_image
 from layerwatch.geometry.markers import detect_dots
 from layerwatch.geometry.synthetic import render_bed_scene
+from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper, occlusion_hint
 
 DOTS = np.array([[-30.0, -30.0], [30.0, -30.0], [30.0, 30.0], [-30.0, 30.0]])
@@ -140,3 +141,22 @@ def test_occlusion_hint_flags_the_far_side_of_a_tall_part(camera, topview):
     assert not occ[int(near[0, 1]), int(near[0, 0])]    # in front of it
     assert not occlusion_hint(camera, topview, 40.0, (-10, -10, 10, 10), 40.0)[299, 299]  # its own top
     assert not occlusion_hint(camera, topview, 0.0, (-10, -10, 10, 10), 0.0).any()
+
+
+def test_a_box_of_the_warp_is_the_whole_warp_cropped_pixel_for_pixel():
+    from layerwatch.simulate import default_camera
+
+    cam = default_camera(TopView(4.0, 100, 80, (0, 0)), image_size=(640, 360))
+    tv = TopView(2.0, 400, 300, (0, 0))  # more than the camera sees: the unseen part is blanked
+    rng = np.random.default_rng(3)
+    photo = rng.integers(0, 256, (360, 640, 3), dtype=np.uint8)
+    box = (slice(37, 511), slice(5, 390))
+    whole = TopViewWarper(cam, tv).warp(photo, 2.4)
+    part = TopViewWarper(cam, tv).warp(photo, 2.4, box)  # a fresh warper: the table is built for the box
+    assert not whole[1][box].all() and whole[1][box].any()
+    assert np.array_equal(part[0], whole[0][box]) and np.array_equal(part[1], whole[1][box])
+    cached = TopViewWarper(cam, tv)
+    cached.warp(photo, 2.4)
+    assert np.array_equal(cached.warp(photo, 2.4, box)[0], whole[0][box])  # from the cached table
+    with pytest.raises(WarpError, match="without a step"):
+        TopViewWarper(cam, tv).warp(photo, 2.4, (slice(0, 10, 2), slice(0, 10)))

@@ -18,12 +18,14 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
 from test_camera_faults import PausingPipeline, Recorder, _gcode, _good
 
 from layerwatch.analysis.frame_quality import FrameQualitySettings
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer
 from layerwatch.analysis.settings import AnalysisSettings
+from layerwatch.geometry.markers import confirm_dots, detect_dots
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.camera_checks import LagVerdict, LateStream, MarkerWatch, Progress
@@ -87,8 +89,9 @@ class TopViewPipeline:
         image, foot = _layer_picture(index, seed=99, turns=self.turns)
         return Reference(image, foot, 0.2 * (index + 1))
 
-    def top_view(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
-        return cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY), np.ones(TV.shape, bool)
+    def top_view(self, photo: np.ndarray, z: float, box=None) -> tuple[np.ndarray, np.ndarray]:
+        top, valid = cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY), np.ones(TV.shape, bool)
+        return (top, valid) if box is None else (top[box], valid[box])
 
     def process(self, photo: np.ndarray, layer_index: int):
         self.seen.append(layer_index)
@@ -244,9 +247,10 @@ def test_late_stream_state():
     assert "nothing-extruded check failed" in late.excuse(lagged, moving, res)
     # progress on the real top views: a new exposure of the same layer is still, the next layer is not
     late.remember(pipe, 4, pipe.top_view(_photo(4, light=1), 1.0)[0])
-    p_same, _ = late.progress(pipe, _photo(4, light=2), 5)
-    p_next, top = late.progress(pipe, _photo(5, light=2), 5)
-    assert p_same.still and p_next.printed and top is not None, (p_same, p_next)
+    p_same = late.progress(pipe, _photo(4, light=2), 5)
+    p_next = late.progress(pipe, _photo(5, light=2), 5)
+    assert p_same is not None and p_next is not None
+    assert p_same.still and p_next.printed, (p_same, p_next)
 
 
 def test_a_late_camera_is_alerted_when_its_frames_are_far_apart():
@@ -310,12 +314,15 @@ class MarkedPipeline(PausingPipeline):
         self.config = SimpleNamespace(markers=MarkerSettings())
 
 
-def _watch_markers(frames, pipe):
+def _watch_markers(frames, pipe, counts=None):
     rec = Recorder()
     mon = Monitor(VirtualPrinter(_gcode(N_LAYERS)), SimCamera(frames), pipe,
                   PausePolicy(PolicySettings(skip_first_layers=0)), notifier=rec, wait_for_verdict=True,
                   faults=FaultSettings(camera_alert_after=3), frame_quality=FrameQualitySettings())
-    return mon.run(poll_s=0.001), rec
+    rep = mon.run(poll_s=0.001)
+    if counts is not None:  # frames whose markers were confirmed in place / fully detected
+        counts.extend([mon._markers.confirmed, mon._markers.detected])
+    return rep, rec
 
 
 def test_marker_watch_finds_the_markers_where_the_calibration_puts_them():
@@ -331,8 +338,10 @@ def test_marker_watch_finds_the_markers_where_the_calibration_puts_them():
 def test_a_bumped_camera_is_a_camera_fault_never_analysed_or_paused():
     bumped = range(5, N_LAYERS)
     pipe = MarkedPipeline(from_layer=5)  # any analysed frame from layer 5 on would pause
-    rep, rec = _watch_markers(lambda i: _marked(i, (24.0, -18.0) if i in bumped else (0.0, 0.0)), pipe)
+    counts: list[int] = []
+    rep, rec = _watch_markers(lambda i: _marked(i, (24.0, -18.0) if i in bumped else (0.0, 0.0)), pipe, counts)
     assert rep.pauses == 0 and pipe.seen == list(range(5))
+    assert counts == [4, N_LAYERS - 4]  # layers 1-4 confirmed in place; the first and every bumped frame in full
     faults = [r for r in rep.results if r.status == CAMERA_FAULT]
     assert [r.layer for r in faults] == list(bumped)
     assert all("camera moved" in r.message and r.frame_quality["marker_shift_px"] > 25 for r in faults)
@@ -344,3 +353,38 @@ def test_spaghetti_over_the_markers_is_analysed_and_pauses():
     rep, _ = _watch_markers(lambda i: _marked(i, spaghetti=i >= 5), pipe)
     assert not any(r.status == CAMERA_FAULT for r in rep.results), [r.message for r in rep.results]
     assert rep.pauses == 1 and 5 in pipe.seen
+
+
+def test_markers_in_place_are_confirmed_without_the_full_detection_and_a_bump_still_runs_it():
+    watch = MarkerWatch.of_pipeline(MarkedPipeline(), 12.0)
+    full = MarkerWatch.of_pipeline(MarkedPipeline())  # confirm_px 0: always the full detection
+    assert watch is not None and full is not None
+    first = watch(_marked(1))
+    assert (watch.detected, watch.confirmed) == (1, 0)  # the first frame learns the dots' areas
+    for layer in (2, 3):
+        got, ref = watch(_marked(layer)), full(_marked(layer))
+        d = np.linalg.norm(ref["markers_px"][:, None] - got["markers_px"][None], axis=2).min(axis=0)
+        assert len(got["markers_px"]) == 4 and np.all(d < 0.5)  # the same dots, refined the same way
+    assert (watch.detected, watch.confirmed) == (1, 2) and full.confirmed == 0
+    bumped = watch(_marked(4, (24.0, -18.0)))  # nothing in place: the full detection, as without confirmation
+    assert watch.detected == 2
+    assert np.allclose(bumped["markers_px"], full(_marked(4, (24.0, -18.0)))["markers_px"])
+    assert first["expected_markers_px"] is bumped["expected_markers_px"]
+
+
+def test_confirm_dots_refuses_dots_off_their_place_or_of_another_size():
+    img = _marked(2)
+    area = np.median([b.area for b in detect_dots(img)])
+    areas = np.full(4, area)
+    assert np.isfinite(confirm_dots(img, MARKS_PX, areas, 3.0)).all()
+    assert np.isnan(confirm_dots(img, MARKS_PX + [5.0, 0.0], areas, 3.0)).all()  # 5 px away: not confirmed
+    assert np.isnan(confirm_dots(img, MARKS_PX, areas * 4, 3.0)).all()  # a dot a quarter of the size learned
+    unknown = confirm_dots(img, np.vstack([MARKS_PX, [[-50.0, 10.0]]]), np.append([np.nan, *areas[1:]], area), 3.0)
+    assert np.isnan(unknown[[0, 4]]).all() and np.isfinite(unknown[1:4]).all()  # no area, outside the frame
+
+
+def test_marker_watch_refuses_a_bad_confirm_distance():
+    with pytest.raises(ValueError, match="confirm_px"):
+        MarkerWatch(CAMERA, confirm_px=-1.0)
+    with pytest.raises(ValueError, match="confirm_px"):
+        MarkerWatch(CAMERA, confirm_px=float("nan"))

@@ -11,6 +11,7 @@ from layerwatch.monitor.cameras import (
     MjpegCamera,
     SimCamera,
     SnapshotCamera,
+    frame_digest,
     open_camera,
 )
 
@@ -101,3 +102,16 @@ def test_folder_and_sim(tmp_path):
     assert sim.grab()[0, 0, 0] == 7
     with pytest.raises(CameraError, match="unknown camera"):
         open_camera("ftp://x")
+
+
+def test_frame_digest_tells_one_changed_pixel_and_is_skipped_without_the_stale_check():
+    img = np.random.default_rng(2).integers(0, 256, (1080, 1920, 3), dtype=np.uint8)
+    other = img.copy()
+    other[540, 960, 1] ^= 1  # one bit of one pixel
+    assert frame_digest(img) == frame_digest(img.copy()) != frame_digest(other)
+    assert frame_digest(img[:, ::2]) == frame_digest(np.ascontiguousarray(img[:, ::2]))  # a strided view as its copy
+    frames = iter([img, img])
+    cam = SimCamera(lambda i: next(frames))
+    assert cam.stale_check is False
+    cam.grab(), cam.grab()
+    assert cam._last_digest is None  # nothing hashed when the check is off

@@ -14,6 +14,7 @@ from layerwatch.analysis.frame_quality import (
     FrameQualitySettings,
     assess_frame,
     blockiness,
+    compact_previous,
     marker_shift_px,
     noise_sigma,
 )
@@ -145,3 +146,23 @@ def test_noise_and_blockiness_are_their_definitions_on_uint8_frames():
             per = d[:, :n].reshape(d.shape[0], -1, 8).mean(axis=(0, 1))
             ratios.append((per[7] + 0.5) / (np.delete(per, 7).mean() + 0.5))
         assert blockiness(g) == pytest.approx(float(np.mean(ratios)), rel=1e-12)
+
+
+def test_noise_of_a_pure_noise_frame_is_its_definition_past_the_histogram_of_small_responses():
+    """A median |response| of 255 or more (pure noise) is read from the full histogram: the same figure."""
+    g = np.random.default_rng(5).integers(0, 256, (240, 320), dtype=np.uint8)
+    resp = cv2.filter2D(g.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
+    assert np.median(np.abs(resp)) > 255
+    assert noise_sigma(g) == float(np.median(np.abs(resp)) / 0.6745 / 6.0)
+
+
+def test_a_frame_reduced_by_the_caller_is_judged_as_the_frame_itself():
+    """``small`` (the caller's compact_previous of the frame) gives the figures the gate computes itself."""
+    rng = np.random.default_rng(8)
+    frame = cv2.GaussianBlur(rng.integers(0, 256, (360, 1280, 3), dtype=np.uint8), (0, 0), 2.0)
+    prev = compact_previous(cv2.GaussianBlur(rng.integers(0, 256, (360, 1280, 3), dtype=np.uint8), (0, 0), 2.0))
+    own = assess_frame(frame, prev)
+    given = assess_frame(frame, prev, small=compact_previous(frame))
+    assert given.figures == own.figures and given.reasons == own.reasons and "change" in own.figures
+    with pytest.raises(ValueError, match="compact_previous"):
+        assess_frame(frame, prev, small=prev[:, :-1])

@@ -155,6 +155,15 @@ def _reduced(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
     return _shrunk(grey, width).astype(np.float32)
 
 
+def _given_small(small: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """A caller's reduced grey frame as :func:`_reduced` makes it (float32), checked for its size."""
+    h, w = shape[:2]
+    want = (max(1, round(h * WORK_WIDTH / w)), WORK_WIDTH) if w > WORK_WIDTH else (h, w)
+    if np.shape(small) != want:
+        raise ValueError(f"small has shape {np.shape(small)}, not {want}: pass compact_previous(frame)")
+    return np.asarray(small, np.float32)
+
+
 def compact_previous(image_bgr: np.ndarray) -> np.ndarray:
     """What :func:`assess_frame` needs of a frame passed later as ``previous``: its grey at ``WORK_WIDTH``.
 
@@ -179,7 +188,12 @@ def noise_sigma(grey: np.ndarray) -> float:
     resp = cv2.filter2D(g, cv2.CV_16S, _NOISE_KERNEL)[1:-1, 1:-1]  # exact: integer kernel, |response| <= 4080
     if resp.size == 0:
         return float("nan")
-    lo, hi = middle_values(np.bincount(np.abs(resp).ravel()))
+    # |response| saturated to 255 keeps the order of every smaller value: its 256-bin histogram (one
+    # OpenCV pass) gives the median exactly unless the median itself reaches 255 (a pure-noise frame)
+    low = cv2.calcHist([cv2.convertScaleAbs(resp)], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+    lo, hi = middle_values(low)
+    if hi >= 255:
+        lo, hi = middle_values(np.bincount(np.abs(resp).ravel()))
     return float(np.float32((lo + hi) / 2.0) / 0.6745 / 6.0)
 
 
@@ -272,7 +286,7 @@ def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str,
 
 def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarray] | None = None,
                  settings: FrameQualitySettings | None = None, *, markers_px: np.ndarray | None = None,
-                 expected_markers_px: np.ndarray | None = None) -> FrameQuality:
+                 expected_markers_px: np.ndarray | None = None, small: np.ndarray | None = None) -> FrameQuality:
     """Check one camera frame before analysis.
 
     Parameters
@@ -288,6 +302,9 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
         Bed-marker centres detected in this frame (see :mod:`layerwatch.geometry.markers`).
     expected_markers_px : ndarray, shape (M, 2), optional
         Where the markers are expected (the calibration's projection at this frame's size).
+    small : ndarray, uint8, shape (h, WORK_WIDTH), optional
+        :func:`compact_previous` of this frame when the caller has it (it keeps it as the next
+        frame's ``previous``): not reduced again.
 
     Returns
     -------
@@ -301,7 +318,7 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
     """
     s = settings or FrameQualitySettings()
     grey = grey_of(image_bgr)
-    small = _reduced(grey)
+    small = _reduced(grey) if small is None else _given_small(small, grey.shape)
     fig: dict[str, float] = {}
     reasons = _exposure_reasons(small, s, fig)
     fig["noise"] = noise_sigma(grey)

@@ -95,7 +95,7 @@ class PoolPipeline:
             v: Verdict = self.pool.run(analyse_remote, self.context, photo, layer_index, self.with_reference,
                                        key=self.key)
         else:
-            v = self.pool.run(analyse_on, self.local, photo, layer_index, self.with_reference)
+            v = self.pool.run(analyse_on, self.local, photo, layer_index, self.with_reference, True)
         self.last_top, self.last_thumb = v.top, v.thumb
         self._reference = (v.result.layer, v.reference) if v.reference is not None else None
         return v.result
@@ -106,16 +106,19 @@ class PoolPipeline:
             return self._reference[1]
         return self.local.reference(index)
 
-    def top_view(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+    def top_view(self, photo: np.ndarray, z: float,
+                 box: tuple[slice, slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`LayerPipeline.top_view` here (the monitor's lag check: the photo on the previous layer's plane)."""
-        top, valid = self.local.top_view(photo, z)
-        self.local.warper.clear(lookups=True)  # as after a layer: a printer holds no remap tables between frames
+        top, valid = self.local.top_view(photo, z, box)
+        self.local.warper.clear()  # the distortion lookup stays until the layer is recorded (:meth:`layer_done`)
         return top, valid
 
     def layer_done(self) -> None:
-        """The layer is recorded: drop its top view and reference (a printer holds nothing between layers)."""
+        """The layer is recorded: drop its top view, reference and the warper's distortion lookup (built again
+        in ~3 ms; a printer holds nothing between layers)."""
         self.last_top = self._reference = None
         self.local.forget_references()
+        self.local.warper.clear(lookups=True)
 
     def close(self) -> None:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""

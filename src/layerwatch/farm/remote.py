@@ -130,7 +130,8 @@ def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes 
     return png.tobytes() if ok else None
 
 
-def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:
+def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_reference: bool = False,
+               keep_lookup: bool = False) -> Verdict:
     """The per-layer step on ``pipe`` and the overlay thumbnail of its result.
 
     Parameters
@@ -143,6 +144,9 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_referenc
         0-based layer index.
     with_reference : bool
         Return the reference of an analysed layer too (:attr:`Verdict.reference`).
+    keep_lookup : bool
+        Keep the warper's distortion lookup: the caller warps this photo again (the monitor's lag
+        check on local threads) and drops it when the layer is recorded.
     """
     res = pipe.process(photo, layer)
     top = pipe.last_top if res.status == "ok" else None
@@ -150,7 +154,7 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_referenc
     pipe.last_top = pipe.last_valid = None  # the verdict carries the top view; a farm keeps hundreds of pipelines
     # the next layer has another height: its remap tables would only be held, never used; the distortion
     # lookup (2.2 MB at 1080p) is rebuilt in ~3 ms per layer rather than held by each of hundreds of printers
-    pipe.warper.clear(lookups=True)
+    pipe.warper.clear(lookups=not keep_lookup)
     ref = pipe.reference(res.layer) if with_reference and top is not None else None  # memoised: no second render
     return Verdict(res, top, thumb, ref)
 

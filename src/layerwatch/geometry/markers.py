@@ -25,7 +25,7 @@ import numpy as np
 from layerwatch.errors import MarkerError
 from layerwatch.geometry.warp import check_image
 
-__all__ = ["Blob", "detect_dots", "detect_aruco", "photo_problem", "to_grey"]
+__all__ = ["Blob", "confirm_dots", "detect_dots", "detect_aruco", "photo_problem", "to_grey"]
 
 
 @dataclass(frozen=True)
@@ -171,6 +171,47 @@ def detect_dots(photo: np.ndarray, *, max_candidates: int = 12, min_contrast: fl
                 blobs = [o for i, o in enumerate(blobs) if i not in same] + [blob]
     blobs.sort(key=lambda b: -b.score)
     return blobs[:max_candidates]
+
+
+def confirm_dots(photo: np.ndarray, expected_px: np.ndarray, areas_px2: np.ndarray,
+                 tolerance_px: float) -> np.ndarray:
+    """Centres of the dot markers found where they are expected, measured there alone (no search).
+
+    A dot of known area is refined (the coverage centroid :func:`detect_dots` uses) in a box of
+    its radius plus ``tolerance_px`` around its expected centre; it is *confirmed* when the
+    centroid lies within ``tolerance_px`` of that centre and the measured area is within a factor 2
+    of ``areas_px2``. A few boxes instead of the whole frame: the cheap check of a camera that did
+    not move (:class:`~layerwatch.monitor.marker_watch.MarkerWatch`).
+
+    Parameters
+    ----------
+    photo : ndarray, shape (h, w) or (h, w, 3)
+        BGR or grey camera frame (a grey one is used as it is).
+    expected_px : ndarray, shape (M, 2)
+        Expected centres (u, v), px.
+    areas_px2 : ndarray, shape (M,)
+        Each dot's area as last detected (:attr:`Blob.area`), px^2; non-finite: not checked.
+    tolerance_px : float
+        Largest distance of a confirmed centre from its expected place, px.
+
+    Returns
+    -------
+    ndarray, shape (M, 2), float64
+        The confirmed centres; NaN rows for dots not confirmed.
+    """
+    grey = to_grey(photo)
+    expected = np.asarray(expected_px, np.float64).reshape(-1, 2)
+    areas = np.asarray(areas_px2, np.float64).reshape(-1)
+    out = np.full_like(expected, np.nan)
+    for i, ((u, v), area) in enumerate(zip(expected, areas, strict=True)):
+        if not (np.isfinite(area) and area > 0 and 0 <= u < grey.shape[1] and 0 <= v < grey.shape[0]):
+            continue
+        half = np.sqrt(area / np.pi) + tolerance_px
+        side = int(np.ceil(2 * half))
+        ref = _refine(grey, (int(round(u - half)), int(round(v - half)), side, side))
+        if ref is not None and np.hypot(ref[0] - u, ref[1] - v) <= tolerance_px and 0.5 <= ref[2] / area <= 2.0:
+            out[i] = ref[:2]
+    return out
 
 
 def _aruco_dictionary(name: str):

@@ -130,6 +130,18 @@ class TopViewWarper:
         if hit is not None:
             self._maps.move_to_end(key)
             return hit
+        src, valid = self._table(z, size)
+        map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)  # type: ignore[call-overload]  # stub rejects map2=None, which OpenCV accepts
+        self._invalid[key] = None if valid.all() else np.flatnonzero(~valid)
+        out = (map1, map2, valid)
+        self._maps[key] = out
+        while len(self._maps) > self.cache_size:
+            self._invalid.pop(self._maps.popitem(last=False)[0], None)
+        return out
+
+    def _table(self, z: float, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Source pixel of every top-view pixel of plane ``z`` (float32 (H, W, 2), far off where not seen) and ``valid``."""
+        w, h = size
         cam, S, lut = self._lookup(size)
         H_ti = top_from_image(cam, self.topview, z)
         hh, ww = self.topview.shape
@@ -147,13 +159,7 @@ class TopViewWarper:
             src = src.copy()
             valid &= depth_ok
             src[~depth_ok] = _FAR
-        map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)  # type: ignore[call-overload]  # stub rejects map2=None, which OpenCV accepts
-        self._invalid[key] = None if valid.all() else np.flatnonzero(~valid)
-        out = (map1, map2, valid)
-        self._maps[key] = out
-        while len(self._maps) > self.cache_size:
-            self._invalid.pop(self._maps.popitem(last=False)[0], None)
-        return out
+        return src, valid
 
     def clear(self, lookups: bool = False) -> None:
         """Drop the cached per-``z`` remap tables (about 2.4 MB each at 600 x 600 px).
@@ -183,7 +189,8 @@ class TopViewWarper:
         return (a[0] * u + a[1] * v + a[2]) > 1.0
 
     # -------------------------------------------------------------- warp
-    def warp(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+    def warp(self, photo: np.ndarray, z: float,
+             box: tuple[slice, slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Warp a photo into the top view of the plane ``Z = z``.
 
         Parameters
@@ -193,26 +200,49 @@ class TopViewWarper:
             calibration's aspect ratio.
         z : float
             Height of the layer's top surface, mm.
+        box : (slice, slice), optional
+            Only these rows and columns of the top view (``top[box]`` of the whole warp, pixel
+            for pixel, for the cost of the box: a check that reads a part's surroundings). The
+            table is not cached.
 
         Returns
         -------
         top : ndarray, uint8, shape (H, W) or (H, W, c)
-            Top view (``topview.shape``), 0 where the camera saw nothing.
+            Top view (``topview.shape``, or the box's), 0 where the camera saw nothing.
         valid : ndarray, bool, shape (H, W)
             True where the top-view pixel was inside the photo.
 
         Raises
         ------
         WarpError
-            Not an image, another aspect ratio than the calibration, no pose.
+            Not an image, another aspect ratio than the calibration, no pose, a box with a step.
         """
         photo = check_image(photo)
         h, w = photo.shape[:2]
+        if box is not None:
+            return self._warp_box(photo, z, box)
         map1, map2, valid = self.maps(z, (w, h))
         top = cv2.remap(photo, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         bad = self._invalid.get(self._key(z, (w, h)))
         if bad is not None:  # partly seen: blank what the camera did not see (no border blends)
             top.reshape(len(valid.flat), -1)[bad] = 0
+        return top, valid
+
+    def _warp_box(self, photo: np.ndarray, z: float, box: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`warp` of the rows and columns ``box`` only (its table is the whole warp's, cropped)."""
+        if any(sl.step not in (None, 1) for sl in box):
+            raise WarpError(f"box {box} must be two slices without a step.")
+        h, w = photo.shape[:2]
+        hit = self._maps.get(self._key(z, (w, h)))
+        if hit is not None:  # the whole table is cached anyway
+            map1, map2, valid = (m[box] for m in hit)
+        else:
+            src, valid = self._table(z, (w, h))
+            src, valid = np.ascontiguousarray(src[box]), valid[box]
+            map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)  # type: ignore[call-overload]  # as in maps()
+        top = cv2.remap(photo, np.ascontiguousarray(map1), np.ascontiguousarray(map2), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        top[~valid] = 0  # as the whole warp blanks what the camera did not see
         return top, valid
 
     @staticmethod

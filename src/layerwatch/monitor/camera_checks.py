@@ -45,14 +45,8 @@ once, as a camera fault ("camera lagging"). No timestamps are used: the
 cameras layerwatch reads (MJPEG/snapshot URLs, Moonraker webcams) give none
 that can be trusted against the printer's trigger.
 
-**A camera that moved** (:class:`MarkerWatch`). With a calibration that
-recorded the bed markers (``CameraModel.markers_mm``), each frame's markers
-are detected (:mod:`layerwatch.geometry.markers`, the dots on a copy at most
-:data:`MARKER_SIDE_PX` px wide, the centres refined at full size) and
-compared with the calibration's projection at the frame's size
-(:func:`~layerwatch.analysis.frame_quality.marker_shift_px`): visible markers
-away from their place are a camera fault; markers hidden (by spaghetti, the
-head, a part) give no verdict.
+**A camera that moved** (:class:`~layerwatch.monitor.marker_watch.MarkerWatch`,
+re-exported here): each frame's bed markers against the calibration's projection.
 """
 
 from __future__ import annotations
@@ -67,9 +61,7 @@ import numpy as np
 from layerwatch.analysis.extrusion import block_ncc, highpass
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer
-from layerwatch.geometry.camera import CameraModel
-from layerwatch.geometry.markers import detect_aruco, detect_dots
-from layerwatch.geometry.synthetic import project_points
+from layerwatch.monitor.marker_watch import MarkerWatch
 from layerwatch.pipeline.policy import PolicySettings
 
 __all__ = ["LAG_EXPLAINED_SHARE", "STILL_SHARE", "PRINTED_SHARE", "LagVerdict", "LateCheck", "LateStream", "MarkerWatch", "Progress",
@@ -83,10 +75,6 @@ LAG_EXPLAINED_SHARE = 0.25
 
 #: how far from the previous layer's own area a change beside the print may lie and still be that layer, mm
 BESIDE_MARGIN_MM = 2.0
-
-#: longest side of the copy the dot markers are looked for in, px (centres are refined at full size)
-MARKER_SIDE_PX = 960
-
 
 def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
     """Whether an analysed layer's result could count toward a pause (the lag check runs only then).
@@ -179,7 +167,7 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     Parameters
     ----------
     pipeline : LayerPipeline
-        Anything with ``reference(i)``, ``top_view(photo, z)``, ``topview`` and
+        Anything with ``reference(i)``, ``top_view(photo, z, box=None)``, ``topview`` and
         ``config.analysis`` (:class:`~layerwatch.pipeline.step.LayerPipeline`, or a wrapper
         that forwards them); its state (scene channel, last top view) is not touched.
     photo : ndarray, uint8, shape (h, w, 3)
@@ -189,8 +177,7 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     policy : PolicySettings
         ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
     top : (ndarray, ndarray), optional
-        ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it
-        (:meth:`LateStream.progress` warps there too).
+        ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it.
 
     Returns
     -------
@@ -400,18 +387,17 @@ class LateStream:
             return
         self._seen = _Seen(layer, ref.z, box, np.ascontiguousarray(top[box]), np.ascontiguousarray(zone[box]))
 
-    def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> tuple[Progress, Any] | None:
-        """Progress of frame ``layer`` since the remembered frame, and this frame's top view on that frame's
-        plane (``(top, valid)``); None when no frame is remembered or the view cannot be made."""
+    def progress(self, pipeline: Any, photo: np.ndarray, layer: int) -> Progress | None:
+        """Progress of frame ``layer`` since the remembered frame (this frame warped on that frame's plane,
+        only in the remembered box); None when no frame is remembered."""
         seen = self._seen
         if seen is None or layer <= seen.layer:
             return None
-        top, valid = pipeline.top_view(photo, seen.z)
+        top, valid = pipeline.top_view(photo, seen.z, seen.box)
         zone = seen.zone.copy()  # the layers printed between the two pictures (a dilation of a union is
         for i in range(seen.layer + 1, layer):  # the union of the dilations: no re-render of the remembered one)
             zone |= _zone(pipeline.reference(i).footprint, pipeline.topview)[seen.box]
-        p = progress_between(top[seen.box], seen.top, valid[seen.box], zone)
-        return p, ((top, valid) if seen.layer == layer - 1 else None)
+        return progress_between(top, seen.top, valid, zone)
 
     def interrupted(self) -> None:
         """A frame was unusable (repeat, black, no image...): the stream may come back late."""
@@ -442,9 +428,8 @@ class LateStream:
         never), updates the series and remembers this frame. Raises what the pipeline raises.
         """
         counts = counts_toward_pause(res, policy)
-        seen = self.progress(pipeline, photo, res.layer)
-        progress, top = seen if seen is not None else (None, None)
-        verdict = previous_layer_explains(pipeline, photo, res, policy, top) if counts else None
+        progress = self.progress(pipeline, photo, res.layer)
+        verdict = previous_layer_explains(pipeline, photo, res, policy) if counts else None
         self.remember(pipeline, res.layer, _top_of(pipeline, photo, res))
         lagged = verdict is not None and verdict.lagged
         why = self.excuse(verdict, progress, res) if verdict is not None and lagged else None
@@ -516,54 +501,3 @@ def _box(mask: np.ndarray, topview: Any) -> tuple[slice, slice] | None:
     (v0, v1), (u0, u1) = np.flatnonzero(rows)[[0, -1]], np.flatnonzero(cols)[[0, -1]]
     h, w = mask.shape
     return slice(max(v0 - r, 0), min(v1 + r + 1, h)), slice(max(u0 - r, 0), min(u1 + r + 1, w))
-
-
-class MarkerWatch:
-    """The calibration's bed markers: where a frame should show them, and where it does.
-
-    Parameters
-    ----------
-    camera : CameraModel
-        Calibrated with markers (``markers_mm`` and a pose).
-    kind : {"dots", "aruco"}
-        Marker kind (default: the camera model's).
-    dictionary : str
-        ArUco dictionary for ``kind="aruco"``.
-    """
-
-    def __init__(self, camera: CameraModel, kind: str | None = None, dictionary: str = "DICT_4X4_50") -> None:
-        if not camera.has_pose or camera.markers_mm is None:
-            raise ValueError("the camera model has no marker pose; calibrate with --markers")
-        self.camera, self.dictionary = camera, dictionary
-        self.kind = kind or camera.marker_kind or "dots"
-        self._expected: dict[tuple[int, int], np.ndarray] = {}
-
-    @classmethod
-    def of_pipeline(cls, pipeline: Any) -> MarkerWatch | None:
-        """The watch for a pipeline's camera (``pipeline.camera``, ``pipeline.config.markers``), or None."""
-        cam = getattr(pipeline, "camera", None)
-        if not isinstance(cam, CameraModel) or not cam.has_pose or cam.markers_mm is None:
-            return None
-        markers = getattr(getattr(pipeline, "config", None), "markers", None)
-        return cls(cam, getattr(markers, "kind", None), getattr(markers, "aruco_dictionary", "DICT_4X4_50"))
-
-    def expected_px(self, size: tuple[int, int]) -> np.ndarray:
-        """Marker centres the calibration predicts in a frame of ``size`` = (w, h), shape (M, 2) px."""
-        key = (int(size[0]), int(size[1]))
-        if key not in self._expected:
-            assert self.camera.markers_mm is not None  # checked in __init__
-            self._expected[key] = project_points(self.camera.scaled_to(key), self.camera.markers_mm)
-        return self._expected[key]
-
-    def found_px(self, photo: np.ndarray) -> np.ndarray:
-        """Marker candidates detected in ``photo``, shape (K, 2) px (K may be 0)."""
-        if self.kind == "aruco":
-            found = detect_aruco(photo, self.dictionary)
-            return np.array([v for _, v in sorted(found.items())], np.float64).reshape(-1, 2)
-        return np.array([b.center for b in detect_dots(photo, max_candidates=20, max_side_px=MARKER_SIDE_PX)],
-                        np.float64).reshape(-1, 2)
-
-    def __call__(self, photo: np.ndarray) -> dict[str, np.ndarray]:
-        """``markers_px`` and ``expected_markers_px`` for :func:`assess_frame` (at the photo's size)."""
-        h, w = photo.shape[:2]
-        return {"markers_px": self.found_px(photo), "expected_markers_px": self.expected_px((w, h))}

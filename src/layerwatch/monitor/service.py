@@ -56,6 +56,7 @@ from layerwatch.analysis.frame_quality import (
     FrameQualitySettings,
     assess_frame,
     compact_previous,
+    grey_of,
 )
 from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
@@ -199,7 +200,8 @@ class Monitor:
         self._camera_fault = FaultTracker("camera", after_n=self.faults.camera_alert_after)
         self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
         self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
-        self._markers = MarkerWatch.of_pipeline(pipeline) if self.frame_quality is not None else None
+        self._markers = (MarkerWatch.of_pipeline(pipeline, self.frame_quality.max_marker_shift_px)
+                         if self.frame_quality is not None else None)
         self._late_stream = LateStream(self.faults.camera_alert_after)  # analysis thread only
         self._lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
 
@@ -312,12 +314,15 @@ class Monitor:
         if self.frame_quality is None:
             return None
         try:
-            quality = assess_frame(photo, self._last_good, self.frame_quality, **self._marker_positions(photo))
+            grey = grey_of(photo)  # converted once: the gate's checks, the markers and the next frame's "previous"
+            small = compact_previous(grey)  # reduced once: the gate's and, if it passes, the next frame's previous
+            quality = assess_frame(grey, self._last_good, self.frame_quality, small=small,
+                                   **self._marker_positions(grey))
         except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
             log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", trigger.layer)
             return None
         if quality.ok:
-            self._last_good = compact_previous(photo)  # not the frame: a farm holds one per printer
+            self._last_good = small  # not the frame: a farm holds one per printer
             return None
         res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT,
                           message="unusable frame: " + "; ".join(quality.reasons))
@@ -325,7 +330,7 @@ class Monitor:
         return res
 
     def _marker_positions(self, photo: np.ndarray) -> dict[str, np.ndarray]:
-        """Detected and expected bed markers for the gate (empty without a marker calibration)."""
+        """Detected and expected bed markers for the gate (empty without a marker calibration); ``photo`` BGR or grey."""
         if self._markers is None:
             return {}
         try:
