@@ -78,6 +78,7 @@ from layerwatch.analysis.scene_change import (
     working_size,
 )
 from layerwatch.analysis.settings import SceneSettings
+from layerwatch.analysis.view_shift import masked_phase_shift
 from layerwatch.errors import CalibrationError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.markers import detect_dots
@@ -457,14 +458,8 @@ class SceneModel:
     def _view_shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> tuple[float, float] | None:
         """Shift ``(dx, dy)`` of the photo's usable area against ``E``, working px (phase correlation);
         None where the area is too small, dark or flat to tell."""
-        a, b = channel_mean(img), channel_mean(E)
-        if usable.sum() < 1000 or a[usable].std() < 3 or b[usable].std() < 3:
-            return None  # dark, flat or hidden: the gain check decides
-        a = np.where(usable, a, a[usable].mean())  # the print is not part of the bed photo
-        b = np.where(usable, b, b[usable].mean())
-        win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
-        (dx, dy), _ = cv2.phaseCorrelate(b.astype(np.float32), a.astype(np.float32), win)
-        return float(dx), float(dy)
+        # dark, flat or hidden (None): the gain check decides; the print is not part of the bed photo
+        return masked_phase_shift(channel_mean(img), channel_mean(E), usable, min_std=3.0)
 
     @classmethod
     def _shift(cls, img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> str | None:

@@ -71,6 +71,7 @@ from layerwatch.analysis.failure_typing import FailureTyper
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
+from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_back
 from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
@@ -191,6 +192,8 @@ class LayerPipeline:
         self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo,
                                  reach_mm=_grown(reach, 0.5 * float(np.nanmax(toolpath.width))), top_z_mm=top_z)
                       if self.config.scene.enabled else None)
+        #: the residual camera shift undone before the comparison (``[analysis] register_mm``)
+        self.view_shift = ViewShift(self.config.analysis.register_mm * self.topview.px_per_mm)
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview)
         #: the empty-bed, first-layer and nothing-extruded checks
@@ -284,6 +287,7 @@ class LayerPipeline:
         """Forget the scene of the previous print (the scene channel starts again from ``bed_photo``)."""
         self.previous_photo = None
         self.typer.reset()
+        self.view_shift.reset()
         if self.scene is not None:
             self.scene.reset(bed_photo)
         self.checks.new_print(bed_photo)
@@ -377,10 +381,14 @@ class LayerPipeline:
             t1 = time.perf_counter()
             timings["reference"] = (t1 - t0) * 1e3 - timings.get("scene", 0.0)
             top_bgr, top, valid = self._top_views(photo, ref.z)
+            shift = self.view_shift.update(measure_view_shift(top, ref.image, ref.footprint, valid)
+                                           if self.view_shift.max_px > 0 else None)
+            top, valid, top_bgr = moved_back(shift, top, valid, top_bgr)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
             res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
                                 z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog)
+            res.view_shift_px = shift
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid)
             t_type = time.perf_counter()
