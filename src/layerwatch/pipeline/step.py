@@ -68,7 +68,9 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.failure_typing import FailureTyper
+from layerwatch.analysis.ledges import ledge_regions
 from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scene_change import working_to_top
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_back
@@ -413,11 +415,27 @@ class LayerPipeline:
         t = time.perf_counter()
         h, w = np.asarray(photo).shape[:2]
         self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)
+        self._hidden_ledges(res, obs, z, (w, h), valid)
         self.scene.update(obs)
         ms = obs.ms + (time.perf_counter() - t) * 1e3
         res.timings_ms["scene"] = ms
         if res.scene is not None:
             res.scene.ms = round(ms, 3)
+
+    def _hidden_ledges(self, res: LayerResult, obs: SceneObservation, z: float, photo_size: tuple[int, int],
+                       valid: np.ndarray) -> None:
+        """Lower floors no earlier photo showed, judged by the reference's HOG (:mod:`layerwatch.analysis.ledges`):
+        their failing regions join the change beside the printed layer."""
+        hidden = obs.hidden_ledges
+        if hidden is None or not hidden.any() or res.heatmap is None or res.mask is None:
+            return
+        st = self.config.analysis
+        top = (working_to_top(hidden.view(np.uint8), self.warper, z, photo_size) > 0) & valid
+        found = ledge_regions(res.heatmap, res.mask, top, st.threshold, st.cell_px, st.block_cells, self.topview,
+                              self.config.scene.min_region_mm2)
+        if found:
+            res.outside_regions = sorted(res.outside_regions + found, key=lambda r: -r.area_mm2)
+            res.outside_anomalous_mm2 += float(sum(r.area_mm2 for r in found))
 
     def _frame_rejected(self, photo: np.ndarray) -> str | None:
         """The frame-quality hook (module notes): ``None`` when the frame may be analysed, else the reason."""
