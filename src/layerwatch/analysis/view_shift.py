@@ -19,7 +19,8 @@ channel has the same problem with its bed photo (:mod:`layerwatch.pipeline.scene
   estimate is noisy.
 * :class:`ViewShift` keeps the last estimates of a print: the camera moves
   slowly, so the shift undone is the median of the last :data:`MEMORY`
-  estimates rounded to whole pixels, when it is at most ``max_px`` (a real
+  estimates rounded to whole pixels (components below :data:`DEAD_ZONE_PX`
+  are left: the model's own disagreement), when it is at most ``max_px`` (a real
   displacement, a layer shift or a detached part of a few mm, is never
   registered away). Whole pixels keep the photo's pixels as they are (no
   resampling blur); the residual of half a pixel is far below an 8-px HOG cell.
@@ -40,7 +41,7 @@ import numpy as np
 from layerwatch.analysis.part_registration import edges, mask_box, pad_box
 from layerwatch.errors import AnalysisError
 
-__all__ = ["MEMORY", "MIN_PIXELS", "NEAR_PX", "ViewShift", "masked_phase_shift", "measure_view_shift", "moved_back"]
+__all__ = ["DEAD_ZONE_PX", "MEMORY", "MIN_PIXELS", "NEAR_PX", "ViewShift", "masked_phase_shift", "measure_view_shift", "moved_back"]
 
 #: fewest usable pixels (and a spread of at least ``MIN_STD`` in both images) to measure a shift
 MIN_PIXELS = 1000
@@ -49,6 +50,10 @@ MIN_STD = 1e-3
 NEAR_PX = 16
 #: estimates of a print whose median is undone
 MEMORY = 5
+#: a median component below this (px) is not undone: a photo and its rendering disagree by up to about a
+#: pixel on clean layers (walls, the floors seen beside them; 0.5-0.9 px on the simulator's clean prints
+#: with the camera where it was calibrated), and a pixel does not move an edge out of an 8-px HOG cell
+DEAD_ZONE_PX = 1.0
 
 
 def masked_phase_shift(moving: np.ndarray, fixed: np.ndarray, usable: np.ndarray,
@@ -162,7 +167,8 @@ class ViewShift:
         med = np.median(np.asarray(self._seen), axis=0)
         if np.hypot(*med) > self.max_px:
             return 0, 0
-        return int(round(float(med[0]))), int(round(float(med[1])))
+        whole = np.where(np.abs(med) >= DEAD_ZONE_PX, np.round(med), 0.0)
+        return int(whole[0]), int(whole[1])
 
 
 def moved_back(shift: tuple[int, int], top: np.ndarray, valid: np.ndarray,
