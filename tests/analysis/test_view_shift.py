@@ -84,10 +84,10 @@ def test_view_shift_undoes_the_median_of_the_last_estimates_and_never_a_large_on
     assert got == (2, 2)
     assert vs.update((12.0, 3.0)) == (2, 2)  # a layer shift of ~2 mm: not taken as the camera's move
     for _ in range(MEMORY):
-        vs.update((-1.2, 0.2))
-    assert vs.update(None) == (-1, 0)  # the camera moved again: followed within MEMORY layers
+        vs.update((-2.2, 0.2))
+    assert vs.update(None) == (-2, 0)  # the camera moved again: followed within MEMORY layers
     for _ in range(MEMORY):
-        vs.update((0.8, -0.7))
+        vs.update((1.3, -0.7))
     assert vs.update(None) == (0, 0)  # below DEAD_ZONE_PX: the rendering's own disagreement, left alone
     vs.reset()
     assert vs.update(None) == (0, 0)

@@ -51,9 +51,10 @@ NEAR_PX = 16
 #: estimates of a print whose median is undone
 MEMORY = 5
 #: a median component below this (px) is not undone: a photo and its rendering disagree by up to about a
-#: pixel on clean layers (walls, the floors seen beside them; 0.5-0.9 px on the simulator's clean prints
-#: with the camera where it was calibrated), and a pixel does not move an edge out of an 8-px HOG cell
-DEAD_ZONE_PX = 1.0
+#: pixel on clean layers (walls, the floors seen beside them, strands beside the part: 0.5-1.1 px on the
+#: simulator's prints with the camera where it was calibrated), and a pixel does not move an edge out of
+#: an 8-px HOG cell
+DEAD_ZONE_PX = 1.5
 
 
 def masked_phase_shift(moving: np.ndarray, fixed: np.ndarray, usable: np.ndarray,
