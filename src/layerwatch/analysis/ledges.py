@@ -83,12 +83,13 @@ def ledge_regions(heat: np.ndarray, considered: np.ndarray, ledges_top: np.ndarr
     cell_px, block_cells : int
     topview : TopView
     min_area_mm2 : float
-        Smaller regions are dropped.
+        Regions below this area (mm^2 on the layer plane) are left out.
 
     Returns
     -------
     list of Region
-        Largest first, in bed mm (``outside_fraction`` 1).
+        :func:`~layerwatch.analysis.scene_change.change_regions` of the failing
+        tiles: bed mm, largest first, ``outside_fraction`` 1.
 
     Raises
     ------
