@@ -253,6 +253,10 @@ class LayerResult:
         acts on it at once.
     check_regions : list of Region
         What the checks found (bed mm), each with its ``kind``.
+    view_shift_px : (int, int)
+        Residual shift of the photo's top view against the reference that was
+        undone before the comparison, top-view px (``[analysis] register_mm``,
+        :mod:`layerwatch.analysis.view_shift`); ``(0, 0)`` when none.
     """
 
     layer: int
@@ -288,6 +292,7 @@ class LayerResult:
     scene: SceneStats | None = None
     failed_check: str = ""
     check_regions: list[Region] = field(default_factory=list)
+    view_shift_px: tuple[int, int] = (0, 0)
 
     @property
     def ok(self) -> bool:
@@ -323,6 +328,8 @@ class LayerResult:
             if "gain" in fields:
                 fields["gain"] = tuple(fields["gain"])
             d["scene"] = SceneStats(**fields)
+        if d.get("view_shift_px") is not None:
+            d["view_shift_px"] = tuple(int(v) for v in d["view_shift_px"])
         heat = d.pop("heatmap", None)
         mask = d.pop("mask", None)
         for key, value in (d.pop("extra", None) or {}).items():  # rows written before the typed fields

@@ -52,9 +52,10 @@ from layerwatch.analysis.settings import SceneSettings
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.geometry.warp import TopViewWarper
 
 __all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
-           "predicted_change", "rays_over", "to_working", "top_coords", "working_size"]
+           "predicted_change", "rays_over", "to_working", "top_coords", "working_size", "working_to_top"]
 
 #: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
 OUTLIER_LOG = 0.2
@@ -439,6 +440,24 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
     strong = score > SHADE_LIMIT * threshold
     changed = scored & (score > threshold) & (strong | (shade_free > thr2))
     return ChangeMap(score, scored, changed, threshold, noise, b)
+
+
+def working_to_top(work: np.ndarray, warper: TopViewWarper, z: float, photo_size: tuple[int, int]) -> np.ndarray:
+    """A working-image label map (uint8 (h, w), 0 = nothing) in the top view of the plane ``Z = z``.
+
+    Scaled to the photo's size and warped with the pipeline's own top-view
+    maps (the photo's homography and lens model), nearest neighbour, so the
+    labels land where the warped photo shows the same pixels.
+
+    Returns
+    -------
+    ndarray, uint8, shape (H, W)
+        0 outside what the camera saw.
+    """
+    full = cv2.resize(np.asarray(work, np.uint8), photo_size, interpolation=cv2.INTER_NEAREST)
+    map1, map2, _ = warper.maps(z, photo_size)
+    return np.asarray(cv2.remap(full, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+                      np.uint8)
 
 
 def change_regions(changed: np.ndarray, similarity: np.ndarray, topview: TopView,

@@ -33,8 +33,8 @@ class AnalysisSettings(Section):
     blocks, 9 bins, 5 mm footprint margin, no pre-filter). Every verb runs
     the evaluation's recommended values over them unless ``--paper-settings``
     is given: jaccard, T_S 0.20, margin 0 mm, ``presmooth_px`` 1.25,
-    ``flat_tolerance`` 1.5, ``grow_threshold`` 0.2, ``grow_margin_mm`` 5
-    (:data:`layerwatch.pipeline.config.RECOMMENDED`; ``layerwatch config show``
+    ``flat_tolerance`` 1.5, ``grow_threshold`` 0.2, ``grow_margin_mm`` 5,
+    ``register_mm`` 0.6 (:data:`layerwatch.pipeline.config.RECOMMENDED`; ``layerwatch config show``
     prints the values in force and their sources).
 
     Attributes
@@ -50,7 +50,7 @@ class AnalysisSettings(Section):
         Blocks within this distance of the layer's footprint count, mm; default 5.
     min_region_blocks : int
         Smallest group of anomalous blocks kept.
-    min_gradient, flat_tolerance, presmooth_px, grow_threshold, grow_margin_mm
+    min_gradient, flat_tolerance, presmooth_px, grow_threshold, grow_margin_mm, register_mm
         See the comments at each field below.
 
     References
@@ -93,6 +93,12 @@ class AnalysisSettings(Section):
     # displaced part); regions still have to start on the considered blocks.
     # Values below footprint_margin_mm mean the footprint margin.
     grow_margin_mm: float = Field(0.0, ge=0)
+    # Registration before the comparison: a residual shift of the photo's top
+    # view against the reference up to this size (a camera mount that moved
+    # by a pixel or two) is measured on the print's box and undone
+    # (:mod:`layerwatch.analysis.view_shift`); a larger one is left alone (a
+    # real displacement). mm on the layer plane; 0 = off (the paper).
+    register_mm: float = Field(0.0, ge=0, le=5)
 
 
 class SceneSettings(Section):

@@ -76,8 +76,10 @@ from layerwatch.analysis.scene_change import (
     to_working,
     top_coords,
     working_size,
+    working_to_top,
 )
 from layerwatch.analysis.settings import SceneSettings
+from layerwatch.analysis.view_shift import masked_phase_shift
 from layerwatch.errors import CalibrationError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.markers import detect_dots
@@ -217,6 +219,11 @@ class SceneObservation:
         ``P``: the whole printed body as the camera sees it, ``M`` included.
     ledges : ndarray, bool, shape (h, w) or None
         The part of ``P`` that shows earlier layers' top surfaces (scored outside ``M``).
+    hidden_ledges : ndarray, bool, shape (h, w) or None
+        Earlier layers' top surfaces inside ``M``: lower floors that no earlier
+        photo of the series showed (in single-photo mode all of them), so the
+        change beside the print cannot judge them; the reference's HOG does
+        (:func:`~layerwatch.analysis.ledges.ledge_regions`).
     change : ChangeMap or None
         Changed blocks outside ``M`` (``None`` without a baseline).
     ratio : ndarray, float32, shape (h, w, 3) or None
@@ -237,6 +244,7 @@ class SceneObservation:
     predicted: np.ndarray | None = None
     body: np.ndarray | None = None
     ledges: np.ndarray | None = None
+    hidden_ledges: np.ndarray | None = None
     change: ChangeMap | None = None
     ratio: np.ndarray | None = None
     gain: np.ndarray | None = None
@@ -431,7 +439,10 @@ class SceneModel:
             fp, z0, z1 = footprints(j)
             band = self._predicted(fp, np.array([z0, z1]), st.margin_mm)
             predicted |= band
-            ledges = (ledges & ~band) | self._predicted(fp, np.array([z1]), -st.margin_mm)
+            ledges &= ~band
+            if j == obs.layer:  # lower floors inside M: no earlier photo of this series showed them
+                obs.hidden_ledges = ledges & predicted
+            ledges |= self._predicted(fp, np.array([z1]), -st.margin_mm)
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
@@ -457,14 +468,8 @@ class SceneModel:
     def _view_shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> tuple[float, float] | None:
         """Shift ``(dx, dy)`` of the photo's usable area against ``E``, working px (phase correlation);
         None where the area is too small, dark or flat to tell."""
-        a, b = channel_mean(img), channel_mean(E)
-        if usable.sum() < 1000 or a[usable].std() < 3 or b[usable].std() < 3:
-            return None  # dark, flat or hidden: the gain check decides
-        a = np.where(usable, a, a[usable].mean())  # the print is not part of the bed photo
-        b = np.where(usable, b, b[usable].mean())
-        win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
-        (dx, dy), _ = cv2.phaseCorrelate(b.astype(np.float32), a.astype(np.float32), win)
-        return float(dx), float(dy)
+        # dark, flat or hidden (None): the gain check decides; the print is not part of the bed photo
+        return masked_phase_shift(channel_mean(img), channel_mean(E), usable, min_std=3.0)
 
     @classmethod
     def _shift(cls, img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> str | None:
@@ -592,9 +597,7 @@ class SceneModel:
         code = np.repeat(np.repeat(code, c.block_px, 0), c.block_px, 1)
         work = np.zeros((h, w), np.uint8)
         work[: code.shape[0], : code.shape[1]] = code[:h, :w]
-        full = cv2.resize(work, photo_size, interpolation=cv2.INTER_NEAREST)
-        map1, map2, _ = warper.maps(z, photo_size)
-        top = cv2.remap(full, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        top = working_to_top(work, warper, z, photo_size)
         changed = top > 0
         if valid is not None:
             changed &= valid

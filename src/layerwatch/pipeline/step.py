@@ -68,9 +68,12 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.failure_typing import FailureTyper
+from layerwatch.analysis.ledges import ledge_regions
 from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scene_change import working_to_top
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
+from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_back
 from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
@@ -191,6 +194,8 @@ class LayerPipeline:
         self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo,
                                  reach_mm=_grown(reach, 0.5 * float(np.nanmax(toolpath.width))), top_z_mm=top_z)
                       if self.config.scene.enabled else None)
+        #: the residual camera shift undone before the comparison (``[analysis] register_mm``)
+        self.view_shift = ViewShift(self.config.analysis.register_mm * self.topview.px_per_mm)
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview)
         #: the empty-bed, first-layer and nothing-extruded checks
@@ -284,6 +289,7 @@ class LayerPipeline:
         """Forget the scene of the previous print (the scene channel starts again from ``bed_photo``)."""
         self.previous_photo = None
         self.typer.reset()
+        self.view_shift.reset()
         if self.scene is not None:
             self.scene.reset(bed_photo)
         self.checks.new_print(bed_photo)
@@ -384,10 +390,14 @@ class LayerPipeline:
             t1 = time.perf_counter()
             timings["reference"] = (t1 - t0) * 1e3 - timings.get("scene", 0.0)
             top_bgr, top, valid = self._top_views(photo, ref.z)
+            shift = self.view_shift.update(measure_view_shift(top, ref.image, ref.footprint, valid)
+                                           if self.view_shift.max_px > 0 else None)
+            top, valid, top_bgr = moved_back(shift, top, valid, top_bgr)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
             res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
                                 z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog)
+            res.view_shift_px = shift
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid)
             t_type = time.perf_counter()
@@ -412,11 +422,27 @@ class LayerPipeline:
         t = time.perf_counter()
         h, w = np.asarray(photo).shape[:2]
         self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)
+        self._hidden_ledges(res, obs, z, (w, h), valid)
         self.scene.update(obs)
         ms = obs.ms + (time.perf_counter() - t) * 1e3
         res.timings_ms["scene"] = ms
         if res.scene is not None:
             res.scene.ms = round(ms, 3)
+
+    def _hidden_ledges(self, res: LayerResult, obs: SceneObservation, z: float, photo_size: tuple[int, int],
+                       valid: np.ndarray) -> None:
+        """Lower floors no earlier photo showed, judged by the reference's HOG (:mod:`layerwatch.analysis.ledges`):
+        their failing regions join the change beside the printed layer."""
+        hidden = obs.hidden_ledges
+        if hidden is None or not hidden.any() or res.heatmap is None or res.mask is None:
+            return
+        st = self.config.analysis
+        top = (working_to_top(hidden.view(np.uint8), self.warper, z, photo_size) > 0) & valid
+        found = ledge_regions(res.heatmap, res.mask, top, st.threshold, st.cell_px, st.block_cells, self.topview,
+                              self.config.scene.min_region_mm2)
+        if found:
+            res.outside_regions = sorted(res.outside_regions + found, key=lambda r: -r.area_mm2)
+            res.outside_anomalous_mm2 += float(sum(r.area_mm2 for r in found))
 
     def _frame_rejected(self, photo: np.ndarray) -> str | None:
         """The frame-quality hook (module notes): ``None`` when the frame may be analysed, else the reason."""

@@ -1,0 +1,205 @@
+"""Residual view shift: a camera that moved by a pixel or two since it was calibrated.
+
+A camera mount flexes, a printer's frame rings and warms: the photo's top view
+(eqs. 1-3 with the calibrated pose) then lies a pixel or two beside the
+reference rendered from the G-code. Edges that are off by a pixel or two fall
+into the neighbouring HOG cell: on the example part a 3-px shift of a 1080p
+camera lifted a clean layer's a% to 2.7 % (a pause at layer 12). The scene
+channel has the same problem with its bed photo (:mod:`layerwatch.pipeline.scene`).
+
+* :func:`masked_phase_shift` measures the shift of one image against another
+  over the pixels that should agree (phase correlation, sub-pixel; the other
+  pixels are filled with the usable mean, so they add no edges).
+* :func:`measure_view_shift` measures it between the photo's top view and the
+  reference: on *edge images* (gradient magnitude, as the part registration
+  does: a photo and a rendering differ in shading but agree on where beads
+  and walls are), over the print's box and only near the footprint (bed
+  texture and clutter beside the print do not pull it). Photo and rendering
+  differ layer by layer by about a pixel (walls, lower layers), so one layer's
+  estimate is noisy.
+* :class:`ViewShift` keeps the last estimates of a print: the camera moves
+  slowly, so the shift undone is the median of the last :data:`MEMORY`
+  estimates rounded to whole pixels (components below :data:`DEAD_ZONE_PX`
+  are left: the model's own disagreement), when it is at most ``max_px`` (a real
+  displacement, a layer shift or a detached part of a few mm, is never
+  registered away). Whole pixels keep the photo's pixels as they are (no
+  resampling blur); the residual of half a pixel is far below an 8-px HOG cell.
+
+References
+----------
+Petsiuk & Pearce (2022), Section 2.3, eqs. (1)-(3) (the warp whose residual
+error this undoes) and Section 2.4 (the HOG comparison it protects).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import cv2
+import numpy as np
+
+from layerwatch.analysis.part_registration import edges, mask_box, pad_box
+from layerwatch.errors import AnalysisError
+
+__all__ = ["DEAD_ZONE_PX", "MEMORY", "MIN_PIXELS", "NEAR_PX", "ViewShift", "masked_phase_shift", "measure_view_shift", "moved_back"]
+
+#: fewest usable pixels (and a spread of at least ``MIN_STD`` in both images) to measure a shift
+MIN_PIXELS = 1000
+MIN_STD = 1e-3
+#: how far from the footprint (top-view px) the edges are used: two HOG blocks of 8-px cells
+NEAR_PX = 16
+#: estimates of a print whose median is undone
+MEMORY = 5
+#: a median component below this (px) is not undone: a photo and its rendering disagree by up to about a
+#: pixel on clean layers (walls, the floors seen beside them, strands beside the part: 0.5-1.1 px on the
+#: simulator's prints with the camera where it was calibrated), and a pixel does not move an edge out of
+#: an 8-px HOG cell
+DEAD_ZONE_PX = 1.5
+
+
+def masked_phase_shift(moving: np.ndarray, fixed: np.ndarray, usable: np.ndarray,
+                       min_std: float = MIN_STD) -> tuple[float, float] | None:
+    """Translation ``(dx, dy)``, px, with ``moving(x) ~ fixed(x - d)``, over the ``usable`` pixels.
+
+    Parameters
+    ----------
+    moving, fixed : ndarray, shape (H, W)
+        Images (any real dtype), the same size, at least 2 x 2 px.
+    usable : ndarray, bool, shape (H, W)
+        Pixels that show the same scene in both; the others are filled with
+        each image's usable mean before the Hann-windowed phase correlation.
+    min_std : float
+        Smallest standard deviation over the usable pixels of either image
+        that is not taken as flat (grey levels for a photo).
+
+    Returns
+    -------
+    (float, float) or None
+        ``None`` when fewer than :data:`MIN_PIXELS` are usable or either image
+        is flat there: nothing to tell.
+
+    Raises
+    ------
+    AnalysisError
+        The three arrays do not share one 2-D shape of at least 2 x 2 px.
+    """
+    a, b = np.asarray(moving, np.float32), np.asarray(fixed, np.float32)
+    ok = np.asarray(usable, bool)
+    if a.ndim != 2 or a.shape != b.shape or a.shape != ok.shape or min(a.shape) < 2:
+        raise AnalysisError(f"images {a.shape} and {b.shape} and mask {ok.shape} must share one 2-D shape "
+                            "of at least 2 x 2 px to measure a shift.")
+    if ok.sum() < MIN_PIXELS or a[ok].std() < min_std or b[ok].std() < min_std:
+        return None
+    a = np.where(ok, a, a[ok].mean()).astype(np.float32)
+    b = np.where(ok, b, b[ok].mean()).astype(np.float32)
+    win = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(b, a, win)
+    return float(dx), float(dy)
+
+
+def measure_view_shift(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
+                       valid: np.ndarray | None = None) -> tuple[float, float] | None:
+    """Shift ``(dx, dy)`` (top-view px) of the photo's top view against the reference, near the footprint.
+
+    Parameters
+    ----------
+    top, reference : ndarray, shape (H, W)
+        Grey top view of the photo and the layer's rendered reference.
+    footprint : ndarray, bool, shape (H, W)
+    valid : ndarray, bool, shape (H, W), optional
+        Pixels the camera saw (all when omitted).
+
+    Returns
+    -------
+    (float, float) or None
+        The photo's content lies at ``x + d``; ``None`` without a footprint or edges to register.
+
+    Raises
+    ------
+    AnalysisError
+        The arrays do not share one (H, W) shape.
+    """
+    fp = np.asarray(footprint, bool)
+    if np.shape(top) != fp.shape or np.shape(reference) != fp.shape or (valid is not None and np.shape(valid) != fp.shape):
+        raise AnalysisError(f"top view {np.shape(top)}, reference {np.shape(reference)}, footprint {fp.shape} and "
+                            f"valid {None if valid is None else np.shape(valid)} must have one (H, W) shape.")
+    fbox = mask_box(fp)
+    if fbox is None:
+        return None
+    box = pad_box(fbox, 2 * NEAR_PX, fp.shape)
+    k = 2 * NEAR_PX + 1
+    near = cv2.dilate(fp[box].astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    if valid is not None:
+        near &= np.asarray(valid, bool)[box]
+    if min(near.shape) < 2:
+        return None
+    return masked_phase_shift(edges(np.asarray(top)[box]), edges(np.asarray(reference)[box]), near)
+
+
+class ViewShift:
+    """The shift a print's photos are moved back by: median of the last estimates (module notes).
+
+    Parameters
+    ----------
+    max_px : float
+        Largest shift undone, top-view px; 0 turns registration off.
+    """
+
+    def __init__(self, max_px: float) -> None:
+        self.max_px = max(float(max_px), 0.0)
+        self._seen: deque[tuple[float, float]] = deque(maxlen=MEMORY)
+
+    def reset(self) -> None:
+        """A new print: forget the estimates."""
+        self._seen.clear()
+
+    def update(self, estimate: tuple[float, float] | None) -> tuple[int, int]:
+        """Take one layer's estimate (``None``: none) and return the whole-pixel ``(dx, dy)`` to undo.
+
+        Estimates beyond ``max_px`` are not kept (a real displacement, or no
+        reliable estimate); ``(0, 0)`` while the median is beyond it or off.
+        """
+        if self.max_px <= 0:
+            return 0, 0
+        if estimate is not None and np.all(np.isfinite(estimate)) and np.hypot(*estimate) <= self.max_px:
+            self._seen.append((float(estimate[0]), float(estimate[1])))
+        if not self._seen:
+            return 0, 0
+        med = np.median(np.asarray(self._seen), axis=0)
+        if np.hypot(*med) > self.max_px:
+            return 0, 0
+        whole = np.where(np.abs(med) >= DEAD_ZONE_PX, np.round(med), 0.0)
+        return int(whole[0]), int(whole[1])
+
+
+def moved_back(shift: tuple[int, int], top: np.ndarray, valid: np.ndarray,
+               colour: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``top``, ``valid`` and ``colour`` moved by ``-shift`` whole pixels: the photo onto the reference.
+
+    Parameters
+    ----------
+    shift : (int, int)
+        ``(dx, dy)`` top-view px (:meth:`ViewShift.update`).
+    top : ndarray, shape (H, W)
+        Grey top view.
+    valid : ndarray, bool, shape (H, W)
+        Pixels the camera saw; those that enter at the border are unseen.
+    colour : ndarray, shape (H, W, 3)
+        Colour top view.
+
+    Returns
+    -------
+    top, valid, colour : ndarray
+        New arrays (the image edge repeated where pixels enter), or the inputs themselves for ``(0, 0)``.
+    """
+    dx, dy = int(shift[0]), int(shift[1])
+    if dx == 0 and dy == 0:
+        return top, valid, colour
+    back = np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)
+    size = (int(np.shape(top)[1]), int(np.shape(top)[0]))
+
+    def move(img: np.ndarray, border: int) -> np.ndarray:
+        return cv2.warpAffine(np.ascontiguousarray(img), back, size, flags=cv2.INTER_NEAREST, borderMode=border)
+
+    seen = move(np.asarray(valid, np.uint8), cv2.BORDER_CONSTANT).astype(bool)
+    return move(top, cv2.BORDER_REPLICATE), seen, move(colour, cv2.BORDER_REPLICATE)
