@@ -28,7 +28,8 @@ from layerwatch.analysis.failure_typing import (
     region_evidence,
 )
 from layerwatch.analysis.overlay import overlay_image, region_label
-from layerwatch.analysis.part_registration import edges, mask_box
+from layerwatch.analysis.part_registration import edges, mask_box, moved_area
+from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.simulate.parts import box_part
 
@@ -148,6 +149,43 @@ def test_typer_types_every_region_and_reports_the_displacement_of_a_shift():
         assert r.kind == "layer_shift" and 0 < r.kind_confidence <= 1
         assert r.displacement_mm is not None
         assert np.hypot(r.displacement_mm[0] - 2.5, r.displacement_mm[1] + 1.0) < 0.5
+
+
+def _true_moved_area(foot: np.ndarray, shift_mm, turn_deg: float = 0.0) -> np.ndarray:
+    """The footprint XOR itself turned about CENTRE and shifted, as :func:`_part` moves the layer."""
+    h, w = foot.shape
+    M = cv2.getRotationMatrix2D(tuple(float(x) for x in TOPVIEW.to_px(CENTRE)), turn_deg, 1.0)
+    M[:, 2] += TOPVIEW.to_px(CENTRE + np.asarray(shift_mm)) - TOPVIEW.to_px(CENTRE)
+    return cv2.warpAffine(foot.astype(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST).astype(bool) ^ foot
+
+
+@pytest.mark.parametrize(("shift", "turn"), [((2.5, -1.0), 0.0), ((-1.5, 0.0), 0.0), ((2.5, 1.0), 6.0)])
+def test_a_moved_parts_regions_mark_where_it_is_and_where_it_should_be(shift, turn):
+    """Each moved-kind region carries the moved area (the registered outline XOR the planned one), not its blocks."""
+    top, ref, foot = _part(5, shift_mm=shift, turn_deg=turn)
+    res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108), _region(118, 95, 123, 105)])
+    motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+    assert motion is not None and motion.moved and motion.turned == (turn != 0.0)
+    truth = _true_moved_area(foot, shift, turn)
+    for r in res.regions:
+        assert r.kind in ("layer_shift", "detachment") and r.outline_mm
+        marked = outline_mask(r.outline_mm, TOPVIEW)
+        assert (marked & truth).sum() / (marked | truth).sum() > 0.7
+    # the blocks alone cover little of it
+    blocks = np.zeros_like(truth)
+    for r in res.regions:
+        blocks |= outline_mask(((r.bbox_mm[:2], (r.bbox_mm[2], r.bbox_mm[1]), r.bbox_mm[2:], (r.bbox_mm[0], r.bbox_mm[3])),),
+                               TOPVIEW)
+    assert (blocks & truth).sum() / (blocks | truth).sum() < 0.5
+
+
+def test_regions_of_a_part_that_did_not_move_have_no_outline():
+    top, ref, foot = _part(6)
+    res = LayerResult(layer=2, z=0.9, regions=[_region(104, 96, 108, 100)], outside_regions=[_region(122, 96, 126, 104)])
+    motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+    assert motion is not None and not motion.moved
+    assert all(r.outline_mm == () for r in (*res.regions, *res.outside_regions))
+    assert not moved_area(foot, motion, TOPVIEW).any()
 
 
 def test_typer_tells_an_object_from_strands_beside_the_part():

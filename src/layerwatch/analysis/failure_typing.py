@@ -79,7 +79,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from layerwatch.analysis.failure_kinds import UNKNOWN
+from layerwatch.analysis.failure_kinds import MOVED_KINDS, UNKNOWN
 from layerwatch.analysis.histogram import middle_values
 from layerwatch.analysis.part_registration import (
     EDGE_PAD_PX,
@@ -92,9 +92,11 @@ from layerwatch.analysis.part_registration import (
     PartMotion,
     edges,
     mask_box,
+    moved_area,
     pad_box,
     part_motion,
 )
+from layerwatch.analysis.region_outline import Outline, outline_mm
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
@@ -244,14 +246,31 @@ class _Scene:
         return _hist_median(hist) if hist[0].sum() > 50 else None
 
     @cached_property
-    def _solid(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
-        """The part's outline with the gaps of sparse infill and holes closed ("inside the part"), on its box."""
+    def _closed(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """The part's outline with the gaps of sparse infill (up to 3 mm) closed, on its box (padded), bool."""
         if self.fp_box is None:
             return None
         k2 = max(3, int(round(3.0 * self.topview.px_per_mm)) | 1)
         crop = pad_box(self.fp_box, k2 + 1, self.shape)
         closed = cv2.morphologyEx(self.fp[crop].astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8))
+        return crop, closed.astype(bool)
+
+    @cached_property
+    def _solid(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """The closed outline (:attr:`_closed`) with its holes filled ("inside the part"), on its box."""
+        if self._closed is None:
+            return None
+        crop, closed = self._closed
         return crop, fill_holes(closed)
+
+    def moved_outline(self, motion: PartMotion) -> Outline:
+        """Where the moved layer is and should not be, and where it should be and is not, bed mm (:func:`moved_area`)."""
+        if self._closed is None or not motion.moved:
+            return ()
+        crop, closed = self._closed
+        outline = np.zeros(self.shape, bool)
+        outline[crop] = closed
+        return outline_mm(moved_area(outline, motion, self.topview), self.topview)
 
     def solid(self, box: tuple[slice, slice]) -> np.ndarray:
         """The closed outline (:attr:`_solid`) on ``box``, bool."""
@@ -443,9 +462,14 @@ class FailureTyper:
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box)
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
+            moved = [r for r in regions if r.kind in MOVED_KINDS]
+            if moved:  # the moved part's area, the same for each of its regions
+                outline = scene.moved_outline(motion)
+                for r in moved:
+                    r.outline_mm = outline
         except (cv2.error, ValueError, IndexError) as exc:  # odd images: the regions stay reported, untyped
             for r in regions:
-                r.kind, r.kind_confidence, r.displacement_mm = UNKNOWN, 0.0, None
+                r.kind, r.kind_confidence, r.displacement_mm, r.outline_mm = UNKNOWN, 0.0, None, ()
             note = f"failure typing skipped ({type(exc).__name__})"
             res.message = f"{res.message}; {note}" if res.message else note
             self.previous = regions
@@ -463,4 +487,5 @@ class FailureTyper:
                                float(np.log2(max(r.area_mm2, 1e-3) / before.area_mm2)), e.near_moved_part)
         r.kind, r.kind_confidence = _decide(kind_scores(e, motion))
         r.displacement_mm = ((round(motion.dx_mm, 3), round(motion.dy_mm, 3))
-                             if r.kind in ("layer_shift", "detachment") else None)
+                             if r.kind in MOVED_KINDS else None)
+        r.outline_mm = ()

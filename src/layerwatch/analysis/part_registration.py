@@ -34,7 +34,7 @@ import scipy.fft as sfft
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["EDGE_PAD_PX", "MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATION_GAIN", "ROTATION_MIN_DEG", "ROTATIONS_DEG",
-           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "pad_box", "part_motion"]
+           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "moved_area", "pad_box", "part_motion", "top_from_plan"]
 
 #: smallest displacement of the part's top layer reported as a move, mm (registration noise is ~0.2 mm)
 MOVE_MIN_MM = 0.75
@@ -65,6 +65,8 @@ class PartMotion:
         Correlation peak of the best rotation over that of no rotation (1 = no evidence of a turn).
     peak : float
         Height of the chosen correlation peak (phase correlation, 0-1; higher = clearer).
+    pivot_mm : tuple of float or None
+        ``(x, y)`` bed mm the rotation turns about (the footprint's centroid); None unless the part moved.
     """
 
     dx_mm: float = 0.0
@@ -72,6 +74,7 @@ class PartMotion:
     rotation_deg: float = 0.0
     rotation_gain: float = 1.0
     peak: float = 0.0
+    pivot_mm: tuple[float, float] | None = None
 
     @property
     def magnitude_mm(self) -> float:
@@ -253,11 +256,54 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     v0, u0 = fbox[0] - box[0].start, fbox[2] - box[1].start
     vv, uu = np.nonzero(fp[box][v0: v0 + fbox[1] - fbox[0], u0: u0 + fbox[3] - fbox[2]])
     centre = (float(uu.mean()) + u0, float(vv.mean()) + v0)
+    pivot = topview.to_mm(np.array([centre[0] + box[1].start, centre[1] + box[0].start], float))
     angle, gain = _rotation(a, b, centre)
-    motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height)
+    motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, (float(pivot[0]), float(pivot[1])))
     if motion.turned:  # the translation of the turned part: register the turned reference
         turned = cv2.warpAffine(a, cv2.getRotationMatrix2D(centre, angle, 1.0), (w, h))
         du, dv, height = _peak(corr.surface(turned), reach)
         d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
-        motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height)
+        motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, motion.pivot_mm)
     return motion
+
+
+def top_from_plan(motion: PartMotion, topview: TopView) -> np.ndarray:
+    """The 2 x 3 affine (top-view px) that carries the planned layer to where the photo shows it, float64.
+
+    The rotation :attr:`PartMotion.rotation_deg` about :attr:`PartMotion.pivot_mm`
+    when the part :attr:`~PartMotion.turned` (as :func:`part_motion` turned the
+    reference), then the translation ``(dx_mm, dy_mm)``; the identity for a part
+    that did not move.
+    """
+    M = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    if not motion.moved:
+        return M
+    if motion.turned and motion.pivot_mm is not None:
+        pivot = topview.to_px(np.asarray(motion.pivot_mm, float))
+        M = cv2.getRotationMatrix2D((float(pivot[0]), float(pivot[1])), motion.rotation_deg, 1.0)
+    M[:, 2] += topview.to_px(np.array([motion.dx_mm, motion.dy_mm])) - topview.to_px(np.zeros(2))
+    return M
+
+
+def moved_area(outline: np.ndarray, motion: PartMotion, topview: TopView) -> np.ndarray:
+    """Where a moved layer is and should not be, and where it should be and is not, bool (H, W).
+
+    Parameters
+    ----------
+    outline : ndarray, bool, shape (H, W)
+        The layer's planned area (its footprint with the gaps of sparse infill closed).
+    motion : PartMotion
+    topview : TopView
+
+    Returns
+    -------
+    ndarray, bool, shape (H, W)
+        ``outline`` XOR ``outline`` carried by :func:`top_from_plan` (empty when the part did not move):
+        the area a layer shift or a detachment shows the operator, rather than the blocks that fired at its edges.
+    """
+    fp = np.asarray(outline, bool)
+    if not motion.moved:
+        return np.zeros(fp.shape, bool)
+    h, w = fp.shape
+    moved = cv2.warpAffine(fp.view(np.uint8), top_from_plan(motion, topview), (w, h), flags=cv2.INTER_NEAREST)
+    return moved.astype(bool) ^ fp
