@@ -15,12 +15,18 @@ Evidence (per region, all scale-free or in mm)
 * **Whole-part motion** (:func:`part_motion`): the top layer's edges in the
   reference registered against the photo's edges in the top view by phase
   correlation (translation, sub-pixel) inside the footprint's
-  neighbourhood, then a rotation search. A part whose top layer sits at
+  neighbourhood, then a rotation search, then ECC (rotation and
+  translation together). A part whose top layer sits at
   least :data:`MOVE_MIN_MM` away from where the plan puts it has moved: a
   *layer shift* (the gantry skipped steps: a pure translation) or, when it
   also turned by :data:`ROTATION_MIN_DEG` or more, a *detachment* (a part
   knocked loose turns as it slides). Regions within the moved part's reach
-  take that kind and the displacement.
+  take that kind, the displacement and the moved part's area
+  (:attr:`~layerwatch.analysis.result.Region.outline_mm`: where the layer
+  is and should not be, and where it should be and is not).
+* **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
+  below where they were (the part's colour: a layer shift) or the bare bed
+  (a detached part took its first layers with it).
 * **Where**: the share of the region outside the part's closed outline
   (the footprint with the gaps of sparse infill closed; material where the
   plan has none: strands, objects, a moved part) against inside (material

@@ -24,6 +24,7 @@ surface would change the heights more.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -62,7 +63,7 @@ class PartMotion:
     ----------
     dx_mm, dy_mm : float
         Displacement of the photo's part against the reference, bed mm (of the point
-        :attr:`pivot_mm`, the layer's bounding-box centre, when the part turned).
+        :attr:`pivot_mm`, the footprint's centroid, when the part turned).
     rotation_deg : float
         Rotation of the part about its centre, degrees (counter-clockwise in
         the top view; 0 unless the part moved: the search runs only then).
@@ -71,7 +72,7 @@ class PartMotion:
     peak : float
         Height of the chosen correlation peak (phase correlation, 0-1; higher = clearer).
     pivot_mm : tuple of float or None
-        ``(x, y)`` bed mm the rotation turns about, the centre of the footprint's bounding box, whose
+        ``(x, y)`` bed mm the rotation turns about, the footprint's centroid, whose
         displacement ``(dx_mm, dy_mm)`` is; None unless the part moved.
     refined : bool
         Translation and rotation refined by ECC (:func:`_refine`); the rotation is then
@@ -238,7 +239,7 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     were when only the top layers shifted, give a peak at zero shift: a peak
     at least :data:`MOVE_MIN_MM` away that reaches :data:`SECOND_PEAK` of it
     is taken as the top layer's move. For a moved part the reference is
-    also turned in 1 degree steps about the footprint's bounding-box centre
+    also turned in 1 degree steps about the footprint's centroid
     (:data:`ROTATIONS_DEG`): a clear gain at a large angle is a part that
     turned (a detachment).
     """
@@ -267,9 +268,11 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
     if math.hypot(du, dv) < near:
         return PartMotion(float(d[0]), float(d[1]), peak=height)
-    # the layer's bounding-box centre: the point whose displacement is reported (a turned part moves each point
-    # by another amount), as the simulator defines a detachment's
-    centre = (0.5 * (fbox[2] + fbox[3] - 1) - box[1].start, 0.5 * (fbox[0] + fbox[1] - 1) - box[0].start)
+    # the footprint's centroid: the point whose displacement is reported (a turned part moves each point by
+    # another amount)
+    v0, u0 = fbox[0] - box[0].start, fbox[2] - box[1].start
+    vv, uu = np.nonzero(fp[box][v0: v0 + fbox[1] - fbox[0], u0: u0 + fbox[3] - fbox[2]])
+    centre = (float(uu.mean()) + u0, float(vv.mean()) + v0)
     pivot = topview.to_mm(np.array([centre[0] + box[1].start, centre[1] + box[0].start], float))
     angle, gain = _rotation(a, b, centre)
     motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, (float(pivot[0]), float(pivot[1])))
@@ -290,23 +293,31 @@ def _refine(motion: PartMotion, a: np.ndarray, b: np.ndarray, centre: tuple[floa
     the crop (:data:`ECC_ITERATIONS` at most). Returns ``motion`` unchanged
     when ECC does not converge or moves the start by more than
     :data:`ECC_MAX_STEP_MM` (it locked on something else, e.g. the layers
-    below a shifted layer); else the refined displacement of ``centre``
-    (px in the crop: the footprint's bounding-box centre), the refined rotation and ``refined=True``.
+    below a shifted layer); else the refined rotation, ``refined=True`` and,
+    for a part turned by :data:`ROTATION_MIN_DEG` or more, the refined
+    displacement of ``centre`` (px in the crop: the footprint's centroid). A part that did not turn keeps the phase correlation's
+    translation: ECC's drifts toward the edges of the layers below a
+    shifted layer, which stay at zero shift (seen on the simulator's
+    layer shifts, by up to 0.9 mm).
     """
     s = topview.px_per_mm
-    start = cv2.getRotationMatrix2D(centre, motion.rotation_deg if motion.turned else 0.0, 1.0)
+    start = np.asarray(cv2.getRotationMatrix2D(centre, motion.rotation_deg if motion.turned else 0.0, 1.0),
+                       np.float64)
     start[:, 2] += np.array([motion.dx_mm, -motion.dy_mm]) * s  # bed +y is image -v
-    warp = start.astype(np.float32)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ECC_ITERATIONS, 1e-4)
     try:
-        cv2.findTransformECC(a, b, warp, cv2.MOTION_EUCLIDEAN, criteria, None, 5)
+        _, warp = cv2.findTransformECC(np.asarray(a, np.float32), np.asarray(b, np.float32), start.astype(np.float32),
+                                       cv2.MOTION_EUCLIDEAN, criteria)
     except cv2.error:  # did not converge: the phase correlation's answer stands
         return motion
     c = np.array([centre[0], centre[1], 1.0])
-    moved_px = warp.astype(np.float64) @ c - np.asarray(centre)
+    warp = np.asarray(warp, np.float64)
+    moved_px = warp @ c - np.asarray(centre)
     if np.hypot(*(moved_px - start @ c + np.asarray(centre))) > ECC_MAX_STEP_MM * s:
         return motion
     angle = math.degrees(math.atan2(float(warp[0, 1]), float(warp[0, 0])))
+    if abs(angle) < ROTATION_MIN_DEG:  # not turned: ECC's translation drifts toward the layers below a shift
+        return dataclasses.replace(motion, rotation_deg=angle, refined=True)
     return PartMotion(float(moved_px[0] / s), float(-moved_px[1] / s), angle, motion.rotation_gain, motion.peak,
                       motion.pivot_mm, refined=True)
 
@@ -315,14 +326,13 @@ def top_from_plan(motion: PartMotion, topview: TopView) -> np.ndarray:
     """The 2 x 3 affine (top-view px) that carries the planned layer to where the photo shows it, float64.
 
     The rotation :attr:`PartMotion.rotation_deg` about :attr:`PartMotion.pivot_mm`
-    when the part :attr:`~PartMotion.turned` or its rotation was measured
-    (:attr:`~PartMotion.refined`; as :func:`part_motion` turned the reference), then the translation ``(dx_mm, dy_mm)``; the identity for a part
+    when the part :attr:`~PartMotion.turned` (as :func:`part_motion` turned the reference), then the translation ``(dx_mm, dy_mm)``; the identity for a part
     that did not move.
     """
     M = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     if not motion.moved:
         return M
-    if (motion.turned or motion.refined) and motion.pivot_mm is not None:
+    if motion.turned and motion.pivot_mm is not None:
         pivot = topview.to_px(np.asarray(motion.pivot_mm, float))
         M = cv2.getRotationMatrix2D((float(pivot[0]), float(pivot[1])), motion.rotation_deg, 1.0)
     M[:, 2] += topview.to_px(np.array([motion.dx_mm, motion.dy_mm])) - topview.to_px(np.zeros(2))
