@@ -288,8 +288,9 @@ def _refine(motion: PartMotion, a: np.ndarray, b: np.ndarray, centre: tuple[floa
             topview: TopView) -> PartMotion:
     """``motion`` refined by ECC (Evangelidis & Psarakis 2008): a rigid motion of ``a`` onto ``b``, sub-pixel.
 
-    Starts from the phase correlation's translation and rotation (1 degree
-    steps) and fits rotation and translation together on the edge images of
+    Starts from the phase correlation's translation and the best rotation of
+    the 1 degree steps (also when its gain alone is too small to call the part
+    turned) and fits rotation and translation together on the edge images of
     the crop (:data:`ECC_ITERATIONS` at most). Returns ``motion`` unchanged
     when ECC does not converge or moves the start by more than
     :data:`ECC_MAX_STEP_MM` (it locked on something else, e.g. the layers
@@ -301,8 +302,7 @@ def _refine(motion: PartMotion, a: np.ndarray, b: np.ndarray, centre: tuple[floa
     layer shifts, by up to 0.9 mm).
     """
     s = topview.px_per_mm
-    start = np.asarray(cv2.getRotationMatrix2D(centre, motion.rotation_deg if motion.turned else 0.0, 1.0),
-                       np.float64)
+    start = np.asarray(cv2.getRotationMatrix2D(centre, motion.rotation_deg, 1.0), np.float64)
     start[:, 2] += np.array([motion.dx_mm, -motion.dy_mm]) * s  # bed +y is image -v
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ECC_ITERATIONS, 1e-4)
     try:
