@@ -14,7 +14,8 @@ goes through two pipelines when the scene channel is on:
 For each mode and photo :func:`mode_score` keeps the *whole-view score*
 (a% of eq. 5 plus the area changed beside the printed layer over the
 printed area), the IoU of what the layer's result marks (HOG blocks below
-T_S and the scene channel's region boxes) with the simulator's failed
+T_S and the scene channel's region boxes; a moved part's outline instead
+of its regions' blocks) with the simulator's failed
 region, the kind of the region that covers the failure best (the confusion
 matrix) and, for a moved part, the error of the reported displacement.
 :func:`summarize_modes` turns them into the report's figures.
