@@ -296,24 +296,11 @@ class _Scene:
             self._moved = (motion, moved_area(self.outline, motion, self.topview))
         return self._moved[1]
 
-    def moved_outline(self, motion: PartMotion, regions: list[Region]) -> Outline:
-        """Where the moved layer is and should not be, and where it should be and is not, bed mm (:meth:`moved_area`).
-
-        Only within the reach of ``regions`` (their boxes widened by the
-        displacement and 3 mm, as :func:`region_evidence` reaches): the
-        outline shows the move where the comparison saw it, so a move read
-        from other changes (strands draped over the part's edges) does not
-        mark the part's whole outline.
-        """
+    def moved_outline(self, motion: PartMotion) -> Outline:
+        """Where the moved layer is and should not be, and where it should be and is not, bed mm (:meth:`moved_area`)."""
         if self._closed is None or not motion.moved:
             return ()
-        near = np.zeros(self.shape, bool)
-        pad = int(round((motion.magnitude_mm + 3.0) * self.topview.px_per_mm))
-        for r in regions:
-            box = self.box(r)
-            if box is not None:
-                near[pad_box((box[0].start, box[0].stop, box[1].start, box[1].stop), pad, self.shape)] = True
-        return outline_mm(self.moved_area(motion) & near, self.topview)
+        return outline_mm(self.moved_area(motion), self.topview)
 
     def ledge(self, motion: PartMotion) -> float:
         """Share of the area a moved layer uncovered that shows the part's material rather than the bare bed, 0-1.
@@ -538,7 +525,7 @@ class FailureTyper:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
             if moved:  # the moved part's area, the same for each of its regions
-                outline = scene.moved_outline(motion, moved)
+                outline = scene.moved_outline(motion)
                 for r in moved:
                     r.outline_mm = outline
         except (cv2.error, ValueError, IndexError) as exc:  # odd images: the regions stay reported, untyped
