@@ -28,18 +28,21 @@ from layerwatch.analysis.failure_typing import (
     region_evidence,
 )
 from layerwatch.analysis.overlay import overlay_image, region_label
-from layerwatch.analysis.part_registration import edges, mask_box
+from layerwatch.analysis.part_registration import edges, mask_box, moved_area
+from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.simulate.parts import box_part
 
 CENTRE = np.array([110.0, 100.0])
 
 
-def _part(seed: int = 0, shift_mm=(0.0, 0.0), turn_deg: float = 0.0):
+def _part(seed: int = 0, shift_mm=(0.0, 0.0), turn_deg: float = 0.0, ledge: bool = False):
     """A layer's reference, footprint and a photo top view whose top layer is moved by ``shift_mm`` / turned.
 
     The part is a 20 x 16 mm rectangle with irregular infill (random lines) and a perimeter; below the
     top layer a ring of the layers below (a wall band 1 mm outside the footprint) stays where it was.
+    ``ledge``: the layer below (the part's material, other infill lines) stays under the planned footprint
+    too, as a layer shift leaves it; else the moved layer uncovers the bed, as a detached part does.
     """
     rng = np.random.default_rng(seed)
     h, w = TOPVIEW.shape
@@ -62,6 +65,12 @@ def _part(seed: int = 0, shift_mm=(0.0, 0.0), turn_deg: float = 0.0):
     moved = cv2.warpAffine(layer, M, (w, h), flags=cv2.INTER_LINEAR)
     top = np.full((h, w), 60, np.float32)
     top[wall] = 110
+    if ledge:
+        below = np.full((h, w), 150, np.uint8)
+        for _ in range(40):
+            p = rng.integers([u0, v0], [u1, v1], size=(2, 2))
+            cv2.line(below, tuple(int(x) for x in p[0]), tuple(int(x) for x in p[1]), 205, 2)
+        top[foot] = below[foot]
     top[moved > 0] = moved[moved > 0]
     top = np.clip(cv2.GaussianBlur(top, (3, 3), 0.8) + rng.normal(0, 2.0, (h, w)), 0, 255).astype(np.uint8)
     return top, ref, foot
@@ -85,6 +94,28 @@ def test_part_motion_tells_a_turned_part_from_a_shift():
     top, ref, foot = _part(3, shift_mm=(2.5, 1.0), turn_deg=6.0)
     m = part_motion(top, ref, foot, TOPVIEW)
     assert m.moved and m.turned and 4.0 <= abs(m.rotation_deg) <= 8.0
+
+
+@pytest.mark.parametrize(("shift", "turn"), [((2.0, -1.5), 0.0), ((0.4, 3.3), 0.0), ((-1.2, 2.7), -3.5), ((3.1, 0.3), 4.0)])
+def test_ecc_refines_a_moved_parts_displacement_and_turn_below_a_pixel(shift, turn):
+    """Known synthetic moves: the refined translation is within 0.1 mm (2/3 px), the turn within 0.25 degrees."""
+    top, ref, foot = _part(11, shift_mm=shift, turn_deg=turn, ledge=turn == 0.0)
+    m = part_motion(top, ref, foot, TOPVIEW)
+    assert m.refined and m.turned == (turn != 0.0)
+    assert np.hypot(m.dx_mm - shift[0], m.dy_mm - shift[1]) < 0.1
+    assert abs(m.rotation_deg - turn) < 0.25
+
+
+def test_ecc_that_does_not_converge_keeps_the_phase_correlation(monkeypatch):
+    from layerwatch.analysis import part_registration
+
+    def fail(*args, **kwargs):
+        raise cv2.error("no convergence")
+
+    monkeypatch.setattr(part_registration.cv2, "findTransformECC", fail)
+    top, ref, foot = _part(11, shift_mm=(2.0, -1.5), ledge=True)
+    m = part_motion(top, ref, foot, TOPVIEW)
+    assert m.moved and not m.refined and np.hypot(m.dx_mm - 2.0, m.dy_mm + 1.5) < 0.5
 
 
 def test_part_motion_without_a_footprint_or_texture_is_no_motion():
@@ -139,7 +170,7 @@ def _colour(grey: np.ndarray) -> np.ndarray:
 
 
 def test_typer_types_every_region_and_reports_the_displacement_of_a_shift():
-    top, ref, foot = _part(5, shift_mm=(2.5, -1.0))
+    top, ref, foot = _part(5, shift_mm=(2.5, -1.0), ledge=True)
     res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108), _region(118, 95, 123, 105)],
                       outside_regions=[_region(121, 92, 124, 108)])
     motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
@@ -148,6 +179,65 @@ def test_typer_types_every_region_and_reports_the_displacement_of_a_shift():
         assert r.kind == "layer_shift" and 0 < r.kind_confidence <= 1
         assert r.displacement_mm is not None
         assert np.hypot(r.displacement_mm[0] - 2.5, r.displacement_mm[1] + 1.0) < 0.5
+
+
+@pytest.mark.parametrize("shift", [(2.5, -1.0), (-1.5, 2.0)])
+def test_what_the_moved_layer_uncovered_tells_a_shift_from_a_detachment(shift):
+    """No turn seen: the layers below left where they were (a ledge) is a layer shift, the bare bed a detachment."""
+    kinds = {}
+    for ledge in (True, False):
+        top, ref, foot = _part(7, shift_mm=shift, ledge=ledge)
+        res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108)])
+        motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+        assert motion is not None and motion.moved and not motion.turned
+        kinds[ledge] = res.regions[0].kind
+    assert kinds == {True: "layer_shift", False: "detachment"}
+
+
+def test_a_part_the_colour_of_the_bed_gives_no_ledge_evidence():
+    top, ref, foot = _part(8, shift_mm=(2.0, 1.0))
+    flat = np.full(top.shape + (3,), 90, np.uint8)  # nothing tells the part's colour from the bed's
+    scene = _Scene(flat, top, ref, foot, TOPVIEW, None)
+    motion = part_motion(top, ref, foot, TOPVIEW)
+    assert motion.moved and scene.ledge(motion) == 0.5
+    assert scene.ledge(PartMotion()) == 0.5
+
+
+def _true_moved_area(foot: np.ndarray, shift_mm, turn_deg: float = 0.0) -> np.ndarray:
+    """The footprint XOR itself turned about CENTRE and shifted, as :func:`_part` moves the layer."""
+    h, w = foot.shape
+    M = cv2.getRotationMatrix2D(tuple(float(x) for x in TOPVIEW.to_px(CENTRE)), turn_deg, 1.0)
+    M[:, 2] += TOPVIEW.to_px(CENTRE + np.asarray(shift_mm)) - TOPVIEW.to_px(CENTRE)
+    return cv2.warpAffine(foot.astype(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST).astype(bool) ^ foot
+
+
+@pytest.mark.parametrize(("shift", "turn"), [((2.5, -1.0), 0.0), ((-1.5, 0.0), 0.0), ((2.5, 1.0), 6.0)])
+def test_a_moved_parts_regions_mark_where_it_is_and_where_it_should_be(shift, turn):
+    """Each moved-kind region carries the moved area (the registered outline XOR the planned one), not its blocks."""
+    top, ref, foot = _part(5, shift_mm=shift, turn_deg=turn)
+    res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108), _region(118, 95, 123, 105)])
+    motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+    assert motion is not None and motion.moved and motion.turned == (turn != 0.0)
+    truth = _true_moved_area(foot, shift, turn)
+    for r in res.regions:
+        assert r.kind in ("layer_shift", "detachment") and r.outline_mm
+        marked = outline_mask(r.outline_mm, TOPVIEW)
+        assert (marked & truth).sum() / (marked | truth).sum() > 0.7
+    # the blocks alone cover little of it
+    blocks = np.zeros_like(truth)
+    for r in res.regions:
+        blocks |= outline_mask(((r.bbox_mm[:2], (r.bbox_mm[2], r.bbox_mm[1]), r.bbox_mm[2:], (r.bbox_mm[0], r.bbox_mm[3])),),
+                               TOPVIEW)
+    assert (blocks & truth).sum() / (blocks | truth).sum() < 0.5
+
+
+def test_regions_of_a_part_that_did_not_move_have_no_outline():
+    top, ref, foot = _part(6)
+    res = LayerResult(layer=2, z=0.9, regions=[_region(104, 96, 108, 100)], outside_regions=[_region(122, 96, 126, 104)])
+    motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+    assert motion is not None and not motion.moved
+    assert all(r.outline_mm == () for r in (*res.regions, *res.outside_regions))
+    assert not moved_area(foot, motion, TOPVIEW).any()
 
 
 def test_typer_tells_an_object_from_strands_beside_the_part():

@@ -50,6 +50,19 @@ def test_marked_area_is_the_anomalous_tiles_and_the_outside_boxes():
     assert area.sum() == pytest.approx(_truth(0, 0, 4, 4).sum(), rel=0.25)
 
 
+def test_a_moved_parts_outline_replaces_its_box_in_the_marked_area():
+    """A moved part marks its outline (where it is and where it should be), not the box of its blocks."""
+    band = ((2.0, 2.0), (4.0, 2.0), (4.0, 10.0), (2.0, 10.0))
+    moved = _region(0, 0, 12, 12, "layer_shift", 0.9, (2.0, 0.0))
+    moved.outline_mm = (band,)
+    res = LayerResult(layer=0, z=0.2, outside_regions=[moved, _region(-10, -10, -6, -6)])
+    area = marked_area(res, TV)
+    assert area.sum() == pytest.approx(_truth(2, 2, 4, 10).sum() + _truth(-10, -10, -6, -6).sum(), rel=0.25)
+    assert not area[_truth(6, 6, 12, 12)].any()  # the rest of the moved region's box is not marked
+    m = mode_score(LayerResult(layer=0, z=0.2, regions=[moved]), _truth(2, 2, 4, 10), TV, np.array([2.0, 0.0]))
+    assert m.iou > 0.75 and m.kind == "layer_shift"
+
+
 def _rec(kind, since, score, typed="", err=None, iou=None, size=8.0, mode="series"):
     r = LayerRecord("s", kind, 1, size if kind != "clean" else 0.0, np.zeros((1, 1)), since_onset=since)
     r.modes[mode] = ModeScore(score, iou=iou, kind=typed, displacement_error_mm=err)

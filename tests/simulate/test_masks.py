@@ -76,6 +76,10 @@ def test_layer_shift_mask_is_shifted_area_xor(part, camera, topview):
 
     expected = area(dx, dy) ^ area(0, 0)
     assert _iou(fr.truth, expected) > 0.9
+    # the failed region is the same two bands: the 3 mm closing of patch failures would join them across
+    # the block (where the layer is where it should be)
+    assert _iou(fr.truth_area, expected) > 0.9
+    assert (fr.truth_area == fr.truth).all()
     before = simulate_layer(part, 2, camera, topview, [f])
     assert before.truth is None and not before.meta["failed"]
 

@@ -11,7 +11,7 @@ on which the G-code adds plastic and the photo shows none (clog, run-out);
 
 from __future__ import annotations
 
-__all__ = ["FAILURE_KINDS", "UNKNOWN", "check_kind"]
+__all__ = ["FAILURE_KINDS", "MOVED_KINDS", "UNKNOWN", "check_kind"]
 
 #: Every kind a region can carry, in report order.
 FAILURE_KINDS: tuple[str, ...] = (
@@ -25,6 +25,8 @@ FAILURE_KINDS: tuple[str, ...] = (
     "unknown",
 )
 UNKNOWN = "unknown"
+#: Kinds of a part that moved: their regions report its displacement and its moved area.
+MOVED_KINDS: tuple[str, ...] = ("layer_shift", "detachment")
 
 
 def check_kind(kind: str) -> str:

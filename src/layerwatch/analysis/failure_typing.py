@@ -15,12 +15,18 @@ Evidence (per region, all scale-free or in mm)
 * **Whole-part motion** (:func:`part_motion`): the top layer's edges in the
   reference registered against the photo's edges in the top view by phase
   correlation (translation, sub-pixel) inside the footprint's
-  neighbourhood, then a rotation search. A part whose top layer sits at
+  neighbourhood, then a rotation search, then ECC (rotation and
+  translation together). A part whose top layer sits at
   least :data:`MOVE_MIN_MM` away from where the plan puts it has moved: a
   *layer shift* (the gantry skipped steps: a pure translation) or, when it
   also turned by :data:`ROTATION_MIN_DEG` or more, a *detachment* (a part
   knocked loose turns as it slides). Regions within the moved part's reach
-  take that kind and the displacement.
+  take that kind, the displacement and the moved part's area
+  (:attr:`~layerwatch.analysis.result.Region.outline_mm`: where the layer
+  is and should not be, and where it should be and is not).
+* **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
+  below where they were (the part's colour: a layer shift) or the bare bed
+  (a detached part took its first layers with it).
 * **Where**: the share of the region outside the part's closed outline
   (the footprint with the gaps of sparse infill closed; material where the
   plan has none: strands, objects, a moved part) against inside (material
@@ -72,6 +78,7 @@ displacement), about a quarter of the time.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -79,7 +86,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from layerwatch.analysis.failure_kinds import UNKNOWN
+from layerwatch.analysis.failure_kinds import MOVED_KINDS, UNKNOWN
 from layerwatch.analysis.histogram import middle_values
 from layerwatch.analysis.part_registration import (
     EDGE_PAD_PX,
@@ -92,9 +99,11 @@ from layerwatch.analysis.part_registration import (
     PartMotion,
     edges,
     mask_box,
+    moved_area,
     pad_box,
     part_motion,
 )
+from layerwatch.analysis.region_outline import Outline, outline_mm
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
@@ -129,6 +138,9 @@ class RegionEvidence:
         log2 of the area over that of the same region in the previous photo; NaN without one.
     near_moved_part : bool
         Within the reach of a part that moved (:attr:`PartMotion.moved`).
+    ledge : float
+        Share of the area the moved layer uncovered that shows the part's
+        material, not the bed (:meth:`_Scene.ledge`), 0-1; 0.5 = no evidence.
     """
 
     outside: float
@@ -137,6 +149,7 @@ class RegionEvidence:
     wall: float
     growth: float = float("nan")
     near_moved_part: bool = False
+    ledge: float = 0.5
 
 
 def _lab_u8(top_bgr: np.ndarray) -> np.ndarray:
@@ -183,9 +196,14 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     return framed[1:-1, 1:-1] != 2
 
 
-def _unlike(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
+def _lab_distance(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    """CIELAB distance of colours ``lab`` (..., 3) from ``colour`` (3,), lightness half weighted (shading)."""
     d = lab - colour
-    return np.sqrt((0.5 * d[..., 0]) ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2) > COLOUR_DELTA
+    return np.sqrt((0.5 * d[..., 0]) ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2)
+
+
+def _unlike(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    return _lab_distance(lab, colour) > COLOUR_DELTA
 
 
 class _Scene:
@@ -208,6 +226,8 @@ class _Scene:
         self.valid = None if valid is None else np.asarray(valid, bool)
         self.fp_box = mask_box(self.fp) if footprint_box is None else footprint_box
         self.k = max(3, int(round(2.0 * topview.px_per_mm)) | 1)
+        self._moved: tuple[PartMotion, np.ndarray] | None = None
+        self._ledge: tuple[PartMotion, float] | None = None
 
     def seen(self, box: tuple[slice, slice]) -> np.ndarray:
         """Pixels of ``box`` the camera saw, bool."""
@@ -244,14 +264,73 @@ class _Scene:
         return _hist_median(hist) if hist[0].sum() > 50 else None
 
     @cached_property
-    def _solid(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
-        """The part's outline with the gaps of sparse infill and holes closed ("inside the part"), on its box."""
+    def _closed(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """The part's outline with the gaps of sparse infill (up to 3 mm) closed, on its box (padded), bool."""
         if self.fp_box is None:
             return None
         k2 = max(3, int(round(3.0 * self.topview.px_per_mm)) | 1)
         crop = pad_box(self.fp_box, k2 + 1, self.shape)
         closed = cv2.morphologyEx(self.fp[crop].astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8))
+        return crop, closed.astype(bool)
+
+    @cached_property
+    def _solid(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """The closed outline (:attr:`_closed`) with its holes filled ("inside the part"), on its box."""
+        if self._closed is None:
+            return None
+        crop, closed = self._closed
         return crop, fill_holes(closed)
+
+    @cached_property
+    def outline(self) -> np.ndarray:
+        """The closed outline (:attr:`_closed`) in the whole view, bool (H, W)."""
+        out = np.zeros(self.shape, bool)
+        if self._closed is not None:
+            crop, closed = self._closed
+            out[crop] = closed
+        return out
+
+    def moved_area(self, motion: PartMotion) -> np.ndarray:
+        """:func:`moved_area` of the closed outline, bool (H, W) (kept for the last ``motion`` asked)."""
+        if self._moved is None or self._moved[0] != motion:
+            self._moved = (motion, moved_area(self.outline, motion, self.topview))
+        return self._moved[1]
+
+    def moved_outline(self, motion: PartMotion) -> Outline:
+        """Where the moved layer is and should not be, and where it should be and is not, bed mm (:meth:`moved_area`)."""
+        if self._closed is None or not motion.moved:
+            return ()
+        return outline_mm(self.moved_area(motion), self.topview)
+
+    def ledge(self, motion: PartMotion) -> float:
+        """Share of the area a moved layer uncovered that shows the part's material rather than the bare bed, 0-1.
+
+        Where the layer should be and is not (the closed outline minus the
+        registered one, eroded by one pixel), a layer shift leaves the
+        layers below it (the part's material); a detached part, which moved
+        with its first layers, leaves the bed. Each seen pixel counts for
+        the nearer of the part's and the bed's median colour. 0.5 (no
+        evidence) when the part did not move, either colour is unknown, they
+        are alike (within :data:`COLOUR_DELTA`) or fewer than 20 pixels were uncovered.
+        """
+        if self._ledge is None or self._ledge[0] != motion:
+            self._ledge = (motion, self._ledge_share(motion))
+        return self._ledge[1]
+
+    def _ledge_share(self, motion: PartMotion) -> float:
+        if not motion.moved or self.part_colour is None or self.bed_colour is None:
+            return 0.5
+        part, bed = self.part_colour, self.bed_colour
+        if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
+            return 0.5
+        uncovered = self.outline & self.moved_area(motion)
+        uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        if self.valid is not None:
+            uncovered &= self.valid
+        if uncovered.sum() < 20:
+            return 0.5
+        lab = _lab(self.lab_u8[uncovered])
+        return float(np.mean(_lab_distance(lab, part) < _lab_distance(lab, bed)))
 
     def solid(self, box: tuple[slice, slice]) -> np.ndarray:
         """The closed outline (:attr:`_solid`) on ``box``, bool."""
@@ -317,8 +396,7 @@ def _unlike_part(lab: np.ndarray, scene: _Scene) -> float:
         material = _unlike(lab, scene.bed_colour)
         if material.mean() >= 0.05:
             lab = lab[material]
-    d = lab - scene.part_colour
-    dist = float(np.median(np.sqrt((0.5 * d[:, 0]) ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)))
+    dist = float(np.median(_lab_distance(lab, scene.part_colour)))
     lo, hi = PART_DELTA
     return float(np.clip((dist - lo) / (hi - lo), 0.0, 1.0))
 
@@ -356,14 +434,16 @@ def kind_scores(e: RegionEvidence, motion: PartMotion) -> dict[str, float]:
     moved = 0.0
     if e.near_moved_part:
         moved = 2.5 + min(motion.magnitude_mm / MOVE_MIN_MM, 3.0) / 3.0
-    turned = 1.0 if motion.turned else -1.0
+    # a clear turn is a detachment (a gantry cannot turn the part); a layer shift leaves the layers below
+    # where they were (a ledge of the part's material), a detached part leaves the bed
+    whole = (0.75 if motion.turned else -0.75) + (1.0 - 2.0 * e.ledge)
     inside = 1.0 - e.outside
     # edges count for strands beside the part only: a pit in the part also shows more edges (the layers below)
     return {
         "spaghetti": e.outside * (1.0 + edges) + 0.5 * edges + grew - 2.0 * e.foreign,
         "foreign_body": e.outside + 3.0 * e.foreign - max(grew, 0.0),
-        "detachment": moved + (0.75 * turned if moved else 0.0),
-        "layer_shift": moved - (0.75 * turned if moved else 0.0),
+        "detachment": moved + (whole if moved else 0.0),
+        "layer_shift": moved - (whole if moved else 0.0),
         "infill_defect": 2.0 * inside * (1.0 - e.wall) - e.foreign,
         "thin_wall": 2.0 * inside * e.wall - e.foreign,
     }
@@ -443,9 +523,14 @@ class FailureTyper:
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box)
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
+            moved = [r for r in regions if r.kind in MOVED_KINDS]
+            if moved:  # the moved part's area, the same for each of its regions
+                outline = scene.moved_outline(motion)
+                for r in moved:
+                    r.outline_mm = outline
         except (cv2.error, ValueError, IndexError) as exc:  # odd images: the regions stay reported, untyped
             for r in regions:
-                r.kind, r.kind_confidence, r.displacement_mm = UNKNOWN, 0.0, None
+                r.kind, r.kind_confidence, r.displacement_mm, r.outline_mm = UNKNOWN, 0.0, None, ()
             note = f"failure typing skipped ({type(exc).__name__})"
             res.message = f"{res.message}; {note}" if res.message else note
             self.previous = regions
@@ -457,10 +542,12 @@ class FailureTyper:
         """Fill ``r.kind``, ``r.kind_confidence`` and ``r.displacement_mm`` (``beside``: a scene-channel region)."""
         outside = 1.0 if beside else scene.outside(r)
         e = region_evidence(r, scene, _plan_wall_share(self.toolpath, layer, r.bbox_mm), motion, outside)
+        if e.near_moved_part:
+            e = dataclasses.replace(e, ledge=scene.ledge(motion))
         before = _match(r, self.previous)
         if before is not None and before.area_mm2 > 0:
-            e = RegionEvidence(e.outside, e.foreign, e.texture, e.wall,
-                               float(np.log2(max(r.area_mm2, 1e-3) / before.area_mm2)), e.near_moved_part)
+            e = dataclasses.replace(e, growth=float(np.log2(max(r.area_mm2, 1e-3) / before.area_mm2)))
         r.kind, r.kind_confidence = _decide(kind_scores(e, motion))
         r.displacement_mm = ((round(motion.dx_mm, 3), round(motion.dy_mm, 3))
-                             if r.kind in ("layer_shift", "detachment") else None)
+                             if r.kind in MOVED_KINDS else None)
+        r.outline_mm = ()

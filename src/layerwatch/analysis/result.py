@@ -54,6 +54,11 @@ class Region:
         ``(dx, dy)`` in bed mm for a layer shift or a moved/detached part
         (registration of the printed part against the reference); ``None``
         otherwise.
+    outline_mm : tuple of polygons
+        The area the region shows the operator when it is not its blocks, as
+        polygons of ``(x, y)`` bed mm: for a layer shift or a moved/detached
+        part, where the layer is and should not be and where it should be and
+        is not (:mod:`~layerwatch.analysis.region_outline`); ``()`` otherwise.
     """
 
     area_mm2: float
@@ -66,6 +71,7 @@ class Region:
     kind: str = ""
     kind_confidence: float = 0.0
     displacement_mm: tuple[float, float] | None = None
+    outline_mm: tuple[tuple[tuple[float, float], ...], ...] = ()
 
 
 @dataclass
@@ -156,6 +162,7 @@ def _region(r: dict[str, Any]) -> Region:
         kind_confidence=float(r.get("kind_confidence") or 0.0),
         displacement_mm=None if r.get("displacement_mm") is None else (
             float(r["displacement_mm"][0]), float(r["displacement_mm"][1])),
+        outline_mm=tuple(tuple((float(x), float(y)) for x, y in poly) for poly in r.get("outline_mm") or ()),
     )
 
 

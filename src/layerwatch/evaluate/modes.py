@@ -14,7 +14,8 @@ goes through two pipelines when the scene channel is on:
 For each mode and photo :func:`mode_score` keeps the *whole-view score*
 (a% of eq. 5 plus the area changed beside the printed layer over the
 printed area), the IoU of what the layer's result marks (HOG blocks below
-T_S and the scene channel's region boxes) with the simulator's failed
+T_S and the scene channel's region boxes; a moved part's outline instead
+of its regions' blocks) with the simulator's failed
 region, the kind of the region that covers the failure best (the confusion
 matrix) and, for a moved part, the error of the reported displacement.
 :func:`summarize_modes` turns them into the report's figures.
@@ -26,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from layerwatch.analysis.failure_kinds import FAILURE_KINDS
+from layerwatch.analysis.failure_kinds import FAILURE_KINDS, MOVED_KINDS
 from layerwatch.analysis.overlay import anomalous_blocks, block_tiles
+from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.evaluate.stats import iou, roc_auc
 from layerwatch.geometry.topview import TopView
@@ -38,8 +40,6 @@ __all__ = ["MISSED", "MODES", "ModeScore", "mode_score", "summarize_modes"]
 MODES = ("single", "series")
 #: the confusion matrix's column for a failure that no region covers
 MISSED = "missed"
-#: kinds that report a displacement
-MOVED_KINDS = ("layer_shift", "detachment")
 
 
 @dataclass
@@ -79,13 +79,25 @@ def _box(r: Region, topview: TopView, shape: tuple[int, int]) -> tuple[slice, sl
 
 
 def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:
-    """Top-view pixels the result marks: tiles of the anomalous HOG blocks and the boxes of the regions beside the print."""
+    """Top-view pixels the result marks, bool (H, W).
+
+    The tiles of the anomalous HOG blocks and the boxes of the regions
+    beside the print; a region with an outline (a moved part:
+    :attr:`~layerwatch.analysis.result.Region.outline_mm`) marks its outline
+    instead of its box and of the tiles inside its box.
+    """
     shape = (int(topview.shape[0]), int(topview.shape[1]))
     out = np.zeros(shape, bool)
     if res.heatmap is not None and res.grid is not None:
         out |= block_tiles(anomalous_blocks(res), shape, res.grid.cell_px, res.grid.block_cells, fill=False)
+    outlined = [r for r in [*res.regions, *res.outside_regions] if r.outline_mm]
+    for r in outlined:
+        out[_box(r, topview, shape)] = False
     for r in res.outside_regions:
-        out[_box(r, topview, shape)] = True
+        if not r.outline_mm:
+            out[_box(r, topview, shape)] = True
+    for outline in dict.fromkeys(r.outline_mm for r in outlined):
+        out |= outline_mask(outline, topview)
     return out
 
 

@@ -126,7 +126,9 @@ _DEFINITIONS_AND_LIMITS = ["", "## Definitions", "",
       "- **Discriminative power (DP)**, our reading of the paper's Fig. 14: mean a% on failed layers minus "
       "mean a% on clean layers, percentage points (higher = better separated).",
       "- **IoU**: pixels of the anomalous blocks' tiles vs the simulator's failed region (`truth_area`), "
-      "on failed layers with a failure of size >= 5 mm, averaged per type.",
+      "on failed layers with a failure of size >= 5 mm, averaged per type. In the modes section a region "
+      "typed as a moved part (layer shift, detachment) marks its outline instead (where the layer is and "
+      "should not be, and where it should be and is not); the truth of those failures is the same two bands.",
       "- **False alarms**: clean layers whose a% exceeds the pause ratio, per 1000 clean layers "
       "(Clopper-Pearson one-sided 95 % bound given too).", "",
       "## What limits the figures", "",

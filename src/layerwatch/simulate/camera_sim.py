@@ -310,6 +310,7 @@ class PrintSimulator:
         lay = tp.layers[index]
         h, mat, gap = self.h.copy(), self.mat.copy(), self.gap
         truth = np.zeros(tv.shape, bool)
+        moved_truth = np.zeros(tv.shape, bool)  # already an area: solid_area closed each outline
         active = []
         nominal = None
         for rf in self.failures:
@@ -328,7 +329,7 @@ class PrintSimulator:
                     h, mat, gap = self._detach(rf, h, mat, gap)
                     start, end = (self._seen_detached(rf, p, lay.z) for p in nominal[:2])
                     moved = solid_area(start, end, nominal[2], tv)
-                truth |= fp ^ moved
+                moved_truth |= fp ^ moved
         if self.has_fixed:  # the skirt stays on the bed whatever the part does
             top = self.hf > h
             h[top], mat[top] = self.hf[top], self.matf[top]
@@ -353,6 +354,10 @@ class PrintSimulator:
                 before = h.copy()
                 stamp_capsules(h, mat, before, rows, rf.capsule_mat[: len(rows)], *self.gp)
                 truth |= self._apparent(before, h, lay.z)
+        # a patch's beads closed into its region; not the two bands of a moved layer, which the closing
+        # would join across the part where it is where it should be
+        area = (_close(truth, tv, 3.0) | moved_truth) if active else None
+        truth |= moved_truth
         photo, info = self.cam.shoot(h, mat, index, lay.height, gap)
         meta = {
             "layer": index,
@@ -362,7 +367,6 @@ class PrintSimulator:
             **info,
             "seconds": time.perf_counter() - t0,
         }
-        area = _close(truth, tv, 3.0) if active else None
         return SimFrame(photo, truth if active else None, meta, area)
 
 def _close(mask: np.ndarray, tv: TopView, mm: float) -> np.ndarray:

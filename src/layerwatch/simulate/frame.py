@@ -25,7 +25,10 @@ class SimFrame:
         footprints (e.g. the removed beads of an infill patch).
     truth_area : ndarray, bool, shape topview.shape, or None
         ``truth`` closed over gaps up to 3 mm (the failed *region*, e.g. the
-        whole patch): the reference for localisation IoU.
+        whole patch): the reference for localisation IoU. A shifted or
+        detached layer's part of it is not closed again: it is where the
+        layer's area (gaps of sparse infill closed) is and should not be and
+        where it should be and is not.
     meta : dict
         ``layer``, ``z``, ``failures`` (active types), ``failed``, ``light``,
         ``exposure``, ``blur_px``, ``seconds``.
