@@ -64,6 +64,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "analysis.min_region_blocks": (1, 100, "blocks"), "analysis.min_gradient": (0.0, 255.0, "grey levels"),
     "analysis.flat_tolerance": (1.0, 10.0, ""), "analysis.presmooth_px": (0.0, 5.0, "px"),
     "analysis.grow_threshold": (0.0, 1.0, ""), "analysis.grow_margin_mm": (0.0, 50.0, "mm"),
+    "analysis.register_mm": (0.0, 5.0, "mm"),
     # the pause policy: every rule stays reachable, whatever is saved
     "policy.pause_ratio": (0.001, 0.5, "(a%)"), "policy.min_area_mm2": (0.0, 400.0, "mm^2"),
     "policy.consecutive_layers": (1, 10, "layers"), "policy.strong_outside_area_mm2": (1.0, 2500.0, "mm^2"),
