@@ -22,7 +22,7 @@ import httpx
 import numpy as np
 import pytest
 
-from octoprint_stack import free_port, octoprint_server, require_plugin, until
+from octoprint_stack import fast_moves, free_port, octoprint_server, require_plugin, until
 
 pytestmark = [pytest.mark.octoprint, pytest.mark.slow]
 
@@ -166,7 +166,8 @@ def stack(sim, tmp_path_factory):
             s = Stack(url, key, base, camera)
             s.post("/api/connection", {"command": "connect", "port": "VIRTUAL", "baudrate": 115200}).raise_for_status()
             until(lambda: s.get("/api/connection")["current"]["state"] == "Operational", 60, "the virtual printer")
-            yield s
+            with fast_moves(url, key):  # the holds, not the moves, pace these prints
+                yield s
     finally:
         camera.close()
 

@@ -106,13 +106,17 @@ def test_simulator_measurement():
     """Issue 19's targets on the simulator with the default gate: 0 pauses from camera faults (a camera one
     layer late, as repeats or as new exposures, for a stretch or the whole print, and a bumped one), real
     failures still pause (a stall and spaghetti, on time and behind a late camera), >= 0.97 of failure
-    frames pass the monitor's camera-fault checks."""
+    frames pass the monitor's camera-fault checks.
+
+    A smaller run of ``benchmarks/frame_quality_gate.py`` (the figures it prints are the benchmark's):
+    120 planned failure frames instead of 240, and without the ``excuse_late_frames = false`` runs
+    (the old default, a baseline the benchmark prints and nothing here asserts)."""
     spec = importlib.util.spec_from_file_location("frame_quality_gate", BENCH)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     cfg, tp, truth, pipe, gcode, frames, bed = bench._job()
     extra = bench.fresh_faults(tp, truth, cfg.topview.topview())
-    rows = bench.clean_print_pauses(cfg, pipe, gcode, frames, bed, extra=extra)
+    rows = bench.clean_print_pauses(cfg, pipe, gcode, frames, bed, extra=extra, excuse_off=False)
     assert {"lagging_stream", "lagging_stream_fresh", "late_from_10_fresh", "bumped", "lagged_whole_print",
             "lagged_whole_print_fresh", "bumped_whole_print"} <= set(rows)
     for kind, r in rows.items():

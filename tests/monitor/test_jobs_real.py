@@ -44,6 +44,7 @@ from layerwatch.pipeline.config import recommended_config
 from layerwatch.storage.history import History
 from layerwatch.web.app import create_app
 from layerwatch.web.report import build_report
+from octoprint_stack import fast_moves
 
 CAMERA = CameraSpec(image_size=(640, 360))
 
@@ -133,30 +134,31 @@ def test_octoprint_jobs_are_picked_up_analysed_with_images_and_the_next_waited_f
     try:
         assert printer.wait_connected(15)
         job_gcode = prepared("octoprint")
-        for n, name in ((1, "lw_job1.gcode"), (2, "folder/lw_job 2.gcode")):
-            _octo_upload(url, key, name, job_gcode)
-            job = until(lambda n=n: svc.analysed(n, 3), 120, f"job {n} picked up and 3 layers analysed")
-            assert job["gcode_path"] == name and job["printer"].startswith("octoprint:")
-            assert _check_images(svc, job, tmp_path)
-            _octo_cancel(url, key)
-            until(lambda n=n: len(svc.watcher.handled) == n, 30, f"job {n} handled")
-            assert svc.thread.is_alive()  # waits for the next job
-        assert [j.path for j, _ in svc.watcher.handled] == ["lw_job1.gcode", "folder/lw_job 2.gcode"]
-        # OctoPrint shows "Operational" after a job either way; its completion tells cancelled from done
-        assert [o for _, o in svc.watcher.handled] == ["cancelled", "cancelled"]
-        assert [svc.job(n)["outcome"] for n in (1, 2)] == ["cancelled", "cancelled"]
-        # the downloaded file is the job's own: its hash is the uploaded prepared file's
-        assert svc.job(2)["gcode_hash"] == hashlib.sha256(job_gcode).hexdigest()
+        with fast_moves(url, key):  # the pick-up, not the virtual printer's pace, is under test
+            for n, name in ((1, "lw_job1.gcode"), (2, "folder/lw_job 2.gcode")):
+                _octo_upload(url, key, name, job_gcode)
+                job = until(lambda n=n: svc.analysed(n, 3), 120, f"job {n} picked up and 3 layers analysed")
+                assert job["gcode_path"] == name and job["printer"].startswith("octoprint:")
+                assert _check_images(svc, job, tmp_path)
+                _octo_cancel(url, key)
+                until(lambda n=n: len(svc.watcher.handled) == n, 30, f"job {n} handled")
+                assert svc.thread.is_alive()  # waits for the next job
+            assert [j.path for j, _ in svc.watcher.handled] == ["lw_job1.gcode", "folder/lw_job 2.gcode"]
+            # OctoPrint shows "Operational" after a job either way; its completion tells cancelled from done
+            assert [o for _, o in svc.watcher.handled] == ["cancelled", "cancelled"]
+            assert [svc.job(n)["outcome"] for n in (1, 2)] == ["cancelled", "cancelled"]
+            # the downloaded file is the job's own: its hash is the uploaded prepared file's
+            assert svc.job(2)["gcode_hash"] == hashlib.sha256(job_gcode).hexdigest()
 
-        # a job without the trigger: reported with the prepare command, not analysed
-        _octo_upload(url, key, "plain.gcode", PART_GCODE.read_bytes())
-        until(lambda: len(svc.watcher.handled) == 3, 60, "the unprepared job handled")
-        assert svc.watcher.handled[-1][1] == "not prepared"
-        job = svc.job(3)
-        assert job["outcome"] == "not analysed" and svc.history.layers(job["id"]) == []
-        (event,) = svc.history.events(job["id"])
-        assert "layerwatch gcode prepare plain.gcode --profile octoprint -o plain.gcode" in event["message"]
-        _octo_cancel(url, key)
+            # a job without the trigger: reported with the prepare command, not analysed
+            _octo_upload(url, key, "plain.gcode", PART_GCODE.read_bytes())
+            until(lambda: len(svc.watcher.handled) == 3, 60, "the unprepared job handled")
+            assert svc.watcher.handled[-1][1] == "not prepared"
+            job = svc.job(3)
+            assert job["outcome"] == "not analysed" and svc.history.layers(job["id"]) == []
+            (event,) = svc.history.events(job["id"])
+            assert "layerwatch gcode prepare plain.gcode --profile octoprint -o plain.gcode" in event["message"]
+            _octo_cancel(url, key)
     finally:
         svc.stop()
         printer.close()

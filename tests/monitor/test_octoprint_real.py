@@ -26,7 +26,7 @@ def test_parse_recorded_push_message():
 def octoprint(tmp_path_factory):
     if not OCTO.exists():
         pytest.skip(f"OctoPrint not installed at {VENV}; run .ci/install-octoprint")
-    with octoprint_server(tmp_path_factory.mktemp("octoprint"), virtual_printer={}) as served:
+    with octoprint_server(tmp_path_factory.mktemp("octoprint")) as served:
         yield served
 
 
