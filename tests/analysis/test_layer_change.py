@@ -14,6 +14,7 @@ from layerwatch.analysis.layer_change import (
     block_change,
     blocks_on_top,
     parallax_px,
+    persistent_groups,
 )
 from layerwatch.analysis.result import BlockGrid, LayerResult, Region
 from layerwatch.geometry.topview import TopView
@@ -163,3 +164,16 @@ def test_blocks_are_carried_to_the_top_view_and_counted_once_into_a_percent():
     again = LayerResult(layer=3, z=0.6, threshold=0.5, printed_area_mm2=100.0, heatmap=res.heatmap,
                         mask=res.mask, grid=res.grid)
     assert add_unchanged(again, top, [region], tv) < added
+
+
+def test_only_groups_unchanged_in_the_previous_pair_too_fail():
+    now = np.zeros((10, 12), bool)
+    now[2:4, 2:5] = True  # the gap, unchanged again
+    now[7, 9] = True  # a chance likeness, new here
+    before = np.zeros_like(now)
+    before[3, 5] = True  # touches the gap's group (8-connected, one block off)
+    before[0, 0] = True
+    kept = persistent_groups(now, before, 1)
+    assert kept[2:4, 2:5].all() and not kept[7, 9] and kept.sum() == 6
+    assert not persistent_groups(now, None, 1).any(), "the first judged pair of a print reports nothing"
+    assert not persistent_groups(now, before, 7).any(), "a group smaller than min_blocks is dropped"

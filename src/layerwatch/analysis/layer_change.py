@@ -61,7 +61,7 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
-__all__ = ["BlockChange", "LayerChangeSettings", "add_unchanged", "block_change", "blocks_on_top", "connected_blocks", "parallax_px", "printed_kind",
+__all__ = ["BlockChange", "LayerChangeSettings", "add_unchanged", "block_change", "blocks_on_top", "parallax_px", "persistent_groups", "printed_kind",
            "unchanged_regions"]
 
 #: quiet blocks need this much texture variance (grey levels^2) in both photos to calibrate the noise on
@@ -88,7 +88,8 @@ class LayerChangeSettings(Section):
     min_area_mm2 : float
         Smallest connected unchanged area of the footprint that fails, mm^2 on the layer's plane.
     min_blocks : int
-        Fewest 8-connected unchanged blocks a failing area needs (in the working image).
+        Fewest 8-connected unchanged blocks a failing area needs (in the working image); the
+        group must also touch a block unchanged in the previous pair (:func:`persistent_groups`).
     min_ncc : float
         Noise-corrected correlation at the same pixels from which a block is unchanged.
     min_gain : float
@@ -103,10 +104,10 @@ class LayerChangeSettings(Section):
     """
 
     enabled: bool = False
-    min_area_mm2: float = Field(2.0, ge=0, le=2500)
-    min_blocks: int = Field(6, ge=1, le=10000)
-    min_ncc: float = Field(0.85, ge=0, le=1)
-    min_gain: float = Field(0.25, ge=0, le=2)
+    min_area_mm2: float = Field(1.0, ge=0, le=2500)
+    min_blocks: int = Field(1, ge=1, le=10000)
+    min_ncc: float = Field(0.8, ge=0, le=1)
+    min_gain: float = Field(0.2, ge=0, le=2)
     min_snr: float = Field(1.0, ge=0, le=100)
     block_px: int = Field(8, ge=2, le=64)
     min_share: float = Field(0.25, gt=0, le=1)
@@ -253,11 +254,36 @@ def block_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nda
                        judged, unchanged, noise)
 
 
-def connected_blocks(unchanged: np.ndarray, min_blocks: int) -> np.ndarray:
-    """``unchanged`` without its 8-connected groups of fewer than ``min_blocks`` blocks, bool (n, m)."""
+def persistent_groups(unchanged: np.ndarray, previous: np.ndarray | None, min_blocks: int) -> np.ndarray:
+    """The 8-connected groups of ``unchanged`` blocks that were unchanged in the previous pair too.
+
+    A missing patch stays missing: where the nozzle left a gap, the next photo
+    shows the same old surface again (the hole deepens under new layers
+    around it), so its blocks are unchanged in two pairs in a row. A clean
+    layer's chance coincidences (a bead that happens to look like the one
+    below) do not repeat at the same place. A group is kept when it has at
+    least ``min_blocks`` blocks and one of them is, or touches, a block that
+    was unchanged in ``previous``.
+
+    Parameters
+    ----------
+    unchanged : ndarray, bool, shape (n, m)
+        This pair's unchanged blocks (:attr:`BlockChange.unchanged`).
+    previous : ndarray, bool, shape (n, m), or None
+        The previous pair's (same working box); ``None``: none, nothing is kept.
+    min_blocks : int
+
+    Returns
+    -------
+    ndarray, bool, shape (n, m)
+    """
+    if previous is None or previous.shape != unchanged.shape or not unchanged.any():
+        return np.zeros(unchanged.shape, bool)
     n, lab, stats, _ = cv2.connectedComponentsWithStats(unchanged.astype(np.uint8), connectivity=8)
-    keep = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= min_blocks)
-    return np.isin(lab, keep[keep > 0])
+    near = cv2.dilate(previous.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    ids = np.unique(lab[unchanged & near])
+    ids = ids[(ids > 0) & (stats[ids, cv2.CC_STAT_AREA] >= min_blocks)]
+    return np.isin(lab, ids)
 
 
 def blocks_on_top(blocks: np.ndarray, block_px: int, origin: tuple[int, int], scale: tuple[float, float],

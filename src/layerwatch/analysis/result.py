@@ -157,6 +157,8 @@ class LayerChangeStats:
     blocks_judged, blocks_unchanged : int
         Footprint blocks (working image) with texture above the noise, and of
         those the ones that look as in the previous photo.
+    blocks_confirmed : int
+        Unchanged blocks in groups that were unchanged in the previous pair too (the failing ones).
     unchanged_mm2 : float
         Area of the failing regions it reported, mm^2 on the layer's plane.
     added_mm2 : float
@@ -176,6 +178,7 @@ class LayerChangeStats:
     previous_layer: int = -1
     blocks_judged: int = 0
     blocks_unchanged: int = 0
+    blocks_confirmed: int = 0
     unchanged_mm2: float = 0.0
     added_mm2: float = 0.0
     noise: float = 0.0

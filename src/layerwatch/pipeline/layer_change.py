@@ -10,7 +10,10 @@ working image and camera rays (:class:`~layerwatch.pipeline.checks.JobChecks`:
 A photo the pipeline did not analyse (rejected frame, error) neither is judged
 nor becomes the previous photo; a skipped layer is covered because the
 previous photo is the last analysed one, whatever its layer (the parallax
-is the height printed since). The first photo of a print, and a photo whose
+is the height printed since). Unchanged blocks fail only where the previous
+pair found them unchanged too (:func:`~layerwatch.analysis.layer_change.persistent_groups`):
+a gap stays, a chance likeness does not, so a defect is reported from the
+photo after its onset on. The first photo of a print, and a photo whose
 previous photo shows no texture to calibrate on (black, blank), get no
 verdict (``LayerResult.layer_change.judged`` is False with a note). A layer
 that looks as before over most of its footprint (more than
@@ -32,8 +35,8 @@ from layerwatch.analysis.layer_change import (
     add_unchanged,
     block_change,
     blocks_on_top,
-    connected_blocks,
     parallax_px,
+    persistent_groups,
     unchanged_regions,
 )
 from layerwatch.analysis.result import LayerChangeStats, LayerResult
@@ -79,6 +82,8 @@ class LayerChange:
         """Forget the previous photo (a new print, or the single-photo mode's reset)."""
         #: ``(layer, z top mm, texture)`` of the last analysed photo
         self._previous: tuple[int, float, np.ndarray] | None = None
+        #: the previous pair's unchanged blocks (``None``: that pair was not judged), for :func:`persistent_groups`
+        self._unchanged: np.ndarray | None = None
         #: image shift per mm of height printed, working px (:func:`parallax_px`; the camera's, computed once)
         self._shift_per_mm: tuple[float, float] | None = None
 
@@ -98,6 +103,7 @@ class LayerChange:
         try:
             if previous is None or previous[0] >= index:
                 stats.note = "no earlier photo of this print to compare with"
+                self._unchanged = None
                 return
             self._compare(res, stats, texture, previous, fp, z, index, maps, photo)
         finally:
@@ -116,6 +122,7 @@ class LayerChange:
         shift = (self._shift_per_mm[0] * (z - z_before), self._shift_per_mm[1] * (z - z_before))
         stats.parallax_px = round(float(np.hypot(*shift)), 3)
         change = block_change(texture, previous[2], surface, near, shift, st)
+        before, self._unchanged = self._unchanged, (None if change is None else change.unchanged)
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
@@ -124,7 +131,8 @@ class LayerChange:
         if stats.blocks_unchanged > MAX_UNCHANGED_SHARE * stats.blocks_judged:
             stats.note = "most of the layer looks as in the previous photo: left to the nothing-extruded check"
             return
-        groups = connected_blocks(change.unchanged, st.min_blocks)
+        groups = persistent_groups(change.unchanged, before, st.min_blocks)
+        stats.blocks_confirmed = int(groups.sum())
         if not groups.any():
             return
         h, w = np.asarray(photo).shape[:2]

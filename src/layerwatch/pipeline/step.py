@@ -28,19 +28,19 @@ G-code (toolpath), camera pose and config are known:
    its kind, confidence and, for a moved part, the displacement in mm
    (:class:`~layerwatch.analysis.failure_typing.FailureTyper`; only on
    layers with a region, ``timings_ms["typing"]``).
-6. **changed as predicted** (after the checks, whose texture it reuses;
-   ``[layer_change] enabled``, on in the
-   recommended settings; :class:`~layerwatch.pipeline.layer_change.LayerChange`):
-   blocks of the new layer's footprint that look as in the previous photo
-   of the print (a gap in a thin wall, a patch missing from the infill)
-   become failing regions typed ``thin_wall``/``infill_defect`` and count
-   into a% (eq. 5 over the printed area); ``result.layer_change`` says what
-   was judged;
-7. **checks** (:class:`~layerwatch.pipeline.checks.JobChecks`): the first
+6. **checks** (:class:`~layerwatch.pipeline.checks.JobChecks`): the first
    layer against its footprint and the empty bed, and nothing extruded on
    the last two layers; a failure sets ``failed_check`` and
    ``check_regions``. The empty-bed check of the frame taken at job start is
-   :meth:`LayerPipeline.check_bed`.
+   :meth:`LayerPipeline.check_bed`;
+7. **changed as predicted** (series mode; after the checks, whose texture
+   it reuses; ``[layer_change] enabled``, on in the recommended settings;
+   :class:`~layerwatch.pipeline.layer_change.LayerChange`): blocks of the
+   new layer's footprint that look as in the previous photo of the print,
+   and did in the pair before (a gap in a thin wall, a patch missing from
+   the infill), become failing regions typed ``thin_wall``/``infill_defect`` and count
+   into a% (eq. 5 over the printed area); ``result.layer_change`` says what
+   was judged.
 
 This is the one per-layer step: the monitor, ``analyze``, the demo and the
 evaluation harness (which sweeps other measures and thresholds over the
