@@ -81,3 +81,13 @@ def test_after_an_analysed_black_photo_the_next_photo_gets_no_verdict(job):
     res = pipe.process(photos[13], 13)
     assert res.layer_change is not None and not res.layer_change.judged and "texture" in res.layer_change.note
     assert res.layer_change.unchanged_mm2 == 0.0
+
+
+def test_on_in_the_recommended_settings_off_in_the_paper_settings_and_every_number_has_a_dashboard_range():
+    from layerwatch.analysis.layer_change import LayerChangeSettings
+    from layerwatch.web.settings import RANGES
+
+    assert resolve_config().config.layer_change.enabled
+    assert not resolve_config(recommended=False).config.layer_change.enabled
+    numbers = [k for k, v in LayerChangeSettings().model_dump().items() if not isinstance(v, bool)]
+    assert numbers and all(f"layer_change.{k}" in RANGES for k in numbers)
