@@ -16,13 +16,20 @@ Per block of ``block_px`` working pixels, on the high-passed grey texture
 balance and a smooth change of light are a gain, which the high pass and the
 per-block normalisation remove):
 
-* **noise corrected** (:func:`block_change`): the sensor noise, independent in
-  the two photos, lowers the correlation of an unchanged block to
-  ``s / (s + n)`` (signal and noise variance). The noise variance ``n`` of the
-  pair is half the median variance of ``a - b`` on the quiet blocks; the
-  correlation is disattenuated, ``cov / sqrt((v_a - n)(v_b - n))`` (Spearman's
-  correction), and a block is judged only when its texture stands above the
-  noise (``v - n >= min_snr * n`` in both photos);
+* **noise aware** (:func:`block_change`): the sensor noise, independent in
+  the two photos, and the blur that changes from photo to photo lower the
+  correlation of an unchanged block to about ``s / (s + n)`` (signal and
+  noise variance; ``docs/checks.md``, the diagnosis). The noise variance
+  ``n`` of the pair is half the median variance of ``a - b`` on the quiet
+  blocks (off the new layer's projection: bed, earlier surfaces, which did
+  not change); a block is judged only when the texture on its footprint
+  pixels stands above it (``v >= (1 + min_snr) n`` in both photos), so that
+  an unchanged block's correlation can reach ``min_ncc``; the correlation is
+  the zero-mean NCC over the footprint pixels of the block
+  (:func:`~layerwatch.analysis.extrusion.block_ncc`). (Correcting the NCC
+  for the noise, ``cov / sqrt((v_a - n)(v_b - n))``, on whole blocks was
+  tried first: a block mixes sparse infill with the unchanged holes between
+  its lines, and clean layers gave more chance likenesses.)
 * **against the printed twin**: a perimeter laid on its twin, or sparse infill
   repeating the line below, looks alike too, but one layer higher: the camera
   sees it shifted by the parallax of the height printed since the previous
@@ -30,9 +37,10 @@ per-block normalisation remove):
   the same pixels is at least ``min_ncc`` **and** exceeds the correlation with
   the previous texture shifted by that parallax by ``min_gain``.
 
-Unchanged blocks are carried to the top view of the layer's plane (the
-pipeline's own warp maps), kept on the footprint, and connected regions of at
-least ``min_area_mm2`` become failing regions, typed ``thin_wall`` or
+Groups of unchanged blocks that were unchanged in the previous pair too
+(:func:`persistent_groups`) are carried to the top view of the layer's plane
+(the pipeline's own warp maps), kept on the footprint, and connected regions
+of at least ``min_area_mm2`` become failing regions, typed ``thin_wall`` or
 ``infill_defect`` by what the G-code prints there (:func:`printed_kind`).
 Blocks too flat to judge (a dark filament, a black or missing previous photo)
 give no verdict, never a failure.
@@ -40,7 +48,6 @@ give no verdict, never a failure.
 References
 ----------
 Lewis (1995), "Fast normalized cross-correlation" (zero-mean NCC).
-Spearman (1904), "The proof and measurement of association between two things" (correction for attenuation).
 Petsiuk & Pearce (2022), eq. (5): a% = S_A / S_P.
 """
 
@@ -91,7 +98,7 @@ class LayerChangeSettings(Section):
         Fewest 8-connected unchanged blocks a failing area needs (in the working image); the
         group must also touch a block unchanged in the previous pair (:func:`persistent_groups`).
     min_ncc : float
-        Noise-corrected correlation at the same pixels from which a block is unchanged.
+        NCC over a block's footprint pixels at the same pixels from which the block is unchanged.
     min_gain : float
         How much that correlation must exceed the correlation with the previous
         texture shifted by the layer's parallax (a twin printed on top).
@@ -120,8 +127,8 @@ class BlockChange:
     Attributes
     ----------
     ncc, ncc_twin : ndarray, float32, shape (n, m)
-        Noise-corrected correlation at the same pixels and with the previous
-        texture shifted by the parallax (0 where not judged).
+        NCC over the block's footprint pixels at the same pixels, and with the
+        previous texture shifted by the parallax (0 where not judged).
     judged : ndarray, bool, shape (n, m)
         Footprint blocks with texture above the noise.
     unchanged : ndarray, bool, shape (n, m)
