@@ -25,7 +25,8 @@ medians, morphology and phase correlation; loaded the same way and put in
 the current pipeline, so only the typer differs), with the median CPU time
 of the typer on the layers with regions for both and whether they gave every region the
 same kind; the paper-only step (``--paper-settings``: no scene channel) of
-the current code, the current step with ``[topview] scale = "camera"`` (the
+the current code, the current step without the "changed as predicted" channel
+(``[layer_change] enabled = false``: what the channel costs), the current step with ``[topview] scale = "camera"`` (the
 camera's own resolution, 8.8 px/mm here), and whether the old and new results
 agree (a%, outside area, region count per layer).
 
@@ -82,10 +83,13 @@ def _photos(size: tuple[int, int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
     return sim.bed_photo(), {i: sim.frame(i).photo for i in LAYERS}
 
 
-def _pipeline(mods, paper: bool, bed: np.ndarray, size: tuple[int, int], camera_scale: bool = False):
+def _pipeline(mods, paper: bool, bed: np.ndarray, size: tuple[int, int], camera_scale: bool = False,
+              layer_change: bool = True):
     """A prepared pipeline of the package ``mods`` (current or old), recommended or paper settings."""
     tp = mods["gcode"].read_toolpath(PART_GCODE)
     cfg = mods["config"].recommended_config(PART_CONFIG)
+    if not layer_change:
+        cfg = cfg.model_copy(update={"layer_change": cfg.layer_change.model_copy(update={"enabled": False})})
     if paper:
         cfg = mods["config"].JobConfig(topview=cfg.topview)
     if camera_scale:
@@ -135,7 +139,8 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
     old = load_revision(rev, OLD_MODULES)
     bed, photos = _photos(size)
     pipes = {"ours": _pipeline(current, False, bed, size), "paper": _pipeline(current, True, bed, size),
-             "camera": _pipeline(current, False, bed, size, camera_scale=True)}
+             "camera": _pipeline(current, False, bed, size, camera_scale=True),
+             "no_layer_change": _pipeline(current, False, bed, size, layer_change=False)}
     if old is not None:
         assert old["layerwatch.pipeline.step"].__file__ != lw_step.__file__, "the baseline is the current code"
         oldm = dict(zip(("gcode", "config", "step", "simulate"), (old[m] for m in OLD_MODULES), strict=True))
@@ -199,6 +204,9 @@ def report(r: dict) -> None:
     else:
         print(f"  typing alone, median CPU time over the typed layers: current {t['ours'][0]:.1f} ms "
               "(typer baseline revision not available)")
+    print(f"  current without the changed-as-predicted channel ([layer_change] enabled = false): "
+          f"{r['no_layer_change']:7.1f} ms  [{w['no_layer_change']:6.1f}]  -> the channel costs "
+          f"{r['ours'] - r['no_layer_change']:.1f} ms (ratio {r['ours'] / r['no_layer_change']:.2f}x)")
     print(f"  paper-only step (--paper-settings, no scene channel), current code: {r['paper']:7.1f} ms  [{w['paper']:6.1f}]")
     print(f"  current with [topview] scale = \"camera\" ({r['camera_px_per_mm']:.2f} px/mm):  "
           f"{r['camera']:7.1f} ms  [{w['camera']:6.1f}]")

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BlockGrid", "LayerResult", "MetricScore", "Region", "SceneStats"]
+__all__ = ["BlockGrid", "LayerChangeStats", "LayerResult", "MetricScore", "Region", "SceneStats"]
 
 
 @dataclass
@@ -147,6 +147,50 @@ class SceneStats:
     blocks_changed: int = 0
     gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
     ms: float = 0.0
+
+
+@dataclass
+class LayerChangeStats:
+    """What the "changed as predicted" channel saw in one photo (``LayerResult.layer_change``; :mod:`layerwatch.analysis.layer_change`).
+
+    Attributes
+    ----------
+    judged : bool
+        Whether the photo pair could be judged (a previous photo of the print,
+        texture to calibrate the noise on); ``note`` says why not.
+    previous_layer : int
+        Layer of the previous photo compared with (-1: none).
+    blocks_judged, blocks_unchanged : int
+        Footprint blocks (working image) with texture above the noise, and of
+        those the ones that look as in the previous photo.
+    blocks_confirmed : int
+        Unchanged blocks in groups that were unchanged in the previous pair too (the failing ones).
+    unchanged_mm2 : float
+        Area of the failing regions it reported, mm^2 on the layer's plane.
+    added_mm2 : float
+        What those regions added to ``S_A`` (eq. 5): their area not already
+        under an anomalous HOG block, mm^2.
+    noise : float
+        Noise variance of one photo's high-passed texture, grey levels^2.
+    parallax_px : float
+        Image shift of the height printed since the previous photo, working px.
+    ms : float
+        Time of the channel on this photo, ms.
+    note : str
+        Why the pair was not judged (``""`` when it was).
+    """
+
+    judged: bool = False
+    previous_layer: int = -1
+    blocks_judged: int = 0
+    blocks_unchanged: int = 0
+    blocks_confirmed: int = 0
+    unchanged_mm2: float = 0.0
+    added_mm2: float = 0.0
+    noise: float = 0.0
+    parallax_px: float = 0.0
+    ms: float = 0.0
+    note: str = ""
 
 
 def _region(r: dict[str, Any]) -> Region:
@@ -300,6 +344,7 @@ class LayerResult:
     failed_check: str = ""
     check_regions: list[Region] = field(default_factory=list)
     view_shift_px: tuple[int, int] = (0, 0)
+    layer_change: LayerChangeStats | None = None
 
     @property
     def ok(self) -> bool:
@@ -337,6 +382,9 @@ class LayerResult:
             d["scene"] = SceneStats(**fields)
         if d.get("view_shift_px") is not None:
             d["view_shift_px"] = tuple(int(v) for v in d["view_shift_px"])
+        if isinstance(d.get("layer_change"), dict):
+            d["layer_change"] = LayerChangeStats(**{k: v for k, v in d["layer_change"].items()
+                                                    if k in LayerChangeStats.__dataclass_fields__})
         heat = d.pop("heatmap", None)
         mask = d.pop("mask", None)
         for key, value in (d.pop("extra", None) or {}).items():  # rows written before the typed fields

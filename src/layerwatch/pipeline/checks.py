@@ -173,6 +173,14 @@ class JobChecks:
         r1, c1 = min(-(-(rows[-1] + 1 + bp) // bp) * bp, h), min(-(-(cols[-1] + 1 + bp) // bp) * bp, w)
         return (slice(int(r0), int(r1)), slice(int(c0), int(c1)))
 
+    def texture_of(self, index: int) -> np.ndarray | None:
+        """The nothing-extruded check's texture of the photo of layer ``index`` (``box`` of the working image).
+
+        ``None`` when the check made none for that layer (off, or the photo was not analysed);
+        the "changed as predicted" channel then makes its own (:mod:`layerwatch.pipeline.layer_change`).
+        """
+        return next((t for i, t in self._textures if i == index), None)
+
     # ------------------------------------------------------------ job start
     def check_bed(self, photo: np.ndarray) -> LayerResult | None:
         """The empty-bed check of the frame taken at job start: a result for layer -1, or ``None`` when off.

@@ -47,6 +47,7 @@ from layerwatch.analysis.check_settings import (
     FirstLayerSettings,
 )
 from layerwatch.analysis.frame_quality import FrameQualitySettings
+from layerwatch.analysis.layer_change import LayerChangeSettings
 from layerwatch.analysis.settings import AnalysisSettings, SceneSettings
 from layerwatch.errors import ConfigError
 from layerwatch.gcode.settings import PrinterProfile, SnapshotSettings
@@ -73,6 +74,7 @@ RECOMMENDED: dict[str, dict] = {
     "bed_check": {"enabled": True},
     "first_layer": {"enabled": True},
     "extrusion": {"enabled": True},
+    "layer_change": {"enabled": True},
 }
 
 
@@ -94,6 +96,7 @@ class JobConfig(Section):
     bed_check: BedCheckSettings = Field(default_factory=BedCheckSettings)
     first_layer: FirstLayerSettings = Field(default_factory=FirstLayerSettings)
     extrusion: ExtrusionSettings = Field(default_factory=ExtrusionSettings)
+    layer_change: LayerChangeSettings = Field(default_factory=LayerChangeSettings)
 
     def for_camera(self, camera: CameraModel) -> JobConfig:
         """This config with the top view's scale resolved for ``camera`` (``[topview] scale = "camera"``).

@@ -32,7 +32,15 @@ G-code (toolpath), camera pose and config are known:
    layer against its footprint and the empty bed, and nothing extruded on
    the last two layers; a failure sets ``failed_check`` and
    ``check_regions``. The empty-bed check of the frame taken at job start is
-   :meth:`LayerPipeline.check_bed`.
+   :meth:`LayerPipeline.check_bed`;
+7. **changed as predicted** (series mode; after the checks, whose texture
+   it reuses; ``[layer_change] enabled``, on in the recommended settings;
+   :class:`~layerwatch.pipeline.layer_change.LayerChange`): blocks of the
+   new layer's footprint that look as in the previous photo of the print,
+   and did in the pair before (a gap in a thin wall, a patch missing from
+   the infill), become failing regions typed ``thin_wall``/``infill_defect`` and count
+   into a% (eq. 5 over the printed area); ``result.layer_change`` says what
+   was judged.
 
 This is the one per-layer step: the monitor, ``analyze``, the demo and the
 evaluation harness (which sweeps other measures and thresholds over the
@@ -80,6 +88,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.layer_change import LayerChange
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.scene import SceneModel, SceneObservation
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
@@ -201,6 +210,9 @@ class LayerPipeline:
         #: the empty-bed, first-layer and nothing-extruded checks
         self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo,
                                 reach_mm=reach, top_z_mm=top_z)
+        #: the "changed as predicted" channel (``None`` when ``[layer_change] enabled`` is off)
+        self.layer_change = (LayerChange(self.checks, self.topview, self.warper, toolpath, self.config.layer_change)
+                             if self.config.layer_change.enabled else None)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         self._cache = None
@@ -268,6 +280,8 @@ class LayerPipeline:
             raise RenderError(f"the new toolpath has {toolpath.n_layers} layers, the job {self.toolpath.n_layers}")
         self.toolpath = toolpath
         self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
+        if self.layer_change is not None:
+            self.layer_change.toolpath = toolpath
         self._memo.clear()
         if self._cache is not None:
             self._hash = toolpath_hash(toolpath)
@@ -293,6 +307,8 @@ class LayerPipeline:
         if self.scene is not None:
             self.scene.reset(bed_photo)
         self.checks.new_print(bed_photo)
+        if self.layer_change is not None:
+            self.layer_change.new_print()
 
     def check_bed(self, photo: np.ndarray) -> LayerResult | None:
         """The empty-bed check of the frame taken when the job starts (layer -1; see :class:`JobChecks`).
@@ -404,6 +420,8 @@ class LayerPipeline:
             self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
             self.checks.after_layer(res, photo, index, self.footprint)
+            if self.layer_change is not None:  # after the typing (its regions come typed) and the checks' texture
+                self.layer_change.judge(res, photo, index, self.footprint)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input

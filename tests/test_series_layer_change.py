@@ -1,0 +1,93 @@
+"""The "changed as predicted" channel in the per-layer step (issue 18): series only, no verdict without a usable
+previous photo, off with the paper's settings, and never a pause from a black or skipped photo."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from layerwatch.examples import PART_GCODE
+from layerwatch.gcode import read_toolpath
+from layerwatch.geometry.settings import TopViewSettings
+from layerwatch.pipeline.config import resolve_config
+from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.step import LayerPipeline, judge_layers
+from layerwatch.simulate import PrintSimulator
+from layerwatch.simulate.scene import default_camera
+
+
+@pytest.fixture(scope="module")
+def job():
+    tp = read_toolpath(PART_GCODE.read_bytes())
+    x0, y0, x1, y1 = tp.bounds
+    square = {"center_mm": ((x0 + x1) / 2, (y0 + y1) / 2), "width_mm": 90.0, "height_mm": 90.0}
+    tv = TopViewSettings(**square).topview()
+    cam = default_camera(tv, image_size=(1280, 720))
+    sim = PrintSimulator(tp, cam, tv, seed=7)
+    photos = {i: sim.frame(i).photo for i in (10, 11, 12, 13)}
+    return tp, cam, square, sim.bed_photo(), photos
+
+
+def _pipe(job, paper=False, **sections):
+    tp, cam, square, bed, _ = job
+    cfg = resolve_config(recommended=not paper, flags={"topview": square, **sections}).config
+    return LayerPipeline(tp, cam, cfg, bed_photo=bed)
+
+
+def test_the_first_photo_is_not_judged_the_next_one_is(job):
+    pipe = _pipe(job)
+    photos = job[4]
+    first, second = pipe.process(photos[10], 10), pipe.process(photos[11], 11)
+    assert first.layer_change is not None and not first.layer_change.judged
+    assert "no earlier photo" in first.layer_change.note
+    lc = second.layer_change
+    assert lc is not None and lc.judged and lc.previous_layer == 10 and lc.blocks_judged > 20
+    assert lc.parallax_px > 0 and "layer_change" in second.timings_ms
+    assert not [r for r in second.regions if r.kind in ("thin_wall", "infill_defect") and r.mean_similarity == 0.0]
+    pipe.new_print(job[3])  # a new print (or the single-photo mode): no previous photo any more
+    again = pipe.process(photos[12], 12)
+    assert again.layer_change is not None and not again.layer_change.judged
+
+
+def test_off_with_the_paper_settings(job):
+    pipe = _pipe(job, paper=True)
+    assert pipe.layer_change is None
+    res = pipe.process(job[4][11], 11)
+    assert res.layer_change is None
+
+
+def test_a_black_photo_in_the_series_is_rejected_and_the_next_is_judged_against_the_last_good_one(job):
+    # the scene channel rejects the black frame (an alert, never a pause): layer 13 is compared with
+    # layer 11's photo, a skipped layer's parallax
+    pipe = _pipe(job)
+    photos = job[4]
+    frames = [(10, photos[10]), (11, photos[11]), (12, np.zeros_like(photos[12])), (13, photos[13])]
+    out = list(judge_layers(pipe, PausePolicy(pipe.config.policy), frames))
+    assert not any(d.stops for _, d in out), [(r.layer, r.status, d.action, d.reason) for r, d in out]
+    assert out[2][0].status == "error" and out[2][0].layer_change is None
+    last = out[-1][0].layer_change
+    assert last is not None and last.judged and last.previous_layer == 11
+    assert not [r for res, _ in out for r in res.regions if r.kind in ("thin_wall", "infill_defect")
+                and r.mean_similarity == 0.0]
+
+
+def test_after_an_analysed_black_photo_the_next_photo_gets_no_verdict(job):
+    # without the scene channel nothing rejects the black frame; it becomes the previous photo, and
+    # the next one has nothing to calibrate the noise on: "not judged", no region from this channel
+    pipe = _pipe(job, scene={"enabled": False})
+    photos = job[4]
+    pipe.process(photos[11], 11)
+    pipe.process(np.zeros_like(photos[12]), 12)
+    res = pipe.process(photos[13], 13)
+    assert res.layer_change is not None and not res.layer_change.judged and "texture" in res.layer_change.note
+    assert res.layer_change.unchanged_mm2 == 0.0
+
+
+def test_on_in_the_recommended_settings_off_in_the_paper_settings_and_every_number_has_a_dashboard_range():
+    from layerwatch.analysis.layer_change import LayerChangeSettings
+    from layerwatch.web.settings import RANGES
+
+    assert resolve_config().config.layer_change.enabled
+    assert not resolve_config(recommended=False).config.layer_change.enabled
+    numbers = [k for k, v in LayerChangeSettings().model_dump().items() if not isinstance(v, bool)]
+    assert numbers and all(f"layer_change.{k}" in RANGES for k in numbers)
