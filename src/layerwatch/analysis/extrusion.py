@@ -14,31 +14,18 @@ cross-correlation** (NCC) of the high-passed grey images (a Gaussian of
 smooth gain, which the high pass and the normalisation remove, so NCC stays
 near 1 for an unchanged surface under new light and noise; new beads give
 an unrelated texture (NCC near 0 for infill that turns, up to about 0.8 for
-perimeters laid on their twins). The beads must be resolved:
-the comparison runs on the photo at its own resolution (``[extrusion] working_px``).
-
-Sensor noise, independent from photo to photo, holds an unchanged surface's
-NCC under 1, the more so the fainter its texture (NCC about signal variance /
-(signal + noise variance): 0.73 on the faintest blocks of the example part's solid top
-surface, docs/checks.md).
-The noise is measured on the same two high-passed textures, where nothing
-changed between them (the bare bed beside the print,
-:func:`texture_noise_var`), so no noise model is assumed (demosaicing, JPEG
-and the gamma curve shape it as they shape the texture), and the layer's
-evidence is the **median block NCC against the photo two layers back divided
-by the median NCC the same blocks would reach unchanged through that noise**
-(:func:`surface_similarity`; two layers of growth also shift the surface by
-their height's parallax). The check flags the layer when it is above
-``min_similarity``: two layers in a row added nothing, which is the failure
-caught within two layers of its onset. A layer too small to judge on its own
-is judged with the layer before it (both top surfaces against that photo;
-:class:`~layerwatch.pipeline.checks.JobChecks`).
+perimeters laid on their twins). The beads must be resolved: the comparison
+runs on the photo at its own resolution (``[extrusion] working_px``). The layer's evidence is the **median block NCC**
+against the photo two layers back (two layers of growth also shift the
+surface by their height's parallax), and the check flags the layer when it
+is above ``min_similarity``: two layers in a row added nothing, which is the
+failure caught within two layers of its onset. A layer too small to judge on
+its own is judged with the layer before it (both top surfaces against that
+photo; :class:`~layerwatch.pipeline.checks.JobChecks`).
 
 References
 ----------
 Lewis (1995), "Fast normalized cross-correlation" (zero-mean NCC).
-Spearman (1904), "The proof and measurement of association between two things" (a correlation
-attenuated by independent errors).
 """
 
 from __future__ import annotations

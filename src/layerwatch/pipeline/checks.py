@@ -15,9 +15,8 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
 * **first layer** (``[first_layer]``): the photo of layer index 0 against its
   footprint and the empty bed (:func:`~layerwatch.analysis.first_layer.inspect_first_layer`);
 * **nothing extruded** (``[extrusion]``): from layer index 2 on, the layer's
-  top surface against the photo two layers back (median block NCC over the
-  median NCC the photos' noise, measured beside the print, leaves an unchanged
-  surface, :func:`~layerwatch.analysis.extrusion.surface_similarity`): flagged when the last two
+  top surface against the photo two layers back (median block NCC,
+  :func:`~layerwatch.analysis.extrusion.block_ncc`): flagged when the last two
   layers added no material, so a run-out is caught on the second layer after
   its onset (the first layer's own "nothing extruded" is the first-layer
   inspection's). A layer whose surface is too small to judge alone (fewer than
@@ -40,12 +39,7 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.bed_check import check_empty_bed, regions_image
-from layerwatch.analysis.extrusion import (
-    block_ncc_reliability,
-    box_texture,
-    surface_similarity,
-    texture_noise_var,
-)
+from layerwatch.analysis.extrusion import block_ncc_reliability, box_texture, surface_similarity, texture_noise_var
 from layerwatch.analysis.first_layer import inspect_first_layer
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
