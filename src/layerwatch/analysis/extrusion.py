@@ -37,20 +37,12 @@ import numpy as np
 
 from layerwatch.analysis.scene_change import channel_mean, to_working
 
-__all__ = ["HIGHPASS_SIGMA", "block_ncc", "block_ncc_reliability", "box_texture", "highpass", "surface_similarity",
-           "texture_noise_var"]
+__all__ = ["HIGHPASS_SIGMA", "block_ncc", "box_texture", "highpass"]
 
 #: Gaussian (working px) removed from the grey image before the NCC: the shading, not the bead texture
 HIGHPASS_SIGMA = 2.0
 #: blocks whose high-passed texture is flatter than this (grey levels, in both photos) say nothing
 MIN_TEXTURE = 0.5
-#: quantile of the blocks' ``var(a - b) / 2`` away from the judged surface taken as the noise variance
-NOISE_QUANTILE = 0.1
-#: fewest blocks away from the judged surface to measure the noise on
-MIN_NOISE_BLOCKS = 16
-#: least median reliability a surface's similarity is divided by (:func:`surface_similarity`): a noise
-#: estimate that is too high lifts a clean surface's similarity at most 1 / 0.7 = 1.43 times
-MIN_RELIABILITY = 0.7
 
 
 def highpass(image: np.ndarray) -> np.ndarray:
@@ -99,47 +91,6 @@ def box_texture(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slic
     return grey[r0 - y0:r1 - y0, c0 - x0:c1 - x0]
 
 
-def texture_noise_var(a: np.ndarray, b: np.ndarray, surface: np.ndarray, block_px: int,
-                      quantile: float = NOISE_QUANTILE) -> float:
-    """Noise variance of one photo's high-passed texture, measured on what did not change between two photos.
-
-    Sensor noise is independent from photo to photo, so on a block whose scene did not change
-    (the bare bed beside the print) ``var(a - b) = noise_a + noise_b``. Measured through the same
-    resize and high pass as the texture it corrects, it needs no model of the noise: demosaicing,
-    JPEG blocks and a gamma curve shape it the same way on both sides. Blocks that did change
-    (the print's new layers, its walls seen from the side, a shadow) only raise ``var(a - b)``, so
-    the low ``quantile`` over the blocks away from ``surface`` is taken (a bias toward less noise:
-    the correction then does less).
-
-    Parameters
-    ----------
-    a, b : ndarray, float32, shape (h, w)
-        High-passed images of the same camera (:func:`highpass`).
-    surface : ndarray, bool, shape (h, w)
-        Pixels left out (the surface being judged).
-    block_px : int
-        Block side, px.
-    quantile : float
-        Quantile of the blocks' ``var(a - b) / 2`` taken.
-
-    Returns
-    -------
-    float
-        Noise variance of one photo, grey levels^2 (half the quantile); ``nan`` with fewer than
-        :data:`MIN_NOISE_BLOCKS` blocks clear of ``surface``.
-    """
-    h, w = surface.shape
-    n, m = h // block_px, w // block_px
-    crop = (slice(0, n * block_px), slice(0, m * block_px))
-    d = np.ascontiguousarray(a[crop]) - np.ascontiguousarray(b[crop])
-    mean = cv2.resize(d, (m, n), interpolation=cv2.INTER_AREA)
-    var = cv2.resize(d * d, (m, n), interpolation=cv2.INTER_AREA) - mean * mean
-    clear = cv2.resize(np.ascontiguousarray(surface[crop]).astype(np.float32), (m, n), interpolation=cv2.INTER_AREA) == 0
-    if np.count_nonzero(clear) < MIN_NOISE_BLOCKS:
-        return float("nan")
-    return float(np.quantile(var[clear], quantile)) / 2.0
-
-
 def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int,
               min_share: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Zero-mean normalised cross-correlation of two images per block, over the masked pixels.
@@ -162,38 +113,6 @@ def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int,
     scored : ndarray, bool, same shape
         Blocks at least ``min_share`` masked with texture above :data:`MIN_TEXTURE` in either image.
     """
-    ncc, scored, _ = block_ncc_reliability(a, b, mask, block_px, min_share)
-    return ncc, scored
-
-
-def block_ncc_reliability(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int, min_share: float = 0.5,
-                          noise_var: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`block_ncc` and each block's reliability: the NCC an unchanged block would reach through the noise.
-
-    Independent noise of variance ``noise_var`` in each photo adds to a block's variance and not
-    to the covariance, so an unchanged block's NCC is about ``sqrt(r_a r_b)``, with
-    ``r = (var - noise_var) / var`` the share of the block's variance that is texture (its
-    reliability): well below 1 on a fine, faint surface.
-
-    Parameters
-    ----------
-    a, b, mask, block_px, min_share
-        As :func:`block_ncc`.
-    noise_var : float
-        One photo's noise variance, grey levels^2 (:func:`texture_noise_var`; 0 or ``nan``: none).
-
-    Returns
-    -------
-    ncc, scored : ndarray, shape (h // block_px, w // block_px)
-        As :func:`block_ncc`.
-    reliability : ndarray, float32, same shape
-        ``sqrt(r_a r_b)`` in [0, 1] (1 without ``noise_var``).
-
-    References
-    ----------
-    Spearman (1904), "The proof and measurement of association between two things" (attenuation of a
-    correlation by independent errors).
-    """
     h, w = mask.shape
     n, m = h // block_px, w // block_px
     crop = (slice(0, n * block_px), slice(0, m * block_px))
@@ -210,35 +129,4 @@ def block_ncc_reliability(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_
     cov = mean(x * y) / f - mx * my
     ncc = np.where(vx * vy > 0, cov / np.sqrt(np.maximum(vx * vy, 1e-12)), 0.0).astype(np.float32)
     texture = np.sqrt(np.maximum(vx, vy))
-    if np.isfinite(noise_var) and noise_var > 0:
-        r = np.clip(1.0 - noise_var / np.maximum(vx, 1e-12), 0, 1) * np.clip(1.0 - noise_var / np.maximum(vy, 1e-12), 0, 1)
-        reliability = np.sqrt(r).astype(np.float32)
-    else:
-        reliability = np.ones_like(ncc)
-    return np.clip(ncc, -1, 1), (frac >= min_share) & (texture > MIN_TEXTURE), reliability
-
-
-def surface_similarity(ncc: np.ndarray, reliability: np.ndarray, scored: np.ndarray) -> float:
-    """A surface's texture similarity to the photo before, its noise taken out: median NCC / median reliability.
-
-    The median block NCC (:func:`block_ncc`) of the scored blocks, divided by the median NCC that
-    the same blocks would reach unchanged through the two photos' noise (their median
-    reliability, :func:`block_ncc_reliability`), held at :data:`MIN_RELIABILITY` or more: an
-    unchanged fine, faint surface scores near 1 like a coarse one, while a surface whose texture
-    is strong and changed keeps its NCC. The ratio of the medians, not the median of the
-    per-block ratios: a few faint blocks cannot reorder a small surface's blocks.
-
-    Parameters
-    ----------
-    ncc, reliability : ndarray, float32, shape (n, m)
-        Per block (:func:`block_ncc_reliability`).
-    scored : ndarray, bool, shape (n, m)
-        Blocks judged (at least one).
-
-    Returns
-    -------
-    float
-        Similarity in [-1, 1] (a correlation: a noise estimate that is too high cannot lift it further).
-    """
-    rel = float(np.median(reliability[scored]))
-    return min(float(np.median(ncc[scored])) / max(rel, MIN_RELIABILITY), 1.0)
+    return np.clip(ncc, -1, 1), (frac >= min_share) & (texture > MIN_TEXTURE)

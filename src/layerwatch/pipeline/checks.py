@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.bed_check import check_empty_bed, regions_image
-from layerwatch.analysis.extrusion import block_ncc_reliability, box_texture, surface_similarity, texture_noise_var
+from layerwatch.analysis.extrusion import block_ncc, box_texture
 from layerwatch.analysis.first_layer import inspect_first_layer
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
@@ -239,7 +239,7 @@ class JobChecks:
             return
         area, surface = self._layer_surface(fp, z, maps, st.margin_mm)
         # earlier[1]: the photo before the last two layers were printed
-        ncc, scored, rel = self._block_ncc(texture, earlier[1], surface, 0.5)
+        ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px)
         blocks, judged = int(scored.sum()), f"layer {index}'s top surface ({area:.0f} mm^2"
         if blocks < POOL_BELOW_BLOCKS or area < st.min_area_mm2:  # thin evidence: pool it with the layer before
             if before is None or before[0] != index - 1:
@@ -250,12 +250,12 @@ class JobChecks:
             prev = np.unpackbits(before[2], count=fp.size).reshape(fp.shape).astype(bool)
             area_before, surface_before = self._layer_surface(prev, before[1], maps, margin)
             area, surface = area + area_before, surface | surface_before
-            ncc, scored, rel = self._block_ncc(texture, earlier[1], surface, POOLED_MIN_SHARE)
+            ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=POOLED_MIN_SHARE)
             blocks, judged = int(scored.sum()), f"the top surfaces of layers {index - 1} and {index} ({area:.0f} mm^2"
             self.pooled = True
         if blocks < MIN_BLOCKS or area < st.min_area_mm2:  # not judged
             return
-        sim = surface_similarity(ncc, rel, scored)
+        sim = float(np.median(ncc[scored]))
         self.similarity = (sim, blocks)
         if sim < st.min_similarity:
             return
@@ -263,19 +263,7 @@ class JobChecks:
         region = self._footprint_region(fp, area, sim)
         res.check_regions = [*res.check_regions, region]
         _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
-                     f"(texture similarity {sim:.2f} >= {st.min_similarity:.2f}, noise taken out); "
-                     "clog or filament run-out?")
-
-    def _block_ncc(self, texture: np.ndarray, before: np.ndarray, surface: np.ndarray,
-                   min_share: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Block NCC, scored blocks and reliability of ``surface`` between two textures of :attr:`box`.
-
-        The noise is measured on the same two textures, on the blocks clear of ``surface``
-        (:func:`~layerwatch.analysis.extrusion.texture_noise_var`).
-        """
-        bp = self.config.extrusion.block_px
-        noise = texture_noise_var(texture, before, surface, bp)
-        return block_ncc_reliability(texture, before, surface, bp, min_share, noise)
+                     f"(texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or filament run-out?")
 
     def _layer_surface(self, fp: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],
                        margin_mm: float) -> tuple[float, np.ndarray]:
