@@ -91,3 +91,25 @@ def test_on_in_the_recommended_settings_off_in_the_paper_settings_and_every_numb
     assert not resolve_config(recommended=False).config.layer_change.enabled
     numbers = [k for k, v in LayerChangeSettings().model_dump().items() if not isinstance(v, bool)]
     assert numbers and all(f"layer_change.{k}" in RANGES for k in numbers)
+
+
+def test_a_layer_the_typer_found_moved_gets_no_thin_wall_or_infill_region(job, monkeypatch):
+    """A shifted layer leaves its planned place as it was: that is the motion's area (the typer's moved
+    outline), not a gap in the walls or infill. With every unchanged block forced to count, a clean layer
+    gets the channel's regions and the shifted layer none."""
+    import layerwatch.pipeline.layer_change as lc_module
+    from layerwatch.analysis.failure_kinds import MOVED_KINDS
+    from layerwatch.simulate import Failure
+
+    monkeypatch.setattr(lc_module, "persistent_groups", lambda unchanged, before, min_blocks: unchanged)
+    monkeypatch.setattr(lc_module, "MAX_UNCHANGED_SHARE", 1.0)
+    tp, cam, square, bed, _ = job
+    tv = TopViewSettings(**square).topview()
+    shifted = PrintSimulator(tp, cam, tv, (Failure("layer_shift", onset=12, size_mm=4.0, seed=1),), seed=7)
+    pipe = _pipe(job)
+    results = [pipe.process(shifted.frame(i).photo, i) for i in (10, 11, 12)]
+    clean, moved = results[1], results[2]
+    assert any(r.kind in MOVED_KINDS for r in moved.regions), "the typer did not find the shift"
+    assert clean.layer_change is not None and clean.layer_change.added_mm2 + clean.layer_change.unchanged_mm2 > 0
+    assert moved.layer_change is not None and "the part moved" in moved.layer_change.note
+    assert moved.layer_change.unchanged_mm2 == 0.0

@@ -18,7 +18,11 @@ previous photo shows no texture to calibrate on (black, blank), get no
 verdict (``LayerResult.layer_change.judged`` is False with a note). A layer
 that looks as before over most of its footprint (more than
 :data:`MAX_UNCHANGED_SHARE` of the judged blocks) is not a local defect but
-nothing extruded, the nothing-extruded check's failure: no region here.
+nothing extruded, the nothing-extruded check's failure: no region here. Nor
+is a layer that the failure typer found moved (a region typed layer shift or
+detachment, :data:`~layerwatch.analysis.failure_kinds.MOVED_KINDS`): its
+planned place looks as before because the layer lies elsewhere, and the moved
+outline already marks it.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.extrusion import box_texture
+from layerwatch.analysis.failure_kinds import MOVED_KINDS
 from layerwatch.analysis.layer_change import (
     LayerChangeSettings,
     add_unchanged,
@@ -134,6 +139,11 @@ class LayerChange:
         groups = persistent_groups(change.unchanged, before, st.min_blocks)
         stats.blocks_confirmed = int(groups.sum())
         if not groups.any():
+            return
+        if any(r.kind in MOVED_KINDS for r in res.regions):
+            # a shifted or detached layer leaves its planned place as it was: the typer's moved
+            # outline already marks that area, a thin-wall or infill region there would be wrong
+            stats.note = "the part moved (a region is typed layer shift or detachment): its unchanged area is the motion's"
             return
         h, w = np.asarray(photo).shape[:2]
         map1, map2, valid = self.warper.maps(z, (w, h))
