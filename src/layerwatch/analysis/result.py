@@ -174,8 +174,6 @@ class LayerChangeStats:
         Noise variance of one photo's high-passed texture, grey levels^2.
     parallax_px : float
         Image shift of the height printed since the previous photo, working px.
-    ms : float
-        Time of the channel on this photo, ms.
     note : str
         Why the pair was not judged (``""`` when it was).
     """
@@ -189,7 +187,6 @@ class LayerChangeStats:
     added_mm2: float = 0.0
     noise: float = 0.0
     parallax_px: float = 0.0
-    ms: float = 0.0
     note: str = ""
 
 

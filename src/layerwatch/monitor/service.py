@@ -45,6 +45,7 @@ import threading
 import time
 from collections.abc import Iterable
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -595,7 +596,12 @@ class Monitor:
         return self.report
 
     def _step(self) -> bool:
-        """One step of a caller-driven printer (the virtual replay); True when the run should end."""
+        """One step of a caller-driven printer (the virtual replay); True when the run should end.
+
+        The replay has no clock: a real layer takes far longer than its analysis, so the next layer is
+        replayed only once the queued analyses are done (else a pause could arrive after the replay
+        had run to the end of the file, as it did when the analysis took a few seconds more)."""
+        futures_wait(self._futures)
         trig = self.printer.step_to_next_trigger()
         if trig is not None:
             self.printer.poll_triggers()
