@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from layerwatch.analysis.ledges import LEDGE_SHARE, ledge_blocks, ledge_regions
+import layerwatch.pipeline.step as step_module
+from layerwatch.analysis.ledges import (
+    LEDGE_SHARE,
+    ledge_blocks,
+    ledge_regions,
+    off_colour,
+    part_chroma,
+)
 from layerwatch.errors import AnalysisError
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
@@ -13,6 +20,7 @@ from layerwatch.geometry.topview import TopView
 from layerwatch.pipeline.config import resolve_config
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
+from layerwatch.simulate.failures import MAT_TOOL, resolve
 
 TV = TopView(6.67, 9.6, 9.6, (0.0, 0.0))  # 64 x 64 px: 7 x 7 blocks of 2 x 2 cells of 8 px
 
@@ -77,3 +85,104 @@ def test_single_photo_sees_an_object_on_the_plate_beside_the_top_layer():
     found = outside["object"].outside_regions
     assert found and outside["object"].outside_anomalous_mm2 >= 4.0
     assert any(abs(r.centroid_mm[0] - 110.0) < 6 and abs(r.centroid_mm[1] - 112.5) < 6 for r in found)
+
+
+def _bgr(rgb: tuple[float, float, float]) -> np.ndarray:
+    return np.array(rgb[::-1], np.float32)
+
+
+def _floor(shape=(96, 96), part=(0.85, 0.5, 0.16), rng_seed=0) -> np.ndarray:
+    """A top view (BGR, uint8) of an orange floor with infill-line texture, shading and sensor noise."""
+    rng = np.random.default_rng(rng_seed)
+    h, w = shape
+    lines = 0.8 + 0.2 * (np.sin(np.arange(w) * 2 * np.pi / 3.0)[None, :] > 0)
+    shade = np.linspace(0.55, 1.0, h)[:, None] * lines
+    img = shade[..., None] * _bgr(part) * 255.0 + rng.normal(0.0, 3.0, (h, w, 3))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_off_colour_ignores_shading_glare_exposure_and_white_balance_but_sees_another_hue():
+    fp = np.zeros((96, 96), bool)
+    fp[:, :30] = True  # the printed layer: the part's colour
+    ledges = np.zeros_like(fp)
+    ledges[:, 30:] = True
+    ledges[40:56, :30] = True  # a deep shadow lies on a ledge too
+
+    def photo(gains=(1.0, 1.0, 1.0), key=False):
+        """The floor as the sensor sees it: exposure and white-balance gains act before the sensor clips."""
+        img = _floor().astype(np.float32)
+        img[40:56, 10:26] *= 0.25  # a deep shadow
+        img[75:90, 40:70] = img[75:90, 40:70] * 0.5 + 120  # a highlight: the light's white added
+        img[60:70, 60:80] += 150  # a highlight strong enough to clip
+        if key:
+            img[20:26, 50:80] = _bgr((0.1, 0.25, 0.75)) * 200  # a blue hex key on the floor
+        return np.clip(img * np.array(gains, np.float32), 0, 255).astype(np.uint8)
+
+    assert not off_colour(photo(), fp, ledges, 8).any()
+    got = off_colour(photo(key=True), fp, ledges, 8)
+    assert got[21:25, 52:78].mean() > 0.9 and got.sum() < 1.2 * 6 * 30
+    for gains in ((0.6, 0.6, 0.6), (1.25, 1.0, 0.8), (0.8, 1.0, 1.2)):  # exposure, warm and cool white balance
+        assert not off_colour(photo(gains), fp, ledges, 8).any(), gains
+        got = off_colour(photo(gains, key=True), fp, ledges, 8)
+        assert got[21:25, 52:78].mean() > 0.9 and not got[30:].any() and not got[:19].any(), gains
+
+
+def test_the_colour_test_judges_no_dark_grey_white_or_mixed_part():
+    fp = np.ones((96, 96), bool)
+    for rgb in ((0.05, 0.05, 0.055), (0.5, 0.5, 0.5), (0.85, 0.85, 0.82)):
+        assert part_chroma(_floor(part=rgb), fp) is None, rgb
+        assert off_colour(_floor(part=rgb), fp, ~fp, 8) is None
+    mixed = _floor()
+    mixed[:, 48:] = _floor(part=(0.1, 0.6, 0.2))[:, 48:]  # half orange, half green: two filaments
+    assert part_chroma(mixed, fp) is None
+    assert part_chroma(_floor()[..., 0], fp) is None  # a grey photo has no colour to judge
+    assert part_chroma(_floor(), np.zeros((96, 96), bool)) is None  # nothing printed seen
+    assert part_chroma(_floor(), fp) is not None
+
+
+def test_ledge_regions_join_off_colour_pixels_to_the_failing_tiles():
+    considered = np.zeros((7, 7), bool)
+    ledges = np.zeros(TV.shape, bool)
+    ledges[8:56, 8:56] = True
+    coloured = np.zeros(TV.shape, bool)
+    coloured[30:36, 20:40] = True
+    regions = ledge_regions(np.ones((7, 7)), considered, ledges, 0.2, 8, 2, TV, 0.5, coloured)
+    assert len(regions) == 1 and regions[0].area_mm2 == pytest.approx(120 / 6.67**2)
+    assert regions[0].mean_similarity == pytest.approx(0.1)
+    with pytest.raises(AnalysisError, match="block grid"):
+        ledge_regions(np.ones((7, 7)), considered, ledges, 0.2, 8, 2, TV, 0.5, np.zeros((10, 10), bool))
+
+
+@pytest.mark.slow
+def test_single_photo_sees_a_blue_hex_key_on_the_plate_by_its_colour(monkeypatch):
+    """A blue hex key on the orange plate round the boss (the miss of the report's sample, issue 18): its
+    blocks' gradient histograms barely change, so the HOG test alone marks under a third of it; the colour
+    test marks most of it. The clean photo of the same layer stays quiet."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
+    cfg = cfg.for_camera(cam)
+    tv = cfg.topview.topview()
+    pipe = LayerPipeline(tp, cam, cfg, memo=2)
+    layer = 19
+    key = Failure(type="foreign_body", onset=18, size_mm=10.0, center_mm=(100.0, 112.5), seed=7)
+    assert (resolve(key, tp).capsule_mat == MAT_TOOL).any()  # seed 7 lays the hex key
+
+    def marked(res, truth):
+        boxes = np.zeros(tv.shape, bool)
+        for r in res.outside_regions:
+            (u0, v0), (u1, v1) = tv.to_px(np.array([[r.bbox_mm[0], r.bbox_mm[3]], [r.bbox_mm[2], r.bbox_mm[1]]]))
+            boxes[int(v0):int(v1) + 1, int(u0):int(u1) + 1] = True
+        return float((boxes & truth).sum() / truth.sum())
+
+    clean = PrintSimulator(tp, cam, tv, (), seed=4)
+    pipe.new_print(clean.bed_photo())
+    assert pipe.process(clean.frame(layer).photo, layer).outside_anomalous_mm2 == 0
+    sim = PrintSimulator(tp, cam, tv, (key,), seed=4)
+    frame = sim.frame(layer)
+    pipe.new_print(sim.bed_photo())
+    res = pipe.process(frame.photo, layer)
+    assert res.status == "ok" and marked(res, frame.truth_area) > 0.6
+    monkeypatch.setattr(step_module, "off_colour", lambda *a: None)  # the HOG test alone
+    pipe.new_print(sim.bed_photo())
+    assert marked(pipe.process(frame.photo, layer), frame.truth_area) < 0.35

@@ -76,7 +76,7 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.failure_typing import FailureTyper
-from layerwatch.analysis.ledges import ledge_regions
+from layerwatch.analysis.ledges import ledge_regions, off_colour
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scene_change import working_to_top
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
@@ -415,7 +415,7 @@ class LayerPipeline:
                                 z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog)
             res.view_shift_px = shift
             if obs is not None:
-                self._scene_result(res, obs, photo, ref.z, valid)
+                self._scene_result(res, obs, photo, ref.z, valid, top_bgr, ref.footprint)
             t_type = time.perf_counter()
             self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
@@ -434,13 +434,13 @@ class LayerPipeline:
         return res
 
     def _scene_result(self, res: LayerResult, obs: SceneObservation, photo: np.ndarray, z: float,
-                      valid: np.ndarray) -> None:
+                      valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
         """The scene channel's outside anomaly into ``res``, then ``E`` takes the layer (analysed photos only)."""
         assert self.scene is not None  # only called when the scene channel produced ``obs``
         t = time.perf_counter()
         h, w = np.asarray(photo).shape[:2]
         self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)
-        self._hidden_ledges(res, obs, z, (w, h), valid)
+        self._hidden_ledges(res, obs, z, (w, h), valid, top_bgr, footprint)
         self.scene.update(obs)
         ms = obs.ms + (time.perf_counter() - t) * 1e3
         res.timings_ms["scene"] = ms
@@ -448,16 +448,17 @@ class LayerPipeline:
             res.scene.ms = round(ms, 3)
 
     def _hidden_ledges(self, res: LayerResult, obs: SceneObservation, z: float, photo_size: tuple[int, int],
-                       valid: np.ndarray) -> None:
-        """Lower floors no earlier photo showed, judged by the reference's HOG (:mod:`layerwatch.analysis.ledges`):
-        their failing regions join the change beside the printed layer."""
+                       valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
+        """Lower floors no earlier photo showed, judged by the reference's HOG and by the part's colour
+        (:mod:`layerwatch.analysis.ledges`): their failing regions join the change beside the printed layer."""
         hidden = obs.hidden_ledges
         if hidden is None or not hidden.any() or res.heatmap is None or res.mask is None:
             return
         st = self.config.analysis
         top = (working_to_top(hidden.view(np.uint8), self.warper, z, photo_size) > 0) & valid
+        coloured = off_colour(top_bgr, footprint & valid, top, st.cell_px)
         found = ledge_regions(res.heatmap, res.mask, top, st.threshold, st.cell_px, st.block_cells, self.topview,
-                              self.config.scene.min_region_mm2)
+                              self.config.scene.min_region_mm2, coloured)
         if found:
             res.outside_regions = sorted(res.outside_regions + found, key=lambda r: -r.area_mm2)
             res.outside_anomalous_mm2 += float(sum(r.area_mm2 for r in found))
