@@ -69,3 +69,45 @@ def test_camera_sees_the_bed_under_a_bridge_and_an_overhang(wpart, camera, topvi
         return float(photo[win][..., 2].astype(int).mean() - photo[win][..., 0].astype(int).mean())
 
     assert orange(seen) < 15 and orange(solid) > 40
+
+
+def _deck_photo(camera, topview, slit_depth_mm):
+    """A 12 x 12 mm deck 0.2 mm thick over 8 mm of air with a one-cell slit along X, ``slit_depth_mm`` deep; grey photo."""
+    from layerwatch.geometry.topview import TopView
+    from layerwatch.simulate.photo import Photographer
+    from layerwatch.simulate.settings import SimSettings
+
+    st = SimSettings(light_jitter_mm=0.0, light_intensity_jitter=0.0, exposure_drift=0.0, colour_drift=0.0,
+                     read_noise=0.0, shot_noise=0.0, blur_px=(0.5, 0.5))
+    grid = TopView(st.grid_px_per_mm, topview.width_mm + 20, topview.height_mm + 20, topview.center_mm)
+    h = np.zeros(grid.shape, np.float32)
+    (u0, v1), (u1, v0) = np.round(grid.to_px(np.array([[-6.0, -6.0], [6.0, 6.0]]))).astype(int)
+    h[v0:v1, u0:u1] = 8.2
+    (su0, sv), (su1, _) = np.round(grid.to_px(np.array([[-3.0, 0.0], [3.0, 0.0]]))).astype(int)
+    h[sv, su0:su1] = 8.2 - slit_depth_mm
+    mat = (h > 0).astype(np.uint8)
+    gap = np.zeros((*h.shape, 2), np.float32)
+    gap[h > 8.1, 1] = 8.0  # the deck's cells are printed over air
+    photo, _ = Photographer(camera, topview, grid, st, seed=1).shoot(h, mat, 0, 0.2, gap)
+    return cv2.cvtColor(photo, cv2.COLOR_BGR2GRAY).astype(float)
+
+
+def test_a_hairline_slit_over_air_is_not_a_dark_dash(camera, topview, monkeypatch):
+    """A one-cell slit between two beads of a bridge's deck looks like one over the layer below, not like a dark dash.
+
+    The height field's slit is the grid's rendering of a sub-cell gap from the
+    beads' jitter; how deep the air under it is must not tilt the tops of the beads
+    beside it (it did: central differences across 8 mm made both neighbours
+    near-vertical, a dark dash that the HOG comparison flagged on clean bridges).
+    """
+    from layerwatch.simulate import photo as photo_mod
+
+    us, vs = zip(*(_pixel(camera, (x, y, 8.2)) for x in (-2.5, 2.5) for y in (-0.6, 0.6)), strict=True)
+    win = (slice(min(vs), max(vs) + 1), slice(min(us), max(us) + 1))
+
+    def darker(depth):  # how much darker the slit's surroundings are than with a one-layer groove
+        return float(_deck_photo(camera, topview, 0.2)[win].mean() - _deck_photo(camera, topview, depth)[win].mean())
+
+    assert darker(8.2) < 4.0  # the slit itself, 1 cell of 3
+    monkeypatch.setattr(photo_mod, "_SLIT_LAYERS", 1e9)  # normals across the slit as before
+    assert darker(8.2) > 10.0

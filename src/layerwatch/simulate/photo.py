@@ -24,6 +24,9 @@ __all__ = ["Photographer"]
 
 _CACHE: dict = {}
 
+#: a one-cell pit deeper than this many layers is a slit between two beads, not a slope of their tops
+_SLIT_LAYERS = 3.0
+
 
 def _cached(key, value=None):
     """Tiny cache of per-camera arrays (rays, bed albedo, noise) shared by simulators."""
@@ -117,7 +120,9 @@ class Photographer:
         mx, mn = cv2.dilate(h, k3), cv2.erode(h, k3)
         ledge = (mx - h > 1.0) & (h - mn > 0.1)
         h = np.where(ledge, mx, h)
-        gy, gx = np.gradient(h)
+        if gap is None:
+            gap = np.zeros((*h.shape, 2), np.float32)
+        gy, gx = np.gradient(_slits_filled(h, gap, _SLIT_LAYERS * max(float(layer_h), 0.05)))
         wy, wx = np.gradient(cv2.GaussianBlur(h, (0, 0), 1.5))
         wn = np.ascontiguousarray(np.stack([-wx, wy], -1), dtype=np.float32)
         nz = np.full_like(h, 1.0 / s)
@@ -150,8 +155,6 @@ class Photographer:
                           st.fill, dref])
         w, hh = self.camera.image_size
         rad = np.empty((hh, w, 3), np.float32)
-        if gap is None:
-            gap = np.zeros((*h.shape, 2), np.float32)
         render_view(self.dirs, self.C, h, mat, np.ascontiguousarray(gap, np.float32), nrm.astype(np.float32), wn, ao, *self.gp, zmax, bbox,
                     self.albedo, self.spec, light, self.bed_alb,
                     np.asarray(st.background_rgb, float), float(layer_h), rad)
@@ -169,3 +172,43 @@ class Photographer:
                st.read_noise, st.shot_noise, self.lut, photo)
         info = {"light_mm": lpos.round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
         return photo, info
+
+
+def _slits_filled(h: np.ndarray, gap: np.ndarray, depth_mm: float) -> np.ndarray:
+    """``h`` with one-cell slits between beads printed over air filled, for the top surfaces' normals only.
+
+    Two beads of a layer printed over air (a bridge's deck, an overhang) touch
+    with sub-cell gaps from their width and position jitter; where such a gap
+    happens to hold a cell centre, the height field has a one-cell slit down
+    to whatever lies below (8 mm of air under a bridge). Central differences
+    across that slit tilted the tops of both neighbouring beads by ~85 degrees,
+    so a hairline gap was drawn as a dark dash three cells (0.4 mm) wide and
+    millimetres long, whose darkness grew with the depth below it. A bead's top
+    is sloped by its own profile, not by how deep the air beside it is: the
+    normals are taken as if the slit were filled. The slit itself stays in the
+    geometry (rays still pass into it). Only slits beside cells printed over
+    air (``gap``) are filled: pits no deeper than ``depth_mm`` (the grooves
+    between beads on a layer below), wider openings and the cavities of
+    supported sparse infill are unchanged (a part without bridges or overhangs
+    is photographed as before).
+
+    Parameters
+    ----------
+    h : ndarray, float32, shape (H, W)
+        Height field, mm.
+    gap : ndarray, float32, shape (H, W, 2)
+        Per cell the empty interval ``(lo, hi)`` mm under printed material (``hi = 0``: none).
+    depth_mm : float
+        Depth below the morphological closing (1x3 or 3x1) above which a cell is a slit.
+
+    Returns
+    -------
+    ndarray, float32, shape (H, W)
+    """
+    closed = np.maximum(cv2.morphologyEx(h, cv2.MORPH_CLOSE, np.ones((1, 3), np.uint8)),
+                        cv2.morphologyEx(h, cv2.MORPH_CLOSE, np.ones((3, 1), np.uint8)))
+    slit = closed - h > depth_mm
+    if not slit.any():
+        return h
+    slit &= cv2.dilate((gap[..., 1] > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    return np.where(slit, closed, h)
