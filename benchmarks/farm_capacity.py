@@ -41,9 +41,12 @@ What is measured
   largest ``N`` that kept p99 <= 2 s, divided by the workers.
 * **Memory.** Resident set growth of this process over the ``N`` printers'
   monitors and pipelines, divided by ``N`` (many printers of the last window have not
-  analysed a layer yet, so this reads low); and the **long run**: a few printers with what a farm
-  station holds for a job (:class:`FarmMonitor`, its pool pipeline), fed every layer
-  of the part, read after 2 layers and after the last. The final figure is the larger.
+  analysed a layer yet, so this reads low); and the **long run** (:func:`soak`): groups of
+  printers with what a farm station holds for a job (:class:`FarmMonitor`, its pool pipeline)
+  added until 4, 8 and 16 (``--quick``; else 4, 16 and 64) hold a job, each group fed the first
+  layers of the part; its figure is the *slope* of the resident set over the printer count, with
+  the traced allocations per printer beside it (the larger of the two). The final figure is the
+  larger of the ramp's and the long run's.
 * **Baseline** (same run): the single-printer monitor
   (:class:`~layerwatch.monitor.service.Monitor` with a virtual printer, the job's
   camera-fault gate and the same JPEG photos): its time per layer, and the resident set of a process running
