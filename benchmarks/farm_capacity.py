@@ -45,8 +45,9 @@ What is measured
   printers with what a farm station holds for a job (:class:`FarmMonitor`, its pool pipeline)
   added until 4, 8 and 16 (``--quick``; else 4, 16 and 64) hold a job, each group fed the first
   layers of the part; its figure is the *slope* of the resident set over the printer count, with
-  the traced allocations per printer beside it (the larger of the two). The final figure is the
-  larger of the ramp's and the long run's.
+  the traced allocations per printer beside it (the larger of the two; the slope of glibc's bytes
+  in use, ``mallinfo2``, is printed too). The final figure is the larger of the ramp's and the
+  long run's.
 * **Baseline** (same run): the single-printer monitor
   (:class:`~layerwatch.monitor.service.Monitor` with a virtual printer, the job's
   camera-fault gate and the same JPEG photos): its time per layer, and the resident set of a process running
