@@ -41,9 +41,13 @@ What is measured
   largest ``N`` that kept p99 <= 2 s, divided by the workers.
 * **Memory.** Resident set growth of this process over the ``N`` printers'
   monitors and pipelines, divided by ``N`` (many printers of the last window have not
-  analysed a layer yet, so this reads low); and the **long run**: a few printers with what a farm
-  station holds for a job (:class:`FarmMonitor`, its pool pipeline), fed every layer
-  of the part, read after 2 layers and after the last. The final figure is the larger.
+  analysed a layer yet, so this reads low); and the **long run** (:func:`soak`): groups of
+  printers with what a farm station holds for a job (:class:`FarmMonitor`, its pool pipeline)
+  added until 4, 8 and 16 (``--quick``; else 4, 16 and 64) hold a job, each group fed the first
+  layers of the part; its figure is the *slope* of the resident set over the printer count, with
+  the traced allocations per printer beside it (the larger of the two; the slope of glibc's bytes
+  in use, ``mallinfo2``, is printed too). The final figure is the larger of the ramp's and the
+  long run's.
 * **Baseline** (same run): the single-printer monitor
   (:class:`~layerwatch.monitor.service.Monitor` with a virtual printer, the job's
   camera-fault gate and the same JPEG photos): its time per layer, and the resident set of a process running
@@ -111,6 +115,25 @@ def rss_mb() -> float:
         pass
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
+                 "keepcost")]
+
+
+def malloc_in_use_mb() -> float:
+    """Bytes glibc's ``malloc`` has handed out and not had back (``mallinfo2``: heap chunks in use + mmapped
+    blocks), MB: every native allocation (NumPy, OpenCV), without the free pages the allocator keeps; NaN
+    where there is no ``mallinfo2`` (not glibc, or older than 2.33)."""
+    try:
+        f = ctypes.CDLL("libc.so.6").mallinfo2
+    except (OSError, AttributeError):
+        return float("nan")
+    f.restype = _MallInfo2
+    m = f()
+    return (m.uordblks + m.hblkhd) / 2**20
 
 
 class Scene:
@@ -382,7 +405,7 @@ def main(argv: list[str] | None = None) -> str:
     rate = (1 - a.fast_share) / 60.0 + a.fast_share / 10.0  # layers per printer per s
     print(f"farm per-frame work {per_frame * 1e3:.0f} ms CPU/frame (warm); baseline: single-printer monitor {per_layer * 1e3:.0f} ms CPU/layer, process RSS {rss_base:.0f} MB "
           f"(one monitor process per printer); layer rate {rate * 60:.2f}/min per printer", flush=True)
-    soak_mb = soak(scene, 4 if a.quick else 12, 12 if a.quick else scene.layers) if not a.dask else 0.0
+    soak_mb = soak(scene, (4, 8, 16) if a.quick else (4, 16, 64), 12 if a.quick else scene.layers) if not a.dask else 0.0
     pool = None
     workers = 1
     if a.dask:
@@ -417,39 +440,44 @@ def worker_mb(client, since: float = 0.0) -> float:
     return sum(sizes.values()) - since
 
 
-def soak(scene: Scene, n: int, layers: int) -> float:
-    """Memory per printer of a farm's per-printer state over a long run (the first ``layers`` layers of the part).
+def soak(scene: Scene, counts: tuple[int, ...], layers: int) -> float:
+    """Memory per printer of a farm's per-printer state over a long run: the slope over several printer counts.
 
-    Two groups of ``n`` printers, each printer with what a farm station holds for a job
-    (:class:`FarmMonitor`, its :class:`PoolPipeline` and pipeline on a local :class:`WorkerPool`),
-    each group fed every layer in turn. The figure is the *second* group's resident-set growth over
-    ``n``: what one more printer costs. The first group also pays the process's one-time costs
-    (allocator arenas of the new threads, OpenCV and NumPy buffers made on first use), which a
-    farm of hundreds spreads over all its printers; divided over a handful of printers they
-    would read as several MB each. The resident set can also read *low*: the second group may
-    reuse pages the allocator kept from earlier work. So the second group's allocations are also
-    traced (:mod:`tracemalloc`: every NumPy and Python block made since the group started and
-    still held), and the larger of the two growths is the figure. All figures are printed.
+    Printers are added in groups until ``counts[i]`` hold a job (each with what a farm station
+    holds: :class:`FarmMonitor`, its :class:`PoolPipeline` and pipeline on a local
+    :class:`WorkerPool`); each new group is fed the first ``layers`` layers of the part, and the
+    resident set is read after each group (all printers still open). The figure is the **slope** of
+    the resident set over the printer count (least squares): what one more printer costs. The
+    process's one-time costs (allocator arenas, OpenCV and NumPy buffers made on first use, the
+    first group's threads) are its intercept, which a farm of hundreds spreads over all its
+    printers; a single difference of two small groups (the figure before) read 8 to 21 MB for the
+    same code, as the allocator kept or returned pages. The allocations of every group after the
+    first are traced (:mod:`tracemalloc`: NumPy and Python blocks made and still held), and the
+    larger of the two figures is returned. The slope of glibc's bytes in use (:func:`malloc_in_use_mb`:
+    OpenCV's blocks too, without the free pages the allocator keeps) is printed beside them.
 
     Returns
     -------
     float
-        MB per printer of the second group after its last layer: the larger of its resident-set
-        growth and its traced allocations still held.
+        MB per printer: the larger of the resident-set slope and the traced allocations held per
+        printer after the first group.
     """
     gcode = b"G1 Z0.2\n"
     pool = WorkerPool(1)
     mons: list[FarmMonitor] = []
     try:
-        mem = [rss_mb()]
-        seen = {}
-        for group in range(2):
-            if group == 1:
+        rss = [rss_mb()]
+        used = [malloc_in_use_mb()]
+        ns = [0]
+        traced0 = 0
+        for i, count in enumerate(counts):
+            if i == 1:
                 tracemalloc.start()
+                traced0 = tracemalloc.get_traced_memory()[0]
             new = []
-            for k in range(group * n, (group + 1) * n):
+            for k in range(len(mons), count):
                 ctx = JobContext(f"soak/{k}", scene.toolpath, scene.camera, scene.cfg)
-                new.append(FarmMonitor(VirtualPrinter(gcode), SimCamera(lambda i, k=k: scene.photo(k, i)),
+                new.append(FarmMonitor(VirtualPrinter(gcode), SimCamera(lambda j, k=k: scene.photo(k, j)),
                                        PoolPipeline(pool, ctx.pipeline()), PausePolicy(scene.cfg.policy),
                                        wait_for_verdict=True, faults=scene.cfg.faults,
                                        frame_quality=scene.cfg.frame_quality))  # as a farm station builds it
@@ -457,17 +485,20 @@ def soak(scene: Scene, n: int, layers: int) -> float:
             for layer in range(layers):
                 for mon in new:
                     mon.handle_trigger(SnapshotTrigger(layer, 0.2 * (layer + 1), "soak", time.monotonic()))
-                if group == 1 and layer + 1 == 2:
-                    seen[2] = (rss_mb() - mem[-1]) / n
-            mem.append(rss_mb())
-        traced = tracemalloc.get_traced_memory()[0] / 2**20 / n
+            rss.append(rss_mb())
+            used.append(malloc_in_use_mb())
+            ns.append(len(mons))
+        traced = (tracemalloc.get_traced_memory()[0] - traced0) / 2**20 / max(ns[-1] - ns[1], 1)
         tracemalloc.stop()
-        seen[layers] = (mem[2] - mem[1]) / n
-        print(f"long run: {n} more printers' farm state (monitor, pipeline), MB/printer after "
-              + ", ".join(f"{k} layers {v:.2f}" for k, v in seen.items())
-              + f"; traced allocations held after {layers} layers {traced:.2f}"
-              + f" (the first {n}, with the process's one-time costs: {(mem[1] - mem[0]) / n:.2f})", flush=True)
-        return max(seen[layers], traced)
+        slope = float(np.polyfit(ns[1:], rss[1:], 1)[0]) if len(ns) > 2 else (rss[-1] - rss[0]) / max(ns[-1], 1)
+        held = float(np.polyfit(ns[1:], used[1:], 1)[0]) if len(ns) > 2 else float("nan")
+        print(f"long run: {'/'.join(map(str, ns[1:]))} printers' farm state (monitor, pipeline) after {layers} layers each: "
+              f"resident set {' / '.join(f'{r - rss[0]:.0f}' for r in rss[1:])} MB above the start, slope "
+              f"{slope:.2f} MB/printer (between the counts: "
+              + ", ".join(f"{d:.2f}" for d in np.diff(rss[1:]) / np.diff(ns[1:]))
+              + f"); traced allocations held {traced:.2f} MB/printer; malloc in use (all native blocks, no kept "
+              f"free pages) slope {held:.2f} MB/printer", flush=True)
+        return max(slope, traced)
     finally:
         for mon in mons:
             mon.close()

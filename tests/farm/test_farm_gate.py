@@ -43,9 +43,9 @@ def test_farm_monitor_runs_the_marker_and_lag_checks_of_the_single_printer_monit
     lag_checked = []
     real = camera_checks.previous_layer_explains
 
-    def spy(pipeline, photo, res, policy, *args):
+    def spy(pipeline, photo, res, policy, *args, **kwargs):
         lag_checked.append((type(pipeline).__name__, res.layer))
-        return real(pipeline, photo, res, policy, *args)
+        return real(pipeline, photo, res, policy, *args, **kwargs)
 
     monkeypatch.setattr(camera_checks, "previous_layer_explains", spy)
     # every analysed layer past the first counts here, so that the lag check runs on each

@@ -18,6 +18,7 @@ Petsiuk & Pearce (2022), Section 2.3, eqs. (1)-(3).
 from __future__ import annotations
 
 from collections import OrderedDict
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -47,8 +48,14 @@ def check_image(photo: np.ndarray, what: str = "photo") -> np.ndarray:
 
 def _max_radius(dist: np.ndarray) -> float:
     """Largest normalised radius up to which the radial distortion is monotonic."""
+    return _max_radius_of(tuple(float(v) for v in np.asarray(dist, np.float64).reshape(-1)[:8]))
+
+
+@lru_cache(maxsize=64)
+def _max_radius_of(dist: tuple[float, ...]) -> float:
+    """:func:`_max_radius` of the coefficients ``dist`` (a camera's: the same every frame, computed once)."""
     d = np.zeros(8)
-    d[: min(len(dist), 8)] = dist[:8]
+    d[: len(dist)] = dist
     k1, k2, _, _, k3, k4, k5, k6 = d
     r = np.linspace(0.0, 4.0, 4001)
     r2 = r * r
@@ -105,7 +112,8 @@ class TopViewWarper:
         if np.any(cam.dist != 0):
             lut = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, KL, (lw, lh), cv2.CV_32FC2)[0]
             # beyond the monotonic radius the distortion polynomial folds back: never sample there
-            gx, gy = np.meshgrid(np.arange(lw), np.arange(lh))
+            # (a row and a column broadcast: the same values as on the whole grid, without the grid)
+            gx, gy = np.arange(lw)[None, :], np.arange(lh)[:, None]
             Ki = np.linalg.inv(KL)
             nx = Ki[0, 0] * gx + Ki[0, 1] * gy + Ki[0, 2]
             ny = Ki[1, 1] * gy + Ki[1, 2]

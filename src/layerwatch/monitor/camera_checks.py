@@ -161,7 +161,8 @@ class LagVerdict:
 
 
 def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, policy: PolicySettings,
-                            top: tuple[np.ndarray, np.ndarray] | None = None) -> LagVerdict | None:
+                            top: tuple[np.ndarray, np.ndarray] | None = None,
+                            own: Any = None) -> LagVerdict | None:
     """Analyse ``photo`` (taken for ``res.layer``) against the previous layer's reference.
 
     Parameters
@@ -178,6 +179,9 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
         ``min_area_mm2``: below it on both layers, anomalous area is noise (see the module notes).
     top : (ndarray, ndarray), optional
         ``pipeline.top_view(photo, z)`` on the previous layer's plane when the caller has it.
+    own : Reference, optional
+        ``pipeline.reference(res.layer)`` when the caller holds it: a pipeline that memoises one
+        reference drops it for the previous layer's, and would render it again.
 
     Returns
     -------
@@ -195,8 +199,8 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     here, prev = float(res.anomalous_area_mm2), float(before.anomalous_area_mm2)
     least = _least_area(policy)
     hog_explained = prev <= LAG_EXPLAINED_SHARE * here or (prev < least and here < least)
-    lagged = hog_explained and _beside_explained(res, ref.footprint, pipeline.reference(k).footprint,
-                                                 pipeline.topview, policy)
+    here_ref = own if own is not None else pipeline.reference(k)
+    lagged = hog_explained and _beside_explained(res, ref.footprint, here_ref.footprint, pipeline.topview, policy)
     msg = (f"lagged frame: the photo of layer {k} shows layer {k - 1} ({prev:.0f} mm^2 anomalous against "
            f"layer {k - 1}, {here:.0f} mm^2 against layer {k}), judged against layer {k - 1}; the camera "
            "delivers frames one layer late: take the snapshot from the camera itself, not a cached stream, "
@@ -375,12 +379,13 @@ class LateStream:
         self._seen: _Seen | None = None
 
     # ---------------------------------------------------------------- frames
-    def remember(self, pipeline: Any, layer: int, top: np.ndarray | None) -> None:
+    def remember(self, pipeline: Any, layer: int, top: np.ndarray | None, ref: Any = None) -> None:
         """Keep frame ``layer``'s grey top view (warped on that layer's plane) around the zone the next frame
-        is compared on (a copy of that box only: a farm holds one per printer)."""
+        is compared on (a copy of that box only: a farm holds one per printer); ``ref``: the layer's
+        reference when the caller holds it."""
         if top is None:
             return
-        ref = pipeline.reference(layer)
+        ref = ref if ref is not None else pipeline.reference(layer)
         zone = _zone(ref.footprint, pipeline.topview)
         box = _box(zone, pipeline.topview)
         if box is None:
@@ -429,8 +434,11 @@ class LateStream:
         """
         counts = counts_toward_pause(res, policy)
         progress = self.progress(pipeline, photo, res.layer)
-        verdict = previous_layer_explains(pipeline, photo, res, policy) if counts else None
-        self.remember(pipeline, res.layer, _top_of(pipeline, photo, res))
+        # this layer's reference, held across the previous layer's (a farm pipeline memoises one reference:
+        # it would render this one again, ~25 ms, on every frame that counts toward a pause)
+        own = pipeline.reference(res.layer) if counts else None
+        verdict = previous_layer_explains(pipeline, photo, res, policy, own=own) if counts else None
+        self.remember(pipeline, res.layer, _top_of(pipeline, photo, res), own)
         lagged = verdict is not None and verdict.lagged
         why = self.excuse(verdict, progress, res) if verdict is not None and lagged else None
         if lagged and why is None and not excuse:
