@@ -60,18 +60,22 @@ def test_ledge_regions_refuse_arrays_of_another_grid():
         ledge_regions(np.ones((7, 7)), np.zeros((7, 7), bool), np.zeros((10, 10), bool), 0.2, 8, 2, TV, 0.5)
 
 
+def _example_pipeline():
+    """The example part, a 1280 x 720 camera and a pipeline on its job file: ``(toolpath, camera, top view, pipe)``."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
+    cfg = cfg.for_camera(cam)
+    return tp, cam, cfg.topview.topview(), LayerPipeline(tp, cam, cfg, memo=2)
+
+
 @pytest.mark.slow
 def test_single_photo_sees_an_object_on_the_plate_beside_the_top_layer():
     """Single-photo mode (the pipeline forgets the print before the photo: bed photo and reference only): a
     screw or lump on the example part's plate while the boss above it prints lay inside the printed body,
     which the bed photo cannot judge, and was missed; the reference's HOG on the plate finds it. The clean
     photo of the same layer reports nothing there."""
-    tp = read_toolpath(PART_GCODE)
-    cfg = resolve_config(PART_CONFIG).config
-    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
-    cfg = cfg.for_camera(cam)
-    tv = cfg.topview.topview()
-    pipe = LayerPipeline(tp, cam, cfg, memo=2)
+    tp, cam, tv, pipe = _example_pipeline()
     fb = Failure(type="foreign_body", onset=18, size_mm=8.0, center_mm=(110.0, 112.5), seed=3)
     layer = 19
     outside = {}
@@ -158,12 +162,7 @@ def test_single_photo_sees_a_blue_hex_key_on_the_plate_by_its_colour(monkeypatch
     """A blue hex key on the orange plate round the boss (the miss of the report's sample, issue 18): its
     blocks' gradient histograms barely change, so the HOG test alone marks under a third of it; the colour
     test marks most of it. The clean photo of the same layer stays quiet."""
-    tp = read_toolpath(PART_GCODE)
-    cfg = resolve_config(PART_CONFIG).config
-    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
-    cfg = cfg.for_camera(cam)
-    tv = cfg.topview.topview()
-    pipe = LayerPipeline(tp, cam, cfg, memo=2)
+    tp, cam, tv, pipe = _example_pipeline()
     layer = 19
     key = Failure(type="foreign_body", onset=18, size_mm=10.0, center_mm=(100.0, 112.5), seed=7)
     assert (resolve(key, tp).capsule_mat == MAT_TOOL).any()  # seed 7 lays the hex key
