@@ -307,6 +307,7 @@ class PausePolicy:
         self._acked_outside: list[tuple[tuple[float, ...], float]] = []
         self._grace = 0  # analysed layers left in the resume grace period
         self._zones: list[tuple[tuple[float, ...], str]] = []  # (bbox_mm, label) judged no more
+        self._live: list[tuple[float, ...]] = []  # boxes of the objects still printed (ignore_zone's ``others``)
         self._kind_streak: dict[str, int] = {}
         self._kind_prev: dict[str, list[Region]] = {}
 
@@ -344,20 +345,33 @@ class PausePolicy:
         self._kind_streak.clear()
         self._kind_prev.clear()
 
-    def ignore_zone(self, bbox_mm: Sequence[float], label: str = "") -> None:
-        """Stop judging regions centred in ``bbox_mm`` ``(x0, y0, x1, y1)`` (a cancelled object), and resume.
+    def ignore_zone(self, bbox_mm: Sequence[float], label: str = "",
+                    others: Sequence[Sequence[float]] | None = None) -> None:
+        """Stop judging the regions of a cancelled object in ``bbox_mm`` ``(x0, y0, x1, y1)``, and resume.
 
-        The print goes on without that object: its remains are neither a%, nor a
-        region, nor growth from now on. Clears the halt of the ``cancel_object`` decision.
+        The print goes on without that object: its remains are neither a%, nor a region, nor
+        growth, nor change beside the print from now on. A region is the object's when it is
+        centred in ``bbox_mm``, or, with ``others`` (the boxes of the objects still printed, bed
+        mm), when its box overlaps ``bbox_mm`` and none of ``others`` (a detached part's remains
+        reach past its box; a region that touches a printed object still counts). Clears the halt
+        of the ``cancel_object`` decision and the layers-in-a-row counts.
         """
         self._zones.append((tuple(float(v) for v in bbox_mm), label))
-        self._streak = 0
+        if others is not None:
+            self._live = [tuple(float(v) for v in b) for b in others]
+        self._streak = self._out_streak = 0
+        self._prev_regions, self._prev_outside = [], []
         self._kind_streak.clear()
+        self._kind_prev.clear()
         self._halted = False
 
     def _ignored(self, r: Region) -> bool:
         x, y = r.centroid_mm
-        return any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones)
+        if any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones):
+            return True
+        box = tuple(r.bbox_mm)
+        return bool(self._live) and any(_overlap(b, box) for b, _ in self._zones) and \
+            not any(_overlap(b, box) for b in self._live)
 
     def _acked_area(self, r: Region) -> float | None:
         """Acknowledged area of the region ``r`` overlaps, or None."""

@@ -1,0 +1,68 @@
+"""Object cancel from detected regions (issue 21): failures on objects of the labelled multi-object shared plates,
+simulated photos judged by the recommended pipeline; the executor never cancels another object."""
+
+import pytest
+
+from layerwatch.evaluate.object_cancel import find_plates, plate_cases, run_case, summary_table, tally
+from layerwatch.gcode.objects import read_objects
+from layerwatch.gcode.reader import read_toolpath
+from layerwatch.simulate import Failure
+
+from conftest import SHARED_DATA
+
+GCODE = SHARED_DATA / "gcode"
+
+
+def _plates(names):
+    if not GCODE.is_dir():
+        pytest.skip("shared data absent")
+    return find_plates(GCODE, names)
+
+
+def test_plates_cases_cover_every_object_and_kind():
+    name = "slic3r-1.3.1-dev_multi-object.gcode"
+    tp, om = _plates([name])[name]
+    cases, notes = plate_cases(name, tp, om, onsets=(0.5,))
+    assert {c.target for c in cases} == {o.index for o in om.objects}
+    assert {c.failure.type for c in cases} >= {"foreign_body", "spaghetti", "detachment", "infill_defect"}
+    for c in cases:  # placed on the object: its point, or (detachment) its box
+        x0, y0, x1, y1 = om.objects[c.target].bbox_mm
+        if c.failure.within_mm is not None:
+            assert c.failure.within_mm == (x0 - 0.5, y0 - 0.5, x1 + 0.5, y1 + 0.5)
+        else:
+            assert x0 - 0.5 <= c.failure.center_mm[0] <= x1 + 0.5 and y0 - 0.5 <= c.failure.center_mm[1] <= y1 + 0.5
+    single = find_plates(GCODE, ["bambustudio-2.4.0_single-layer.gcode"])
+    one = plate_cases("b", *single["bambustudio-2.4.0_single-layer.gcode"])
+    assert one[0] == [] and all("nothing to judge" in n for n in one[1])  # a one-layer plate is never judged
+
+
+@pytest.mark.slow
+def test_failures_on_objects_cancel_that_object_or_pause_never_another():
+    """A sample: two plates of other slicers and label styles, each kind once, on rotating objects."""
+    names = ["slic3r-1.3.1-dev_multi-object.gcode", "cura-4.10.0_m83_multi-object.gcode"]
+    plates = _plates(names)
+    results = []
+    for name in names:
+        tp, om = plates[name]
+        cases, _ = plate_cases(name, tp, om, onsets=(0.3,), seed=3)
+        picked = {}
+        for c in cases:  # one case per kind, each on another object
+            if c.failure.type not in picked and c.target == len(picked) % len(om.objects):
+                picked[c.failure.type] = c
+        results += [run_case(c, tp, om, seed=3, max_after=6) for c in picked.values()]
+    counts = tally(results)
+    print("\n" + summary_table(results))
+    assert counts["wrong"] == 0
+    assert counts["correct"] > len(results) / 2, summary_table(results)
+
+
+def test_a_region_reaching_into_a_neighbour_pauses_instead():
+    """The fall-back the evaluation counts: regions on two objects cancel neither."""
+    path = GCODE / "slic3r-1.3.1-dev_multi-object.gcode"
+    if not path.is_file():
+        pytest.skip("shared data absent")
+    tp = read_toolpath(path)
+    om = read_objects(path, tp)
+    assert Failure("detachment", 3, 2.0, within_mm=om.objects[0].bbox_mm).within_mm == om.objects[0].bbox_mm
+    with pytest.raises(Exception, match="within_mm"):
+        Failure("spaghetti", 3, 2.0, within_mm=(0, 0, 1, 1))
