@@ -18,7 +18,14 @@ import sys
 import time
 from pathlib import Path
 
-from layerwatch.evaluate.object_cancel import CANCEL_KINDS, find_plates, plate_cases, run_cases, summary_table, tally
+from layerwatch.evaluate.object_cancel import (
+    CANCEL_KINDS,
+    find_plates,
+    plate_cases,
+    run_cases,
+    summary_table,
+    tally,
+)
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "gcode"
 

@@ -3,12 +3,17 @@ simulated photos judged by the recommended pipeline; the executor never cancels 
 
 import pytest
 
-from layerwatch.evaluate.object_cancel import find_plates, plate_cases, run_case, summary_table, tally
+from conftest import SHARED_DATA
+from layerwatch.evaluate.object_cancel import (
+    find_plates,
+    plate_cases,
+    run_case,
+    summary_table,
+    tally,
+)
 from layerwatch.gcode.objects import read_objects
 from layerwatch.gcode.reader import read_toolpath
 from layerwatch.simulate import Failure
-
-from conftest import SHARED_DATA
 
 GCODE = SHARED_DATA / "gcode"
 

@@ -165,8 +165,9 @@ def test_failure_on_one_object_cancels_exactly_that_object_on_a_real_klippy(stac
         assert not [r for r in mon.report.results if r.layer < ONSET and r.decision != "none"]  # nothing before
         # later layers: B's remains are still in the photos, and raise no alarm
         later = [r for r in mon.report.results if r.layer > decided]
-        assert len(later) == N_LAYERS - 1 - decided and all(r.decision == "none" for r in later), \
-            [(r.layer, r.decision, r.decision_reason) for r in later]
+        assert len(later) == N_LAYERS - 1 - decided and all(r.decision == "none" for r in later), (
+            [(r.layer, r.decision, r.decision_reason, [tuple(round(v, 1) for v in o.bbox_mm) for o in r.outside_regions])
+             for r in later], photos.cut, _marks(stack)["B"], [r.layer for r in mon.report.results])
         marks = _marks(stack)
         for name in "ACD":  # the others print every layer
             assert sorted(marks[name]) == list(range(N_LAYERS)) and all(_inside(boxes[name], xy)
