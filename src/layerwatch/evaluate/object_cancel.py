@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,7 +42,7 @@ from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
 from layerwatch.simulate.failures import thin_wall_segments
 
-__all__ = ["CANCEL_KINDS", "CancelCase", "CaseResult", "find_plates", "plate_cases", "run_case", "run_cases",
+__all__ = ["CANCEL_KINDS", "CancelCase", "CaseResult", "find_plates", "iter_cases", "plate_cases", "run_case", "run_cases",
            "summary_table", "tally"]
 
 #: failure kinds placed on one object, with their size range (mm: diameter; detachment: the move)
@@ -284,15 +284,26 @@ def run_case(case: CancelCase, tp: Toolpath, om: ObjectMap, image_size: tuple[in
     return out
 
 
-def run_cases(cases: Sequence[CancelCase], plates: dict[str, tuple[Toolpath, ObjectMap]], *,
-              image_size: tuple[int, int] = (1280, 720), seed: int = 0, max_after: int = 10, workers: int = 1,
-              progress: Callable[[int, int], None] | None = None) -> list[CaseResult]:
-    """:func:`run_case` for every case (on ``workers`` processes; results in the order of ``cases``)."""
+def iter_cases(cases: Sequence[CancelCase], plates: dict[str, tuple[Toolpath, ObjectMap]], *,
+               image_size: tuple[int, int] = (1280, 720), seed: int = 0, max_after: int = 10, workers: int = 1,
+               progress: Callable[[int, int], None] | None = None) -> Iterator[CaseResult]:
+    """:func:`run_case` for every case (on ``workers`` processes), each result as soon as it is ready.
+
+    Results come in the order of ``cases``; case ``k`` is simulated with seed ``seed + k``.
+    """
     from layerwatch.evaluate.parallel import map_prints
 
     tasks = [(c, *plates[c.plate], image_size, seed + k, max_after) for k, c in enumerate(cases)]
     weights = [min(c.failure.onset + max_after + 1, plates[c.plate][0].n_layers) for c in cases]
-    return list(map_prints(run_case, tasks, weights, workers, progress))
+    yield from map_prints(run_case, tasks, weights, workers, progress)
+
+
+def run_cases(cases: Sequence[CancelCase], plates: dict[str, tuple[Toolpath, ObjectMap]], *,
+              image_size: tuple[int, int] = (1280, 720), seed: int = 0, max_after: int = 10, workers: int = 1,
+              progress: Callable[[int, int], None] | None = None) -> list[CaseResult]:
+    """:func:`iter_cases` as a list (in the order of ``cases``)."""
+    return list(iter_cases(cases, plates, image_size=image_size, seed=seed, max_after=max_after, workers=workers,
+                           progress=progress))
 
 
 def tally(results: Iterable[CaseResult]) -> Counter:
