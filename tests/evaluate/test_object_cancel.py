@@ -1,19 +1,23 @@
 """Object cancel from detected regions (issue 21): failures on objects of the labelled multi-object shared plates,
 simulated photos judged by the recommended pipeline; the executor never cancels another object."""
 
+import numpy as np
 import pytest
 
 from conftest import SHARED_DATA
 from layerwatch.evaluate.object_cancel import (
+    CancelCase,
     find_plates,
     plate_cases,
     run_case,
     summary_table,
     tally,
 )
+from layerwatch.examples import PART_GCODE
 from layerwatch.gcode.objects import read_objects
 from layerwatch.gcode.reader import read_toolpath
 from layerwatch.simulate import Failure
+from layerwatch.simulate.plate import plate_gcode
 
 GCODE = SHARED_DATA / "gcode"
 
@@ -61,8 +65,8 @@ def test_failures_on_objects_cancel_that_object_or_pause_never_another():
     assert counts["correct"] > len(results) / 2, summary_table(results)
 
 
-def test_a_region_reaching_into_a_neighbour_pauses_instead():
-    """The fall-back the evaluation counts: regions on two objects cancel neither."""
+def test_detachment_failure_moves_one_object_of_a_plate():
+    """``within_mm`` (what moves: one object of a plate) is for detachment and layer shift only."""
     path = GCODE / "slic3r-1.3.1-dev_multi-object.gcode"
     if not path.is_file():
         pytest.skip("shared data absent")
@@ -71,3 +75,25 @@ def test_a_region_reaching_into_a_neighbour_pauses_instead():
     assert Failure("detachment", 3, 2.0, within_mm=om.objects[0].bbox_mm).within_mm == om.objects[0].bbox_mm
     with pytest.raises(Exception, match="within_mm"):
         Failure("spaghetti", 3, 2.0, within_mm=(0, 0, 1, 1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("toward", ["away", "into_D"])
+def test_a_detached_object_pushed_into_a_neighbour_pauses_instead(toward):
+    """The demo plate (A B / C D, 5 mm apart), B off the bed from layer 4, judged on simulated photos: moved
+    away from the others, B alone is cancelled and its remains raise nothing on the next layers; pushed
+    6 mm into D (its remains can meet the nozzle over D), nothing is cancelled: the print pauses."""
+    text = plate_gcode(read_toolpath(PART_GCODE))
+    tp = read_toolpath(text)
+    om = read_objects(text, tp)
+    x0, y0, x1, y1 = om.objects[1].bbox_mm
+    offset = {"away": (1.8, -1.8), "into_D": (0.0, 6.0)}[toward]
+    f = Failure("detachment", 4, float(np.hypot(*offset)), 5, offset_mm=offset,
+                within_mm=(x0 - 0.5, y0 - 0.5, x1 + 0.5, y1 + 0.5))
+    r = run_case(CancelCase("demo plate", 1, f), tp, om, seed=5, max_after=3, follow=4)
+    if toward == "away":
+        assert (r.outcome, r.cancelled, r.later) == ("correct", "part_B", []), (r.outcome, r.reason, r.later)
+        assert r.layers == r.layer + 5  # the four layers after the cancel were judged
+    else:
+        assert r.outcome == "pause" and r.cancelled == "" and "spans 2 objects (part_B, part_D)" in r.reason, (
+            r.outcome, r.reason)

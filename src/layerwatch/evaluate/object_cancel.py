@@ -32,12 +32,18 @@ import numpy as np
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS
 from layerwatch.analysis.result import LayerResult
 from layerwatch.gcode import read_toolpath
-from layerwatch.gcode.objects import ObjectMap, PrintObject, quiet_layers, read_objects
+from layerwatch.gcode.objects import (
+    ObjectMap,
+    PrintObject,
+    quiet_layers,
+    read_objects,
+    without_objects,
+)
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.pose import locate_bed
 from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.config import observed_square, resolve_config
-from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
 from layerwatch.simulate.failures import thin_wall_segments
@@ -93,6 +99,9 @@ class CaseResult:
         The objects the decision's regions touch (most touched first).
     layers : int
         Layers simulated.
+    later : list of (int, str, str)
+        With ``follow``: every decision other than ``"none"`` on the layers after a cancel, as
+        ``(layer, action, reason)`` (the first stopping one ends the list).
     seconds : float
     """
 
@@ -105,6 +114,7 @@ class CaseResult:
     reason: str = ""
     located: tuple[int, ...] = ()
     layers: int = 0
+    later: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
     seconds: float = 0.0
 
 
@@ -226,7 +236,8 @@ def _plate_box(om: ObjectMap) -> tuple[float, float, float, float]:
 
 
 def run_case(case: CancelCase, tp: Toolpath, om: ObjectMap, image_size: tuple[int, int] = (1280, 720),
-             seed: int = 0, max_after: int = 10, tick: Callable[[], None] | None = None) -> CaseResult:
+             seed: int = 0, max_after: int = 10, tick: Callable[[], None] | None = None,
+             follow: int = 0) -> CaseResult:
     """Simulate ``case`` and judge it layer by layer until the first stopping decision.
 
     Parameters
@@ -242,6 +253,10 @@ def run_case(case: CancelCase, tp: Toolpath, om: ObjectMap, image_size: tuple[in
         Layers after the onset to wait for a decision before the case counts as ``missed``.
     tick : callable, optional
         Called after each judged layer.
+    follow : int
+        After a cancel, go on for this many layers as the printer would (the cancelled object left
+        out of the simulation after the layer it was cancelled on) and keep the later decisions in
+        ``CaseResult.later`` (default 0: stop at the first stopping decision).
     """
     t0 = time.perf_counter()
     kinds = {k: {"action": "cancel_object"} for k in FAILURE_KINDS}
@@ -257,15 +272,19 @@ def run_case(case: CancelCase, tp: Toolpath, om: ObjectMap, image_size: tuple[in
     quiet = quiet_layers(tp, om)
     out = CaseResult(case, om.objects[case.target].name)
     last = min(tp.n_layers - 1, case.failure.onset + max_after)
-    for i in range(last + 1):
-        out.layers = i + 1
+
+    def judge(i: int) -> Decision:
         if i in quiet:  # as the monitor: layers that print none of the part are not judged
             res = LayerResult(layer=i, z=tp.layers[i].z, status="skipped", message="prints no part")
         else:
             res = pipe.process(first.photo if i == 0 else sim.frame(i).photo, i)
         if tick is not None:
             tick()
-        decision = policy.update(res)
+        out.layers = i + 1
+        return policy.update(res)
+
+    for i in range(last + 1):
+        decision = judge(i)
         if not decision.stops:
             continue
         located = om.locate(tp, decision.regions, decision.layer)
@@ -279,6 +298,16 @@ def run_case(case: CancelCase, tp: Toolpath, om: ObjectMap, image_size: tuple[in
             out.outcome = "pause"
         else:
             out.outcome = "correct" if done.target.index == case.target else "wrong"
+        if follow > 0 and done.target is not None:  # the printer skips the object from the next layer on
+            sim.tp = without_objects(tp, om, {done.target.index: i})
+            for j in range(i + 1, min(tp.n_layers, i + 1 + follow)):
+                later = judge(j)
+                if later.action == "none":
+                    continue
+                carried = actions.execute(later, policy).decision if later.stops else later
+                out.later.append((j, later.action, carried.reason))
+                if later.stops:
+                    break
         break
     out.seconds = time.perf_counter() - t0
     return out
