@@ -144,6 +144,7 @@ def test_a_cancelled_objects_remains_reaching_out_of_its_zone_are_ignored_unless
     ("beside", False),  # 2 mm past the zone, 47 mm from the printed object: the remains of a part that moved
     ("far", True),  # 18 mm past the zone (beyond REMAINS_REACH_MM): something else on the bed
     ("nearer_printed", True),  # 0.6 mm past the zone but 0.4 mm from the printed object: it can meet the nozzle
+    ("centred_touching", True),  # centred in the zone, its box reaches the printed object's
 ])
 def test_a_cancelled_objects_remains_beside_its_zone_are_its_own_unless_nearer_a_printed_object(where, counts):
     """A detached part's change reaches a few mm past its moved outline, beyond the zone (box plus margin): a region
@@ -152,7 +153,8 @@ def test_a_cancelled_objects_remains_beside_its_zone_are_its_own_unless_nearer_a
     from layerwatch.pipeline.policy import REMAINS_REACH_MM
 
     region = {"beside": _region(16, x=100.0, y=76.0), "far": _region(16, x=100.0, y=60.0),
-              "nearer_printed": _region(16, x=100.0, y=122.6)}[where]
+              "nearer_printed": _region(16, x=100.0, y=122.6),
+              "centred_touching": _region(144, x=100.0, y=119.5)}[where]
     p = PausePolicy(PolicySettings(pause_ratio=0.01, min_area_mm2=1.0))
     assert _run(p, [[_region(150, kind="detachment")]] * 2).action == "cancel_object"
     p.ignore_zone((80, 80, 120, 120), "B", others=[(80, 125, 120, 160)])

@@ -363,11 +363,11 @@ class PausePolicy:
         The print goes on without that object: its remains are neither a%, nor a region, nor
         growth, nor change beside the print from now on. A region is the object's when it is
         centred in ``bbox_mm``, or, with ``others`` (the boxes of the objects still printed, bed
-        mm), when its box touches none of ``others`` and lies nearer to ``bbox_mm`` than to any of
-        them, within :data:`REMAINS_REACH_MM` (a detached part's remains reach past its box). A
-        region that touches a printed object, or lies nearer to one, still counts: remains that
-        reach an object still printed can meet the nozzle there. Clears the halt of the
-        ``cancel_object`` decision and the layers-in-a-row counts.
+        mm), when it lies nearer to ``bbox_mm`` than to any of them, within
+        :data:`REMAINS_REACH_MM` (a detached part's remains reach past its box). With ``others``,
+        a region whose box touches one of them always counts: remains that reach an object still
+        printed can meet the nozzle there. Clears the halt of the ``cancel_object`` decision and
+        the layers-in-a-row counts.
         """
         self._zones.append((tuple(float(v) for v in bbox_mm), label))
         if others is not None:
@@ -379,13 +379,13 @@ class PausePolicy:
         self._halted = False
 
     def _ignored(self, r: Region) -> bool:
+        box = tuple(r.bbox_mm)
+        if any(_overlap(b, box) for b in self._live):
+            return False  # it reaches an object still printed: it counts, whosever it is
         x, y = r.centroid_mm
         if any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones):
             return True
         if not self._live or not self._zones:
-            return False
-        box = tuple(r.bbox_mm)
-        if any(_overlap(b, box) for b in self._live):
             return False
         near = min(_gap(b, box) for b, _ in self._zones)
         return near <= REMAINS_REACH_MM and all(near < _gap(b, box) for b in self._live)
