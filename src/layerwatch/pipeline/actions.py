@@ -10,8 +10,10 @@
   cancelled through the host (Klipper ``EXCLUDE_OBJECT NAME=..``; Marlin/Prusa ``M486 P<id>``,
   also through OctoPrint, which has no object-cancel API of its own); from the next
   layer the pipeline's reference and footprint leave it out and the policy no longer
-  judges its area (nor regions reaching out of it that touch no object still printed). A failure that spans objects, touches none, a file without labels
-  or a host that cannot skip objects falls back to a pause, and the reason says why.
+  judges its area nor its remains beside it, unless they reach an object still printed
+  (:meth:`~layerwatch.pipeline.policy.PausePolicy.ignore_zone`). A failure that spans
+  objects, touches none, a file without labels or a host that cannot skip objects falls
+  back to a pause, and the reason says why.
 
 Each action is shown where the user looks (the host's display and console:
 :meth:`~layerwatch.monitor.printers.base.Printer.show_message`) and written to the
