@@ -209,14 +209,21 @@ class PrintSimulator:
         part = ~fx
         before = self.h.copy()
         stamp_capsules(self.h, self.mat, self.h, rows[part], mats[part], *self.gp)
-        self._record_gaps(before, lay.z - lh, lh)
+        self._record_gaps(before, self.h, lay.z - lh, lh)
         if fx.any():
             self.has_fixed = True
+            before = self.hf.copy()
             stamp_capsules(self.hf, self.matf, self.hf, rows[fx], mats[fx], *self.gp)
+            # a plate's other objects (within_mm) print over air as the part does (one that starts on a
+            # higher layer): the same gaps, else their photos differ from the clean print's before the onset
+            self._record_gaps(before, self.hf, lay.z - lh, lh)
 
-    def _record_gaps(self, before: np.ndarray, base: float, lh: float) -> None:
-        """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air."""
-        air = (self.h > before) & (before < base - _GAP_LAYERS * lh)
+    def _record_gaps(self, before: np.ndarray, after: np.ndarray, base: float, lh: float) -> None:
+        """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air.
+
+        ``before``, ``after``: the height map (grid shape, mm) before and after the layer was stamped.
+        """
+        air = (after > before) & (before < base - _GAP_LAYERS * lh)
         # one gap per cell: the tallest (a window is not lost to a pinhole of the lintel above it)
         air &= base - before > self.gap[..., 1] - self.gap[..., 0]
         if air.any():
