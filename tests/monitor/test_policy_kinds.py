@@ -122,6 +122,48 @@ def test_ignored_zone_raises_no_alarm_later():
     assert _run(p, [[_region(150, x=30)]] * 2).stops
 
 
+def test_a_cancelled_objects_remains_reaching_out_of_its_zone_are_ignored_unless_they_touch_a_printed_object():
+    """A detached part's change beside the print reaches past its box (plus margin): with the boxes of the objects
+    still printed, a region overlapping the zone and none of them is the cancelled object's; one that touches a
+    printed object still counts; the layers-in-a-row counts start afresh after the cancel."""
+    p = PausePolicy(PolicySettings(pause_ratio=0.05))
+    assert _run(p, [[_region(150, kind="detachment")]] * 2).action == "cancel_object"
+    p.ignore_zone((80, 80, 120, 120), "B", others=[(80, 125, 120, 160)])
+    reaching = _region(64, x=124.0, y=100.0)  # centred 4 mm beyond the zone, box 120..128 overlaps it
+    for i in range(5, 12):
+        assert p.update(_res(i, [reaching])).action == "none"
+    touching = _region(64, x=120.0, y=123.0)  # overlaps the zone and the printed object's box
+    assert _run(p, [[touching]] * 3).stops
+    q = PausePolicy(PolicySettings(pause_ratio=0.05))  # without the others' boxes: centred in the zone only
+    assert _run(q, [[_region(150, kind="detachment")]] * 2).action == "cancel_object"
+    q.ignore_zone((80, 80, 120, 120), "B")
+    assert _run(q, [[reaching]] * 3).stops
+
+
+@pytest.mark.parametrize(("where", "counts"), [
+    ("beside", False),  # 2 mm past the zone, 47 mm from the printed object: the remains of a part that moved
+    ("far", True),  # 18 mm past the zone (beyond REMAINS_REACH_MM): something else on the bed
+    ("nearer_printed", True),  # 0.6 mm past the zone but 0.4 mm from the printed object: it can meet the nozzle
+    ("centred_touching", True),  # centred in the zone, its box reaches the printed object's
+])
+def test_a_cancelled_objects_remains_beside_its_zone_are_its_own_unless_nearer_a_printed_object(where, counts):
+    """A detached part's change reaches a few mm past its moved outline, beyond the zone (box plus margin): a region
+    that touches no printed object and lies nearer the cancelled zone than any of them, within REMAINS_REACH_MM,
+    is the cancelled object's (the real-Klippy plate test's 'changed beside the print' after B's cancel)."""
+    from layerwatch.pipeline.policy import REMAINS_REACH_MM
+
+    region = {"beside": _region(16, x=100.0, y=76.0), "far": _region(16, x=100.0, y=60.0),
+              "nearer_printed": _region(16, x=100.0, y=122.6),
+              "centred_touching": _region(144, x=100.0, y=119.5)}[where]
+    p = PausePolicy(PolicySettings(pause_ratio=0.01, min_area_mm2=1.0))
+    assert _run(p, [[_region(150, kind="detachment")]] * 2).action == "cancel_object"
+    p.ignore_zone((80, 80, 120, 120), "B", others=[(80, 125, 120, 160)])
+    assert REMAINS_REACH_MM < 18
+    assert bool(_run(p, [[region]] * 3).stops) is counts
+    q = PausePolicy(PolicySettings(pause_ratio=0.01, min_area_mm2=1.0))  # the same region before any cancel: counts
+    assert _run(q, [[region]] * 3).stops
+
+
 def test_config_tables_per_kind(tmp_path):
     f = tmp_path / "job.toml"
     f.write_text('[policy.kinds.detachment]\nact_mm2 = 40\n[policy.kinds.spaghetti]\naction = "cancel"\n')

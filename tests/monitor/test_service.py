@@ -159,3 +159,34 @@ def test_operator_resume_acknowledges():
     mon = Monitor(p, SimCamera(_frame(1)), StandInPipeline(), wait_for_verdict=True)
     mon.run(poll_s=0.001)
     assert p.paused == 1 and not mon.policy.halted
+
+
+class _EndsWhileBusyPrinter:
+    """A host that prints on while the monitor takes a photo: the last layers' triggers and the end of the
+    print come in together (the state is read after they arrived, before they were polled)."""
+
+    def __init__(self, n):
+        from layerwatch.monitor.printers.base import SnapshotTrigger
+
+        self.pending = [SnapshotTrigger(0, 0.3)]
+        self.rest = [SnapshotTrigger(i, 0.3 * (i + 1)) for i in range(1, n)]
+        self.polls = 0
+
+    def poll_triggers(self):
+        out, self.pending = self.pending, []
+        return out
+
+    def status(self):
+        from layerwatch.monitor.printers.base import PrinterStatus
+
+        self.polls += 1
+        if self.polls == 1:  # the first photo took long: every other layer printed meanwhile, and the file ended
+            self.pending += self.rest
+        return PrinterStatus("finished")
+
+
+def test_triggers_that_came_with_the_end_of_the_print_are_judged():
+    """A run that ends on 'finished' still judges the triggers pending when it read that state (they were dropped)."""
+    pipe = StandInPipeline()
+    rep = Monitor(_EndsWhileBusyPrinter(5), SimCamera(_frame(None)), pipe).run(poll_s=0.001)
+    assert [r.layer for r in rep.results] == list(range(5)) and pipe.seen == list(range(5))

@@ -6,6 +6,7 @@ import json
 
 import cv2
 import numpy as np
+import pytest
 
 from layerwatch.simulate import (
     FAILURE_TYPES,
@@ -74,3 +75,28 @@ def test_save_frame_writes_photo_masks_meta(part, camera, topview, tmp_path):
     assert (cv2.imread(str(paths["truth"]), cv2.IMREAD_GRAYSCALE) > 0).sum() == fr.truth.sum()
     meta = json.loads(paths["meta"].read_text())
     assert meta["layer"] == 4 and meta["failures"] == ["foreign_body"] and meta["failed"]
+
+
+@pytest.mark.slow
+def test_one_object_detaching_leaves_the_others_as_printed_before_the_onset(shared_data):
+    """``Failure(within_mm=...)``: the plate's other objects are drawn as in the clean print, also one that
+    starts on a higher layer, over air (ideamaker's plate: two objects from layer 18); they were drawn
+    without their gaps, so the photos differed from the clean print's before the onset (an 'early' stop
+    at layer 19 in the object-cancel evaluation)."""
+    from layerwatch.evaluate.object_cancel import find_plates
+    from layerwatch.pipeline.config import observed_square, resolve_config
+    from layerwatch.simulate import PrintSimulator, default_camera
+
+    name = "ideamaker-4.2.0_multi-object.gcode"
+    tp, om = find_plates(shared_data / "gcode", [name])[name]
+    boxes = np.array([o.bbox_mm for o in om.objects])
+    box = (boxes[:, 0].min(), boxes[:, 1].min(), boxes[:, 2].max(), boxes[:, 3].max())
+    tv = resolve_config(None, gcode=observed_square(box)).config.topview.topview()
+    cam = default_camera(tv, image_size=(640, 360))
+    x0, y0, x1, y1 = om.objects[0].bbox_mm
+    fail = Failure("detachment", 20, 2.6, 3, within_mm=(x0 - 0.5, y0 - 0.5, x1 + 0.5, y1 + 0.5))
+    one, clean = PrintSimulator(tp, cam, tv, [fail], seed=3), PrintSimulator(tp, cam, tv, [], seed=3)
+    diff = np.abs(one.frame(19).photo.astype(int) - clean.frame(19).photo.astype(int)).sum(-1)
+    assert (diff > 30).sum() == 0, int((diff > 30).sum())
+    moved = np.abs(one.frame(20).photo.astype(int) - clean.frame(20).photo.astype(int)).sum(-1)
+    assert (moved > 30).sum() > 50  # ... and the object moves from the onset

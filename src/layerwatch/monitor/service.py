@@ -110,6 +110,10 @@ class MonitorReport:
         return [r.trigger_to_pause_ms for r in self.results if r.trigger_to_pause_ms is not None]
 
 
+#: printer states that end the run (once a layer was judged)
+_ENDED = ("finished", "cancelled", "idle")
+
+
 def _log(event: str, level: int = logging.INFO, **kv: Any) -> None:
     log.log(level, "%s %s", event, " ".join(f"{k}={v}" for k, v in kv.items()), extra={"event": event, **kv})
 
@@ -573,6 +577,9 @@ class Monitor:
                     for trig in self.printer.poll_triggers():
                         self.handle_trigger(trig)
                     state = self.printer.status().state
+                    if state in _ENDED:  # the last layers' triggers came in while the photos were taken or
+                        for trig in self.printer.poll_triggers():  # the state read: judged, not dropped
+                            self.handle_trigger(trig)
                 except Exception as exc:  # noqa: BLE001 - a host fault (or a connector bug) is retried, never fatal
                     self._printer_failed(exc, backoff, cap)
                     self.stop_event.wait(backoff)
@@ -582,7 +589,7 @@ class Monitor:
                 self._printer_answered(state)
                 settled = self._follow_state(state, settled, last_seen)
                 last_seen = state
-                if state in ("finished", "cancelled", "idle") and any(r.layer >= 0 for r in self.report.results):
+                if state in _ENDED and any(r.layer >= 0 for r in self.report.results):
                     break
                 self.stop_event.wait(poll_s)
         finally:

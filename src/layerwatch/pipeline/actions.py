@@ -10,8 +10,10 @@
   cancelled through the host (Klipper ``EXCLUDE_OBJECT NAME=..``; Marlin/Prusa ``M486 P<id>``,
   also through OctoPrint, which has no object-cancel API of its own); from the next
   layer the pipeline's reference and footprint leave it out and the policy no longer
-  judges its area. A failure that spans objects, touches none, a file without labels
-  or a host that cannot skip objects falls back to a pause, and the reason says why.
+  judges its area nor its remains beside it, unless they reach an object still printed
+  (:meth:`~layerwatch.pipeline.policy.PausePolicy.ignore_zone`). A failure that spans
+  objects, touches none, a file without labels or a host that cannot skip objects falls
+  back to a pause, and the reason says why.
 
 Each action is shown where the user looks (the host's display and console:
 :meth:`~layerwatch.monitor.printers.base.Printer.show_message`) and written to the
@@ -188,7 +190,10 @@ class ActionExecutor:
         if policy is not None:
             x0, y0, x1, y1 = target.bbox_mm
             m = ZONE_MARGIN_MM
-            policy.ignore_zone((x0 - m, y0 - m, x1 + m, y1 + m), target.name)
+            others = [(o.bbox_mm[0] - m, o.bbox_mm[1] - m, o.bbox_mm[2] + m, o.bbox_mm[3] + m)
+                      for o in (self.objects.objects if self.objects is not None else ())
+                      if o.index not in self.cancelled]
+            policy.ignore_zone((x0 - m, y0 - m, x1 + m, y1 + m), target.name, others)
         if self.pipeline is None or self.objects is None:
             return
         if self._full_toolpath is None:

@@ -50,6 +50,7 @@ Petsiuk & Pearce (2022), eq. (5) for ``a%``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -61,7 +62,7 @@ from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.settings_base import Section
 
 __all__ = ["DEFAULT_KIND_ACTIONS", "Decision", "KindAction", "KindActions", "NotifySettings", "PausePolicy", "STOPPING",
-           "PolicySettings", "first_stop"]
+           "PolicySettings", "REMAINS_REACH_MM", "first_stop"]
 
 Action = Literal["none", "notify", "pause", "cancel", "cancel_object", "host_command"]
 #: what a failure kind may do; ``"rule"``: what the rule that fired says (``action`` / ``strong_action``)
@@ -282,6 +283,16 @@ def _overlap(a: Sequence[float], b: Sequence[float]) -> bool:
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 
+def _gap(a: Sequence[float], b: Sequence[float]) -> float:
+    """Distance between bounding boxes ``(x0, y0, x1, y1)``, mm (0 when they overlap)."""
+    return math.hypot(max(a[0] - b[2], b[0] - a[2], 0.0), max(a[1] - b[3], b[1] - a[3], 0.0))
+
+
+#: how far beyond a cancelled object's zone a region is still taken for its remains, mm (a part that came off
+#: the bed moves, and the photo's change reaches a few mm past its moved outline); see :meth:`PausePolicy.ignore_zone`
+REMAINS_REACH_MM = 10.0
+
+
 class PausePolicy:
     """Stateful pause policy; feed it every layer's result in order.
 
@@ -307,6 +318,7 @@ class PausePolicy:
         self._acked_outside: list[tuple[tuple[float, ...], float]] = []
         self._grace = 0  # analysed layers left in the resume grace period
         self._zones: list[tuple[tuple[float, ...], str]] = []  # (bbox_mm, label) judged no more
+        self._live: list[tuple[float, ...]] = []  # boxes of the objects still printed (ignore_zone's ``others``)
         self._kind_streak: dict[str, int] = {}
         self._kind_prev: dict[str, list[Region]] = {}
 
@@ -344,20 +356,39 @@ class PausePolicy:
         self._kind_streak.clear()
         self._kind_prev.clear()
 
-    def ignore_zone(self, bbox_mm: Sequence[float], label: str = "") -> None:
-        """Stop judging regions centred in ``bbox_mm`` ``(x0, y0, x1, y1)`` (a cancelled object), and resume.
+    def ignore_zone(self, bbox_mm: Sequence[float], label: str = "",
+                    others: Sequence[Sequence[float]] | None = None) -> None:
+        """Stop judging the regions of a cancelled object in ``bbox_mm`` ``(x0, y0, x1, y1)``, and resume.
 
-        The print goes on without that object: its remains are neither a%, nor a
-        region, nor growth from now on. Clears the halt of the ``cancel_object`` decision.
+        The print goes on without that object: its remains are neither a%, nor a region, nor
+        growth, nor change beside the print from now on. A region is the object's when it is
+        centred in ``bbox_mm``, or, with ``others`` (the boxes of the objects still printed, bed
+        mm), when it lies nearer to ``bbox_mm`` than to any of them, within
+        :data:`REMAINS_REACH_MM` (a detached part's remains reach past its box). With ``others``,
+        a region whose box touches one of them always counts: remains that reach an object still
+        printed can meet the nozzle there. Clears the halt of the ``cancel_object`` decision and
+        the layers-in-a-row counts.
         """
         self._zones.append((tuple(float(v) for v in bbox_mm), label))
-        self._streak = 0
+        if others is not None:
+            self._live = [tuple(float(v) for v in b) for b in others]
+        self._streak = self._out_streak = 0
+        self._prev_regions, self._prev_outside = [], []
         self._kind_streak.clear()
+        self._kind_prev.clear()
         self._halted = False
 
     def _ignored(self, r: Region) -> bool:
+        box = tuple(r.bbox_mm)
+        if any(_overlap(b, box) for b in self._live):
+            return False  # it reaches an object still printed: it counts, whosever it is
         x, y = r.centroid_mm
-        return any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones)
+        if any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones):
+            return True
+        if not self._live or not self._zones:
+            return False
+        near = min(_gap(b, box) for b, _ in self._zones)
+        return near <= REMAINS_REACH_MM and all(near < _gap(b, box) for b in self._live)
 
     def _acked_area(self, r: Region) -> float | None:
         """Acknowledged area of the region ``r`` overlaps, or None."""

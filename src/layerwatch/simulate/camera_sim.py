@@ -16,7 +16,7 @@ none of that code path:
    (0.02 mm) and height (0.01 mm) jitter plus a sinusoidal extrusion-rate
    wobble along its length, so clean layers are never pixel-identical to the
    reference. Failures edit this geometry (removed/thinned segments, shifted
-   layers, displaced/tilted part, objects and draped strands with their own
+   layers, displaced/tilted part (or one object of a plate: ``Failure.within_mm``), objects and draped strands with their own
    height).
 2. **Projection.** The photo is a *perspective camera view* (OpenCV pinhole +
    radial distortion, pose at ~45 degrees): every camera pixel's ray is marched
@@ -203,17 +203,27 @@ class PrintSimulator:
         rows[:, 8] = st.extrusion_noise * rng.uniform(0.3, 1.0, n)
         rows[:, 9] = rng.uniform(0, 2 * np.pi, n)
         mats = np.full(n, fl.MAT_PART, np.uint8)
+        for rf in self.failures:  # one object of a plate comes off: the others stay on the bed with the skirt
+            if rf.type == "detachment" and rf.failure.within_mm is not None:
+                fx = fx | ~fl.in_box(p0, p1, rf.failure.within_mm)
         part = ~fx
         before = self.h.copy()
         stamp_capsules(self.h, self.mat, self.h, rows[part], mats[part], *self.gp)
-        self._record_gaps(before, lay.z - lh, lh)
+        self._record_gaps(before, self.h, lay.z - lh, lh)
         if fx.any():
             self.has_fixed = True
+            before = self.hf.copy()
             stamp_capsules(self.hf, self.matf, self.hf, rows[fx], mats[fx], *self.gp)
+            # a plate's other objects (within_mm) print over air as the part does (one that starts on a
+            # higher layer): the same gaps, else their photos differ from the clean print's before the onset
+            self._record_gaps(before, self.hf, lay.z - lh, lh)
 
-    def _record_gaps(self, before: np.ndarray, base: float, lh: float) -> None:
-        """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air."""
-        air = (self.h > before) & (before < base - _GAP_LAYERS * lh)
+    def _record_gaps(self, before: np.ndarray, after: np.ndarray, base: float, lh: float) -> None:
+        """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air.
+
+        ``before``, ``after``: the height map (grid shape, mm) before and after the layer was stamped.
+        """
+        air = (after > before) & (before < base - _GAP_LAYERS * lh)
         # one gap per cell: the tallest (a window is not lost to a pinhole of the lintel above it)
         air &= base - before > self.gap[..., 1] - self.gap[..., 0]
         if air.any():
@@ -312,16 +322,15 @@ class PrintSimulator:
         truth = np.zeros(tv.shape, bool)
         moved_truth = np.zeros(tv.shape, bool)  # already an area: solid_area closed each outline
         active = []
-        nominal = None
         for rf in self.failures:
             f = rf.failure
             if not f.active(index):
                 continue
             active.append(f.type)
             if f.type in ("layer_shift", "detachment"):
-                if nominal is None:
-                    sl = tp.layer_slice(index)
-                    nominal = (tp.start[sl], tp.end[sl], tp.width[sl] / 2.0)
+                sl = tp.layer_slice(index)
+                mine = fl.in_box(tp.start[sl], tp.end[sl], f.within_mm)  # what moves (all but a plate's other objects)
+                nominal = (tp.start[sl][mine], tp.end[sl][mine], tp.width[sl][mine] / 2.0)
                 fp = solid_area(*nominal, tv)
                 if f.type == "layer_shift":
                     moved = solid_area(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)

@@ -36,6 +36,7 @@ __all__ = [
     "thin_wall_segments",
     "random_scenarios",
     "beside_point",
+    "in_box",
 ]
 
 FAILURE_TYPES: tuple[str, ...] = (
@@ -93,6 +94,10 @@ class Failure:
         centre on the onset layer's beads, ``"beside"`` on the bed beside the
         part (:func:`beside_point`: out of the onset layer's bounding box by
         half the size plus 3 mm, on a random side).
+    within_mm : tuple of float or None
+        ``detachment`` only: ``(x0, y0, x1, y1)`` bed mm; only the beads whose midpoints lie in
+        this box come off (one object of a multi-object plate), turning about the box's centre;
+        the rest of the plate stays on the bed. None: the whole part comes off.
     """
 
     type: str
@@ -104,6 +109,7 @@ class Failure:
     offset_mm: tuple[float, float] | None = None
     mode: str = "missing"
     place: str = "on"
+    within_mm: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.type not in SIMULATED_TYPES:
@@ -118,6 +124,9 @@ class Failure:
             raise ConfigError(f"failure place must be 'on' or 'beside', got '{self.place}'.")
         if self.place == "beside" and self.type not in ("foreign_body", "spaghetti"):
             raise ConfigError(f"only foreign_body and spaghetti can be placed beside the part, not {self.type}.")
+        if self.within_mm is not None and (self.type != "detachment" or not (
+                self.within_mm[0] < self.within_mm[2] and self.within_mm[1] < self.within_mm[3])):
+            raise ConfigError("within_mm is a detachment's (x0, y0, x1, y1) box with x0 < x1 and y0 < y1.")
 
     @property
     def layers(self) -> int:
@@ -164,6 +173,14 @@ class ResolvedFailure:
     @property
     def type(self) -> str:
         return self.failure.type
+
+
+def in_box(p0: np.ndarray, p1: np.ndarray, box: tuple[float, float, float, float] | None) -> np.ndarray:
+    """Beads ``p0 -> p1`` (N, 2) whose midpoints lie in ``box`` ``(x0, y0, x1, y1)`` (bed mm); all when None."""
+    if box is None:
+        return np.ones(len(p0), bool)
+    mid = 0.5 * (p0 + p1)
+    return (mid[:, 0] >= box[0]) & (mid[:, 0] <= box[2]) & (mid[:, 1] >= box[1]) & (mid[:, 1] <= box[3])
 
 
 def _layer_points(tp: Toolpath, index: int, select: np.ndarray | None = None) -> np.ndarray:
@@ -320,7 +337,7 @@ def resolve(f: Failure, tp: Toolpath) -> ResolvedFailure:
             a = rng.uniform(0, 2 * np.pi)
             r.offset = f.size_mm * np.array([np.cos(a), np.sin(a)])
         if f.type == "detachment":
-            b = tp.layers[f.onset].bounds
+            b = tp.layers[f.onset].bounds if f.within_mm is None else f.within_mm
             r.center = np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
             r.angle = np.deg2rad(rng.uniform(3.0, 8.0)) * rng.choice([-1, 1])
             r.tilt = np.tan(np.deg2rad(rng.uniform(0.5, 1.5)))
