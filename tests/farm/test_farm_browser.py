@@ -12,7 +12,7 @@ from browser_stack import BROWSER_MARKS, launch, screenshot_dir, serve
 from layerwatch.farm import Farm, parse_farm
 from layerwatch.storage.history import History
 
-pytestmark = [*BROWSER_MARKS, pytest.mark.slow]
+pytestmark = [*BROWSER_MARKS, pytest.mark.slow, pytest.mark.xdist_group("servers")]
 FAILING = "p07"
 
 

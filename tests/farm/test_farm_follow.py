@@ -17,7 +17,7 @@ from layerwatch.monitor.hosts import OctoPrintJobs
 from layerwatch.pipeline.config import load_config
 from layerwatch.storage.history import History
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("servers")]
 
 
 @pytest.mark.parametrize("head", ["unknown", "off the park spot"])

@@ -11,7 +11,7 @@ from layerwatch.pipeline.config import recommended_config
 from layerwatch.simulate import default_camera
 from layerwatch.storage.history import History
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("servers")]
 
 
 def _wait(farm, done, timeout=150.0):

@@ -46,6 +46,8 @@ from layerwatch.web.app import create_app
 from layerwatch.web.report import build_report
 from octoprint_stack import fast_moves
 
+pytestmark = pytest.mark.xdist_group("servers")
+
 CAMERA = CameraSpec(image_size=(640, 360))
 
 #: test Klippy: the trigger holds 2.5 s (the park dwell), G1 drops E (no extruder in debug-output mode)

@@ -29,7 +29,7 @@ from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy, PolicySettings
 
-pytestmark = [pytest.mark.moonraker, pytest.mark.slow]
+pytestmark = [pytest.mark.moonraker, pytest.mark.slow, pytest.mark.xdist_group("servers")]
 
 OBJECTS = {"A": (60.0, 60.0), "B": (100.0, 60.0), "C": (60.0, 100.0), "D": (100.0, 100.0)}
 N_LAYERS, LAYER_H, ONSET = 12, 0.3, 3
