@@ -402,6 +402,7 @@ def test_cli_follow_runs_as_a_service_until_sigterm(stack, tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.wait(15)  # reaped here: else its ResourceWarning fails whichever test the GC runs in
         log.close()
         _moon_cancel(stack)
     text = (tmp_path / "monitor.log").read_text()
