@@ -1,4 +1,6 @@
-"""``--dist loadgroup`` that groups by ``xdist_group`` again under pytest 9.2 (pytest-xdist issue 1386).
+"""How tests share the pytest-xdist workers: ``xdist_group`` under pytest 9.2, and ``exclusive`` tests.
+
+**Groups.** ``--dist loadgroup`` groups by ``xdist_group`` again under pytest 9.2 (pytest-xdist issue 1386).
 
 pytest-xdist 3.8 tells its controller which group a test is in by appending ``@<group>`` to the node id
 each worker reports, written to ``item._nodeid``. pytest 9.2 derives ``item.nodeid`` from a structured id
@@ -7,9 +9,20 @@ the real-server tests of group ``"servers"`` ran on both workers at once. On eac
 own hook, this writes the suffix where pytest 9.2 reads it; where xdist's write took effect (an older
 pytest, a fixed xdist) it does nothing. Loaded by ``tests/conftest.py``; ``tests/test_xdist_groups.py``
 checks that a group stays on one worker.
+
+**Exclusive tests.** A test marked ``exclusive`` runs while no test runs on any other worker: the other
+worker finishes its current test and waits. For tests whose simulated printers keep wall-clock time
+(layers every 0.5-2 s) and must analyse most layers as they come: on the 2-core CI machine they need the
+cores a serial run gave them (beside a busy worker, a 20-printer farm dropped the failing printer's late
+frames and it finished unpaused). A readers-writer lock of two ``flock`` files in the run's shared
+temporary folder, writer first: every test holds the lock shared, an exclusive one holds it alone.
 """
 
 from __future__ import annotations
+
+import fcntl
+import os
+from collections.abc import Iterator
 
 import pytest
 
@@ -33,3 +46,28 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         from _pytest.nodeid import coerce_node_id
 
         item._id = coerce_node_id(item.nodeid + suffix)
+
+
+@pytest.fixture(autouse=True)
+def _exclusive_across_workers(request: pytest.FixtureRequest,
+                              tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Hold the workers' lock around each test: alone for ``exclusive`` tests, shared for the rest."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        yield
+        return
+    root = tmp_path_factory.getbasetemp().parent  # the run's folder, above each worker's popen-gwN
+    alone = request.node.get_closest_marker("exclusive") is not None
+    with open(root / "exclusive.turnstile", "a") as turnstile, open(root / "exclusive.lock", "a") as lock:
+        if alone:
+            fcntl.flock(turnstile, fcntl.LOCK_EX)  # no test starts on another worker from now on
+            fcntl.flock(lock, fcntl.LOCK_EX)  # and the running ones have finished
+        else:
+            fcntl.flock(turnstile, fcntl.LOCK_SH)  # waits while an exclusive test waits or runs
+            fcntl.flock(lock, fcntl.LOCK_SH)
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+            if alone:
+                fcntl.flock(turnstile, fcntl.LOCK_UN)
