@@ -21,7 +21,8 @@ demo: $(STAMP)
 # Tests run on 2 pytest-xdist workers: CI's machine has 2 cores, and `-n auto` counts physical cores
 # (1 on a 2-vCPU runner with SMT). `--dist loadgroup` keeps each xdist_group on one worker: every test
 # that starts a real server (OctoPrint, Moonraker/Klippy, mosquitto, chromium, the farm) is in group
-# "servers", so those never run beside each other. Serially: `make test PYTEST_WORKERS=0`.
+# "servers", so those never run beside each other; a test marked `exclusive` runs with the other worker
+# waiting (tests/xdist_groups.py). Serially: `make test PYTEST_WORKERS=0`.
 PYTEST_WORKERS ?= 2
 XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
 
