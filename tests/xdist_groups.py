@@ -35,6 +35,21 @@ def group_suffix(item: pytest.Item) -> str:
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    from _pytest.nodeid import coerce_node_id
+
+    # xdist schedules by node id: items sharing one run once. schemathesis' items (one per API operation)
+    # all have their function's id under pytest 9.2 ("test_no_server_errors", 19 times): name them in full
+    seen: dict[str, int] = {}
+    for item in items:
+        seen[item.nodeid] = seen.get(item.nodeid, 0) + 1
+    for item in items:
+        if seen[item.nodeid] > 1 and item.parent is not None and hasattr(item, "_id"):
+            item._id = coerce_node_id(f"{item.parent.nodeid}::{item.name}")
+    same = len(items) - len({item.nodeid for item in items})
+    if same:
+        raise pytest.UsageError(f"xdist_groups: {same} tests share a node id; xdist would run them once")
     if not getattr(config.option, "loadgroup", False):  # set by xdist on a worker of --dist loadgroup
         return
     for item in items:
@@ -43,8 +58,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             continue
         if not hasattr(item, "_id"):  # pytest < 9.2 reads _nodeid, which xdist wrote: cannot get here
             raise pytest.UsageError(f"xdist_groups: cannot mark {item.nodeid} as in group {suffix[1:]}")
-        from _pytest.nodeid import coerce_node_id
-
         item._id = coerce_node_id(item.nodeid + suffix)
 
 
