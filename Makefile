@@ -18,12 +18,20 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/layerwatch demo --out $(OUT)
 
+# Tests run on 2 pytest-xdist workers: CI's machine has 2 cores, and `-n auto` counts physical cores
+# (1 on a 2-vCPU runner with SMT). `--dist loadgroup` keeps each xdist_group on one worker: every test
+# that starts a real server (OctoPrint, Moonraker/Klippy, mosquitto, chromium, the farm) is in group
+# "servers", so those never run beside each other; a test marked `exclusive` runs with the other worker
+# waiting (tests/xdist_groups.py). Serially: `make test PYTEST_WORKERS=0`.
+PYTEST_WORKERS ?= 2
+XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
+
 test: $(STAMP)
-	$(PY) -m pytest --durations=20
+	$(PY) -m pytest $(XDIST) --durations=20
 
 # Fast feedback (issue 17): lint + types + every test not marked `slow`.
 check: lint types
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest $(XDIST) -m "not slow" -q
 
 bench: $(STAMP)
 	$(PY) -m pytest benchmarks -p no:cacheprovider -s -o python_files="bench_*.py"

@@ -8,6 +8,9 @@ from pathlib import Path
 
 import pytest
 
+#: --dist loadgroup under pytest 9.2 (see tests/xdist_groups.py)
+pytest_plugins = ["xdist_groups"]
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("LAYERWATCH_SHARED_DATA", REPO.parent / "shared" / "data"))
 

@@ -87,6 +87,7 @@ def octoprint_server(base: Path, plugins: dict | None = None,
             proc.wait(15)
         except subprocess.TimeoutExpired:
             proc.kill()
+            proc.wait(15)  # reaped here: else its ResourceWarning fails whichever test the GC runs in
         log.close()
         if proc.returncode not in (0, -15):
             sys.stdout.write((base / "serve.log").read_text()[-3000:])

@@ -246,6 +246,7 @@ def guide_dir(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("setup_guide")  # the steps run in order in one folder: one worker, in order
 @pytest.mark.parametrize("name, script", STEPS, ids=[n for n, _ in STEPS])
 def test_guide_step(guide_dir, name, script):
     if guide_dir["failed"]:

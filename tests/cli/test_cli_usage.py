@@ -227,6 +227,7 @@ def test_python_m_and_the_script_behave_the_same(argv):
         for p in procs:
             if p.poll() is None:
                 p.kill()
+                p.wait(15)  # reaped here: else its ResourceWarning fails whichever test the GC runs in
     a, b = procs
     assert (a.returncode, a_out, a_err) == (b.returncode, b_out, b_err)
     assert a.returncode in (0, 2) and "Traceback" not in a_err

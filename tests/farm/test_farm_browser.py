@@ -12,7 +12,8 @@ from browser_stack import BROWSER_MARKS, launch, screenshot_dir, serve
 from layerwatch.farm import Farm, parse_farm
 from layerwatch.storage.history import History
 
-pytestmark = [*BROWSER_MARKS, pytest.mark.slow]
+#: exclusive: 20 printers at 2 s a layer must be analysed as they print (tests/xdist_groups.py)
+pytestmark = [*BROWSER_MARKS, pytest.mark.slow, pytest.mark.xdist_group("servers"), pytest.mark.exclusive]
 FAILING = "p07"
 
 

@@ -16,7 +16,7 @@ from layerwatch.gcode import read_toolpath
 from layerwatch.pipeline.config import resolve_config
 from layerwatch.pipeline.step import LayerPipeline
 
-pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore")]
+pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore"), pytest.mark.xdist_group("servers")]
 distributed = pytest.importorskip("distributed")
 
 

@@ -17,7 +17,8 @@ from layerwatch.monitor.hosts import OctoPrintJobs
 from layerwatch.pipeline.config import load_config
 from layerwatch.storage.history import History
 
-pytestmark = pytest.mark.slow
+#: exclusive: the paced printer (0.4 s a layer) does not wait for the analyses (tests/xdist_groups.py)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("servers"), pytest.mark.exclusive]
 
 
 @pytest.mark.parametrize("head", ["unknown", "off the park spot"])

@@ -11,7 +11,7 @@ from layerwatch.pipeline.config import recommended_config
 from layerwatch.simulate import default_camera
 from layerwatch.storage.history import History
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("servers")]
 
 
 def _wait(farm, done, timeout=150.0):
@@ -49,6 +49,7 @@ def farm(tmp_path):
     h.close()
 
 
+@pytest.mark.exclusive  # printers at 0.5 s a layer must be analysed as they print (tests/xdist_groups.py)
 def test_one_failure_pauses_only_its_printer_and_faults_stay_with_their_printer(farm, make_client):
     f, h = farm
     cards = _wait(f, lambda c: c["fail"]["state"] == "paused" and c["ok1"]["state"] == c["ok2"]["state"] == "idle"

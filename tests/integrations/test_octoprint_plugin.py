@@ -24,7 +24,7 @@ import pytest
 
 from octoprint_stack import fast_moves, free_port, octoprint_server, require_plugin, until
 
-pytestmark = [pytest.mark.octoprint, pytest.mark.slow]
+pytestmark = [pytest.mark.octoprint, pytest.mark.slow, pytest.mark.xdist_group("servers")]
 
 N_LAYERS = 20  # layers of the prepared job
 ONSET = 15  # first layer with the injected spaghetti

@@ -29,6 +29,8 @@ from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.storage.history import History
 
+pytestmark = pytest.mark.xdist_group("servers")
+
 SERIAL = "01P00A000000000"
 
 #: malformed reports a printer (or something else on the broker) may publish

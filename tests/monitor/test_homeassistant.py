@@ -36,6 +36,8 @@ from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.storage.history import History
 
+pytestmark = pytest.mark.xdist_group("servers")
+
 OVERLAY = cv2.imencode(".png", np.full((32, 48, 3), 200, np.uint8))[1].tobytes()
 
 

@@ -46,6 +46,8 @@ from layerwatch.web.app import create_app
 from layerwatch.web.report import build_report
 from octoprint_stack import fast_moves
 
+pytestmark = pytest.mark.xdist_group("servers")
+
 CAMERA = CameraSpec(image_size=(640, 360))
 
 #: test Klippy: the trigger holds 2.5 s (the park dwell), G1 drops E (no extruder in debug-output mode)
@@ -192,6 +194,7 @@ class _Layers:
 
 @pytest.mark.octoprint
 @pytest.mark.slow
+@pytest.mark.exclusive  # four layers within 60 s of a paced virtual print (tests/xdist_groups.py)
 def test_octoprint_frames_are_taken_only_while_the_printer_holds_at_the_park_spot(octoprint):  # noqa: F811
     """M114 through OctoPrint: a block that dwells at the park spot gives accepted frames; one that dwells after
     moving back gets every frame rejected with the reason."""
@@ -372,6 +375,7 @@ def test_cli_without_gcode_analyses_the_hosts_job_never_the_bundled_example(stac
 
 @pytest.mark.moonraker
 @pytest.mark.slow
+@pytest.mark.exclusive  # the service must analyse layers while Klippy prints them (tests/xdist_groups.py)
 def test_cli_follow_runs_as_a_service_until_sigterm(stack, tmp_path):
     """``layerwatch monitor --follow`` as systemd runs it: picks up the job, analyses, stops cleanly on SIGTERM."""
     import os
@@ -400,6 +404,7 @@ def test_cli_follow_runs_as_a_service_until_sigterm(stack, tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.wait(15)  # reaped here: else its ResourceWarning fails whichever test the GC runs in
         log.close()
         _moon_cancel(stack)
     text = (tmp_path / "monitor.log").read_text()

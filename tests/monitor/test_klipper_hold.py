@@ -18,7 +18,7 @@ from moonraker_stack import MoonrakerStack, require_installed, running, until
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 
-pytestmark = pytest.mark.moonraker
+pytestmark = [pytest.mark.moonraker, pytest.mark.xdist_group("servers")]
 
 N_LAYERS, STEPS = 5, 4
 

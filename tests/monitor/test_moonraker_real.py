@@ -19,7 +19,7 @@ from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
 
-pytestmark = pytest.mark.moonraker
+pytestmark = [pytest.mark.moonraker, pytest.mark.xdist_group("servers")]
 
 
 @pytest.fixture(scope="module")

@@ -53,7 +53,7 @@ from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
 from layerwatch.simulate.plate import plate_gcode
 
-pytestmark = [pytest.mark.moonraker, pytest.mark.slow]
+pytestmark = [pytest.mark.moonraker, pytest.mark.slow, pytest.mark.xdist_group("servers")]
 
 #: layers of the plate printed; B comes off the bed from ONSET; a layer's least printing time, s
 N_LAYERS, ONSET, LAYER_S = 12, 4, 1.0

@@ -13,6 +13,8 @@ from layerwatch.pipeline.policy import Decision
 from layerwatch.storage.history import History
 from octoprint_stack import OCTO, VENV, octoprint_server, until
 
+pytestmark = pytest.mark.xdist_group("servers")
+
 
 def test_parse_recorded_push_message():
     msg = {"current": {"logs": ["Send: N12 M118 E1 layerwatch snapshot layer=3 z=1.200*77",

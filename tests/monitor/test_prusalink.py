@@ -204,6 +204,7 @@ def test_camera_printer_needs_a_camera_and_a_model(fake, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.exclusive  # the fake printer moves up a layer each second (tests/xdist_groups.py)
 def test_cli_monitor_follows_prusalink_layers_by_the_gcode(fake, monkeypatch, tmp_path):
     """``layerwatch monitor --printer prusalink://... --gcode``: the layers the printer's Z passes, named from the file."""
     tops = [layer.z for layer in read_toolpath(PART_GCODE.read_bytes()).layers]

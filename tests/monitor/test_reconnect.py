@@ -24,6 +24,8 @@ from layerwatch.monitor.printers.moonraker import MoonrakerPrinter
 from layerwatch.monitor.service import Monitor
 from layerwatch.pipeline.policy import PausePolicy
 
+pytestmark = pytest.mark.xdist_group("servers")
+
 
 class CleanPipeline:
     def __init__(self):

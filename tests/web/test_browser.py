@@ -10,7 +10,7 @@ import pytest
 
 from browser_stack import BROWSER_MARKS, launch, screenshot_dir, serve
 
-pytestmark = BROWSER_MARKS
+pytestmark = [*BROWSER_MARKS, pytest.mark.xdist_group("servers")]
 
 
 @pytest.fixture
