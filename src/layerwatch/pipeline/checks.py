@@ -39,7 +39,13 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.bed_check import check_empty_bed, regions_image
-from layerwatch.analysis.extrusion import block_ncc, box_texture
+from layerwatch.analysis.extrusion import (
+    MIN_PARALLAX_PX,
+    block_ncc,
+    box_texture,
+    parallax_px,
+    still_share,
+)
 from layerwatch.analysis.first_layer import inspect_first_layer
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
@@ -118,6 +124,9 @@ class JobChecks:
         self.similarity: tuple[float, int] = (float("nan"), 0)
         #: whether that layer was judged together with the layer before it (thin evidence, :data:`POOL_BELOW_BLOCKS`)
         self.pooled = False
+        #: that layer's share of blocks that fit the photo two layers back better in place than moved by the two
+        #: layers' parallax (nan: not measured; :func:`~layerwatch.analysis.extrusion.still_share`)
+        self.still = float("nan")
         self.new_print(bed_photo)
 
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
@@ -233,7 +242,7 @@ class JobChecks:
 
     def _extrusion(self, res: LayerResult, photo: np.ndarray, index: int, footprint: FootprintFn) -> None:
         st = self.config.extrusion
-        self.similarity, self.pooled = (float("nan"), 0), False
+        self.similarity, self.pooled, self.still = (float("nan"), 0), False, float("nan")
         maps = self.maps  # sets self.box
         texture = np.ascontiguousarray(box_texture(photo, self.size, self.box))
         earlier = [t for i, t in reversed(self._textures) if i < index][:2]
@@ -247,7 +256,8 @@ class JobChecks:
             return
         area, surface = self._layer_surface(fp, z, maps, st.margin_mm)
         # earlier[1]: the photo before the last two layers were printed
-        ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px)
+        share = 0.5
+        ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=share)
         blocks, judged = int(scored.sum()), f"layer {index}'s top surface ({area:.0f} mm^2"
         if blocks < POOL_BELOW_BLOCKS or area < st.min_area_mm2:  # thin evidence: pool it with the layer before
             if before is None or before[0] != index - 1:
@@ -258,20 +268,46 @@ class JobChecks:
             prev = np.unpackbits(before[2], count=fp.size).reshape(fp.shape).astype(bool)
             area_before, surface_before = self._layer_surface(prev, before[1], maps, margin)
             area, surface = area + area_before, surface | surface_before
-            ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=POOLED_MIN_SHARE)
+            share = POOLED_MIN_SHARE
+            ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=share)
             blocks, judged = int(scored.sum()), f"the top surfaces of layers {index - 1} and {index} ({area:.0f} mm^2"
             self.pooled = True
         if blocks < MIN_BLOCKS or area < st.min_area_mm2:  # not judged
             return
         sim = float(np.median(ncc[scored]))
         self.similarity = (sim, blocks)
+        why = f"texture similarity {sim:.2f} >= {st.min_similarity:.2f}"
         if sim < st.min_similarity:
-            return
+            # a faint surface: flagged when it did not rise (its texture fits the earlier photo in place, not
+            # moved by the parallax of the two layers' height)
+            if sim < st.still_similarity:
+                return
+            d = self._parallax(fp, z, index, footprint)
+            if d is None:
+                return
+            self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share)
+            if not self.still >= st.still_share:
+                return
+            why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the blocks "
+                   f"fit it in place better than raised by the two layers' height")
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim)
         res.check_regions = [*res.check_regions, region]
         _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
-                     f"(texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or filament run-out?")
+                     f"({why}); clog or filament run-out?")
+
+    def _parallax(self, fp: np.ndarray, z: float, index: int, footprint: FootprintFn) -> np.ndarray | None:
+        """Image displacement (working px) of layer ``index``'s surface raised from layer ``index - 2``'s top to ``z``.
+
+        ``None`` when the layers do not rise or the camera sees too little parallax (:data:`MIN_PARALLAX_PX`).
+        """
+        dz = z - float(footprint(index - 2)[2])
+        vv, uu = np.nonzero(fp)
+        if dz <= 0 or vv.size == 0:
+            return None
+        x, y = self.topview.to_mm(np.array([uu.mean(), vv.mean()], float))
+        d = parallax_px(self.camera, (float(x), float(y)), z, dz, self.size[0] / self.camera.image_size[0])
+        return d if float(np.hypot(*d)) >= MIN_PARALLAX_PX else None
 
     def _layer_surface(self, fp: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],
                        margin_mm: float) -> tuple[float, np.ndarray]:
