@@ -23,8 +23,14 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
   :data:`POOL_BELOW_BLOCKS` textured blocks, or less than ``min_area_mm2``: a
   ring of perimeters, thin walls) is judged together with the layer before it:
   both surfaces (not eroded: the beads' edges change with the beads) were
-  printed since that photo, so both must have changed. The texture is
-  computed on the crop of the photo that the print can cover only
+  printed since that photo, so both must have changed. A faint surface whose
+  similarity stays under ``min_similarity`` (sensor noise, blur change) is
+  flagged from ``still_similarity`` on when it did not rise: at least
+  ``still_share`` of its blocks fit that photo better in place than moved by
+  the parallax of the two layers' height
+  (:func:`~layerwatch.analysis.extrusion.still_share`; a new layer laid on
+  its twin fits the moved photo). The texture is computed on the crop of the
+  photo that the print can cover only
   (:func:`~layerwatch.analysis.extrusion.box_texture`).
 
 The bed check and the first-layer inspection run only where a bed photo
