@@ -9,7 +9,8 @@ runs caught within 2 layers, 0 false alarms.
 
 Run: ``python benchmarks/eval_checks.py [--clean 200 --objects 200 --runs 160 --first 24 --seed 1]``
 (about 15 minutes on one core; ``--clean 0 --objects 0 --first 0``: the nothing-extruded trials alone, a few
-minutes).
+minutes; ``--baseline`` judges the same nothing-extruded photos also with the parallax rule off, the check as
+it was before it).
 """
 
 from __future__ import annotations
