@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from layerwatch.analysis.check_settings import ExtrusionSettings
-from layerwatch.analysis.extrusion import box_texture, highpass, parallax_px, shifted, still_share
+from layerwatch.analysis.extrusion import (
+    box_texture,
+    highpass,
+    rise_parallax_px,
+    shifted,
+    still_share,
+)
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scene_change import to_working
 from layerwatch.evaluate.checks import _pipeline_footprints, _setup, job_checks
@@ -106,10 +112,10 @@ def test_still_share_tells_a_surface_that_stayed_from_one_that_rose():
 def test_parallax_of_two_layers_moves_the_surface_up_the_image():
     tp = window_part()
     tv, cam = _setup(tp, (1280, 720))
-    d = parallax_px(cam, (float(tv.center_mm[0]), float(tv.center_mm[1])), 5.0, 0.4)
+    d = rise_parallax_px(cam, (float(tv.center_mm[0]), float(tv.center_mm[1])), 5.0, 0.4)
     assert d[1] < -1.5 and abs(d[0]) < 0.5  # the simulator's camera looks from the front, 45 degrees down
-    np.testing.assert_allclose(parallax_px(cam, (0.0, 0.0), 5.0, 0.0), 0.0, atol=1e-9)
-    np.testing.assert_allclose(parallax_px(cam, (float(tv.center_mm[0]), float(tv.center_mm[1])), 5.0, 0.4, 0.5),
+    np.testing.assert_allclose(rise_parallax_px(cam, (0.0, 0.0), 5.0, 0.0), 0.0, atol=1e-9)
+    np.testing.assert_allclose(rise_parallax_px(cam, (float(tv.center_mm[0]), float(tv.center_mm[1])), 5.0, 0.4, 0.5),
                                d / 2, rtol=1e-9)
 
 

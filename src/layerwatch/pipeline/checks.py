@@ -49,7 +49,7 @@ from layerwatch.analysis.extrusion import (
     MIN_PARALLAX_PX,
     block_ncc,
     box_texture,
-    parallax_px,
+    rise_parallax_px,
     still_share,
 )
 from layerwatch.analysis.first_layer import inspect_first_layer
@@ -291,7 +291,7 @@ class JobChecks:
             d = self._parallax(fp, z, index, footprint)
             if d is None:
                 return
-            self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share)
+            self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
             if not self.still >= st.still_share:
                 return
             why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the blocks "
@@ -312,7 +312,7 @@ class JobChecks:
         if dz <= 0 or vv.size == 0:
             return None
         x, y = self.topview.to_mm(np.array([uu.mean(), vv.mean()], float))
-        d = parallax_px(self.camera, (float(x), float(y)), z, dz, self.size[0] / self.camera.image_size[0])
+        d = rise_parallax_px(self.camera, (float(x), float(y)), z, dz, self.size[0] / self.camera.image_size[0])
         return d if float(np.hypot(*d)) >= MIN_PARALLAX_PX else None
 
     def _layer_surface(self, fp: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],
