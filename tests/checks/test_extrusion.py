@@ -134,6 +134,7 @@ def test_a_faint_surface_that_did_not_rise_is_caught(example_gcode):
     assert 0.5 <= sim < 0.84 and off[onset + 1][1][0] == pytest.approx(sim)
     assert not any(off[i][0].failed_check for i in layers)  # the similarity alone: missed
     assert on[onset + 1][0].failed_check == NOTHING_EXTRUDED and on[onset + 1][3] >= 0.8
+    assert on[onset + 1][0].check_regions[-1].kind_confidence > 0
     assert "in place" in on[onset + 1][0].message
     assert not any(on[i][0].failed_check for i in range(11, onset + 1))
 

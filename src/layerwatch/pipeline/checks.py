@@ -283,6 +283,8 @@ class JobChecks:
         sim = float(np.median(ncc[scored]))
         self.similarity = (sim, blocks)
         why = f"texture similarity {sim:.2f} >= {st.min_similarity:.2f}"
+        t = st.min_similarity
+        confidence = float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1))
         if sim < st.min_similarity:
             # a faint surface: flagged when it did not rise (its texture fits the earlier photo in place, not
             # moved by the parallax of the two layers' height)
@@ -296,8 +298,9 @@ class JobChecks:
                 return
             why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the blocks "
                    f"fit it in place better than raised by the two layers' height")
+            confidence = float(np.clip((self.still - st.still_share) / max(1.0 - st.still_share, 1e-6), 0, 1))
         res.failed_check = NOTHING_EXTRUDED
-        region = self._footprint_region(fp, area, sim)
+        region = self._footprint_region(fp, area, sim, confidence)
         res.check_regions = [*res.check_regions, region]
         _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
                      f"({why}); clog or filament run-out?")
@@ -344,15 +347,14 @@ class JobChecks:
             cv2.circle(out, (int(u), int(v)), r, 1, -1)
         return out.astype(bool)
 
-    def _footprint_region(self, fp: np.ndarray, area: float, sim: float) -> Region:
+    def _footprint_region(self, fp: np.ndarray, area: float, sim: float, confidence: float) -> Region:
         vv, uu = np.nonzero(fp)
         (x0, y0), (x1, y1) = self.topview.to_mm(np.array([[uu.min(), vv.max()], [uu.max(), vv.min()]], float))
         cx, cy = self.topview.to_mm(np.array([uu.mean(), vv.mean()]))
-        t = self.config.extrusion.min_similarity
         return Region(area_mm2=area, bbox_mm=(float(x0), float(y0), float(x1), float(y1)),
                       centroid_mm=(float(cx), float(cy)), n_blocks=int(np.ceil(area / 4.0)),
                       mean_similarity=float(sim), min_similarity=float(sim), kind=NOTHING_EXTRUDED,
-                      kind_confidence=round(float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1)), 3))
+                      kind_confidence=round(confidence, 3))
 
 
 def print_reach_mm(toolpath: Toolpath) -> tuple[float, float, float, float] | None:
