@@ -9,7 +9,8 @@ runs caught within 2 layers, 0 false alarms.
 
 Run: ``python benchmarks/eval_checks.py [--clean 200 --objects 200 --runs 160 --first 24 --seed 1]``
 (about 15 minutes on one core; ``--clean 0 --objects 0 --first 0``: the nothing-extruded trials alone, a few
-minutes).
+minutes; ``--baseline`` judges the same nothing-extruded photos also with the parallax rule off, the check as
+it was before it).
 """
 
 from __future__ import annotations
@@ -20,7 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from layerwatch.evaluate.checks import bed_check_trials, extrusion_trials, first_layer_trials
+from layerwatch.analysis.check_settings import ExtrusionSettings
+from layerwatch.evaluate.checks import (
+    bed_check_trials,
+    extrusion_trials_compared,
+    first_layer_trials,
+)
 from layerwatch.examples import PART_GCODE
 from layerwatch.simulate.parts import window_part
 
@@ -36,6 +42,9 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=24)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clean-prints", type=int, default=2, help="clean prints (seeds) per G-code")
+    ap.add_argument("--baseline", action="store_true",
+                    help="judge the same nothing-extruded photos also with the parallax rule off "
+                         "([extrusion] still_similarity = 1: the check before it)")
     a = ap.parse_args()
     t = time.perf_counter()
     false, caught = bed_check_trials(PART_GCODE, a.clean, a.objects, a.seed)
@@ -44,14 +53,18 @@ def main() -> None:
     print(f"  ({time.perf_counter() - t:.0f} s)", flush=True)
     t = time.perf_counter()
     prints = [*(p for p in PRINTS if Path(p).is_file()), window_part()]
-    caught, false = extrusion_trials(prints, a.runs, a.seed, clean_prints=a.clean_prints)
-    print(caught.line("nothing extruded: runs caught within 2 layers"))
-    print(false.line("nothing extruded: false alarms over clean layers"))
-    for name, c in (("clean layers", false), ("second layer of a run", caught)):
-        v = np.asarray(c.values, float)
-        judged = v[np.isfinite(v)]
-        q = np.percentile(judged, [0, 5, 50, 95, 100]).round(3).tolist() if judged.size else []
-        print(f"  similarity on {name}: {judged.size}/{v.size} judged; min, 5 %, median, 95 %, max = {q}")
+    variants = {"": ExtrusionSettings(enabled=True)}
+    if a.baseline:
+        variants[" (parallax rule off)"] = ExtrusionSettings(enabled=True, still_similarity=1.0)
+    results = extrusion_trials_compared(prints, a.runs, list(variants.values()), a.seed, clean_prints=a.clean_prints)
+    for tag, (caught, false) in zip(variants, results, strict=True):
+        print(caught.line(f"nothing extruded{tag}: runs caught within 2 layers"))
+        print(false.line(f"nothing extruded{tag}: false alarms over clean layers"))
+        for name, c in (("clean layers", false), ("second layer of a run", caught)):
+            v = np.asarray(c.values, float)
+            judged = v[np.isfinite(v)]
+            q = np.percentile(judged, [0, 5, 50, 95, 100]).round(3).tolist() if judged.size else []
+            print(f"  similarity on {name}: {judged.size}/{v.size} judged; min, 5 %, median, 95 %, max = {q}")
     print(f"  ({time.perf_counter() - t:.0f} s)", flush=True)
     t = time.perf_counter()
     for case, c in first_layer_trials(PART_GCODE, a.first, a.seed).items():

@@ -106,6 +106,18 @@ class ExtrusionSettings(Section):
         printer then holds 3.3 MB for the check instead of 7.4).
     block_px : int
         Block side of the comparison, px of that image.
+    still_similarity : float
+        A layer whose similarity is at least this (and below
+        ``min_similarity``) is flagged too when at least ``still_share`` of
+        its blocks fit the photo two layers back better in place than moved
+        by the parallax of the two layers' height: the surface did not rise
+        (:func:`~layerwatch.analysis.extrusion.still_share`). Chosen on the
+        simulator (seed 1 and the window part's clean prints of seeds
+        1100-1103): clean layers reached a share of 0.72 at similarities of
+        0.26 or less, the second layer of a nothing-extruded run had 0.78 or
+        more with a share of 0.74 or more. 1: off.
+    still_share : float
+        See ``still_similarity``.
     """
 
     enabled: bool = False
@@ -114,3 +126,5 @@ class ExtrusionSettings(Section):
     margin_mm: float = Field(0.3, ge=0, le=10)
     working_px: int = Field(1280, ge=160, le=4096)
     block_px: int = Field(16, ge=2, le=64)
+    still_similarity: float = Field(0.5, ge=0, le=1)
+    still_share: float = Field(0.8, ge=0, le=1)

@@ -46,7 +46,8 @@ from layerwatch.simulate import Failure, PrintSimulator, SimSettings, default_ca
 from layerwatch.simulate.bed_scene import BED_VARIANTS, random_leftover, random_light, start_photo
 from layerwatch.simulate.raster import solid_area
 
-__all__ = ["CAUGHT_WITHIN_MM", "Counts", "bed_check_trials", "extrusion_trials", "first_layer_trials", "job_checks"]
+__all__ = ["CAUGHT_WITHIN_MM", "Counts", "bed_check_trials", "extrusion_trials", "extrusion_trials_compared",
+           "first_layer_trials", "job_checks"]
 
 #: a held bed catches the object when a region lies this close to the object's extent, mm
 CAUGHT_WITHIN_MM = 10.0
@@ -143,19 +144,26 @@ def bed_check_trials(gcode: str | Path, n_clean: int, n_objects: int, seed: int 
     return false, caught
 
 
-def _judge(checks: JobChecks, sim: PrintSimulator, layers: Sequence[int], footprint) -> dict[int, tuple[bool, float]]:
-    """Per layer of ``layers`` (photographed in order): flagged ``nothing_extruded``, and the surface similarity."""
-    out = {}
+def _judge(checks: Sequence[JobChecks], sim: PrintSimulator, layers: Sequence[int],
+           footprint) -> list[dict[int, tuple[bool, float]]]:
+    """Per checker, per layer of ``layers`` (photographed in order, each photo judged by every checker):
+    flagged ``nothing_extruded``, and the surface similarity."""
+    out: list[dict[int, tuple[bool, float]]] = [{} for _ in checks]
     for i in layers:
-        res = LayerResult(layer=i, z=float(sim.tp.layers[i].z))
-        checks.after_layer(res, sim.frame(i).photo, i, footprint)
-        out[i] = (res.failed_check == NOTHING_EXTRUDED, checks.similarity[0])
+        photo = sim.frame(i).photo
+        for c, got in zip(checks, out, strict=True):
+            res = LayerResult(layer=i, z=float(sim.tp.layers[i].z))
+            c.after_layer(res, photo, i, footprint)
+            got[i] = (res.failed_check == NOTHING_EXTRUDED, c.similarity[0])
     return out
 
 
 def extrusion_trials(gcodes: Sequence[str | Path | Toolpath], n_cases: int, seed: int = 0, clean_prints: int = 1,
                      max_layers: int = 80, size: tuple[int, int] = (1280, 720)) -> tuple[Counts, Counts]:
     """Nothing-extruded runs caught within two layers, and false alarms on clean prints (module notes).
+
+    The recommended ``[extrusion]`` settings; :func:`extrusion_trials_compared` judges the same
+    photos with several.
 
     Parameters
     ----------
@@ -176,8 +184,20 @@ def extrusion_trials(gcodes: Sequence[str | Path | Toolpath], n_cases: int, seed
         Clean layers flagged (hits) over clean layers judged, per G-code; ``values`` also holds the
         layers not judged (``nan``: surface too small, fewer than two photos before).
     """
+    return extrusion_trials_compared(gcodes, n_cases, [ExtrusionSettings(enabled=True)], seed, clean_prints,
+                                     max_layers, size)[0]
+
+
+def extrusion_trials_compared(gcodes: Sequence[str | Path | Toolpath], n_cases: int,
+                              settings: Sequence[ExtrusionSettings], seed: int = 0, clean_prints: int = 1,
+                              max_layers: int = 80, size: tuple[int, int] = (1280, 720)) -> list[tuple[Counts, Counts]]:
+    """:func:`extrusion_trials` for several ``[extrusion]`` settings on the same photos: ``(caught, false)`` for each."""
     rng = np.random.default_rng(seed)
-    caught, false = Counts(), Counts()
+    counts = [(Counts(), Counts()) for _ in settings]
+
+    def checkers(tp, cam, tv) -> list[JobChecks]:
+        return [job_checks(tp, cam, tv, extrusion=st) for st in settings]
+
     for g, path in enumerate(gcodes):
         tp = path if isinstance(path, Toolpath) else read_toolpath(Path(path).read_bytes())
         tv, cam = _setup(tp, size)
@@ -186,21 +206,23 @@ def extrusion_trials(gcodes: Sequence[str | Path | Toolpath], n_cases: int, seed
         n = min(tp.n_layers, max_layers)
         for c in range(clean_prints):
             sim = PrintSimulator(tp, cam, tv, seed=seed * 100 + c)
-            for flag, value in _judge(job_checks(tp, cam, tv), sim, range(n), fpf).values():
-                false.values.append(value)
-                if np.isfinite(value):  # a layer the check judged (its surface large enough, 2 photos before)
-                    false.add(flag, name)
+            for (_, false), judged in zip(counts, _judge(checkers(tp, cam, tv), sim, range(n), fpf), strict=True):
+                for flag, value in judged.values():
+                    false.values.append(value)
+                    if np.isfinite(value):  # a layer the check judged (its surface large enough, 2 photos before)
+                        false.add(flag, name)
         for k in range(g, n_cases, len(gcodes)):
             onset = int(rng.integers(2, n - 1))
             sim = PrintSimulator(tp, cam, tv, [Failure("nothing_extruded", onset=onset)], seed=seed * 100 + 50 + k)
-            judged = _judge(job_checks(tp, cam, tv), sim, range(max(onset - 2, 0), onset + 2), fpf)
-            for i, (flag, value) in judged.items():
-                if i < onset and np.isfinite(value):  # clean layers before the onset that were judged
-                    false.add(flag, name)
-                    false.values.append(value)
-            caught.add(any(judged[i][0] for i in (onset, onset + 1)), name)
-            caught.values.append(judged[onset + 1][1])
-    return caught, false
+            layers = range(max(onset - 2, 0), onset + 2)
+            for (caught, false), judged in zip(counts, _judge(checkers(tp, cam, tv), sim, layers, fpf), strict=True):
+                for i, (flag, value) in judged.items():
+                    if i < onset and np.isfinite(value):  # clean layers before the onset that were judged
+                        false.add(flag, name)
+                        false.values.append(value)
+                caught.add(any(judged[i][0] for i in (onset, onset + 1)), name)
+                caught.values.append(judged[onset + 1][1])
+    return counts
 
 
 def first_layer_trials(gcode: str | Path, n_each: int, seed: int = 0,

@@ -23,8 +23,14 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
   :data:`POOL_BELOW_BLOCKS` textured blocks, or less than ``min_area_mm2``: a
   ring of perimeters, thin walls) is judged together with the layer before it:
   both surfaces (not eroded: the beads' edges change with the beads) were
-  printed since that photo, so both must have changed. The texture is
-  computed on the crop of the photo that the print can cover only
+  printed since that photo, so both must have changed. A faint surface whose
+  similarity stays under ``min_similarity`` (sensor noise, blur change) is
+  flagged from ``still_similarity`` on when it did not rise: at least
+  ``still_share`` of its blocks fit that photo better in place than moved by
+  the parallax of the two layers' height
+  (:func:`~layerwatch.analysis.extrusion.still_share`; a new layer laid on
+  its twin fits the moved photo). The texture is computed on the crop of the
+  photo that the print can cover only
   (:func:`~layerwatch.analysis.extrusion.box_texture`).
 
 The bed check and the first-layer inspection run only where a bed photo
@@ -39,7 +45,13 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.bed_check import check_empty_bed, regions_image
-from layerwatch.analysis.extrusion import block_ncc, box_texture
+from layerwatch.analysis.extrusion import (
+    MIN_PARALLAX_PX,
+    block_ncc,
+    box_texture,
+    rise_parallax_px,
+    still_share,
+)
 from layerwatch.analysis.first_layer import inspect_first_layer
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
@@ -118,6 +130,9 @@ class JobChecks:
         self.similarity: tuple[float, int] = (float("nan"), 0)
         #: whether that layer was judged together with the layer before it (thin evidence, :data:`POOL_BELOW_BLOCKS`)
         self.pooled = False
+        #: that layer's share of blocks that fit the photo two layers back better in place than moved by the two
+        #: layers' parallax (nan: not measured; :func:`~layerwatch.analysis.extrusion.still_share`)
+        self.still = float("nan")
         self.new_print(bed_photo)
 
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
@@ -233,7 +248,7 @@ class JobChecks:
 
     def _extrusion(self, res: LayerResult, photo: np.ndarray, index: int, footprint: FootprintFn) -> None:
         st = self.config.extrusion
-        self.similarity, self.pooled = (float("nan"), 0), False
+        self.similarity, self.pooled, self.still = (float("nan"), 0), False, float("nan")
         maps = self.maps  # sets self.box
         texture = np.ascontiguousarray(box_texture(photo, self.size, self.box))
         earlier = [t for i, t in reversed(self._textures) if i < index][:2]
@@ -247,7 +262,8 @@ class JobChecks:
             return
         area, surface = self._layer_surface(fp, z, maps, st.margin_mm)
         # earlier[1]: the photo before the last two layers were printed
-        ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px)
+        share = 0.5
+        ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=share)
         blocks, judged = int(scored.sum()), f"layer {index}'s top surface ({area:.0f} mm^2"
         if blocks < POOL_BELOW_BLOCKS or area < st.min_area_mm2:  # thin evidence: pool it with the layer before
             if before is None or before[0] != index - 1:
@@ -258,20 +274,49 @@ class JobChecks:
             prev = np.unpackbits(before[2], count=fp.size).reshape(fp.shape).astype(bool)
             area_before, surface_before = self._layer_surface(prev, before[1], maps, margin)
             area, surface = area + area_before, surface | surface_before
-            ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=POOLED_MIN_SHARE)
+            share = POOLED_MIN_SHARE
+            ncc, scored = block_ncc(texture, earlier[1], surface, st.block_px, min_share=share)
             blocks, judged = int(scored.sum()), f"the top surfaces of layers {index - 1} and {index} ({area:.0f} mm^2"
             self.pooled = True
         if blocks < MIN_BLOCKS or area < st.min_area_mm2:  # not judged
             return
         sim = float(np.median(ncc[scored]))
         self.similarity = (sim, blocks)
+        why = f"texture similarity {sim:.2f} >= {st.min_similarity:.2f}"
+        t = st.min_similarity
+        confidence = float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1))
         if sim < st.min_similarity:
-            return
+            # a faint surface: flagged when it did not rise (its texture fits the earlier photo in place, not
+            # moved by the parallax of the two layers' height)
+            if sim < st.still_similarity:
+                return
+            d = self._parallax(fp, z, index, footprint)
+            if d is None:
+                return
+            self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
+            if not self.still >= st.still_share:
+                return
+            why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the blocks "
+                   f"fit it in place better than raised by the two layers' height")
+            confidence = float(np.clip((self.still - st.still_share) / max(1.0 - st.still_share, 1e-6), 0, 1))
         res.failed_check = NOTHING_EXTRUDED
-        region = self._footprint_region(fp, area, sim)
+        region = self._footprint_region(fp, area, sim, confidence)
         res.check_regions = [*res.check_regions, region]
         _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
-                     f"(texture similarity {sim:.2f} >= {st.min_similarity:.2f}); clog or filament run-out?")
+                     f"({why}); clog or filament run-out?")
+
+    def _parallax(self, fp: np.ndarray, z: float, index: int, footprint: FootprintFn) -> np.ndarray | None:
+        """Image displacement (working px) of layer ``index``'s surface raised from layer ``index - 2``'s top to ``z``.
+
+        ``None`` when the layers do not rise or the camera sees too little parallax (:data:`MIN_PARALLAX_PX`).
+        """
+        dz = z - float(footprint(index - 2)[2])
+        vv, uu = np.nonzero(fp)
+        if dz <= 0 or vv.size == 0:
+            return None
+        x, y = self.topview.to_mm(np.array([uu.mean(), vv.mean()], float))
+        d = rise_parallax_px(self.camera, (float(x), float(y)), z, dz, self.size[0] / self.camera.image_size[0])
+        return d if float(np.hypot(*d)) >= MIN_PARALLAX_PX else None
 
     def _layer_surface(self, fp: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],
                        margin_mm: float) -> tuple[float, np.ndarray]:
@@ -302,15 +347,14 @@ class JobChecks:
             cv2.circle(out, (int(u), int(v)), r, 1, -1)
         return out.astype(bool)
 
-    def _footprint_region(self, fp: np.ndarray, area: float, sim: float) -> Region:
+    def _footprint_region(self, fp: np.ndarray, area: float, sim: float, confidence: float) -> Region:
         vv, uu = np.nonzero(fp)
         (x0, y0), (x1, y1) = self.topview.to_mm(np.array([[uu.min(), vv.max()], [uu.max(), vv.min()]], float))
         cx, cy = self.topview.to_mm(np.array([uu.mean(), vv.mean()]))
-        t = self.config.extrusion.min_similarity
         return Region(area_mm2=area, bbox_mm=(float(x0), float(y0), float(x1), float(y1)),
                       centroid_mm=(float(cx), float(cy)), n_blocks=int(np.ceil(area / 4.0)),
                       mean_similarity=float(sim), min_similarity=float(sim), kind=NOTHING_EXTRUDED,
-                      kind_confidence=round(float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1)), 3))
+                      kind_confidence=round(confidence, 3))
 
 
 def print_reach_mm(toolpath: Toolpath) -> tuple[float, float, float, float] | None:
