@@ -1,10 +1,12 @@
 """Object cancel from detected regions (issue 21): failures on objects of the labelled multi-object shared plates,
 simulated photos judged by the recommended pipeline; the executor never cancels another object."""
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
 from layerwatch.evaluate.object_cancel import (
     CancelCase,
     find_plates,
@@ -19,7 +21,9 @@ from layerwatch.gcode.reader import read_toolpath
 from layerwatch.simulate import Failure
 from layerwatch.simulate.plate import plate_gcode
 
-GCODE = SHARED_DATA / "gcode"
+#: ../shared/data/gcode as tests/conftest.py finds it (``from conftest import`` reads whichever conftest
+#: module a run imported first: under xdist, tests/simulate's)
+GCODE = Path(os.environ.get("LAYERWATCH_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data")) / "gcode"
 
 
 def _plates(names):

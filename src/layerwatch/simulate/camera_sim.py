@@ -207,16 +207,16 @@ class PrintSimulator:
             if rf.type == "detachment" and rf.failure.within_mm is not None:
                 fx = fx | ~fl.in_box(p0, p1, rf.failure.within_mm)
         part = ~fx
-        before = self.h.copy()
+        # a plate's other objects (within_mm) print over air as the part does (one that starts on a higher
+        # layer): the gaps are those of the whole plate's height map, as in the clean print, else the photos
+        # differ from the clean print's before the onset
+        both = self.has_fixed or bool(fx.any())
+        before = np.maximum(self.h, self.hf) if both else self.h.copy()
         stamp_capsules(self.h, self.mat, self.h, rows[part], mats[part], *self.gp)
-        self._record_gaps(before, self.h, lay.z - lh, lh)
         if fx.any():
             self.has_fixed = True
-            before = self.hf.copy()
             stamp_capsules(self.hf, self.matf, self.hf, rows[fx], mats[fx], *self.gp)
-            # a plate's other objects (within_mm) print over air as the part does (one that starts on a
-            # higher layer): the same gaps, else their photos differ from the clean print's before the onset
-            self._record_gaps(before, self.hf, lay.z - lh, lh)
+        self._record_gaps(before, np.maximum(self.h, self.hf) if both else self.h, lay.z - lh, lh)
 
     def _record_gaps(self, before: np.ndarray, after: np.ndarray, base: float, lh: float) -> None:
         """Cells where the new layer (bottom ``base`` mm) was printed over more than 2.5 layers of air.
