@@ -290,14 +290,20 @@ class JobChecks:
             # moved by the parallax of the two layers' height)
             if sim < st.still_similarity:
                 return
-            d = self._parallax(fp, z, index, footprint)
+            d = self._parallax(fp, z, index, footprint, 2)
             if d is None:
                 return
             self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
             if not self.still >= st.still_share:
                 return
+            # not even one layer's rise: a camera one layer late shows exactly one (the frame it slips on
+            # repeats the previous picture, which is one layer above the photo two layers back)
+            one = self._parallax(fp, z, index, footprint, 1)
+            if one is None or not still_share(texture, earlier[1], surface, st.block_px, one, scored, share,
+                                              in_place=ncc) >= st.still_share:
+                return
             why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the blocks "
-                   f"fit it in place better than raised by the two layers' height")
+                   f"fit it in place better than raised by one or two layers' height")
             confidence = float(np.clip((self.still - st.still_share) / max(1.0 - st.still_share, 1e-6), 0, 1))
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim, confidence)
@@ -305,12 +311,13 @@ class JobChecks:
         _append(res, f"nothing extruded: {judged}, {blocks} blocks) looks like the photo two layers back "
                      f"({why}); clog or filament run-out?")
 
-    def _parallax(self, fp: np.ndarray, z: float, index: int, footprint: FootprintFn) -> np.ndarray | None:
-        """Image displacement (working px) of layer ``index``'s surface raised from layer ``index - 2``'s top to ``z``.
+    def _parallax(self, fp: np.ndarray, z: float, index: int, footprint: FootprintFn,
+                  layers: int) -> np.ndarray | None:
+        """Image displacement (working px) of layer ``index``'s surface raised from layer ``index - layers``'s top to ``z``.
 
         ``None`` when the layers do not rise or the camera sees too little parallax (:data:`MIN_PARALLAX_PX`).
         """
-        dz = z - float(footprint(index - 2)[2])
+        dz = z - float(footprint(index - layers)[2])
         vv, uu = np.nonzero(fp)
         if dz <= 0 or vv.size == 0:
             return None
