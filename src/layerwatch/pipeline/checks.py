@@ -27,9 +27,10 @@ check at once (:class:`~layerwatch.pipeline.policy.PausePolicy`, rule 5).
   similarity stays under ``min_similarity`` (sensor noise, blur change) is
   flagged from ``still_similarity`` on when it did not rise: at least
   ``still_share`` of its blocks fit that photo better in place than moved by
-  the parallax of the two layers' height
+  the parallax of the two layers' height, and of one layer's
   (:func:`~layerwatch.analysis.extrusion.still_share`; a new layer laid on
-  its twin fits the moved photo). The texture is computed on the crop of the
+  its twin fits the moved photo, and a camera one layer late shows one
+  layer's rise on the frame it slips on: a camera fault, never a pause). The texture is computed on the crop of the
   photo that the print can cover only
   (:func:`~layerwatch.analysis.extrusion.box_texture`).
 
