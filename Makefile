@@ -18,13 +18,12 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/layerwatch demo --out $(OUT)
 
-# Tests run on 2 pytest-xdist workers: CI's machine has 2 cores, and `-n auto` counts physical cores
-# (1 on a 2-vCPU runner with SMT). `--dist loadgroup` keeps each xdist_group on one worker: every test
-# that starts a real server (OctoPrint, Moonraker/Klippy, mosquitto, chromium, the farm) is in group
-# "servers", so those never run beside each other; a test marked `exclusive` runs with the other worker
-# waiting (tests/xdist_groups.py). Serially: `make test PYTEST_WORKERS=0`.
-PYTEST_WORKERS ?= 2
-XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
+# Tests run in one process by default: on pytest-xdist workers (`make test PYTEST_WORKERS=2`, `--dist
+# loadgroup`; every real-server test is in xdist_group "servers") the suite takes ~10 instead of ~16 min,
+# but test_jobs_real's OctoPrint park-spot test timed out in 3 of 4 fresh-clone CI runs under xdist
+# (not reproduced in one process; see README), so CI stays serial until that is understood.
+PYTEST_WORKERS ?= 0
+XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadgroup)
 
 test: $(STAMP)
 	$(PY) -m pytest $(XDIST) --durations=20
