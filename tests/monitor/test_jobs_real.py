@@ -50,9 +50,10 @@ pytestmark = pytest.mark.xdist_group("servers")
 
 @pytest.fixture(scope="module")
 def octoprint(tmp_path_factory):
-    """A real OctoPrint (virtual printer) of this module's own. The session's server of test_octoprint_real is
-    left by its tests with a cancelled job's state (the head mid-part, X111 Y109 Z0.3): when those ran first
-    (pytest-xdist's order), the park-spot test read positions of that state and timed out."""
+    """A real OctoPrint (virtual printer) of this module's own, not the session's of test_octoprint_real (whose
+    tests leave it with a cancelled job). Under pytest-xdist the park-spot test still read the head mid-part
+    (X111 Y109 Z0.3) at a layer's trigger and timed out with this server too: not understood yet; the suite
+    runs in one process by default (Makefile, README)."""
     if not OCTO.exists():
         pytest.skip(f"OctoPrint not installed at {VENV}; run .ci/install-octoprint")
     with octoprint_server(tmp_path_factory.mktemp("octoprint_jobs")) as served:
