@@ -231,3 +231,26 @@ def test_a_job_without_a_configured_top_view_is_observed_where_its_part_is():
         assert mon.pipeline.topview.center_mm == tv.center_mm
     finally:
         mon.close()
+
+
+def test_m114_position_reads_only_the_reply_that_follows_its_own_request():
+    """OctoPrint's log push can carry an older position line (its own M114 on a cancel, an earlier job's)
+    before ours went out: that line rejected a parked frame (test_jobs_real's park-spot test, now and then)."""
+    import threading
+
+    from layerwatch.monitor.parked import M114Position
+
+    class _Octo:
+        def __init__(self):
+            self.listeners, self.sent = [], []
+
+        def send_gcode(self, line):
+            self.sent.append(line)
+            push = lambda logs: [f({"current": {"logs": logs}}) for f in self.listeners]  # noqa: E731
+            threading.Timer(0.05, push, [["Recv: X:111.20 Y:108.71 Z:0.30 E:0.00 Count X:1 Y:1 Z:1"]]).start()
+            threading.Timer(0.10, push, [["Send: M114"]]).start()
+            threading.Timer(0.15, push, [["Recv: X:200.00 Y:200.00 Z:5.90 E:0.00 Count X:1 Y:1 Z:1"]]).start()
+
+    octo = _Octo()
+    position = M114Position(octo, timeout_s=2.0)
+    assert position() == (200.0, 200.0, 5.9) and octo.sent == ["M114"]

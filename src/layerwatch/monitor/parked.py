@@ -206,6 +206,7 @@ class M114Position:
         self._lock = threading.Lock()
         self._reply = threading.Event()
         self._waiting = False
+        self._sent = False  # our M114 was seen going out (its ``Send:`` line)
         self._value: Position | None = None
         printer.listeners.append(self._on_message)
 
@@ -214,7 +215,14 @@ class M114Position:
         if not self._waiting or not isinstance(body, dict) or not isinstance(body.get("logs"), list):
             return
         for line in body["logs"]:
-            m = _M114.search(line) if isinstance(line, str) and line.startswith("Recv:") else None
+            if not isinstance(line, str):
+                continue
+            if line.startswith("Send:") and "M114" in line:  # our request went out: the reply follows it
+                self._sent = True
+                continue
+            # a position line before our M114 is an older reply (OctoPrint's own M114 on a cancel or pause,
+            # an earlier job's): it was read as this frame's and rejected a parked frame
+            m = _M114.search(line) if self._sent and line.startswith("Recv:") else None
             if m is not None:
                 with self._lock:
                     if self._waiting:
@@ -233,7 +241,7 @@ class M114Position:
         """
         with self._lock:
             self._reply.clear()
-            self._value, self._waiting = None, True
+            self._value, self._waiting, self._sent = None, True, False
         self.printer.send_gcode("M114")
         if not self._reply.wait(self.timeout_s):
             with self._lock:
