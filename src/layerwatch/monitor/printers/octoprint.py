@@ -57,19 +57,22 @@ _STATES = {"printing": "printing", "paused": "paused", "pausing": "pausing", "re
 
 
 def parse_octoprint_message(msg: Any, source: str = "octoprint") -> list:
-    """Snapshot triggers in one decoded websocket message (``current``/``history`` logs).
+    """Snapshot triggers in one decoded websocket message (its ``current`` logs only).
 
-    Anything that is not an object with ``logs`` lists of strings is ignored.
+    OctoPrint opens every websocket connection with a ``history`` message: the last few hundred
+    serial lines, earlier jobs' triggers among them. Those moments have passed (the head has
+    moved on), so they are never triggers: a replayed ``layer=2`` of the previous job was
+    photographed as this job's layer 2 before it started, and the real one was then dropped as
+    a repeat. Anything that is not an object with ``logs`` lists of strings is ignored.
     """
+    body = msg.get("current") if isinstance(msg, dict) else None
+    logs = body.get("logs") if isinstance(body, dict) else None
     out = []
-    for key in ("current", "history"):
-        body = msg.get(key) if isinstance(msg, dict) else None
-        logs = body.get("logs") if isinstance(body, dict) else None
-        for line in logs if isinstance(logs, list) else []:
-            if isinstance(line, str) and line.startswith("Recv:"):
-                trig = parse_line(line[5:], source=source)
-                if trig is not None:
-                    out.append(trig)
+    for line in logs if isinstance(logs, list) else []:
+        if isinstance(line, str) and line.startswith("Recv:"):
+            trig = parse_line(line[5:], source=source)
+            if trig is not None:
+                out.append(trig)
     return out
 
 
