@@ -176,16 +176,34 @@ class LayerwatchPlugin(
         self._push()
 
     def _end_job(self, outcome: str) -> None:
+        """The print ended: release any hold, then finish the analyses still queued before saying ``outcome``.
+
+        Until they are done the status reads ``finishing`` (the last layer's photo is taken while the
+        printer holds; its analysis may end after the print does), so ``done`` means every photo taken
+        has been judged.
+        """
         with self._lock:
             watch, hold = self._watch, self._hold
             self._watch = None
             if watch is not None and self._state["status"] != "error":
-                self._state["status"] = outcome
+                self._state["status"] = "finishing"
         if hold is not None:
             hold.end()
         if watch is not None:
-            self._worker.submit(watch.close)
+            self._worker.submit(self._finish, watch, outcome)
             self._push()
+
+    def _finish(self, watch: JobWatch, outcome: str) -> None:
+        """On the worker: wait for ``watch``'s queued analyses, then show the job's outcome."""
+        try:
+            watch.close()
+        finally:
+            with self._lock:
+                current = self._watch is None and self._state["status"] == "finishing"
+                if current:
+                    self._state["status"] = outcome
+            if current:
+                self._push()
 
     def _set_state(self, state: dict[str, Any]) -> None:
         with self._lock:
