@@ -356,6 +356,14 @@ class LayerPipeline:
         _, top, valid = self._top_views(photo, z)
         return top, valid
 
+    def keep_top_view(self, photo: np.ndarray, z: float, box: tuple[slice, slice]) -> bool:
+        """Keep what :meth:`top_view` of ``box`` on the plane ``z`` needs for a later photo of the same size, when
+        this photo's warp onto that plane is still cached (:meth:`TopViewWarper.keep_box
+        <layerwatch.geometry.warp.TopViewWarper.keep_box>`: the same pixels, without building the table again).
+        """
+        h, w = np.asarray(photo).shape[:2]
+        return self.warper.keep_box(z, box, (w, h))
+
     def _top_views(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`top_view` with the colour top view first (as warped, for the failure typing's colour evidence)."""
         top, valid = self.warper.warp(photo, z)
