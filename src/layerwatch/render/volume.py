@@ -188,7 +188,8 @@ def clear_map(hmax: np.ndarray, skip_px: int, reach_px: int) -> np.ndarray:
     grow = max(int(reach_px) - int(skip_px), 0)
     bare = (hmax <= 0.0).view(np.uint8)
     if grow:  # a square of half-side reach: the skip squares grown by the rest (erosion of the bare pixels)
-        bare = cv2.erode(bare, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+        bare = np.asarray(cv2.erode(bare, kernel, borderType=cv2.BORDER_REPLICATE), np.uint8)
     r = int(reach_px)
     out = np.zeros_like(bare)
     H, W = bare.shape
