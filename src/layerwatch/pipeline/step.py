@@ -427,9 +427,10 @@ class LayerPipeline:
             t_type = time.perf_counter()
             self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
-            self.checks.after_layer(res, photo, index, self.footprint)
-            if self.layer_change is not None:  # after the typing (its regions come typed) and the checks' texture
-                self.layer_change.judge(res, photo, index, self.footprint)
+            with self.checks.frame():  # the checks' plane maps built once for both
+                self.checks.after_layer(res, photo, index, self.footprint)
+                if self.layer_change is not None:  # after the typing (its regions come typed) and the checks' texture
+                    self.layer_change.judge(res, photo, index, self.footprint)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
