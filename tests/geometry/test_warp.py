@@ -182,4 +182,13 @@ def test_a_kept_box_warps_the_next_photo_as_a_fresh_table_does():
     for b, z in ((box, 2.4), ((slice(40, 500), slice(5, 390)), 2.4), (box, 2.6)):
         got, want = warper.warp(second, z, b), fresh.warp(second, z, b)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
-    assert warper._kept is not None and warper._kept[2][0].shape[:2] == (474, 385)  # the crop only
+    assert warper._kept is not None and warper._kept[2].shape[:2] == (238, 194)  # the half-resolution crop only
+    # every box on every edge of the top view, from a kept crop: the fresh table's pixels
+    H, W = tv.shape
+    for b in ((slice(0, 7), slice(0, 9)), (slice(H - 5, H), slice(W - 6, W)), (slice(1, H - 1), slice(2, 3)),
+              (slice(0, H), slice(0, W)), (slice(100, 101), slice(333, 334))):
+        warper.warp(first, 2.8)
+        assert warper.keep_box(2.8, b, (640, 360))
+        warper.clear()
+        got, want = warper.warp(second, 2.8, b), fresh.warp(second, 2.8, b)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
