@@ -131,3 +131,17 @@ def test_rates_on_a_small_sample():
     fl = first_layer_trials(PART_GCODE, 2, seed=7, size=SIZE)
     assert fl["nothing_extruded"].hits == 2 and fl["missing_lines"].hits >= 1
     assert np.isfinite(fl["clean"].rate)
+
+
+def test_plane_maps_are_built_once_per_frame_and_not_held_after(part):
+    """Within ``JobChecks.frame()`` the nothing-extruded check and the layer-change channel read the same plane
+    maps (built once, the same values as outside a frame); nothing is held after it."""
+    tp, tv, cam = part
+    checks = job_checks(tp, cam, tv)
+    outside = checks.maps
+    assert checks._maps is not None and checks._maps[0] is None  # A is rebuilt per call (rays that go down)
+    with checks.frame():
+        first, again = checks.maps, checks.maps
+        assert first[0] is again[0]
+        assert all(np.array_equal(a, b) for a, b in zip(first, outside, strict=True))
+    assert checks._frame_maps is None and checks.maps[0] is not first[0]

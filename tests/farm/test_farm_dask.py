@@ -70,3 +70,27 @@ def test_dask_cluster_gives_the_records_of_local_threads():
     assert [g[1] for g in got] == [e[1] for e in expected]  # the same overlay thumbnails
     assert any(e[0]["anomaly_ratio"] > 0.02 for e in expected)  # the failure is in the compared records
     assert np.isfinite([e[0]["anomaly_ratio"] for e in expected]).all()
+
+
+def test_local_cluster_workers_keep_the_dynamic_mmap_threshold(monkeypatch):
+    """Dask's nanny would start the workers with MALLOC_TRIM_THRESHOLD_=65536 (a fixed mmap threshold: every
+    large temporary of a frame faulted in anew, 2.3x the CPU per frame); the farm's LocalCluster workers run
+    without it, and the service's own environment is as before."""
+    import os
+
+    from layerwatch.farm.pool import TRIM_VARIABLE
+
+    monkeypatch.setenv(TRIM_VARIABLE, "12345")  # the service's own setting, put back after the start
+    pool = WorkerPool(1, scheduler="local")
+    try:
+        seen = pool.client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+        assert list(seen.values()) == [None]
+        assert os.environ[TRIM_VARIABLE] == "12345"
+    finally:
+        pool.close()
+    # Dask's default, as a plain LocalCluster gets it (what the pool undoes)
+    monkeypatch.delenv(TRIM_VARIABLE)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        assert list(client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_")).values()) == ["65536"]
+    os.environ.pop(TRIM_VARIABLE, None)  # Dask's nanny wrote it into this process's environment

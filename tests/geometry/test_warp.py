@@ -160,3 +160,35 @@ def test_a_box_of_the_warp_is_the_whole_warp_cropped_pixel_for_pixel():
     assert np.array_equal(cached.warp(photo, 2.4, box)[0], whole[0][box])  # from the cached table
     with pytest.raises(WarpError, match="without a step"):
         TopViewWarper(cam, tv).warp(photo, 2.4, (slice(0, 10, 2), slice(0, 10)))
+
+
+def test_a_kept_box_warps_the_next_photo_as_a_fresh_table_does():
+    """keep_box: the box of a plane's tables survives clear() and gives the next photo's box warp pixel for
+    pixel; nothing is kept for a plane that is not cached, and another box or plane builds its own table."""
+    from layerwatch.simulate import default_camera
+
+    cam = default_camera(TopView(4.0, 100, 80, (0, 0)), image_size=(640, 360))
+    tv = TopView(2.0, 400, 300, (0, 0))
+    rng = np.random.default_rng(5)
+    first, second = (rng.integers(0, 256, (360, 640, 3), dtype=np.uint8) for _ in range(2))
+    box = (slice(37, 511), slice(5, 390))
+    warper = TopViewWarper(cam, tv, cache_size=1)
+    assert not warper.keep_box(2.4, box, (640, 360))  # not warped on that plane yet
+    warper.warp(first, 2.4)
+    assert warper.keep_box(2.4, box, (640, 360))
+    warper.clear(lookups=True)
+    warper.warp(first, 2.6)  # the next layer's analysis
+    fresh = TopViewWarper(cam, tv)
+    for b, z in ((box, 2.4), ((slice(40, 500), slice(5, 390)), 2.4), (box, 2.6)):
+        got, want = warper.warp(second, z, b), fresh.warp(second, z, b)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert warper._kept is not None and warper._kept[2].shape[:2] == (238, 194)  # the half-resolution crop only
+    # every box on every edge of the top view, from a kept crop: the fresh table's pixels
+    H, W = tv.shape
+    for b in ((slice(0, 7), slice(0, 9)), (slice(H - 5, H), slice(W - 6, W)), (slice(1, H - 1), slice(2, 3)),
+              (slice(0, H), slice(0, W)), (slice(100, 101), slice(333, 334))):
+        warper.warp(first, 2.8)
+        assert warper.keep_box(2.8, b, (640, 360))
+        warper.clear()
+        got, want = warper.warp(second, 2.8, b), fresh.warp(second, 2.8, b)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

@@ -170,3 +170,21 @@ def test_a_frame_reduced_by_the_caller_is_judged_as_the_frame_itself():
     assert given.figures == own.figures and given.reasons == own.reasons and "change" in own.figures
     with pytest.raises(ValueError, match="compact_previous"):
         assess_frame(frame, prev, small=prev[:, :-1])
+
+
+def test_change_from_figures_are_the_copying_statistics_bit_for_bit():
+    """change_from partitions its temporaries in place: the figures equal NumPy's median/percentile on copies."""
+    import cv2
+
+    from layerwatch.analysis.frame_quality import change_from
+
+    rng = np.random.default_rng(11)
+    for k in range(6):
+        prev = rng.integers(0, 256, (90 + k, 160)).astype(np.float32)
+        small = np.clip(prev * (0.9 + 0.05 * k) + rng.normal(0, 2 + k, prev.shape), 0, 255).astype(np.float32)
+        a, b = np.polyfit(prev.ravel()[::7], small.ravel()[::7], 1)
+        resid = cv2.blur(small - (a * prev + b), (5, 5))
+        dev = np.abs(resid - float(np.median(resid)))
+        spread = float(np.median(dev) / 0.6745)
+        want = (float(max(np.percentile(dev, 99.9) - 3.0 * spread, 0.0)), spread)
+        assert change_from(small, prev) == want

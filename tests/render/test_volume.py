@@ -178,3 +178,27 @@ def test_pipeline_reference_and_disk_cache_follow_the_setting(tmp_path):
         images.setdefault(ref, []).append(LayerPipeline(tp, cam, cfg, cache_dir=tmp_path).reference(tp.n_layers - 1).image)
     assert np.array_equal(images["volume"][0], images["volume"][1])
     assert np.count_nonzero(np.abs(images["volume"][0].astype(int) - images["height"][0]) > 40) > 200
+
+
+
+@pytest.mark.parametrize("cam", [CAM, np.array([60.0, -200.0, 90.0])])
+def test_final_approach_over_bare_bed_is_the_full_march_bit_for_bit(cam, monkeypatch):
+    """The bare-bed shortcut (``clear_map``) changes no value: the march with it switched off (an all-zero
+    clear map) gives the same image and hit heights, float for float, on windows, bridges and a camera far
+    off the square."""
+    from layerwatch.render import volume
+
+    on = volume.clear_map
+    for tp in (blocks_part(WINDOW_WALL), blocks_part(BRIDGE)):
+        for index in (2, tp.n_layers // 2, tp.n_layers - 1):
+            r = StackRenderer(tp, TV, RenderSettings(reference="volume"))
+            lit = r.render(index, None).light
+            z = tp.layers[index].z
+            bed = np.full(TV.shape, 0.12, np.float32)
+            assert on(volume.skip_map(r.height), 8, volume.approach_reach_px(8, 0.75)).any()  # it is taken
+            fast_out = view_through_volume(r.height, lit, r.volume, bed, cam, TV, z)
+            monkeypatch.setattr(volume, "clear_map", lambda hmax, *a: np.zeros(hmax.shape, np.uint8))
+            full_out = view_through_volume(r.height, lit, r.volume, bed, cam, TV, z)
+            monkeypatch.setattr(volume, "clear_map", on)
+            for a, b in zip(fast_out, full_out, strict=True):
+                np.testing.assert_array_equal(a, b)

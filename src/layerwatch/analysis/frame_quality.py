@@ -245,9 +245,11 @@ def change_from(small: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
         return float("inf"), float("inf")
     a, b = np.polyfit(previous.ravel()[::7], small.ravel()[::7], 1)
     resid = cv2.blur(small - (a * previous + b), (5, 5))
-    dev = np.abs(resid - float(np.median(resid)))
-    spread = float(np.median(dev) / 0.6745)
-    return float(max(np.percentile(dev, 99.9) - 3.0 * spread, 0.0)), spread
+    # order statistics do not depend on the order of the values: the temporaries are partitioned in place
+    # (no copy per statistic; the values, and so the figures, are the same bit for bit)
+    dev = np.abs(resid - float(np.median(resid, overwrite_input=True)))
+    spread = float(np.median(dev, overwrite_input=True) / 0.6745)
+    return float(max(np.percentile(dev, 99.9, overwrite_input=True) - 3.0 * spread, 0.0)), spread
 
 
 def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:

@@ -109,13 +109,15 @@ class PoolPipeline:
     def top_view(self, photo: np.ndarray, z: float,
                  box: tuple[slice, slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`LayerPipeline.top_view` here (the monitor's lag check: the photo on the previous layer's plane)."""
-        top, valid = self.local.top_view(photo, z, box)
-        self.local.warper.clear()  # the distortion lookup stays until the layer is recorded (:meth:`layer_done`)
-        return top, valid
+        return self.local.top_view(photo, z, box)  # tables and lookup are dropped when the layer is recorded
+
+    def keep_top_view(self, photo: np.ndarray, z: float, box: tuple[slice, slice]) -> bool:
+        """:meth:`LayerPipeline.keep_top_view` here (on local threads the analysis warped the photo here)."""
+        return self.local.keep_top_view(photo, z, box)
 
     def layer_done(self) -> None:
-        """The layer is recorded: drop its top view, reference and the warper's distortion lookup (built again
-        in ~3 ms; a printer holds nothing between layers)."""
+        """The layer is recorded: drop its top view, reference, the warper's remap tables and distortion lookup
+        (built again in ~3 ms; a printer holds nothing between layers but the small box the lag check keeps)."""
         self.last_top = self._reference = None
         self.local.forget_references()
         self.local.warper.clear(lookups=True)

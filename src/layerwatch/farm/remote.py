@@ -145,16 +145,19 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_referenc
     with_reference : bool
         Return the reference of an analysed layer too (:attr:`Verdict.reference`).
     keep_lookup : bool
-        Keep the warper's distortion lookup: the caller warps this photo again (the monitor's lag
-        check on local threads) and drops it when the layer is recorded.
+        Keep the warper's distortion lookup and this plane's remap tables: the caller warps this photo
+        again (the monitor's lag check on local threads) and drops them when the layer is recorded.
     """
     res = pipe.process(photo, layer)
     top = pipe.last_top if res.status == "ok" else None
     thumb = _thumbnail(pipe, top, res) if top is not None and res.heatmap is not None else None
     pipe.last_top = pipe.last_valid = None  # the verdict carries the top view; a farm keeps hundreds of pipelines
     # the next layer has another height: its remap tables would only be held, never used; the distortion
-    # lookup (2.2 MB at 1080p) is rebuilt in ~3 ms per layer rather than held by each of hundreds of printers
-    pipe.warper.clear(lookups=not keep_lookup)
+    # lookup (2.2 MB at 1080p) is rebuilt in ~3 ms per layer rather than held by each of hundreds of printers.
+    # With keep_lookup the caller (the monitor's lag check, here) uses both for this photo and drops them when
+    # the layer is recorded (PoolPipeline.layer_done).
+    if not keep_lookup:
+        pipe.warper.clear(lookups=True)
     ref = pipe.reference(res.layer) if with_reference and top is not None else None  # memoised: no second render
     return Verdict(res, top, thumb, ref)
 

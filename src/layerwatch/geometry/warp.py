@@ -96,6 +96,9 @@ class TopViewWarper:
         self._lookups: dict[tuple[int, int], tuple[CameraModel, np.ndarray, np.ndarray]] = {}
         self._maps: OrderedDict = OrderedDict()
         self._invalid: dict = {}
+        self._grids: dict = {}  # the half-resolution grids of the cached tables (:meth:`keep_box`)
+        #: one box of one plane kept past :meth:`clear` (:meth:`keep_box`): ``(key, box, coarse crop, its origin)``
+        self._kept: tuple[tuple, tuple, np.ndarray, tuple[int, int]] | None = None
 
     # ------------------------------------------------------------ lookups
     def _lookup(self, size: tuple[int, int]) -> tuple[CameraModel, np.ndarray, np.ndarray]:
@@ -138,18 +141,21 @@ class TopViewWarper:
         if hit is not None:
             self._maps.move_to_end(key)
             return hit
-        src, valid = self._table(z, size)
+        coarse = self._coarse(z, size)
+        src, valid = self._finish(coarse, z, size)
         map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)  # type: ignore[call-overload]  # stub rejects map2=None, which OpenCV accepts
         self._invalid[key] = None if valid.all() else np.flatnonzero(~valid)
+        self._grids[key] = coarse  # (for keep_box; dropped with the tables)
         out = (map1, map2, valid)
         self._maps[key] = out
         while len(self._maps) > self.cache_size:
-            self._invalid.pop(self._maps.popitem(last=False)[0], None)
+            old = self._maps.popitem(last=False)[0]
+            self._invalid.pop(old, None)
+            self._grids.pop(old, None)
         return out
 
-    def _table(self, z: float, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        """Source pixel of every top-view pixel of plane ``z`` (float32 (H, W, 2), far off where not seen) and ``valid``."""
-        w, h = size
+    def _coarse(self, z: float, size: tuple[int, int]) -> np.ndarray:
+        """The table of plane ``z`` on the half-resolution grid (float32 (ch, cw, 2)), before :meth:`_finish`."""
         cam, S, lut = self._lookup(size)
         H_ti = top_from_image(cam, self.topview, z)
         hh, ww = self.topview.shape
@@ -158,16 +164,72 @@ class TopViewWarper:
         # both the homography and the distortion are smooth at this scale.
         D = np.array([[0.5, 0, 0.75], [0, 0.5, 0.75], [0, 0, 1.0]])
         ch, cw = (hh + 4) // 2 + 1, (ww + 4) // 2 + 1
-        coarse = cv2.warpPerspective(lut, D @ H_ti @ np.linalg.inv(S), (cw, ch), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=(_FAR, _FAR, 0, 0))
-        src = cv2.resize(coarse, (2 * cw, 2 * ch), interpolation=cv2.INTER_LINEAR)[2 : 2 + hh, 2 : 2 + ww]
+        return np.asarray(cv2.warpPerspective(lut, D @ H_ti @ np.linalg.inv(S), (cw, ch), flags=cv2.INTER_LINEAR,
+                                              borderMode=cv2.BORDER_CONSTANT, borderValue=(_FAR, _FAR, 0, 0)))
+
+    def _finish(self, coarse: np.ndarray, z: float, size: tuple[int, int],
+                box: tuple[slice, slice] | None = None, at: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
+        """The top-view table (float32 (H, W, 2), far off where not seen) and ``valid`` from the coarse grid.
+
+        ``box`` (top-view rows and columns, bounds given): only those pixels, from ``coarse`` = the coarse
+        grid's rows and columns from ``at`` on, covering the box and one coarse pixel around it
+        (:meth:`keep_box`); upsampling by 2 reads the same two coarse pixels with the same weights as on
+        the whole grid, so the values are the whole table's, bit for bit.
+        """
+        w, h = size
+        hh, ww = self.topview.shape
+        (r0, r1), (c0, c1) = ((0, hh), (0, ww)) if box is None else ((box[0].start, box[0].stop),
+                                                                         (box[1].start, box[1].stop))
+        ch, cw = coarse.shape[:2]
+        up = cv2.resize(coarse, (2 * cw, 2 * ch), interpolation=cv2.INTER_LINEAR)
+        oy, ox = 2 - 2 * at[0], 2 - 2 * at[1]  # top px v is row v + 2 of the whole upsampled grid
+        src = up[r0 + oy:r1 + oy, c0 + ox:c1 + ox]
         valid = cv2.inRange(src, (0.0, 0.0), (w - 1.0, h - 1.0)) > 0
+        cam = self._lookups[size][0] if size in self._lookups else self.camera.scaled_to(size)
         depth_ok = self._in_front(cam, z)
         if depth_ok is not None:
+            depth_ok = depth_ok[r0:r1, c0:c1]
             src = src.copy()
             valid &= depth_ok
             src[~depth_ok] = _FAR
         return src, valid
+
+    def _table(self, z: float, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Source pixel of every top-view pixel of plane ``z`` (float32 (H, W, 2), far off where not seen) and ``valid``."""
+        return self._finish(self._coarse(z, size), z, size)
+
+    def keep_box(self, z: float, box: tuple[slice, slice], image_size: tuple[int, int] | None = None) -> bool:
+        """Keep what a later :meth:`warp` of the rows and columns ``box`` on the plane ``z`` needs (a check that
+        warps the next photo on this plane), also past :meth:`clear`.
+
+        Only one box is kept (the last one asked for): the crop of the plane's half-resolution grid that
+        covers it (about 2 bytes per pixel of the box); the box's table is finished from it, bit for bit
+        the whole table's (:meth:`_finish`), without building the plane's grid again.
+
+        Returns
+        -------
+        bool
+            Plane ``z``'s tables (at ``image_size``, the photo's ``(width, height)``) were cached and the box
+            is kept; False when they were not (nothing kept; the box's warp builds its table).
+        """
+        w, h = (int(v) for v in (image_size or self.camera.image_size))
+        key = self._key(z, (w, h))
+        coarse = self._grids.get(key)
+        hh, ww = self.topview.shape
+        if coarse is None or any(sl.step not in (None, 1) for sl in box):
+            return False
+        (v0, v1), (u0, u1) = ((sl.start or 0, n if sl.stop is None else sl.stop) for sl, n in zip(box, (hh, ww),
+                                                                                                   strict=True))
+        if not (0 <= v0 < v1 <= hh and 0 <= u0 < u1 <= ww):
+            return False
+        # top px v is row v + 2 of the upsampled grid, which reads coarse rows (v + 1) // 2 and the next:
+        # coarse rows (v0 + 1) // 2 to (v1 + 2) // 2 inclusive cover the box (clipped to the grid)
+        ch, cw = coarse.shape[:2]
+        a0, a1 = (v0 + 1) // 2, min((v1 + 2) // 2 + 1, ch)
+        b0, b1 = (u0 + 1) // 2, min((u1 + 2) // 2 + 1, cw)
+        crop = np.ascontiguousarray(coarse[a0:a1, b0:b1]).copy()
+        self._kept = (key, _box_key((slice(v0, v1), slice(u0, u1))), crop, (a0, b0))
+        return True
 
     def clear(self, lookups: bool = False) -> None:
         """Drop the cached per-``z`` remap tables (about 2.4 MB each at 600 x 600 px).
@@ -179,6 +241,7 @@ class TopViewWarper:
         """
         self._maps.clear()
         self._invalid.clear()
+        self._grids.clear()
         if lookups:
             self._lookups.clear()
 
@@ -241,13 +304,18 @@ class TopViewWarper:
         if any(sl.step not in (None, 1) for sl in box):
             raise WarpError(f"box {box} must be two slices without a step.")
         h, w = photo.shape[:2]
-        hit = self._maps.get(self._key(z, (w, h)))
+        key = self._key(z, (w, h))
+        hit = self._maps.get(key)
+        kept = self._kept
         if hit is not None:  # the whole table is cached anyway
             map1, map2, valid = (m[box] for m in hit)
         else:
-            src, valid = self._table(z, (w, h))
-            src, valid = np.ascontiguousarray(src[box]), valid[box]
-            map1, map2 = cv2.convertMaps(src, None, cv2.CV_16SC2)  # type: ignore[call-overload]  # as in maps()
+            if kept is not None and kept[0] == key and kept[1] == _box_key(box):  # kept by keep_box
+                src, valid = self._finish(kept[2], z, (w, h), box, kept[3])
+            else:
+                src, valid = self._table(z, (w, h))
+                src, valid = src[box], valid[box]
+            map1, map2 = cv2.convertMaps(np.ascontiguousarray(src), None, cv2.CV_16SC2)  # type: ignore[call-overload]  # as in maps()
         top = cv2.remap(photo, np.ascontiguousarray(map1), np.ascontiguousarray(map2), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         top[~valid] = 0  # as the whole warp blanks what the camera did not see
@@ -256,6 +324,11 @@ class TopViewWarper:
     @staticmethod
     def _key(z, size):
         return (tuple(int(v) for v in size), round(float(z), 4))
+
+
+def _box_key(box: tuple[slice, slice]) -> tuple:
+    """A hashable, comparable form of a box of two slices."""
+    return tuple((sl.start, sl.stop) for sl in box)
 
 
 def occlusion_hint(camera: CameraModel, topview: TopView, z: float,

@@ -439,6 +439,9 @@ class LateStream:
         own = pipeline.reference(res.layer) if counts else None
         verdict = previous_layer_explains(pipeline, photo, res, policy, own=own) if counts else None
         self.remember(pipeline, res.layer, _top_of(pipeline, photo, res), own)
+        seen, keep = self._seen, getattr(pipeline, "keep_top_view", None)
+        if keep is not None and seen is not None and seen.layer == res.layer:  # the next frame's progress box
+            keep(photo, seen.z, seen.box)
         lagged = verdict is not None and verdict.lagged
         why = self.excuse(verdict, progress, res) if verdict is not None and lagged else None
         if lagged and why is None and not excuse:

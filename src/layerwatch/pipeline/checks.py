@@ -40,7 +40,8 @@ exists; each is switched by its section's ``enabled``.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
@@ -123,6 +124,8 @@ class JobChecks:
         self.size = working_size(camera.image_size, config.extrusion.working_px)
         self._reach = (reach_mm, top_z_mm)
         self._maps: tuple[np.ndarray | None, np.ndarray] | None = None
+        self._frame_maps: tuple[np.ndarray, np.ndarray] | None = None  # :meth:`frame`'s rebuilt ``A``, ``B``
+        self._in_frame = False
         #: rows and columns of the working image the check keeps (:meth:`_crop_box`)
         self.box: tuple[slice, slice] = (slice(0, self.size[1]), slice(0, self.size[0]))
         #: RGB picture of the last failed check (``None`` when none failed)
@@ -161,10 +164,25 @@ class JobChecks:
         stored, b = self._maps
         if stored is not None:
             return stored, b
+        if self._frame_maps is not None:
+            return self._frame_maps
         C = np.asarray(self.camera.center_mm, np.float64)
         T = self.topview.top_from_bed
         c = np.array([T[0, 0] * C[0] + T[0, 2], T[1, 1] * C[1] + T[1, 2]]).reshape(2, 1, 1)
-        return (c - C[2] * b.astype(np.float64)).astype(np.float32), b
+        out = (c - C[2] * b.astype(np.float64)).astype(np.float32), b
+        if self._in_frame:  # the nothing-extruded check and the layer-change channel read it in the same frame
+            self._frame_maps = out
+        return out
+
+    @contextmanager
+    def frame(self) -> Iterator[None]:
+        """Within it, :attr:`maps` builds ``A`` once (the checks and the layer-change channel of one photo
+        share it, ~1 ms each); it is dropped at the end (a printer holds nothing more between layers)."""
+        self._in_frame = True
+        try:
+            yield
+        finally:
+            self._in_frame, self._frame_maps = False, None
 
     def _crop_box(self, A: np.ndarray, B: np.ndarray) -> tuple[slice, slice]:
         """The block-aligned box of working-image pixels whose ray meets the print's prism.

@@ -356,6 +356,14 @@ class LayerPipeline:
         _, top, valid = self._top_views(photo, z)
         return top, valid
 
+    def keep_top_view(self, photo: np.ndarray, z: float, box: tuple[slice, slice]) -> bool:
+        """Keep what :meth:`top_view` of ``box`` on the plane ``z`` needs for a later photo of the same size, when
+        this photo's warp onto that plane is still cached (:meth:`TopViewWarper.keep_box
+        <layerwatch.geometry.warp.TopViewWarper.keep_box>`: the same pixels, without building the table again).
+        """
+        h, w = np.asarray(photo).shape[:2]
+        return self.warper.keep_box(z, box, (w, h))
+
     def _top_views(self, photo: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`top_view` with the colour top view first (as warped, for the failure typing's colour evidence)."""
         top, valid = self.warper.warp(photo, z)
@@ -419,9 +427,10 @@ class LayerPipeline:
             t_type = time.perf_counter()
             self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
-            self.checks.after_layer(res, photo, index, self.footprint)
-            if self.layer_change is not None:  # after the typing (its regions come typed) and the checks' texture
-                self.layer_change.judge(res, photo, index, self.footprint)
+            with self.checks.frame():  # the checks' plane maps built once for both
+                self.checks.after_layer(res, photo, index, self.footprint)
+                if self.layer_change is not None:  # after the typing (its regions come typed) and the checks' texture
+                    self.layer_change.judge(res, photo, index, self.footprint)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input

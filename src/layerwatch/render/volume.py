@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 from numba import njit
 
@@ -168,13 +169,55 @@ def _facing(bits, tops, xi, yi, z, du, dv, L):
     return max((gx * du + gy * dv) / (g * L), 0.0)
 
 
+def clear_map(hmax: np.ndarray, skip_px: int, reach_px: int) -> np.ndarray:
+    """Pixels with nothing printed within ``reach_px`` (Chebyshev) and at least ``reach_px`` inside the square.
+
+    Parameters
+    ----------
+    hmax : ndarray, shape (H, W), float32
+        The height map dilated over squares of half-side ``skip_px`` (:func:`skip_map`).
+    skip_px, reach_px : int
+        Half-side of ``hmax``'s squares and the reach wanted (>= ``skip_px``), px.
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint8
+        1 where every height-map pixel within ``reach_px`` is 0 (the bed) and the square's border is
+        farther than ``reach_px``, else 0.
+    """
+    grow = max(int(reach_px) - int(skip_px), 0)
+    bare = (hmax <= 0.0).view(np.uint8)
+    if grow:  # a square of half-side reach: the skip squares grown by the rest (erosion of the bare pixels)
+        kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+        bare = np.asarray(cv2.erode(bare, kernel, borderType=cv2.BORDER_REPLICATE), np.uint8)
+    r = int(reach_px)
+    out = np.zeros_like(bare)
+    H, W = bare.shape
+    if H > 2 * r and W > 2 * r:
+        out[r:H - r, r:W - r] = bare[r:H - r, r:W - r]
+    return out
+
+
+def approach_reach_px(skip_px: float, step_px: float) -> int:
+    """How far (px) a ray can still move sideways once a skip would take it below the bed, with margin.
+
+    The skip covers ``skip_px / step_px`` steps; a ray that cannot skip is at most that many steps (and one
+    more) above the bed, each ``step_px`` sideways, and its rounded pixel moves one more.
+    """
+    return int(math.ceil((math.ceil(skip_px / step_px) + 2) * step_px)) + 1
+
+
 @njit(cache=True)
 def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z, step_px, max_steps, look,
-                  out, hit_z):
+                  out, hit_z, clear):
     """Follow the camera ray through every top-view pixel into the occupancy volume.
 
     ``look`` = ``(wall_value, wall_ambient, line_contrast, layer_h, hidden_value, depth_scale,
-    depth_dark)``; the rest as in :func:`~layerwatch.render.camera_view._march`.
+    depth_dark)``; ``clear`` (uint8 (H, W), :func:`clear_map` with :func:`approach_reach_px`): a ray
+    that can no longer skip (the skip would pass the bed) and stands on a clear pixel meets nothing
+    but the bed before it: its last steps are taken without looking (the same steps, the same
+    sample: the result is identical, bit for bit); the rest as in
+    :func:`~layerwatch.render.camera_view._march`.
     """
     H, W = height.shape
     wall_value, wall_ambient, line_contrast, layer_h = look[0], look[1], look[2], look[3]
@@ -200,6 +243,11 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z,
                 if k > 0 and hmax[yi, xi] < zz - jump * dz and zz - jump * dz > 0.0:
                     x, y, zz, k = x + dx * jump, y + dy * jump, zz - dz * jump, k + int(jump)
                     continue
+                if clear[yi, xi] != 0 and zz - jump * dz <= 0.0:  # bare bed all the way down (docstring)
+                    while k < max_steps and zz > 0.0:
+                        x, y, zz, k = x + dx, y + dy, zz - dz, k + 1
+                    val = bilinear(shaded, x, y)
+                    break
                 h = height[yi, xi]
                 if h >= zz and _solid(bits, tops, xi, yi, zz) != 0:  # (below the bed: the first slot)
                     hz = zz
@@ -283,6 +331,8 @@ def view_through_volume(
     hit = np.empty_like(h)
     shading = np.array([look.wall_value, look.wall_ambient, look.wall_line_contrast, look.layer_height_mm,
                         hidden_value, depth_scale_mm, depth_darkening], np.float64)
-    _march_volume(h, skip_map(h, SKIP_PX), float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits,
-                  volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit)
+    hmax = skip_map(h, SKIP_PX)
+    clear = clear_map(hmax, SKIP_PX, approach_reach_px(SKIP_PX, look.step_px))
+    _march_volume(h, hmax, float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits,
+                  volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit, clear)
     return out, hit
