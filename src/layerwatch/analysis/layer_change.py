@@ -24,17 +24,31 @@ around every footprint pixel (:func:`window_change`; a wall 0.45-1 mm wide is
   ``block_px`` (off the new layer's projection: bed, earlier surfaces, which
   did not change; :func:`pair_noise`); a pixel is judged only when the
   texture in its window stands above it (``>= (1 + min_snr) n`` in both
-  photos).
+  photos) and at least :data:`OWN_SHARE` of that texture's energy lies on the
+  footprint grown by :data:`OWN_GROW_PX` (on its edge a window can see mostly
+  the unchanged surface beside it).
 * **against the printed twin**: a perimeter laid on its twin, or sparse infill
   repeating the line below, looks alike too, but one layer higher: the camera
   sees it shifted by the parallax of the height printed since the previous
   photo (:func:`parallax_px`). The window's NCC with the previous texture at
   the same pixels (``same``) is set against its NCC with the previous texture
-  shifted by that parallax (``twin``). A pixel is judged only where the shift
-  changes the previous texture (``1 - NCC(prev, shifted prev) >=
-  min_parallax_change``: a bead running along the parallax direction looks
-  the same shifted, so there the test cannot tell a gap from a twin), and it
-  is *unchanged* when ``same >= min_ncc`` and ``same - twin >= min_gain``.
+  shifted by that parallax (``twin``; the better of the full parallax and
+  ``1 - twin_tolerance`` of it: a bead's width and place vary by a tenth of a
+  millimetre from layer to layer, which moves its edge against the rise). A
+  pixel is judged only where the shift changes the previous texture
+  (``1 - NCC(prev, shifted prev) >= min_parallax_change``: a bead running
+  along the parallax direction looks the same shifted, so there the test
+  cannot tell a gap from a twin), and it is *unchanged* when ``same >=
+  min_ncc`` and ``same - twin >= min_gain``.
+* **not the front edge of a wider surface** (:func:`drop_edge_slivers`): the
+  edge of a printed surface that faces the camera is the silhouette of its
+  outer bead, and a bead a tenth of a millimetre wider than the one below
+  moves that silhouette toward the camera by about the rise's parallax: the
+  edge looks unchanged although the layer was printed. An unchanged area that
+  lies (80 %) within ``2 window_px`` of such an edge, with the footprint going
+  on behind it for ``4 window_px``, is dropped. (A missing outer bead of a
+  wide surface looks the same at its onset and is not found; a thin wall has
+  no surface behind its edge and is kept.)
 
 Connected unchanged areas are carried to the top view of the layer's plane
 (the pipeline's own warp maps), kept on the footprint, and those of at least
@@ -68,13 +82,19 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
-__all__ = ["LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "pair_noise", "parallax_px", "printed_kind",
-           "unchanged_regions", "window_change"]
+__all__ = ["EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "drop_edge_slivers", "pair_noise",
+           "parallax_px", "printed_kind", "unchanged_regions", "window_change"]
 
 #: quiet blocks need this much texture variance (grey levels^2) in both photos to calibrate the noise on
 QUIET_MIN_VAR = 1.0
 #: fewest quiet blocks to calibrate on; fewer: the pair is not judged
 MIN_QUIET_BLOCKS = 20
+#: share of a window's texture energy that must lie on the footprint for the pixel to be judged (:func:`window_change`)
+OWN_SHARE = 0.5
+#: the footprint grown by this (working px) for :data:`OWN_SHARE` (its edges and their blur are its own texture)
+OWN_GROW_PX = 2
+#: share of an unchanged area within the camera-facing edge band of a wider surface that drops it (:func:`drop_edge_slivers`)
+EDGE_SHARE = 0.8
 #: segment features that are walls / infill (the kind of an unchanged region, :func:`printed_kind`)
 _WALLS = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -99,6 +119,9 @@ class LayerChangeSettings(Section):
     min_gain : float
         How much that correlation must exceed the correlation with the previous
         texture shifted by the layer's parallax (a twin printed on top).
+    twin_tolerance : float
+        The twin is also tried shifted by ``1 - twin_tolerance`` of the parallax (an edge
+        bead a little wider or displaced toward the camera); the better NCC counts.
     min_parallax_change : float
         ``1 - NCC`` of the previous texture with itself shifted by the parallax that a
         pixel's window needs to be judged (below it the twin test cannot decide).
@@ -112,9 +135,10 @@ class LayerChangeSettings(Section):
 
     enabled: bool = False
     min_area_mm2: float = Field(0.5, ge=0, le=2500)
-    min_ncc: float = Field(0.85, ge=0, le=1)
-    min_gain: float = Field(0.2, ge=0, le=2)
-    min_parallax_change: float = Field(0.3, ge=0, le=2)
+    min_ncc: float = Field(0.8, ge=0, le=1)
+    min_gain: float = Field(0.1, ge=0, le=2)
+    twin_tolerance: float = Field(0.3, ge=0, lt=1)
+    min_parallax_change: float = Field(0.2, ge=0, le=2)
     min_snr: float = Field(1.0, ge=0, le=100)
     window_px: float = Field(3.0, ge=0.5, le=16)
     block_px: int = Field(8, ge=2, le=64)
@@ -282,12 +306,71 @@ def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nd
     s_same = g(x * y) / np.sqrt(xx * yy + tiny)
     s_twin = g(x * ys) / np.sqrt(xx * ss + tiny)
     moved = 1.0 - g(y * ys) / np.sqrt(yy * ss + tiny)
+    if settings.twin_tolerance > 0:  # an edge bead that grew toward the camera: the rise seen short
+        k = 1.0 - settings.twin_tolerance
+        yk = np.ascontiguousarray(_shifted(np.ascontiguousarray(b[outer], np.float32), (k * parallax[0], k * parallax[1]))[inner])
+        s_twin = np.maximum(s_twin, g(x * yk) / np.sqrt(xx * g(yk * yk) + tiny))
+    # the window's texture must be the footprint's own: on the footprint's edge a window that mostly sees
+    # the unchanged surface beside it (a lower floor, the bed) would look unchanged although the layer was printed
+    grow = 2 * OWN_GROW_PX + 1  # the footprint's own edges lie on its border, and the camera's blur spreads them
+    m = cv2.dilate(surface[box].astype(np.uint8), np.ones((grow, grow), np.uint8)).astype(np.float32)
+    own = np.minimum(g(m * x * x) / (xx + tiny), g(m * y * y) / (yy + tiny))
     ok = (surface[box] & (np.minimum(xx, yy) >= (1.0 + settings.min_snr) * noise)
-          & (moved >= settings.min_parallax_change))
+          & (moved >= settings.min_parallax_change) & (own >= OWN_SHARE))
     judged[box] = ok
-    unchanged[box] = ok & (s_same >= settings.min_ncc) & (s_same - s_twin >= settings.min_gain)
+    found = ok & (s_same >= settings.min_ncc) & (s_same - s_twin >= settings.min_gain)
+    band = int(round(2 * sig))
+    unchanged[box] = drop_edge_slivers(found, surface[box], parallax, band, 2 * band)
     same[box], twin[box] = np.where(ok, s_same, 0), np.where(ok, s_twin, 0)
     return WindowChange(same, twin, judged, unchanged, noise)
+
+
+def _line_kernel(direction: tuple[float, float], steps: range) -> tuple[np.ndarray, tuple[int, int]]:
+    """A structuring element with ones at ``round(k * direction)`` for ``k`` in ``steps`` (anchor: the centre)."""
+    r = max(abs(steps.start), abs(steps.stop)) + 1
+    kern = np.zeros((2 * r + 1, 2 * r + 1), np.uint8)
+    for k in steps:
+        kern[r + int(round(k * direction[1])), r + int(round(k * direction[0]))] = 1
+    return kern, (r, r)
+
+
+def drop_edge_slivers(unchanged: np.ndarray, surface: np.ndarray, parallax: tuple[float, float],
+                      band_px: int, depth_px: int) -> np.ndarray:
+    """``unchanged`` without its areas that lie along the camera-facing edge of a wider surface (module notes).
+
+    An 8-connected unchanged area is dropped when at least :data:`EDGE_SHARE` of
+    its pixels lie within ``band_px`` of the footprint's edge in the parallax
+    direction (toward the camera: a lower point is seen there) while the
+    footprint goes on for ``depth_px`` the other way.
+
+    Parameters
+    ----------
+    unchanged, surface : ndarray, bool, shape (h, w)
+    parallax : (float, float)
+        Image shift of a lower surface, px (:func:`parallax_px`); zero: nothing dropped.
+    band_px, depth_px : int
+
+    Returns
+    -------
+    ndarray, bool, shape (h, w)
+    """
+    norm = float(np.hypot(*parallax))
+    if norm < 1e-6 or not unchanged.any() or band_px < 1:
+        return unchanged
+    u = (parallax[0] / norm, parallax[1] / norm)
+    sm = surface.astype(np.uint8)
+    k_front, a_front = _line_kernel(u, range(1, band_px + 1))
+    k_back, a_back = _line_kernel(u, range(-depth_px, 0))
+    # erode: min over the kernel's offsets, so 1 where the footprint holds at every step (outside the image: not)
+    front_held = cv2.erode(sm, k_front, anchor=a_front, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    back_held = cv2.erode(sm, k_back, anchor=a_back, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    sliver = ~front_held & back_held
+    n, lab = cv2.connectedComponents(unchanged.astype(np.uint8), connectivity=8)
+    total = np.bincount(lab.ravel(), minlength=n)
+    edge = np.bincount(lab[sliver & unchanged].ravel(), minlength=n)
+    drop = edge >= EDGE_SHARE * np.maximum(total, 1)
+    drop[0] = False
+    return unchanged & ~drop[lab]
 
 
 def blocks_on_top(blocks: np.ndarray, block_px: int, origin: tuple[int, int], scale: tuple[float, float],
