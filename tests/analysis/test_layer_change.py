@@ -12,6 +12,7 @@ from layerwatch.analysis.layer_change import (
     LayerChangeSettings,
     add_unchanged,
     blocks_on_top,
+    clipped_box,
     drop_edge_slivers,
     parallax_px,
     window_change,
@@ -229,3 +230,36 @@ def test_an_unchanged_band_along_the_front_edge_of_a_wide_surface_is_dropped_a_t
     flipped = drop_edge_slivers(unchanged, surface, (0.0, -1.5), 6, 12)  # camera on the other side: the back edge
     assert flipped[193:200, 60:120].all()
     assert drop_edge_slivers(unchanged, surface, (0.0, 0.0), 6, 12).sum() == unchanged.sum()
+
+
+def test_a_glare_spot_that_stays_in_place_is_not_taken_for_an_unchanged_surface():
+    # a fixed lamp's highlight on a glossy top surface: clipped in both photos at the same place while the
+    # layer under it was printed; its border is static texture, which without the clipped mask looks unchanged
+    rng = np.random.default_rng(100)
+    before = _scene(0)
+    after = before.copy()
+    after[SURFACE] = _scene(1)[SURFACE]
+    yy, xx = np.mgrid[0:H, 0:W]
+    blob = ((yy - 130) ** 2 / 400 + (xx - 170) ** 2 / 900) < 1
+    before[blob] = after[blob] = 255.0
+    p0, p1 = _photo(before, rng), _photo(after, rng)
+    b, a = highpass(p0), highpass(p1)
+    surface, near = _masks()
+    st = LayerChangeSettings(enabled=True)
+    whole = (slice(0, H), slice(0, W))
+    clipped = clipped_box(p0, (W, H), whole) | clipped_box(p1, (W, H), whole)
+    assert clipped[130, 170] and not clipped[200, 60] and clipped.shape == (H, W)
+    blind = window_change(a, b, surface, near, SHIFT, st)
+    assert blind is not None and blind.unchanged.sum() > 100, "the glare's border looks unchanged"
+    ch = window_change(a, b, surface, near, SHIFT, st, clipped)
+    assert ch is not None and not ch.unchanged[_inner(1)].any() and ch.judged.sum() > 4000
+
+
+def test_clipped_pixels_are_found_in_a_larger_colour_frame():
+    photo = np.full((480, 640, 3), 120, np.uint8)
+    photo[100:110, 200:220] = 255  # white glare: every channel clipped
+    photo[300:310, 200:220, 2] = 255  # a saturated red filament: one channel clipped, the others carry texture
+    out = clipped_box(photo, (320, 240), (slice(40, 160), slice(90, 130)))  # working px = 2 x 2 photo px
+    assert out.shape == (120, 40)
+    assert out[50 - 40, 100 - 90] and out.sum() == 5 * 10, "the glare, at half the photo's scale"
+    assert not out[150 - 40].any(), "a clipped colour channel is not glare"

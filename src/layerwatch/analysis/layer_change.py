@@ -26,7 +26,9 @@ around every footprint pixel (:func:`window_change`; a wall 0.45-1 mm wide is
   texture in its window stands above it (``>= (1 + min_snr) n`` in both
   photos) and at least :data:`OWN_SHARE` of that texture's energy lies on the
   footprint grown by :data:`OWN_GROW_PX` (on its edge a window can see mostly
-  the unchanged surface beside it).
+  the unchanged surface beside it), and it reaches no clipped pixel of either
+  photo (a glare spot of a fixed lamp stays in place from layer to layer,
+  and its border is the light's, not the surface's).
 * **against the printed twin**: a perimeter laid on its twin, or sparse infill
   repeating the line below, looks alike too, but one layer higher: the camera
   sees it shifted by the parallax of the height printed since the previous
@@ -82,7 +84,7 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
-__all__ = ["EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "drop_edge_slivers", "pair_noise",
+__all__ = ["CLIP_LEVEL", "EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "clipped_box", "drop_edge_slivers", "pair_noise",
            "parallax_px", "printed_kind", "unchanged_regions", "window_change"]
 
 #: quiet blocks need this much texture variance (grey levels^2) in both photos to calibrate the noise on
@@ -91,6 +93,8 @@ QUIET_MIN_VAR = 1.0
 MIN_QUIET_BLOCKS = 20
 #: share of a window's texture energy that must lie on the footprint for the pixel to be judged (:func:`window_change`)
 OWN_SHARE = 0.5
+#: a photo pixel at this level or above in every channel is clipped: a glare spot (:func:`clipped_box`)
+CLIP_LEVEL = 250
 #: the footprint grown by this (working px) for :data:`OWN_SHARE` (its edges and their blur are its own texture)
 OWN_GROW_PX = 2
 #: share of an unchanged area within the camera-facing edge band of a wider surface that drops it (:func:`drop_edge_slivers`)
@@ -255,8 +259,42 @@ def pair_noise(a: np.ndarray, b: np.ndarray, near: np.ndarray, block_px: int) ->
     return 0.5 * float(np.median((va + vb - 2 * cov)[calm]))
 
 
+def clipped_box(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
+    """Working-image pixels of ``box`` that touch a clipped photo pixel (every channel >= :data:`CLIP_LEVEL`).
+
+    A glare spot is white (a specular reflection has the lamp's colour); a saturated colour
+    clips one channel while the others still carry the texture, so it does not count.
+
+    Parameters
+    ----------
+    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
+        Frame as captured.
+    size : (int, int)
+        Working ``(width, height)`` px.
+    box : (slice, slice)
+        Rows and columns of the working image (bounds within it).
+
+    Returns
+    -------
+    ndarray, bool, shape (rows, cols)
+    """
+    arr = np.asarray(photo)
+    h, w = arr.shape[:2]
+    W, H = size
+    (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
+    y0, y1 = int(np.floor(r0 * h / H)), int(np.ceil(r1 * h / H))
+    x0, x1 = int(np.floor(c0 * w / W)), int(np.ceil(c1 * w / W))
+    crop = arr[y0:y1, x0:x1]
+    hot = (crop.min(axis=2) if crop.ndim == 3 else crop) >= CLIP_LEVEL
+    if not hot.any():
+        return np.zeros((r1 - r0, c1 - c0), bool)
+    # the fraction of each working pixel's source area that is clipped (area resize), any share counts
+    return cv2.resize(hot.astype(np.float32), (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) > 0
+
+
 def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.ndarray,
-                  parallax: tuple[float, float], settings: LayerChangeSettings) -> WindowChange | None:
+                  parallax: tuple[float, float], settings: LayerChangeSettings,
+                  clipped: np.ndarray | None = None) -> WindowChange | None:
     """Which pixels of the new layer's projected footprint look as in the previous photo (module notes).
 
     Computed on the footprint's bounding box (grown by the window's reach) only.
@@ -273,6 +311,10 @@ def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nd
     parallax : (float, float)
         :func:`parallax_px` of the height printed since the previous photo.
     settings : LayerChangeSettings
+    clipped : ndarray, bool, shape (h, w), optional
+        Pixels clipped in either photo (:func:`clipped_box`): a glare spot has no texture, and its
+        border is the light's, which a fixed lamp keeps in place from layer to layer; pixels whose
+        window reaches one (``2 window_px``) are not judged.
 
     Returns
     -------
@@ -317,6 +359,9 @@ def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nd
     own = np.minimum(g(m * x * x) / (xx + tiny), g(m * y * y) / (yy + tiny))
     ok = (surface[box] & (np.minimum(xx, yy) >= (1.0 + settings.min_snr) * noise)
           & (moved >= settings.min_parallax_change) & (own >= OWN_SHARE))
+    if clipped is not None and clipped[box].any():
+        reach = 2 * int(np.ceil(2 * sig)) + 1
+        ok &= cv2.dilate(clipped[box].astype(np.uint8), np.ones((reach, reach), np.uint8)) == 0
     judged[box] = ok
     found = ok & (s_same >= settings.min_ncc) & (s_same - s_twin >= settings.min_gain)
     band = int(round(2 * sig))

@@ -36,6 +36,7 @@ from layerwatch.analysis.layer_change import (
     LayerChangeSettings,
     add_unchanged,
     blocks_on_top,
+    clipped_box,
     parallax_px,
     unchanged_regions,
     window_change,
@@ -81,8 +82,8 @@ class LayerChange:
 
     def new_print(self) -> None:
         """Forget the previous photo (a new print, or the single-photo mode's reset)."""
-        #: ``(layer, z top mm, texture)`` of the last analysed photo
-        self._previous: tuple[int, float, np.ndarray] | None = None
+        #: ``(layer, z top mm, texture, clipped pixels)`` of the last analysed photo (working box)
+        self._previous: tuple[int, float, np.ndarray, np.ndarray] | None = None
         #: image shift per mm of height printed, working px (:func:`parallax_px`; the camera's, computed once)
         self._shift_per_mm: tuple[float, float] | None = None
 
@@ -96,20 +97,21 @@ class LayerChange:
         if texture is None:
             texture = np.ascontiguousarray(box_texture(photo, self.checks.size, self.checks.box))
         fp, _, z = footprint(index)
-        previous, self._previous = self._previous, (index, z, texture)
+        clipped = clipped_box(photo, self.checks.size, self.checks.box)
+        previous, self._previous = self._previous, (index, z, texture, clipped)
         stats = LayerChangeStats(previous_layer=-1 if previous is None else previous[0])
         res.layer_change = stats
         try:
             if previous is None or previous[0] >= index:
                 stats.note = "no earlier photo of this print to compare with"
                 return
-            self._compare(res, stats, texture, previous, fp, z, index, maps, photo)
+            self._compare(res, stats, texture, clipped, previous, fp, z, index, maps, photo)
         finally:
             # the time goes with the step's other timings, not into the record (records compare equal across runs)
             res.timings_ms["layer_change"] = round((time.perf_counter() - t0) * 1e3, 3)
 
-    def _compare(self, res: LayerResult, stats: LayerChangeStats, texture: np.ndarray,
-                 previous: tuple[int, float, np.ndarray], fp: np.ndarray, z: float, index: int,
+    def _compare(self, res: LayerResult, stats: LayerChangeStats, texture: np.ndarray, clipped: np.ndarray,
+                 previous: tuple[int, float, np.ndarray, np.ndarray], fp: np.ndarray, z: float, index: int,
                  maps: tuple[np.ndarray, np.ndarray], photo: np.ndarray) -> None:
         st = self.settings
         z_before = previous[1]
@@ -119,7 +121,8 @@ class LayerChange:
             self._shift_per_mm = parallax_px(maps, z, 1.0)
         shift = (self._shift_per_mm[0] * (z - z_before), self._shift_per_mm[1] * (z - z_before))
         stats.parallax_px = round(float(np.hypot(*shift)), 3)
-        change = window_change(texture, previous[2], surface, near, shift, st)
+        glare = previous[3] | clipped if previous[3].shape == clipped.shape else clipped
+        change = window_change(texture, previous[2], surface, near, shift, st, glare)
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
