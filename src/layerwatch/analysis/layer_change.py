@@ -284,12 +284,13 @@ def clipped_box(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slic
     (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
     y0, y1 = int(np.floor(r0 * h / H)), int(np.ceil(r1 * h / H))
     x0, x1 = int(np.floor(c0 * w / W)), int(np.ceil(c1 * w / W))
-    crop = arr[y0:y1, x0:x1]
-    hot = (crop.min(axis=2) if crop.ndim == 3 else crop) >= CLIP_LEVEL
-    if not hot.any():
+    crop = np.ascontiguousarray(arr[y0:y1, x0:x1])
+    lo = (CLIP_LEVEL,) * (crop.shape[2] if crop.ndim == 3 else 1)
+    hot = cv2.inRange(crop, lo, (255,) * len(lo))  # 255 where every channel is clipped (one pass)
+    if cv2.countNonZero(hot) == 0:
         return np.zeros((r1 - r0, c1 - c0), bool)
-    # the fraction of each working pixel's source area that is clipped (area resize), any share counts
-    return cv2.resize(hot.astype(np.float32), (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) > 0
+    # the share of each working pixel's source area that is clipped (area resize): any share counts
+    return cv2.resize(hot, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) > 0
 
 
 def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.ndarray,
