@@ -95,3 +95,52 @@ def test_gradients_exactly_on_bin_edges_match_skimage(dtype, bins):
     img = img.astype(dtype)
     ours = hog_blocks(img, cell_px=8, bins=bins)
     np.testing.assert_allclose(ours, _sk(img, bins=bins), rtol=0, atol=1e-6)
+
+
+def _edge(angle_deg: float, size: int = 64) -> np.ndarray:
+    """A straight dark-to-bright edge through the centre, at ``angle_deg`` from the image's columns, blurred."""
+    r, c = np.mgrid[0:size, 0:size].astype(np.float64) - size / 2 + 0.5
+    t = np.deg2rad(angle_deg)
+    d = c * np.cos(t) + r * np.sin(t)  # signed distance along the gradient direction
+    return (60.0 + 140.0 / (1.0 + np.exp(-d / 0.8))).astype(np.float32)
+
+
+def _cos(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_soft_bins_keep_an_edge_along_the_columns_when_it_tilts_by_a_fraction_of_a_degree():
+    # one bin per vote: the straight edge's gradient (0 degrees) votes into the first bin, the
+    # same edge turned by -0.5 degrees (179.5) into the last: the two blocks share nothing
+    straight, tilted = _edge(0.0), _edge(-0.5)
+    hard = [hog_blocks(im, 8, 2, 9)[3:5, 3:5] for im in (straight, tilted)]
+    soft = [hog_blocks(im, 8, 2, 9, soft=True)[3:5, 3:5] for im in (straight, tilted)]
+    assert _cos(*hard) < 0.3
+    assert _cos(*soft) > 0.95
+    # an edge along the rows (gradient at 90 degrees, mid-bin) was never at risk
+    assert _cos(*[hog_blocks(_edge(a), 8, 2, 9)[3:5, 3:5] for a in (90.0, 89.5)]) > 0.95
+
+
+def test_soft_bins_split_each_vote_between_the_two_nearest_centres():
+    from layerwatch.analysis.hog import hog_cell_histograms
+
+    for angle, expect in ((10.0, {0: 1.0}), (20.0, {0: 0.5, 1: 0.5}), (0.0, {0: 0.5, 8: 0.5}),
+                          (175.0, {8: 0.75, 0: 0.25}), (95.0, {4: 0.75, 5: 0.25})):
+        img = _edge(angle, 96)
+        h = hog_cell_histograms(img, 8, 9, soft=True)[5:7, 5:7].sum(axis=(0, 1))
+        hard = hog_cell_histograms(img, 8, 9)[5:7, 5:7].sum(axis=(0, 1))
+        assert h.sum() == pytest.approx(hard.sum(), rel=1e-5)  # the magnitude is split, not changed
+        share = h / h.sum()
+        for b, v in expect.items():
+            assert share[b] == pytest.approx(v, abs=0.06), (angle, b, share)
+        assert sum(share[b] for b in expect) == pytest.approx(1.0, abs=0.06)
+
+
+def test_soft_bins_colour_and_uint8_agree_with_grey_float():
+    img = _edge(33.0)
+    grey = hog_blocks(img, 8, 2, 9, soft=True)
+    colour = hog_blocks(np.repeat(img[..., None], 3, axis=2), 8, 2, 9, soft=True)
+    assert np.allclose(colour, grey, atol=1e-9)
+    rounded = np.round(img)
+    assert np.array_equal(hog_blocks(rounded.astype(np.uint8), 8, 2, 9, soft=True),
+                          hog_blocks(rounded.astype(np.float32), 8, 2, 9, soft=True))
