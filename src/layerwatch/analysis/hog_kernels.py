@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["hist_from_image", "hist_from_u8", "hist_from_gradients", "hist_soft_from_image", "hist_soft_from_gradients",
-           "normalize_kernel"]
+           "normalize_kernel", "zero_angle_votes"]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -203,6 +203,28 @@ def hist_soft_from_gradients(g_row, g_col, cell_px, n_cr, n_cc, cos_c, sin_c, ou
                     _soft_vote(gr, gc, math.sqrt(gr * gr + gc * gc), cos_c, sin_c, acc)
             for b in range(cos_c.size):
                 out[ci, cj, b] = acc[b] / area
+
+
+@njit(cache=True, nogil=True)
+def zero_angle_votes(img, cell_px, n_cr, n_cc, out):  # pragma: no cover - jit
+    """Per cell, the votes of gradients at exactly 0 degrees (``g_row == 0``, ``g_col != 0``), / cell area.
+
+    Same gradients and borders as :func:`hist_from_image` (a grey image of
+    any real dtype); one bin per vote puts all of them into the first bin.
+    """
+    h, w = img.shape
+    area = cell_px * cell_px
+    for ci in range(n_cr):
+        for cj in range(n_cc):
+            acc = 0.0
+            for r in range(ci * cell_px, ci * cell_px + cell_px):
+                row_in = 0 < r < h - 1
+                for c in range(cj * cell_px, cj * cell_px + cell_px):
+                    gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
+                    if gr != 0.0:
+                        continue
+                    acc += abs(float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0)
+            out[ci, cj] = acc / area
 
 
 @njit(cache=True, nogil=True)
