@@ -168,3 +168,29 @@ def test_interpolated_votes_colour_and_uint8_agree_with_grey_float():
     rounded = np.round(img)
     assert np.array_equal(hog_blocks(rounded.astype(np.uint8), 8, 2, 9, votes="interpolated"),
                           hog_blocks(rounded.astype(np.float32), 8, 2, 9, votes="interpolated"))
+
+
+@pytest.mark.slow
+def test_the_window_parts_wall_along_the_columns_is_no_clean_alarm_with_split_ties():
+    """A clean window-part photo (simulator seed 9100, layer 15: the box's left wall beside the bridge's
+    pillar) read above the pause ratio with one bin per vote: the reference's straight wall edge voted
+    at exactly 0 degrees, the photo's (177-178 degrees) into the last bin. With split ties it is clean."""
+    from layerwatch.examples import PART_CONFIG
+    from layerwatch.pipeline.config import resolve_config
+    from layerwatch.pipeline.step import LayerPipeline
+    from layerwatch.simulate import PrintSimulator, default_camera
+    from layerwatch.simulate.parts import window_part
+
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
+    cfg = cfg.for_camera(cam)
+    assert cfg.analysis.votes == "split_ties"  # recommended
+    tp = window_part(center=(float(cfg.topview.center_mm[0]), float(cfg.topview.center_mm[1])))
+    photo = PrintSimulator(tp, cam, cfg.topview.topview(), (), seed=9100).frame(15).photo
+    ratio = {}
+    for votes in ("one_bin", "split_ties"):
+        c = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={"votes": votes})})
+        res = LayerPipeline(tp, cam, c, memo=1).process(photo, 15)
+        assert res.status == "ok", res.message
+        ratio[votes] = res.anomaly_ratio
+    assert ratio["one_bin"] > cfg.policy.pause_ratio > 4 * ratio["split_ties"]
