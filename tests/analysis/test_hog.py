@@ -95,3 +95,102 @@ def test_gradients_exactly_on_bin_edges_match_skimage(dtype, bins):
     img = img.astype(dtype)
     ours = hog_blocks(img, cell_px=8, bins=bins)
     np.testing.assert_allclose(ours, _sk(img, bins=bins), rtol=0, atol=1e-6)
+
+
+def _edge(angle_deg: float, size: int = 64) -> np.ndarray:
+    """A straight dark-to-bright edge through the centre, at ``angle_deg`` from the image's columns, blurred."""
+    r, c = np.mgrid[0:size, 0:size].astype(np.float64) - size / 2 + 0.5
+    t = np.deg2rad(angle_deg)
+    d = c * np.cos(t) + r * np.sin(t)  # signed distance along the gradient direction
+    return (60.0 + 140.0 / (1.0 + np.exp(-d / 0.8))).astype(np.float32)
+
+
+def _cos(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_an_edge_along_the_columns_still_matches_when_it_tilts_by_a_fraction_of_a_degree():
+    # one bin per vote: the straight edge's gradient (exactly 0 degrees, as a rendered reference
+    # draws it) votes into the first bin, the same edge turned by -0.5 degrees (179.5) into the
+    # last: the two blocks share nothing
+    straight, tilted = _edge(0.0), _edge(-0.5)
+
+    def cos(votes):
+        return _cos(*[hog_blocks(im, 8, 2, 9, votes=votes)[3:5, 3:5] for im in (straight, tilted)])
+
+    assert cos("one_bin") < 0.3
+    assert cos("split_ties") > 0.65  # the straight edge's votes are half in each bin
+    assert cos("interpolated") > 0.95
+    # an edge along the rows (gradient at 90 degrees, mid-bin) was never at risk
+    assert _cos(*[hog_blocks(_edge(a), 8, 2, 9)[3:5, 3:5] for a in (90.0, 89.5)]) > 0.95
+
+
+def test_split_ties_moves_only_votes_exactly_at_zero_degrees():
+    from layerwatch.analysis.hog import hog_cell_histograms
+
+    rng = np.random.default_rng(3)
+    noisy = rng.normal(100, 20, (64, 64)).astype(np.float32)  # no gradient exactly at 0 degrees inside
+    a = hog_cell_histograms(noisy, 8, 9)
+    b = hog_cell_histograms(noisy, 8, 9, votes="split_ties")
+    assert np.array_equal(a[1:-1, 1:-1], b[1:-1, 1:-1])  # (the border rows' g_row is 0 by convention)
+    straight = _edge(0.0)
+    a = hog_cell_histograms(straight, 8, 9)
+    b = hog_cell_histograms(straight, 8, 9, votes="split_ties")
+    assert np.allclose(a.sum(2), b.sum(2), rtol=1e-6)  # nothing lost
+    assert np.allclose(b[..., 0], b[..., 8], rtol=1e-5) and a[..., 8].max() == 0.0
+    assert np.array_equal(a[..., 1:8], b[..., 1:8])
+    colour = hog_cell_histograms(np.repeat(straight[..., None], 3, axis=2), 8, 9, votes="split_ties")
+    assert np.allclose(colour, b, rtol=1e-5, atol=1e-9)
+    with pytest.raises(AnalysisError):
+        hog_cell_histograms(straight, 8, 9, votes="nearest")
+
+
+def test_interpolated_votes_split_each_vote_between_the_two_nearest_centres():
+    from layerwatch.analysis.hog import hog_cell_histograms
+
+    for angle, expect in ((10.0, {0: 1.0}), (20.0, {0: 0.5, 1: 0.5}), (0.0, {0: 0.5, 8: 0.5}),
+                          (175.0, {8: 0.75, 0: 0.25}), (95.0, {4: 0.75, 5: 0.25})):
+        img = _edge(angle, 96)
+        h = hog_cell_histograms(img, 8, 9, votes="interpolated")[5:7, 5:7].sum(axis=(0, 1))
+        hard = hog_cell_histograms(img, 8, 9)[5:7, 5:7].sum(axis=(0, 1))
+        assert h.sum() == pytest.approx(hard.sum(), rel=1e-5)  # the magnitude is split, not changed
+        share = h / h.sum()
+        for b, v in expect.items():
+            assert share[b] == pytest.approx(v, abs=0.06), (angle, b, share)
+        assert sum(share[b] for b in expect) == pytest.approx(1.0, abs=0.06)
+
+
+def test_interpolated_votes_colour_and_uint8_agree_with_grey_float():
+    img = _edge(33.0)
+    grey = hog_blocks(img, 8, 2, 9, votes="interpolated")
+    colour = hog_blocks(np.repeat(img[..., None], 3, axis=2), 8, 2, 9, votes="interpolated")
+    assert np.allclose(colour, grey, atol=1e-9)
+    rounded = np.round(img)
+    assert np.array_equal(hog_blocks(rounded.astype(np.uint8), 8, 2, 9, votes="interpolated"),
+                          hog_blocks(rounded.astype(np.float32), 8, 2, 9, votes="interpolated"))
+
+
+@pytest.mark.slow
+def test_the_window_parts_wall_along_the_columns_is_no_clean_alarm_with_split_ties():
+    """A clean window-part photo (simulator seed 9100, layer 15: the box's left wall beside the bridge's
+    pillar) read above the pause ratio with one bin per vote: the reference's straight wall edge voted
+    at exactly 0 degrees, the photo's (177-178 degrees) into the last bin. With split ties it is clean."""
+    from layerwatch.examples import PART_CONFIG
+    from layerwatch.pipeline.config import resolve_config
+    from layerwatch.pipeline.step import LayerPipeline
+    from layerwatch.simulate import PrintSimulator, default_camera
+    from layerwatch.simulate.parts import window_part
+
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
+    cfg = cfg.for_camera(cam)
+    assert cfg.analysis.votes == "split_ties"  # recommended
+    tp = window_part(center=(float(cfg.topview.center_mm[0]), float(cfg.topview.center_mm[1])))
+    photo = PrintSimulator(tp, cam, cfg.topview.topview(), (), seed=9100).frame(15).photo
+    ratio = {}
+    for votes in ("one_bin", "split_ties"):
+        c = cfg.model_copy(update={"analysis": cfg.analysis.model_copy(update={"votes": votes})})
+        res = LayerPipeline(tp, cam, c, memo=1).process(photo, 15)
+        assert res.status == "ok", res.message
+        ratio[votes] = res.anomaly_ratio
+    assert ratio["one_bin"] > cfg.policy.pause_ratio > 4 * ratio["split_ties"]

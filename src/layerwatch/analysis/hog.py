@@ -20,6 +20,31 @@ reshaped to ``(N, M, k)``) to better than 1e-6, including its details:
   by one cell, and block normalisation uses ``eps = 1e-5`` exactly as
   skimage's ``L1``, ``L1-sqrt``, ``L2`` and ``L2-Hys`` (clip at 0.2).
 
+**Votes on the 0/180-degree bin edge** (``votes``; ``"one_bin"`` is
+skimage's and the paper's). An edge along the image's columns has its
+gradient at 0 degrees, which is the edge between the first and the last
+bin (0 and 180 degrees are one orientation). A rendered reference draws
+such an edge perfectly straight: every one of its gradients has
+``g_row == 0`` exactly and votes into the first bin. The photo's same edge
+is tilted by a fraction of a degree to a few degrees (bead wobble, the
+perspective of a wall's top edge, calibration residuals) and votes into
+the first bin, the last, or both; on clean layers of the window part two
+images of one wall shared nothing (cosine 0.25, all of the photo's votes in
+the last bin at 177-178 degrees). Edges along the rows (90 degrees) sit
+mid-bin and were never at risk.
+
+* ``"split_ties"``: a vote lying exactly on that edge (``g_row == 0``,
+  ``g_col != 0``) goes half into the first and half into the last bin, the
+  expected vote of an edge whose direction spreads symmetrically round 0
+  degrees. It only changes gradients at exactly 0 degrees (in practice: a
+  rendered image's straight edges; no other bin edge is hit exactly, their
+  slopes being irrational); every other vote is skimage's.
+* ``"interpolated"``: every vote is split linearly between the two bins
+  whose centres ``(i + 0.5) * 180 / bins`` enclose its orientation,
+  circularly (Dalal & Triggs 2005, Section 6.3). Continuous in orientation,
+  but it also blurs the small turns an infill or thin-wall defect makes
+  (measured: ``docs/evaluation/single_photo.md``).
+
 Colour images (``(H, W, C)``) follow skimage's ``channel_axis=-1`` rule: per
 pixel, the gradient of the channel with the largest gradient magnitude is
 used. That rule does not depend on channel order, so BGR (OpenCV) and RGB
@@ -51,13 +76,19 @@ from layerwatch.analysis.hog_kernels import (
     hist_from_gradients,
     hist_from_image,
     hist_from_u8,
+    hist_soft_from_gradients,
+    hist_soft_from_image,
     normalize_kernel,
+    zero_angle_votes,
 )
 from layerwatch.errors import AnalysisError
 
-__all__ = ["hog_blocks", "BLOCK_NORMS", "block_energy", "hog_cell_histograms", "gradients", "normalize_blocks"]
+__all__ = ["hog_blocks", "BLOCK_NORMS", "VOTES", "block_energy", "hog_cell_histograms", "gradients", "normalize_blocks"]
 
 BLOCK_NORMS = ("L2-Hys", "L2", "L1", "L1-sqrt")
+#: how a gradient votes: into its one bin (skimage), split when it lies exactly on the 0/180 bin edge, or
+#: interpolated between the two nearest bin centres (module notes)
+VOTES = ("one_bin", "split_ties", "interpolated")
 
 
 def gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -116,7 +147,8 @@ def _u8_bin_table(bins: int) -> np.ndarray:
     return _U8_LUTS[bins]
 
 
-def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamma: bool = False) -> np.ndarray:
+def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamma: bool = False,
+                        votes: str = "one_bin") -> np.ndarray:
     """Per-cell orientation histograms before block normalisation.
 
     Parameters
@@ -129,6 +161,8 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
         Unsigned orientation bins over [0, 180) degrees.
     gamma : bool
         Take ``sqrt`` of the intensities first (skimage ``transform_sqrt``).
+    votes : {"one_bin", "split_ties", "interpolated"}
+        How a gradient votes (module notes); ``"one_bin"`` is skimage's.
 
     Returns
     -------
@@ -146,6 +180,18 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
     rad = np.deg2rad(edges)
     cos_e, sin_e = np.cos(rad), np.sin(rad)
     out = np.zeros((n_cr, n_cc, bins), dtype=np.float64)
+    if votes not in VOTES:
+        raise AnalysisError(f"unknown vote rule {votes!r}; use one of {', '.join(VOTES)}.")
+    if votes == "interpolated":
+        centres = np.deg2rad((np.arange(bins) + 0.5) * (180.0 / bins))
+        cos_c, sin_c = np.cos(centres), np.sin(centres)
+        if img.ndim == 2:
+            hist_soft_from_image(img if img.dtype != np.uint8 else img.astype(np.float32), int(cell_px),
+                                 n_cr, n_cc, cos_c, sin_c, out)
+        else:
+            g_row, g_col = gradients(img)
+            hist_soft_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_c, sin_c, out)
+        return out
     if img.dtype == np.uint8:
         hist_from_u8(img, int(cell_px), n_cr, n_cc, _u8_bin_table(bins), bins, out)
     elif img.ndim == 2:
@@ -153,6 +199,18 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
     else:
         g_row, g_col = gradients(img)
         hist_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
+    if votes == "split_ties":
+        half = np.zeros((n_cr, n_cc), np.float64)
+        if img.ndim == 2:
+            zero_angle_votes(img, int(cell_px), n_cr, n_cc, half)
+        else:
+            g_row, g_col = gradients(img)
+            on = (g_row == 0.0)[: n_cr * cell_px, : n_cc * cell_px]
+            g = np.where(on, np.abs(g_col[: n_cr * cell_px, : n_cc * cell_px]), 0.0)
+            half = g.reshape(n_cr, cell_px, n_cc, cell_px).sum(axis=(1, 3)) / (cell_px * cell_px)
+        half *= 0.5
+        out[..., 0] = np.maximum(out[..., 0] - half, 0.0)  # (the first bin's votes were summed in float32)
+        out[..., bins - 1] += half
     return out
 
 
@@ -211,6 +269,7 @@ def hog_blocks(
     gamma: bool = False,
     *,
     return_energy: bool = False,
+    votes: str = "one_bin",
 ):
     """Normalised HOG block tensor of one image (skimage-exact).
 
@@ -231,6 +290,8 @@ def hog_blocks(
         Square-root gamma compression first (skimage ``transform_sqrt``).
     return_energy : bool
         Also return each block's mean gradient magnitude before normalisation.
+    votes : {"one_bin", "split_ties", "interpolated"}
+        How a gradient votes (:func:`hog_cell_histograms`); ``"one_bin"`` is skimage's.
 
     Returns
     -------
@@ -259,7 +320,7 @@ def hog_blocks(
             f"image {img.shape[0]}x{img.shape[1]} px is smaller than one HOG block of "
             f"{block_cells * cell_px} px; use a larger image or smaller cells."
         )
-    hist = hog_cell_histograms(img, int(cell_px), int(bins), gamma)
+    hist = hog_cell_histograms(img, int(cell_px), int(bins), gamma, votes)
     blocks = normalize_blocks(hist, int(block_cells), block_norm)
     if not return_energy:
         return blocks

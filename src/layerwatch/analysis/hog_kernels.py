@@ -12,7 +12,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["hist_from_image", "hist_from_u8", "hist_from_gradients", "normalize_kernel"]
+__all__ = ["hist_from_image", "hist_from_u8", "hist_from_gradients", "hist_soft_from_image", "hist_soft_from_gradients",
+           "normalize_kernel", "zero_angle_votes"]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -127,6 +128,103 @@ def hist_from_gradients(g_row, g_col, cell_px, n_cr, n_cc, cos_e, sin_e, edges, 
                         acc[b] = np.float32(np.float64(acc[b]) + mag)
             for b in range(bins):
                 out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _soft_vote(gr, gc, mag, cos_c, sin_c, acc):  # pragma: no cover - jit
+    """Split one gradient's magnitude between the two bins whose centres enclose its orientation.
+
+    Bin ``i`` is centred on ``c_i = (i + 0.5) * 180 / bins`` degrees
+    (``cos_c``, ``sin_c``). The gradient is folded into the upper half plane
+    (orientation ``theta`` in [0, 180)); the centres below and above it are
+    found by the sign of ``sin(theta - c_i)`` (a cross product, no arctan),
+    and the magnitude is split in proportion to the sines of the angular
+    distances to the two centres (``sin(d0) / (sin(d0) + sin(d1))`` goes to
+    the far one: linear interpolation to within 0.2 % of a vote for 9 bins).
+    Orientation is circular: below the first centre and above the last, the
+    first and the last bin share the vote (0 and 180 degrees are one line).
+    """
+    bins = cos_c.size
+    if gr < 0.0 or (gr == 0.0 and gc < 0.0):
+        gr = -gr
+        gc = -gc
+    k = 0
+    for i in range(bins):
+        k += (gr * cos_c[i] - gc * sin_c[i]) >= 0.0  # theta >= c_i (the centres are in increasing order)
+    i0 = k - 1 if k > 0 else bins - 1
+    i1 = k if k < bins else 0
+    s0 = gr * cos_c[i0] - gc * sin_c[i0]  # sin(theta - c_i0) * mag
+    s1 = gc * sin_c[i1] - gr * cos_c[i1]  # sin(c_i1 - theta) * mag
+    if k == 0:  # below the first centre: the last one lies at c - 180
+        s0 = -s0
+    elif k == bins:  # above the last centre: the first one lies at c + 180
+        s1 = -s1
+    tot = s0 + s1
+    w1 = mag * s0 / tot if tot > 0.0 else 0.5 * mag
+    acc[i0] += mag - w1
+    acc[i1] += w1
+
+
+@njit(cache=True, nogil=True)
+def hist_soft_from_image(img, cell_px, n_cr, n_cc, cos_c, sin_c, out):  # pragma: no cover - jit
+    """Fused gradient + interpolated orientation binning (:func:`_soft_vote`) + cell accumulation, grey image."""
+    h, w = img.shape
+    area = cell_px * cell_px
+    acc = np.zeros(cos_c.size, dtype=np.float64)
+    for ci in range(n_cr):
+        for cj in range(n_cc):
+            acc[:] = 0.0
+            for r in range(ci * cell_px, ci * cell_px + cell_px):
+                row_in = 0 < r < h - 1
+                for c in range(cj * cell_px, cj * cell_px + cell_px):
+                    gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
+                    gc = float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0
+                    if gr == 0.0 and gc == 0.0:
+                        continue
+                    _soft_vote(gr, gc, math.sqrt(gr * gr + gc * gc), cos_c, sin_c, acc)
+            for b in range(cos_c.size):
+                out[ci, cj, b] = acc[b] / area
+
+
+@njit(cache=True, nogil=True)
+def hist_soft_from_gradients(g_row, g_col, cell_px, n_cr, n_cc, cos_c, sin_c, out):  # pragma: no cover - jit
+    """:func:`hist_soft_from_image` on precomputed gradients (colour images)."""
+    area = cell_px * cell_px
+    acc = np.zeros(cos_c.size, dtype=np.float64)
+    for ci in range(n_cr):
+        for cj in range(n_cc):
+            acc[:] = 0.0
+            for r in range(ci * cell_px, ci * cell_px + cell_px):
+                for c in range(cj * cell_px, cj * cell_px + cell_px):
+                    gr = g_row[r, c]
+                    gc = g_col[r, c]
+                    if gr == 0.0 and gc == 0.0:
+                        continue
+                    _soft_vote(gr, gc, math.sqrt(gr * gr + gc * gc), cos_c, sin_c, acc)
+            for b in range(cos_c.size):
+                out[ci, cj, b] = acc[b] / area
+
+
+@njit(cache=True, nogil=True)
+def zero_angle_votes(img, cell_px, n_cr, n_cc, out):  # pragma: no cover - jit
+    """Per cell, the votes of gradients at exactly 0 degrees (``g_row == 0``, ``g_col != 0``), / cell area.
+
+    Same gradients and borders as :func:`hist_from_image` (a grey image of
+    any real dtype); one bin per vote puts all of them into the first bin.
+    """
+    h, w = img.shape
+    area = cell_px * cell_px
+    for ci in range(n_cr):
+        for cj in range(n_cc):
+            acc = 0.0
+            for r in range(ci * cell_px, ci * cell_px + cell_px):
+                row_in = 0 < r < h - 1
+                for c in range(cj * cell_px, cj * cell_px + cell_px):
+                    gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
+                    if gr != 0.0:
+                        continue
+                    acc += abs(float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0)
+            out[ci, cj] = acc / area
 
 
 @njit(cache=True, nogil=True)

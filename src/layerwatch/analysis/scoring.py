@@ -189,7 +189,7 @@ def reference_hog(reference: np.ndarray, settings: AnalysisSettings) -> tuple[np
     if grey.shape[0] // settings.cell_px < b or grey.shape[1] // settings.cell_px < b:
         raise AnalysisError(f"reference {grey.shape[1]}x{grey.shape[0]} px is smaller than one HOG block; "
                             "use a larger top view or smaller cells.")
-    cells = hog_cell_histograms(grey, settings.cell_px, settings.bins, settings.gamma)
+    cells = hog_cell_histograms(grey, settings.cell_px, settings.bins, settings.gamma, settings.votes)
     energy = block_energy(cells, b)
     cells.flags.writeable = energy.flags.writeable = False
     return cells, energy
@@ -214,7 +214,7 @@ def block_hogs(top: np.ndarray, reference: np.ndarray, settings: AnalysisSetting
     """
     h_top, e_top = hog_blocks(_presmoothed(to_grey255(top, "photo top view"), settings), cell_px=settings.cell_px,
                               block_cells=settings.block_cells, bins=settings.bins, block_norm=settings.block_norm,
-                              gamma=settings.gamma, return_energy=True)
+                              gamma=settings.gamma, return_energy=True, votes=settings.votes)
     cells, e_ref = ref_hog if ref_hog is not None else reference_hog(reference, settings)
     h_ref = normalize_blocks(cells, settings.block_cells, settings.block_norm)
     # featureless photo; reference featureless or only faintly textured (flat_tolerance >= 1, validated)

@@ -50,7 +50,7 @@ class AnalysisSettings(Section):
         Blocks within this distance of the layer's footprint count, mm; default 5.
     min_region_blocks : int
         Smallest group of anomalous blocks kept.
-    min_gradient, flat_tolerance, presmooth_px, grow_threshold, grow_margin_mm, register_mm
+    min_gradient, flat_tolerance, votes, presmooth_px, grow_threshold, grow_margin_mm, register_mm
         See the comments at each field below.
 
     References
@@ -80,6 +80,14 @@ class AnalysisSettings(Section):
     # what a hole, an object or strands look like. 1 = both below min_gradient.
     flat_tolerance: float = Field(1.0, ge=1.0, le=10.0)
     gamma: bool = False
+    # How a gradient votes (:mod:`layerwatch.analysis.hog`): "one_bin"
+    # (skimage, the paper); "split_ties": a gradient exactly on the 0/180-
+    # degree bin edge (a rendered reference's straight edge along the top
+    # view's columns) votes half into the first and half into the last bin,
+    # so the photo's same edge, tilted by a fraction of a degree into the
+    # last bin, still matches it; "interpolated": every vote split between
+    # the two nearest bin centres.
+    votes: Literal["one_bin", "split_ties", "interpolated"] = "one_bin"
     # Gaussian pre-filter (sigma, top-view px) of both images before the HOG:
     # removes sensor noise and the moire a warped photo shows above the
     # camera's resolvable frequency; 0 = the paper's unfiltered images.
