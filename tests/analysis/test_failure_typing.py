@@ -257,6 +257,40 @@ def test_typer_tells_an_object_from_strands_beside_the_part():
     assert strands.displacement_mm is None and obj.displacement_mm is None
 
 
+def _nut_photo(colour, shade: float = 1.0):
+    """The part's photo with a 4 mm disc of ``colour`` (BGR) on the bed left of it, under ``shade`` exposure."""
+    top, ref, foot = _part(6)
+    bgr = _colour(top)
+    centre = tuple(int(v) for v in TOPVIEW.to_px(np.array([90.0, 100.0])).round())
+    cv2.circle(bgr, centre, int(round(2.0 * TOPVIEW.px_per_mm)), colour, -1)
+    bgr = np.clip(bgr.astype(np.float32) * shade, 0, 255).astype(np.uint8)
+    disc = np.zeros(TOPVIEW.shape, np.uint8)
+    cv2.circle(disc, centre, int(round(2.0 * TOPVIEW.px_per_mm)), 1, -1)
+    return bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, disc.astype(bool)
+
+
+@pytest.mark.parametrize("shade", [1.0, 0.6])
+def test_a_foreign_body_is_marked_as_its_own_pixels_not_its_box(shade):
+    """The region's box pads the 4 mm nut to 12 mm: its outline is the nut (under any exposure), the box is not."""
+    bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60), shade)
+    obj = _region(84.0, 94.0, 96.0, 106.0)
+    res = LayerResult(layer=2, z=0.9, outside_regions=[obj])
+    FailureTyper(None, TOPVIEW).type_result(res, bgr, grey, ref, foot)
+    assert obj.kind == "foreign_body" and obj.outline_mm
+    marked = outline_mask(obj.outline_mm, TOPVIEW)
+    assert (marked & disc).sum() / (marked | disc).sum() > 0.8
+    box = outline_mask(((obj.bbox_mm[:2], (obj.bbox_mm[2], obj.bbox_mm[1]), obj.bbox_mm[2:],
+                         (obj.bbox_mm[0], obj.bbox_mm[3])),), TOPVIEW)
+    assert (box & disc).sum() / (box | disc).sum() < 0.2
+
+
+def test_a_foreign_body_without_pixels_unlike_bed_and_part_keeps_its_blocks():
+    bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60))
+    scene = _Scene(bgr, grey, ref, foot, TOPVIEW, None)
+    assert scene.object_outline(_region(84.0, 94.0, 96.0, 106.0))
+    assert scene.object_outline(_region(70.0, 94.0, 80.0, 106.0)) == ()  # bare bed only
+
+
 def test_typer_uses_the_previous_photo_of_the_print_and_forgets_it_on_reset():
     top, ref, foot = _part(7)
     typer = FailureTyper(None, TOPVIEW)
