@@ -3,6 +3,8 @@ the cropped, lazy evidence equals the whole view's."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -273,7 +275,7 @@ def _nut_photo(colour, shade: float = 1.0):
 def test_a_foreign_body_is_marked_as_its_own_pixels_not_its_box(shade):
     """The region's box pads the 4 mm nut to 12 mm: its outline is the nut (under any exposure), the box is not."""
     bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60), shade)
-    obj = _region(84.0, 94.0, 96.0, 106.0)
+    obj = dataclasses.replace(_region(84.0, 94.0, 96.0, 106.0), area_mm2=16.0)  # the 2 mm change blocks it touched
     res = LayerResult(layer=2, z=0.9, outside_regions=[obj])
     FailureTyper(None, TOPVIEW).type_result(res, bgr, grey, ref, foot)
     assert obj.kind == "foreign_body" and obj.outline_mm
@@ -287,8 +289,11 @@ def test_a_foreign_body_is_marked_as_its_own_pixels_not_its_box(shade):
 def test_a_foreign_body_without_pixels_unlike_bed_and_part_keeps_its_blocks():
     bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60))
     scene = _Scene(bgr, grey, ref, foot, TOPVIEW, None)
-    assert scene.object_outline(_region(84.0, 94.0, 96.0, 106.0))
+    nut = dataclasses.replace(_region(84.0, 94.0, 96.0, 106.0), area_mm2=16.0)
+    assert scene.object_outline(nut)
     assert scene.object_outline(_region(70.0, 94.0, 80.0, 106.0)) == ()  # bare bed only
+    # the same pixels explain less than half of a region that measured 60 mm^2 of change: its box says more
+    assert scene.object_outline(dataclasses.replace(nut, area_mm2=60.0)) == ()
 
 
 def test_typer_uses_the_previous_photo_of_the_print_and_forgets_it_on_reset():

@@ -125,6 +125,8 @@ NOISE_SIGMAS = 2.5
 OBJECT_CLOSE_MM, NOISE_RING_MM = 1.0, 2.0
 #: smallest area of a foreign body's pixels that replaces its blocks, mm^2
 OBJECT_MIN_MM2 = 2.0
+#: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
+OBJECT_MIN_SHARE = 0.5
 
 _WALL = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -317,14 +319,19 @@ class _Scene:
 
         A pixel is the object's when its colour is unlike both the bare bed's
         and the part's median colour (the nearer CIELAB distance, lightness
-        half weighted) by more than the noise of that distance: the larger
+        fully weighted: an object often differs in lightness only) by more
+        than the noise of that distance: the larger
         of :data:`COLOUR_DELTA` and the median plus :data:`NOISE_SIGMAS`
         robust standard deviations (1.4826 MAD) of the seen pixels in a
         :data:`NOISE_RING_MM` ring around the box (both colours are this
         photo's, so exposure and white balance cancel). The pixels are closed
         by a :data:`OBJECT_CLOSE_MM` square and their holes filled (a glint on
         the object). ``()`` (the region keeps its blocks) when neither colour
-        is known or the pixels cover less than :data:`OBJECT_MIN_MM2`.
+        is known, the pixels cover less than :data:`OBJECT_MIN_MM2`, or less
+        than :data:`OBJECT_MIN_SHARE` of the region's own area: then the colour
+        test missed most of what the region measured (a dark object on a dark
+        bed differs from it in lightness by less than the noise) and the
+        region's blocks or box say more.
         """
         box = self.box(r)
         colours = [c for c in (self.bed_colour, self.part_colour) if c is not None]
@@ -348,7 +355,7 @@ class _Scene:
         obj = fill_holes(cv2.morphologyEx(obj, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))) & near
         _, labels = cv2.connectedComponents(obj.view(np.uint8), connectivity=8)
         obj = np.isin(labels, np.unique(labels[inner & obj]))  # the parts that reach into the region's box
-        if obj.sum() < OBJECT_MIN_MM2 * self.topview.px_per_mm ** 2:
+        if obj.sum() < max(OBJECT_MIN_MM2, OBJECT_MIN_SHARE * r.area_mm2) * self.topview.px_per_mm ** 2:
             return ()
         mask = np.zeros(self.shape, bool)
         mask[pad] = obj
