@@ -323,10 +323,12 @@ class _Scene:
         than the noise of that distance: the larger
         of :data:`COLOUR_DELTA` and the median plus :data:`NOISE_SIGMAS`
         robust standard deviations (1.4826 MAD) of the seen pixels in a
-        :data:`NOISE_RING_MM` ring around the box (both colours are this
-        photo's, so exposure and white balance cancel). The pixels are closed
-        by a :data:`OBJECT_CLOSE_MM` square and their holes filled (a glint on
-        the object). ``()`` (the region keeps its blocks) when neither colour
+        :data:`NOISE_RING_MM` ring one ring width off the box (both colours
+        are this photo's, so exposure and white balance cancel). The pixels
+        are looked for up to two ring widths beyond the box (an object reaches
+        beyond the blocks that fired on it), closed by a
+        :data:`OBJECT_CLOSE_MM` square, their holes filled (a glint on the
+        object), and the parts that reach into the box are kept. ``()`` (the region keeps its blocks) when neither colour
         is known, the pixels cover less than :data:`OBJECT_MIN_MM2`, or less
         than :data:`OBJECT_MIN_SHARE` of the region's own area: then the colour
         test missed most of what the region measured (a dark object on a dark
@@ -351,8 +353,8 @@ class _Scene:
             med = float(np.median(around))
             thr = max(thr, med + NOISE_SIGMAS * 1.4826 * float(np.median(np.abs(around - med))))
         k = max(3, int(round(OBJECT_CLOSE_MM * self.topview.px_per_mm)) | 1)
-        obj = ((dist > thr) & near & seen).view(np.uint8)
-        obj = fill_holes(cv2.morphologyEx(obj, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))) & near
+        obj = ((dist > thr) & seen).view(np.uint8)  # up to 2 ring widths out: an object reaches beyond its blocks
+        obj = fill_holes(cv2.morphologyEx(obj, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8)))
         _, labels = cv2.connectedComponents(obj.view(np.uint8), connectivity=8)
         obj = np.isin(labels, np.unique(labels[inner & obj]))  # the parts that reach into the region's box
         if obj.sum() < max(OBJECT_MIN_MM2, OBJECT_MIN_SHARE * r.area_mm2) * self.topview.px_per_mm ** 2:
