@@ -286,6 +286,19 @@ def test_a_foreign_body_is_marked_as_its_own_pixels_not_its_box(shade):
     assert (box & disc).sum() / (box | disc).sum() < 0.2
 
 
+def test_a_foreign_body_is_followed_beyond_the_blocks_that_fired_on_it():
+    """A 10 mm screw of which only the middle fired: its outline reaches past the region's box (up to 4 mm)."""
+    top, ref, foot = _part(6)
+    bgr = _colour(top)
+    a, b = (tuple(int(v) for v in TOPVIEW.to_px(np.array(p)).round()) for p in ([95.0, 84.0], [105.0, 84.0]))
+    cv2.line(bgr, a, b, (200, 200, 210), int(round(1.5 * TOPVIEW.px_per_mm)))
+    screw = Region(area_mm2=6.0, bbox_mm=(98.0, 83.0, 102.0, 85.0), centroid_mm=(100.0, 84.0), n_blocks=2,
+                   mean_similarity=0.1, outside_fraction=1.0)
+    outline = _Scene(bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, TOPVIEW, None).object_outline(screw)
+    xs = [x for poly in outline for x, _ in poly]
+    assert min(xs) < 96.0 and max(xs) > 104.0  # both ends, 3 mm beyond the box on each side
+
+
 def test_a_foreign_body_without_pixels_unlike_bed_and_part_keeps_its_blocks():
     bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60))
     scene = _Scene(bgr, grey, ref, foot, TOPVIEW, None)
