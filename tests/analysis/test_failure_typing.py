@@ -3,6 +3,8 @@ the cropped, lazy evidence equals the whole view's."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -255,6 +257,56 @@ def test_typer_tells_an_object_from_strands_beside_the_part():
     FailureTyper(None, TOPVIEW).type_result(res, bgr, grey, ref, foot)
     assert strands.kind == "spaghetti" and obj.kind == "foreign_body"
     assert strands.displacement_mm is None and obj.displacement_mm is None
+
+
+def _nut_photo(colour, shade: float = 1.0):
+    """The part's photo with a 4 mm disc of ``colour`` (BGR) on the bed left of it, under ``shade`` exposure."""
+    top, ref, foot = _part(6)
+    bgr = _colour(top)
+    centre = tuple(int(v) for v in TOPVIEW.to_px(np.array([90.0, 100.0])).round())
+    cv2.circle(bgr, centre, int(round(2.0 * TOPVIEW.px_per_mm)), colour, -1)
+    bgr = np.clip(bgr.astype(np.float32) * shade, 0, 255).astype(np.uint8)
+    disc = np.zeros(TOPVIEW.shape, np.uint8)
+    cv2.circle(disc, centre, int(round(2.0 * TOPVIEW.px_per_mm)), 1, -1)
+    return bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, disc.astype(bool)
+
+
+@pytest.mark.parametrize("shade", [1.0, 0.6])
+def test_a_foreign_body_is_marked_as_its_own_pixels_not_its_box(shade):
+    """The region's box pads the 4 mm nut to 12 mm: its outline is the nut (under any exposure), the box is not."""
+    bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60), shade)
+    obj = dataclasses.replace(_region(84.0, 94.0, 96.0, 106.0), area_mm2=16.0)  # the 2 mm change blocks it touched
+    res = LayerResult(layer=2, z=0.9, outside_regions=[obj])
+    FailureTyper(None, TOPVIEW).type_result(res, bgr, grey, ref, foot)
+    assert obj.kind == "foreign_body" and obj.outline_mm
+    marked = outline_mask(obj.outline_mm, TOPVIEW)
+    assert (marked & disc).sum() / (marked | disc).sum() > 0.8
+    box = outline_mask(((obj.bbox_mm[:2], (obj.bbox_mm[2], obj.bbox_mm[1]), obj.bbox_mm[2:],
+                         (obj.bbox_mm[0], obj.bbox_mm[3])),), TOPVIEW)
+    assert (box & disc).sum() / (box | disc).sum() < 0.2
+
+
+def test_a_foreign_body_is_followed_beyond_the_blocks_that_fired_on_it():
+    """A 10 mm screw of which only the middle fired: its outline reaches past the region's box (up to 4 mm)."""
+    top, ref, foot = _part(6)
+    bgr = _colour(top)
+    a, b = (tuple(int(v) for v in TOPVIEW.to_px(np.array(p)).round()) for p in ([95.0, 84.0], [105.0, 84.0]))
+    cv2.line(bgr, a, b, (200, 200, 210), int(round(1.5 * TOPVIEW.px_per_mm)))
+    screw = Region(area_mm2=6.0, bbox_mm=(98.0, 83.0, 102.0, 85.0), centroid_mm=(100.0, 84.0), n_blocks=2,
+                   mean_similarity=0.1, outside_fraction=1.0)
+    outline = _Scene(bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, TOPVIEW, None).object_outline(screw)
+    xs = [x for poly in outline for x, _ in poly]
+    assert min(xs) < 96.0 and max(xs) > 104.0  # both ends, 3 mm beyond the box on each side
+
+
+def test_a_foreign_body_without_pixels_unlike_bed_and_part_keeps_its_blocks():
+    bgr, grey, ref, foot, disc = _nut_photo((200, 120, 60))
+    scene = _Scene(bgr, grey, ref, foot, TOPVIEW, None)
+    nut = dataclasses.replace(_region(84.0, 94.0, 96.0, 106.0), area_mm2=16.0)
+    assert scene.object_outline(nut)
+    assert scene.object_outline(_region(70.0, 94.0, 80.0, 106.0)) == ()  # bare bed only
+    # the same pixels explain less than half of a region that measured 60 mm^2 of change: its box says more
+    assert scene.object_outline(dataclasses.replace(nut, area_mm2=60.0)) == ()
 
 
 def test_typer_uses_the_previous_photo_of_the_print_and_forgets_it_on_reset():

@@ -63,6 +63,29 @@ def test_a_moved_parts_outline_replaces_its_box_in_the_marked_area():
     assert m.iou > 0.75 and m.kind == "layer_shift"
 
 
+def test_a_moved_parts_outline_also_stands_for_the_tiles_grown_from_its_blocks():
+    """Tiles connected to a moved region's box (its hysteresis growth) give way to the outline; others stay."""
+    from layerwatch.analysis.result import BlockGrid
+
+    # TV is 160 x 160 px; 8 px cells, 2-cell blocks: a 19 x 19 grid of blocks, block (i, j) owns px 8i+4 .. 8i+12
+    heat = np.ones((19, 19), np.float32)
+    heat[4:6, 4:12] = 0.0  # a strip of failing blocks, rows 36..52 px, cols 36..100 px
+    heat[15, 15] = 0.0  # an isolated failing block elsewhere
+    band = ((8.0, -10.0), (10.0, -10.0), (10.0, -6.0), (8.0, -6.0))
+    moved = _region(-12, 8, -8, 11, "detachment", 0.9, (1.0, 0.0))  # its box covers the strip's left end only
+    moved.outline_mm = (band,)
+    res = LayerResult(layer=0, z=0.2, threshold=0.5, heatmap=heat, regions=[moved],
+                      grid=BlockGrid(cell_px=8, block_cells=2))
+    area = marked_area(res, TV)
+    strip = np.zeros(TV.shape, bool)
+    strip[36:52, 36:100] = True
+    assert not (area & strip).any()  # the whole strip, not only the part in the box, is the moved part
+    assert area[124:132, 124:132].all()  # the isolated block is still marked
+    assert area[_truth(8, -10, 10, -6)].mean() > 0.9  # and the outline
+    moved.kind = "spaghetti"  # an outlined region that is not a moved part gives way to its box only
+    assert (marked_area(res, TV) & strip).sum() > 0
+
+
 def _rec(kind, since, score, typed="", err=None, iou=None, size=8.0, mode="series"):
     r = LayerRecord("s", kind, 1, size if kind != "clean" else 0.0, np.zeros((1, 1)), since_onset=since)
     r.modes[mode] = ModeScore(score, iou=iou, kind=typed, displacement_error_mm=err)

@@ -43,6 +43,10 @@ Evidence (per region, all scale-free or in mm)
 * **Plan under it**: the share of wall segments (perimeters) against infill
   segments of the layer's G-code inside the region: a gap in a wall is a
   *thin-wall* defect, one in the infill an *infill defect*.
+* **The object itself** (:meth:`_Scene.object_outline`, for a region typed
+  foreign body, after typing): its pixels unlike both the bed and the part
+  above the noise around its box, as the region's outline; its blocks'
+  tiles and box padding otherwise mark several times the object.
 * **History** (series mode): a region at the same place in the previous
   photo that grew by more than half is spaghetti (the clump grows with every
   layer), one that kept its area is a resting object.
@@ -115,6 +119,14 @@ __all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTA
 COLOUR_DELTA = 22.0
 #: median CIELAB distance of a region's material from the part: 0 (the part's filament) to 1 (another material)
 PART_DELTA = (20.0, 40.0)
+#: robust standard deviations of the ring around a foreign body's box above which a pixel is the object's
+NOISE_SIGMAS = 2.5
+#: side of the square closing a foreign body's pixels, mm; and the ring around its box that gives the noise, mm
+OBJECT_CLOSE_MM, NOISE_RING_MM = 1.0, 2.0
+#: smallest area of a foreign body's pixels that replaces its blocks, mm^2
+OBJECT_MIN_MM2 = 2.0
+#: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
+OBJECT_MIN_SHARE = 0.5
 
 _WALL = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -196,10 +208,10 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     return framed[1:-1, 1:-1] != 2
 
 
-def _lab_distance(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
-    """CIELAB distance of colours ``lab`` (..., 3) from ``colour`` (3,), lightness half weighted (shading)."""
+def _lab_distance(lab: np.ndarray, colour: np.ndarray, lightness_weight: float = 0.5) -> np.ndarray:
+    """CIELAB distance of colours ``lab`` (..., 3) from ``colour`` (3,), lightness weighted (half: shading)."""
     d = lab - colour
-    return np.sqrt((0.5 * d[..., 0]) ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2)
+    return np.sqrt((lightness_weight * d[..., 0]) ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2)
 
 
 def _unlike(lab: np.ndarray, colour: np.ndarray) -> np.ndarray:
@@ -301,6 +313,55 @@ class _Scene:
         if self._closed is None or not motion.moved:
             return ()
         return outline_mm(self.moved_area(motion), self.topview)
+
+    def object_outline(self, r: Region) -> Outline:
+        """A foreign body's own pixels in the region's box, as bed-mm polygons; ``()`` where none stand out.
+
+        A pixel is the object's when its colour is unlike both the bare bed's
+        and the part's median colour (the nearer CIELAB distance, lightness
+        fully weighted: an object often differs in lightness only) by more
+        than the noise of that distance: the larger
+        of :data:`COLOUR_DELTA` and the median plus :data:`NOISE_SIGMAS`
+        robust standard deviations (1.4826 MAD) of the seen pixels in a
+        :data:`NOISE_RING_MM` ring one ring width off the box (both colours
+        are this photo's, so exposure and white balance cancel). The pixels
+        are looked for up to two ring widths beyond the box (an object reaches
+        beyond the blocks that fired on it), closed by a
+        :data:`OBJECT_CLOSE_MM` square, their holes filled (a glint on the
+        object), and the parts that reach into the box are kept. ``()`` (the region keeps its blocks) when neither colour
+        is known, the pixels cover less than :data:`OBJECT_MIN_MM2`, or less
+        than :data:`OBJECT_MIN_SHARE` of the region's own area: then the colour
+        test missed most of what the region measured (a dark object on a dark
+        bed differs from it in lightness by less than the noise) and the
+        region's blocks or box say more.
+        """
+        box = self.box(r)
+        colours = [c for c in (self.bed_colour, self.part_colour) if c is not None]
+        if box is None or not colours:
+            return ()
+        ring = int(round(NOISE_RING_MM * self.topview.px_per_mm))
+        bounds = (box[0].start, box[0].stop, box[1].start, box[1].stop)
+        pad = pad_box(bounds, 2 * ring, self.shape)
+        dist = np.min([_lab_distance(_lab(self.lab_u8[pad]), c, 1.0) for c in colours], axis=0)
+        inner, near = (np.zeros(dist.shape, bool) for _ in range(2))
+        for m, b in ((inner, box), (near, pad_box(bounds, ring, self.shape))):
+            m[b[0].start - pad[0].start: b[0].stop - pad[0].start, b[1].start - pad[1].start: b[1].stop - pad[1].start] = True
+        seen = self.seen(pad)
+        around = dist[~near & seen]
+        thr = COLOUR_DELTA
+        if around.size >= 20:
+            med = float(np.median(around))
+            thr = max(thr, med + NOISE_SIGMAS * 1.4826 * float(np.median(np.abs(around - med))))
+        k = max(3, int(round(OBJECT_CLOSE_MM * self.topview.px_per_mm)) | 1)
+        obj = ((dist > thr) & seen).view(np.uint8)  # up to 2 ring widths out: an object reaches beyond its blocks
+        obj = fill_holes(cv2.morphologyEx(obj, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8)))
+        _, labels = cv2.connectedComponents(obj.view(np.uint8), connectivity=8)
+        obj = np.isin(labels, np.unique(labels[inner & obj]))  # the parts that reach into the region's box
+        if obj.sum() < max(OBJECT_MIN_MM2, OBJECT_MIN_SHARE * r.area_mm2) * self.topview.px_per_mm ** 2:
+            return ()
+        mask = np.zeros(self.shape, bool)
+        mask[pad] = obj
+        return outline_mm(mask, self.topview, min_area_mm2=OBJECT_MIN_MM2)
 
     def ledge(self, motion: PartMotion) -> float:
         """Share of the area a moved layer uncovered that shows the part's material rather than the bare bed, 0-1.
@@ -528,6 +589,9 @@ class FailureTyper:
                 outline = scene.moved_outline(motion)
                 for r in moved:
                     r.outline_mm = outline
+            for r in regions:  # a foreign body as its own pixels, not the blocks' tiles around it
+                if r.kind == "foreign_body":
+                    r.outline_mm = scene.object_outline(r)
         except (cv2.error, ValueError, IndexError) as exc:  # odd images: the regions stay reported, untyped
             for r in regions:
                 r.kind, r.kind_confidence, r.displacement_mm, r.outline_mm = UNKNOWN, 0.0, None, ()

@@ -58,7 +58,9 @@ class Region:
         The area the region shows the operator when it is not its blocks, as
         polygons of ``(x, y)`` bed mm: for a layer shift or a moved/detached
         part, where the layer is and should not be and where it should be and
-        is not (:mod:`~layerwatch.analysis.region_outline`); ``()`` otherwise.
+        is not (:mod:`~layerwatch.analysis.region_outline`); for a foreign
+        body, its own pixels in the region's box when they stand out from
+        both the bed and the part; ``()`` otherwise.
     """
 
     area_mm2: float

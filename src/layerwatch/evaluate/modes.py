@@ -14,8 +14,8 @@ goes through two pipelines when the scene channel is on:
 For each mode and photo :func:`mode_score` keeps the *whole-view score*
 (a% of eq. 5 plus the area changed beside the printed layer over the
 printed area), the IoU of what the layer's result marks (HOG blocks below
-T_S and the scene channel's region boxes; a moved part's outline instead
-of its regions' blocks) with the simulator's failed
+T_S and the scene channel's region boxes; a moved part's outline and a
+foreign body's own pixels instead of their regions' blocks) with the simulator's failed
 region, the kind of the region that covers the failure best (the confusion
 matrix) and, for a moved part, the error of the reported displacement.
 :func:`summarize_modes` turns them into the report's figures.
@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS, MOVED_KINDS
@@ -82,15 +83,26 @@ def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:
     """Top-view pixels the result marks, bool (H, W).
 
     The tiles of the anomalous HOG blocks and the boxes of the regions
-    beside the print; a region with an outline (a moved part:
+    beside the print; a region with an outline (a moved part, a foreign body:
     :attr:`~layerwatch.analysis.result.Region.outline_mm`) marks its outline
-    instead of its box and of the tiles inside its box.
+    instead of its box and of the tiles inside its box. A moved part's outline
+    (layer shift, detachment) also stands for the tiles connected to its
+    regions' boxes (8-connected): the hysteresis growth of its blocks, which
+    follows the moved part's walls and lower layers beyond the boxes.
     """
     shape = (int(topview.shape[0]), int(topview.shape[1]))
     out = np.zeros(shape, bool)
     if res.heatmap is not None and res.grid is not None:
         out |= block_tiles(anomalous_blocks(res), shape, res.grid.cell_px, res.grid.block_cells, fill=False)
     outlined = [r for r in [*res.regions, *res.outside_regions] if r.outline_mm]
+    moved = np.zeros(shape, bool)
+    for r in outlined:
+        if r.kind in MOVED_KINDS:
+            moved[_box(r, topview, shape)] = True
+    if moved.any() and out.any():
+        _, labels = cv2.connectedComponents(out.view(np.uint8), connectivity=8)
+        ids = np.unique(labels[moved & out])
+        out &= ~np.isin(labels, ids[ids > 0])
     for r in outlined:
         out[_box(r, topview, shape)] = False
     for r in res.outside_regions:

@@ -128,7 +128,10 @@ _DEFINITIONS_AND_LIMITS = ["", "## Definitions", "",
       "- **IoU**: pixels of the anomalous blocks' tiles vs the simulator's failed region (`truth_area`), "
       "on failed layers with a failure of size >= 5 mm, averaged per type. In the modes section a region "
       "typed as a moved part (layer shift, detachment) marks its outline instead (where the layer is and "
-      "should not be, and where it should be and is not); the truth of those failures is the same two bands.",
+      "should not be, and where it should be and is not), also in place of the tiles grown from its blocks "
+      "(the moved part's walls and lower layers); the truth of those failures is the same two bands. "
+      "A region typed as a foreign body marks its pixels unlike both the bed and the part instead, where "
+      "they cover at least half of the region's own area.",
       "- **False alarms**: clean layers whose a% exceeds the pause ratio, per 1000 clean layers "
       "(Clopper-Pearson one-sided 95 % bound given too).", "",
       "## What limits the figures", "",
