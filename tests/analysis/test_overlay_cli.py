@@ -107,3 +107,20 @@ def test_anomalous_blocks_follow_min_region_filter():
         assert all(g.n_blocks >= k for g in res.regions)
         counts.append(len(res.regions))
     assert counts[1] == 1 < counts[0]
+
+
+def test_overlay_draws_a_regions_own_shape(spaghetti):
+    """A region's ``outline_mm`` (what the evaluation's IoU scores) is drawn in white, where it lies."""
+    import dataclasses
+
+    ref, photo, foot, res = spaghetti
+    cx, cy = res.regions[0].centroid_mm
+    square = ((cx - 6.0, cy - 6.0), (cx + 6.0, cy - 6.0), (cx + 6.0, cy + 6.0), (cx - 6.0, cy + 6.0))
+    shaped = dataclasses.replace(res, regions=[dataclasses.replace(res.regions[0], outline_mm=(square,)), *res.regions[1:]])
+    plain, drawn = overlay_image(photo, res, TOPVIEW, foot), overlay_image(photo, shaped, TOPVIEW, foot)
+    new = np.any(plain != drawn, axis=2) & np.all(drawn > 230, axis=2)
+    assert new.sum() > 40
+    ys, xs = np.nonzero(new)
+    (u0, v0), (u1, v1) = TOPVIEW.to_px(np.array([square[0], square[2]]))
+    lo_u, hi_u, lo_v, hi_v = min(u0, u1) - 3, max(u0, u1) + 3, min(v0, v1) - 3, max(v0, v1) + 3
+    assert ((xs >= lo_u) & (xs <= hi_u) & (ys >= lo_v) & (ys <= hi_v)).all()

@@ -3,7 +3,9 @@
 The overlay follows the paper's Figs. 13 and 15: the similarity heatmap is
 colour-mapped (matplotlib ``RdYlGn``: red = dissimilar, green = similar)
 over the grey top view where blocks were considered, failing regions are
-outlined in magenta, the layer's footprint in cyan, and a caption states
+outlined in magenta, the layer's footprint in cyan, a region's own shape
+where the typer found one (a moved part's displaced bands, a foreign body's
+pixels: ``Region.outline_mm``) in white, and a caption states
 layer, measure, threshold and a%. :func:`write_overlay` is the one function
 the CLI, reports and dashboard use to write it.
 
@@ -32,6 +34,7 @@ _CMAP = "RdYlGn"
 _FOOTPRINT_RGB = (0, 220, 255)
 _REGION_RGB = (255, 0, 255)
 _OUTSIDE_RGB = (255, 160, 0)  # scene channel: change beside the print
+_SHAPE_RGB = (255, 255, 255)  # a region's own shape (Region.outline_mm): a moved part, a foreign body
 
 
 @lru_cache(maxsize=1)
@@ -177,6 +180,10 @@ def overlay_image(
     for r in result.outside_regions:  # the scene channel's changes beside the print (bed mm boxes)
         (u0, v0), (u1, v1) = np.round(topview.to_px(np.array([r.bbox_mm[:2], r.bbox_mm[2:]], float))).astype(int)
         cv2.rectangle(img, (u0, v1), (u1, v0), _OUTSIDE_RGB, thick)
+    for r in (*result.regions, *result.outside_regions):  # the shape the region claims (what the IoU scores)
+        polys = [np.round(topview.to_px(np.asarray(poly, float))).astype(np.int32) for poly in r.outline_mm if len(poly) >= 3]
+        if polys:
+            cv2.polylines(img, polys, True, _SHAPE_RGB, thick, lineType=cv2.LINE_AA)
     if caption:
         text = f"layer {result.layer}  {result.metric} < {result.threshold:.2f}  a% = {100 * result.anomaly_ratio:.1f}"
         if result.outside_anomalous_mm2 > 0:
