@@ -203,8 +203,7 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
         half = np.zeros((n_cr, n_cc), np.float64)
         if img.ndim == 2:
             zero_angle_votes(img, int(cell_px), n_cr, n_cc, half)
-        else:
-            g_row, g_col = gradients(img)
+        else:  # the colour image's gradients, computed above
             on = (g_row == 0.0)[: n_cr * cell_px, : n_cc * cell_px]
             g = np.where(on, np.abs(g_col[: n_cr * cell_px, : n_cc * cell_px]), 0.0)
             half = g.reshape(n_cr, cell_px, n_cc, cell_px).sum(axis=(1, 3)) / (cell_px * cell_px)
