@@ -227,7 +227,7 @@ class TopViewWarper:
         ch, cw = coarse.shape[:2]
         a0, a1 = (v0 + 1) // 2, min((v1 + 2) // 2 + 1, ch)
         b0, b1 = (u0 + 1) // 2, min((u1 + 2) // 2 + 1, cw)
-        crop = np.ascontiguousarray(coarse[a0:a1, b0:b1]).copy()
+        crop = coarse[a0:a1, b0:b1].copy()  # C-ordered: contiguous, and not a view of the grid that clear() drops
         self._kept = (key, _box_key((slice(v0, v1), slice(u0, u1))), crop, (a0, b0))
         return True
 
