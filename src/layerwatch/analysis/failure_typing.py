@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -106,14 +107,15 @@ from layerwatch.analysis.part_registration import (
     moved_area,
     pad_box,
     part_motion,
+    top_from_plan,
 )
 from layerwatch.analysis.region_outline import Outline, outline_mm
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.gcode.toolpath import FEATURES, Toolpath
+from layerwatch.gcode.toolpath import FEATURES, Toolpath, part_mask
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTATION_MIN_DEG", "SECOND_PEAK",
-           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_motion", "region_evidence"]
+           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_below", "part_motion", "region_evidence"]
 
 #: CIELAB distance (lightness half weighted) above which a pixel is unlike a reference colour
 COLOUR_DELTA = 22.0
@@ -125,6 +127,9 @@ NOISE_SIGMAS = 2.5
 OBJECT_CLOSE_MM, NOISE_RING_MM = 1.0, 2.0
 #: smallest area of a foreign body's pixels that replaces its blocks, mm^2
 OBJECT_MIN_MM2 = 2.0
+#: the area a moved layer uncovered is trimmed by this much on each side before its colour counts, mm
+#: (slivers along its edges are the registration's error and the moved walls' parallax, not a ledge or the bed)
+LEDGE_TRIM_MM = 1.0
 #: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
 OBJECT_MIN_SHARE = 0.5
 
@@ -230,8 +235,10 @@ class _Scene:
 
     def __init__(self, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
                  topview: TopView, valid: np.ndarray | None,
-                 footprint_box: tuple[int, int, int, int] | None = None) -> None:
+                 footprint_box: tuple[int, int, int, int] | None = None,
+                 below: Callable[[], np.ndarray | None] | None = None) -> None:
         self.topview = topview
+        self._below = below
         self.top_bgr, self.top, self.reference = top_bgr, top, reference
         self.fp = np.asarray(footprint, bool)
         self.shape = self.fp.shape
@@ -367,12 +374,18 @@ class _Scene:
         """Share of the area a moved layer uncovered that shows the part's material rather than the bare bed, 0-1.
 
         Where the layer should be and is not (the closed outline minus the
-        registered one, eroded by one pixel), a layer shift leaves the
+        registered one, trimmed by :data:`LEDGE_TRIM_MM`), a layer shift leaves the
         layers below it (the part's material); a detached part, which moved
-        with its first layers, leaves the bed. Each seen pixel counts for
-        the nearer of the part's and the bed's median colour. 0.5 (no
-        evidence) when the part did not move, either colour is unknown, they
-        are alike (within :data:`COLOUR_DELTA`) or fewer than 20 pixels were uncovered.
+        with its first layers, leaves the bed, except where its own lower
+        layers, moved with it, reach under that area (a part that narrows
+        upward: a block on a wider base shows the moved base there, as a
+        shift shows the layers below). Those pixels (the part below the
+        layer, ``below``, carried by the same motion) are left out: only
+        where the two explanations differ is the colour evidence. Each seen
+        pixel counts for the nearer of the part's and the bed's median
+        colour. 0.5 (no evidence) when the part did not move, either colour
+        is unknown, they are alike (within :data:`COLOUR_DELTA`) or fewer
+        than 20 pixels are left.
         """
         if self._ledge is None or self._ledge[0] != motion:
             self._ledge = (motion, self._ledge_share(motion))
@@ -385,7 +398,14 @@ class _Scene:
         if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
             return 0.5
         uncovered = self.outline & self.moved_area(motion)
-        uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        below = None if self._below is None else self._below()
+        if below is not None:  # where the moved part's own lower layers would show: no evidence either way
+            h, w = self.shape
+            carried = cv2.warpAffine(below.view(np.uint8), top_from_plan(motion, self.topview), (w, h),
+                                     flags=cv2.INTER_NEAREST)
+            uncovered &= carried == 0
+        k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1  # slivers: registration error, walls' parallax
+        uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         if self.valid is not None:
             uncovered &= self.valid
         if uncovered.sum() < 20:
@@ -429,6 +449,30 @@ class _Scene:
         if u_hi <= u_lo or v_hi <= v_lo:
             return None
         return slice(int(v_lo), int(v_hi)), slice(int(u_lo), int(u_hi))
+
+
+def part_below(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray | None:
+    """Top-view area of the part's layers below layer ``index`` as seen from above, bool (H, W); None when none.
+
+    The union of the beads of layers ``0 .. index - 1`` (the part's own
+    features: no skirt, brim or purge line), with the gaps of sparse infill
+    (up to 3 mm) closed as in the layer's closed outline. Pixels are where
+    the plan puts those layers; a detached part carries them with it.
+    """
+    if toolpath is None or not 0 < index < toolpath.n_layers:
+        return None
+    sl = slice(0, toolpath.layers[index - 1].seg_stop)
+    keep = part_mask(toolpath.feature[sl])
+    if not keep.any():
+        return None
+    s = topview.px_per_mm
+    p0 = np.round(topview.to_px(toolpath.start[sl][keep]) * 4).astype(np.int32)  # 2 fractional bits
+    p1 = np.round(topview.to_px(toolpath.end[sl][keep]) * 4).astype(np.int32)
+    width = max(1, int(round(float(np.median(toolpath.width[sl][keep])) * s)))
+    out = np.zeros(topview.shape, np.uint8)
+    cv2.polylines(out, list(np.stack([p0, p1], axis=1)), False, 1, thickness=width, lineType=cv2.LINE_8, shift=2)
+    k2 = max(3, int(round(3.0 * s)) | 1)
+    return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8)).astype(bool)
 
 
 def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float, float, float, float]) -> float:
@@ -547,6 +591,15 @@ class FailureTyper:
         self.toolpath = toolpath
         self.topview = topview
         self.previous: list[Region] = []
+        self._below: tuple[int, np.ndarray | None] | None = None
+
+    def _part_below(self, index: int) -> np.ndarray | None:
+        """:func:`part_below` of layer ``index``, kept for the last layer asked (a moved part's photos come in a row)."""
+        if self.toolpath is None:
+            return None
+        if self._below is None or self._below[0] != index:
+            self._below = (index, part_below(self.toolpath, index, self.topview))
+        return self._below[1]
 
     def reset(self) -> None:
         """A new print: forget the previous photo's regions."""
@@ -581,7 +634,8 @@ class FailureTyper:
         try:
             fp_box = mask_box(footprint)
             motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box)
-            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box)
+            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
+                           below=lambda: self._part_below(res.layer))
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
