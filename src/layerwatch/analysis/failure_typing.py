@@ -130,6 +130,9 @@ OBJECT_MIN_MM2 = 2.0
 #: the area a moved layer uncovered is trimmed by this much on each side before its colour counts, mm
 #: (slivers along its edges are the registration's error and the moved walls' parallax, not a ledge or the bed)
 LEDGE_TRIM_MM = 1.0
+#: a registered move stands only when at least this share of the area the layer newly covers looks like the part
+#: (a real move: about half to all of it; a registration locked on an object: bare bed nearly everywhere)
+ARRIVED_MIN = 0.25
 #: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
 OBJECT_MIN_SHARE = 0.5
 
@@ -391,12 +394,43 @@ class _Scene:
             self._ledge = (motion, self._ledge_share(motion))
         return self._ledge[1]
 
+    def arrived(self, motion: PartMotion) -> float:
+        """Share of the area a moved layer newly covers that shows the part's material rather than the bare bed, 0-1.
+
+        Where the registration puts the layer and the plan does not (the
+        registered closed outline minus the planned one, trimmed by
+        :data:`LEDGE_TRIM_MM`): a layer that really moved is there, whether
+        it shifted or the part came off. Bare bed there means the
+        registration locked on something else (an object on the part, the
+        edges of another feature). Each seen pixel counts for the nearer of
+        the part's and the bed's median colour; 0.5 (no evidence) as in
+        :meth:`ledge` (also where that area lies on the part's lower layers,
+        which are the part's colour either way).
+        """
+        return self._colour_share(motion, arrived=True)
+
     def _ledge_share(self, motion: PartMotion) -> float:
+        return self._colour_share(motion, arrived=False)
+
+    def _colour_share(self, motion: PartMotion, arrived: bool) -> float:
         if not motion.moved or self.part_colour is None or self.bed_colour is None:
             return 0.5
         part, bed = self.part_colour, self.bed_colour
         if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
             return 0.5
+        if arrived:
+            uncovered = self.moved_area(motion) & ~self.outline
+            below = None if self._below is None else self._below()
+            if below is not None:  # on the part's lower layers (planned place): the part's colour either way
+                uncovered &= ~below
+            k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1
+            uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+            if self.valid is not None:
+                uncovered &= self.valid
+            if uncovered.sum() < 20:
+                return 0.5
+            lab = _lab(self.lab_u8[uncovered])
+            return float(np.mean(_lab_distance(lab, part) < _lab_distance(lab, bed)))
         uncovered = self.outline & self.moved_area(motion)
         below = None if self._below is None else self._below()
         if below is not None:  # where the moved part's own lower layers would show: no evidence either way
@@ -636,6 +670,8 @@ class FailureTyper:
             motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box)
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
                            below=lambda: self._part_below(res.layer))
+            if motion.moved and scene.arrived(motion) < ARRIVED_MIN:  # bare bed where the layer would now be
+                motion = PartMotion(peak=motion.peak)
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
