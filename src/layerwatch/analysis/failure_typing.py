@@ -121,6 +121,11 @@ __all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTA
 COLOUR_DELTA = 22.0
 #: median CIELAB distance of a region's material from the part: 0 (the part's filament) to 1 (another material)
 PART_DELTA = (20.0, 40.0)
+#: median CIELAB distance from the part of the pixels unlike both bed and part: 0 (the part's shading) to 1 (another
+#: material), mm-free; twice and three times :data:`COLOUR_DELTA`
+OTHER_DELTA = (44.0, 66.0)
+#: smallest share of a region's pixels unlike both the bed and the part that is read as another material
+OTHER_MIN_SHARE = 0.05
 #: robust standard deviations of the ring around a foreign body's box above which a pixel is the object's
 NOISE_SIGMAS = 2.5
 #: side of the square closing a foreign body's pixels, mm; and the ring around its box that gives the noise, mm
@@ -523,21 +528,38 @@ def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float
 
 
 def _unlike_part(lab: np.ndarray, scene: _Scene) -> float:
-    """How unlike the printed part the region's material is, 0-1 (:data:`PART_DELTA` ramp of the median CIELAB distance).
+    """How unlike the printed part the region's material is, 0-1.
 
-    The material is the pixels unlike the bare bed when they are at least
-    5 % of the region (a few strands over the bed), else all its pixels (an
-    object the colour of the bed).
+    The larger of two readings:
+
+    * the :data:`PART_DELTA` ramp of the median CIELAB distance from the
+      part's colour of the region's material: the pixels unlike the bare
+      bed when they are at least 5 % of the region (a few strands over the
+      bed), else all its pixels (an object the colour of the bed);
+    * the :data:`OTHER_DELTA` ramp of the median distance from the part of
+      the pixels unlike both the bed and the part, when they are at least
+      :data:`OTHER_MIN_SHARE` of the region: an object lying on a lower
+      surface of the part (a base wider than the layer), where the
+      material unlike the bed is mostly the part's own surface around it.
+      The part's own strands and shadows differ from its median colour by
+      little more than :data:`COLOUR_DELTA` (shading); another material by
+      far more.
     """
     if scene.part_colour is None or len(lab) == 0:
         return 0.0
+    lo, hi = PART_DELTA
+    other = 0.0
     if scene.bed_colour is not None:
+        to_part = _lab_distance(lab, scene.part_colour)
         material = _unlike(lab, scene.bed_colour)
+        unlike_both = material & (to_part > COLOUR_DELTA)
+        if unlike_both.mean() >= OTHER_MIN_SHARE:
+            o_lo, o_hi = OTHER_DELTA
+            other = float(np.clip((float(np.median(to_part[unlike_both])) - o_lo) / (o_hi - o_lo), 0.0, 1.0))
         if material.mean() >= 0.05:
             lab = lab[material]
     dist = float(np.median(_lab_distance(lab, scene.part_colour)))
-    lo, hi = PART_DELTA
-    return float(np.clip((dist - lo) / (hi - lo), 0.0, 1.0))
+    return max(float(np.clip((dist - lo) / (hi - lo), 0.0, 1.0)), other)
 
 
 def region_evidence(r: Region, scene: _Scene, wall: float, motion: PartMotion, outside: float) -> RegionEvidence:
