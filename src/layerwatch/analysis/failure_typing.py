@@ -134,7 +134,7 @@ OBJECT_CLOSE_MM, NOISE_RING_MM = 1.0, 2.0
 OBJECT_MIN_MM2 = 2.0
 #: the area a moved layer uncovered is trimmed by this much on each side before its colour counts, mm
 #: (slivers along its edges are the registration's error and the moved walls' parallax, not a ledge or the bed)
-LEDGE_TRIM_MM = 1.0
+LEDGE_TRIM_MM = 0.75
 #: a registered move stands only when at least this share of the area the layer newly covers looks like the part
 #: (a real move: about half to all of it; a registration locked on an object: bare bed nearly everywhere)
 ARRIVED_MIN = 0.25
