@@ -26,7 +26,14 @@ Evidence (per region, all scale-free or in mm)
   is and should not be, and where it should be and is not).
 * **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
   below where they were (the part's colour: a layer shift) or the bare bed
-  (a detached part took its first layers with it).
+  (a detached part took its first layers with it). Only where the part's
+  own lower layers (:func:`part_below`), carried by the same motion, do not
+  reach: there a detached part on a wider base shows its moved base, the
+  part's colour too, and only the turn tells the two apart.
+* **Where the moved layer arrived** (:meth:`_Scene.arrived`): a registered
+  move whose new place (beyond the planned outline and the part's lower
+  layers) shows the bare bed is no move: the registration locked on
+  something else, e.g. an object lying on the part.
 * **Where**: the share of the region outside the part's closed outline
   (the footprint with the gaps of sparse infill closed; material where the
   plan has none: strands, objects, a moved part) against inside (material
@@ -34,8 +41,11 @@ Evidence (per region, all scale-free or in mm)
   beside the printed layer count as outside.
 * **Colour**: how far the region's material (its pixels unlike the bare
   bed) lies from the printed part's colour (median CIELAB distance,
-  lightness half weighted against shading). A foreign body is another
-  material; strands and a pit in the infill are the part's own filament.
+  lightness half weighted against shading), or, where at least 5 % of the
+  region is unlike both the bed and the part, how far those pixels lie
+  (an object on the part's own wider base, whose material unlike the bed
+  is mostly that base). A foreign body is another material; strands and a
+  pit in the infill are the part's own filament.
 * **Texture**: mean edge strength of the photo against the reference in the
   region; beside the part (where the reference is bare bed) many thin
   edges are strands. Inside the part it is no evidence: a pit shows the
