@@ -224,7 +224,8 @@ def _new_edges_match(a: np.ndarray, b: np.ndarray, planned: np.ndarray, du: int,
     widened): where the moved layer newly lies, its edges must be in the photo.
     """
     h, w = a.shape
-    moved = cv2.warpAffine(a, np.float32([[1, 0, du], [0, 1, dv]]), (w, h)) * ~planned
+    shift = np.array([[1.0, 0.0, du], [0.0, 1.0, dv]], np.float32)
+    moved = cv2.warpAffine(a, shift, (w, h)) * ~planned
     energy = float(np.sqrt(float((moved * moved).sum())))
     return float((moved * b).sum()) / energy if energy > 0 else 0.0
 
