@@ -283,7 +283,12 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     is taken as the top layer's move. For a moved part the reference is
     also turned in 1 degree steps about the footprint's centroid
     (:data:`ROTATIONS_DEG`): a clear gain at a large angle is a part that
-    turned (a detachment).
+    turned (a detachment). A moved part that did not turn takes as its
+    translation the strong peak (the chosen one or any local maximum of at
+    least :data:`CANDIDATE_PEAK` of the zero-shift peak) whose moved edges the
+    photo shows best where the reference has none (:func:`_new_place`): at
+    a shift's first layers the layers below give peaks within about a
+    millimetre of zero that can outrank the moved layer's own.
     """
     fp = np.asarray(footprint, bool)
     fbox = mask_box(fp) if footprint_box is None else footprint_box
