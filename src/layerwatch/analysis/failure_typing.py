@@ -26,7 +26,14 @@ Evidence (per region, all scale-free or in mm)
   is and should not be, and where it should be and is not).
 * **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
   below where they were (the part's colour: a layer shift) or the bare bed
-  (a detached part took its first layers with it).
+  (a detached part took its first layers with it). Only where the part's
+  own lower layers (:func:`part_below`), carried by the same motion, do not
+  reach: there a detached part on a wider base shows its moved base, the
+  part's colour too, and only the turn tells the two apart.
+* **Where the moved layer arrived** (:meth:`_Scene.arrived`): a registered
+  move whose new place (beyond the planned outline and the part's lower
+  layers) shows the bare bed is no move: the registration locked on
+  something else, e.g. an object lying on the part.
 * **Where**: the share of the region outside the part's closed outline
   (the footprint with the gaps of sparse infill closed; material where the
   plan has none: strands, objects, a moved part) against inside (material
@@ -34,8 +41,11 @@ Evidence (per region, all scale-free or in mm)
   beside the printed layer count as outside.
 * **Colour**: how far the region's material (its pixels unlike the bare
   bed) lies from the printed part's colour (median CIELAB distance,
-  lightness half weighted against shading). A foreign body is another
-  material; strands and a pit in the infill are the part's own filament.
+  lightness half weighted against shading), or, where at least 5 % of the
+  region is unlike both the bed and the part, how far those pixels lie
+  (an object on the part's own wider base, whose material unlike the bed
+  is mostly that base). A foreign body is another material; strands and a
+  pit in the infill are the part's own filament.
 * **Texture**: mean edge strength of the photo against the reference in the
   region; beside the part (where the reference is bare bed) many thin
   edges are strands. Inside the part it is no evidence: a pit shows the
@@ -84,6 +94,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -106,25 +117,37 @@ from layerwatch.analysis.part_registration import (
     moved_area,
     pad_box,
     part_motion,
+    top_from_plan,
 )
 from layerwatch.analysis.region_outline import Outline, outline_mm
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.gcode.toolpath import FEATURES, Toolpath
+from layerwatch.gcode.toolpath import FEATURES, Toolpath, part_mask
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTATION_MIN_DEG", "SECOND_PEAK",
-           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_motion", "region_evidence"]
+           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_below", "part_motion", "region_evidence"]
 
 #: CIELAB distance (lightness half weighted) above which a pixel is unlike a reference colour
 COLOUR_DELTA = 22.0
 #: median CIELAB distance of a region's material from the part: 0 (the part's filament) to 1 (another material)
 PART_DELTA = (20.0, 40.0)
+#: median CIELAB distance from the part of the pixels unlike both bed and part: 0 (the part's shading) to 1 (another
+#: material), mm-free; twice and three times :data:`COLOUR_DELTA`
+OTHER_DELTA = (44.0, 66.0)
+#: smallest share of a region's pixels unlike both the bed and the part that is read as another material
+OTHER_MIN_SHARE = 0.05
 #: robust standard deviations of the ring around a foreign body's box above which a pixel is the object's
 NOISE_SIGMAS = 2.5
 #: side of the square closing a foreign body's pixels, mm; and the ring around its box that gives the noise, mm
 OBJECT_CLOSE_MM, NOISE_RING_MM = 1.0, 2.0
 #: smallest area of a foreign body's pixels that replaces its blocks, mm^2
 OBJECT_MIN_MM2 = 2.0
+#: the area a moved layer uncovered is trimmed by this much on each side before its colour counts, mm
+#: (slivers along its edges are the registration's error and the moved walls' parallax, not a ledge or the bed)
+LEDGE_TRIM_MM = 0.75
+#: a registered move stands only when at least this share of the area the layer newly covers looks like the part
+#: (a real move: about half to all of it; a registration locked on an object: bare bed nearly everywhere)
+ARRIVED_MIN = 0.25
 #: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
 OBJECT_MIN_SHARE = 0.5
 
@@ -230,8 +253,10 @@ class _Scene:
 
     def __init__(self, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
                  topview: TopView, valid: np.ndarray | None,
-                 footprint_box: tuple[int, int, int, int] | None = None) -> None:
+                 footprint_box: tuple[int, int, int, int] | None = None,
+                 below: Callable[[], np.ndarray | None] | None = None) -> None:
         self.topview = topview
+        self._below = below
         self.top_bgr, self.top, self.reference = top_bgr, top, reference
         self.fp = np.asarray(footprint, bool)
         self.shape = self.fp.shape
@@ -367,25 +392,69 @@ class _Scene:
         """Share of the area a moved layer uncovered that shows the part's material rather than the bare bed, 0-1.
 
         Where the layer should be and is not (the closed outline minus the
-        registered one, eroded by one pixel), a layer shift leaves the
+        registered one, trimmed by :data:`LEDGE_TRIM_MM`), a layer shift leaves the
         layers below it (the part's material); a detached part, which moved
-        with its first layers, leaves the bed. Each seen pixel counts for
-        the nearer of the part's and the bed's median colour. 0.5 (no
-        evidence) when the part did not move, either colour is unknown, they
-        are alike (within :data:`COLOUR_DELTA`) or fewer than 20 pixels were uncovered.
+        with its first layers, leaves the bed, except where its own lower
+        layers, moved with it, reach under that area (a part that narrows
+        upward: a block on a wider base shows the moved base there, as a
+        shift shows the layers below). Those pixels (the part below the
+        layer, ``below``, carried by the same motion) are left out: only
+        where the two explanations differ is the colour evidence. Each seen
+        pixel counts for the nearer of the part's and the bed's median
+        colour. 0.5 (no evidence) when the part did not move, either colour
+        is unknown, they are alike (within :data:`COLOUR_DELTA`) or fewer
+        than 20 pixels are left.
         """
         if self._ledge is None or self._ledge[0] != motion:
             self._ledge = (motion, self._ledge_share(motion))
         return self._ledge[1]
 
+    def arrived(self, motion: PartMotion) -> float:
+        """Share of the area a moved layer newly covers that shows the part's material rather than the bare bed, 0-1.
+
+        Where the registration puts the layer and the plan does not (the
+        registered closed outline minus the planned one, trimmed by
+        :data:`LEDGE_TRIM_MM`): a layer that really moved is there, whether
+        it shifted or the part came off. Bare bed there means the
+        registration locked on something else (an object on the part, the
+        edges of another feature). Each seen pixel counts for the nearer of
+        the part's and the bed's median colour; 0.5 (no evidence) as in
+        :meth:`ledge` (also where that area lies on the part's lower layers,
+        which are the part's colour either way).
+        """
+        return self._colour_share(motion, arrived=True)
+
     def _ledge_share(self, motion: PartMotion) -> float:
+        return self._colour_share(motion, arrived=False)
+
+    def _colour_share(self, motion: PartMotion, arrived: bool) -> float:
         if not motion.moved or self.part_colour is None or self.bed_colour is None:
             return 0.5
         part, bed = self.part_colour, self.bed_colour
         if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
             return 0.5
+        if arrived:
+            uncovered = self.moved_area(motion) & ~self.outline
+            below = None if self._below is None else self._below()
+            if below is not None:  # on the part's lower layers (planned place): the part's colour either way
+                uncovered &= ~below
+            k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1
+            uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+            if self.valid is not None:
+                uncovered &= self.valid
+            if uncovered.sum() < 20:
+                return 0.5
+            lab = _lab(self.lab_u8[uncovered])
+            return float(np.mean(_lab_distance(lab, part) < _lab_distance(lab, bed)))
         uncovered = self.outline & self.moved_area(motion)
-        uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        below = None if self._below is None else self._below()
+        if below is not None:  # where the moved part's own lower layers would show: no evidence either way
+            h, w = self.shape
+            carried = cv2.warpAffine(below.view(np.uint8), top_from_plan(motion, self.topview), (w, h),
+                                     flags=cv2.INTER_NEAREST)
+            uncovered &= carried == 0
+        k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1  # slivers: registration error, walls' parallax
+        uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         if self.valid is not None:
             uncovered &= self.valid
         if uncovered.sum() < 20:
@@ -431,6 +500,30 @@ class _Scene:
         return slice(int(v_lo), int(v_hi)), slice(int(u_lo), int(u_hi))
 
 
+def part_below(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray | None:
+    """Top-view area of the part's layers below layer ``index`` as seen from above, bool (H, W); None when none.
+
+    The union of the beads of layers ``0 .. index - 1`` (the part's own
+    features: no skirt, brim or purge line), with the gaps of sparse infill
+    (up to 3 mm) closed as in the layer's closed outline. Pixels are where
+    the plan puts those layers; a detached part carries them with it.
+    """
+    if toolpath is None or not 0 < index < toolpath.n_layers:
+        return None
+    sl = slice(0, toolpath.layers[index - 1].seg_stop)
+    keep = part_mask(toolpath.feature[sl])
+    if not keep.any():
+        return None
+    s = topview.px_per_mm
+    p0 = np.round(topview.to_px(toolpath.start[sl][keep]) * 4).astype(np.int32)  # 2 fractional bits
+    p1 = np.round(topview.to_px(toolpath.end[sl][keep]) * 4).astype(np.int32)
+    width = max(1, int(round(float(np.median(toolpath.width[sl][keep])) * s)))
+    out = np.zeros(topview.shape, np.uint8)
+    cv2.polylines(out, list(np.stack([p0, p1], axis=1)), False, 1, thickness=width, lineType=cv2.LINE_8, shift=2)
+    k2 = max(3, int(round(3.0 * s)) | 1)
+    return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8)).astype(bool)
+
+
 def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float, float, float, float]) -> float:
     """Share of wall segments among the wall and infill segments of layer ``index`` inside ``bbox_mm`` (0.5: none)."""
     if toolpath is None or not 0 <= index < toolpath.n_layers:
@@ -445,21 +538,38 @@ def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float
 
 
 def _unlike_part(lab: np.ndarray, scene: _Scene) -> float:
-    """How unlike the printed part the region's material is, 0-1 (:data:`PART_DELTA` ramp of the median CIELAB distance).
+    """How unlike the printed part the region's material is, 0-1.
 
-    The material is the pixels unlike the bare bed when they are at least
-    5 % of the region (a few strands over the bed), else all its pixels (an
-    object the colour of the bed).
+    The larger of two readings:
+
+    * the :data:`PART_DELTA` ramp of the median CIELAB distance from the
+      part's colour of the region's material: the pixels unlike the bare
+      bed when they are at least 5 % of the region (a few strands over the
+      bed), else all its pixels (an object the colour of the bed);
+    * the :data:`OTHER_DELTA` ramp of the median distance from the part of
+      the pixels unlike both the bed and the part, when they are at least
+      :data:`OTHER_MIN_SHARE` of the region: an object lying on a lower
+      surface of the part (a base wider than the layer), where the
+      material unlike the bed is mostly the part's own surface around it.
+      The part's own strands and shadows differ from its median colour by
+      little more than :data:`COLOUR_DELTA` (shading); another material by
+      far more.
     """
     if scene.part_colour is None or len(lab) == 0:
         return 0.0
+    lo, hi = PART_DELTA
+    other = 0.0
     if scene.bed_colour is not None:
+        to_part = _lab_distance(lab, scene.part_colour)
         material = _unlike(lab, scene.bed_colour)
+        unlike_both = material & (to_part > COLOUR_DELTA)
+        if unlike_both.mean() >= OTHER_MIN_SHARE:
+            o_lo, o_hi = OTHER_DELTA
+            other = float(np.clip((float(np.median(to_part[unlike_both])) - o_lo) / (o_hi - o_lo), 0.0, 1.0))
         if material.mean() >= 0.05:
             lab = lab[material]
     dist = float(np.median(_lab_distance(lab, scene.part_colour)))
-    lo, hi = PART_DELTA
-    return float(np.clip((dist - lo) / (hi - lo), 0.0, 1.0))
+    return max(float(np.clip((dist - lo) / (hi - lo), 0.0, 1.0)), other)
 
 
 def region_evidence(r: Region, scene: _Scene, wall: float, motion: PartMotion, outside: float) -> RegionEvidence:
@@ -547,6 +657,15 @@ class FailureTyper:
         self.toolpath = toolpath
         self.topview = topview
         self.previous: list[Region] = []
+        self._below: tuple[int, np.ndarray | None] | None = None
+
+    def _part_below(self, index: int) -> np.ndarray | None:
+        """:func:`part_below` of layer ``index``, kept for the last layer asked (a moved part's photos come in a row)."""
+        if self.toolpath is None:
+            return None
+        if self._below is None or self._below[0] != index:
+            self._below = (index, part_below(self.toolpath, index, self.topview))
+        return self._below[1]
 
     def reset(self) -> None:
         """A new print: forget the previous photo's regions."""
@@ -581,7 +700,10 @@ class FailureTyper:
         try:
             fp_box = mask_box(footprint)
             motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box)
-            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box)
+            scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
+                           below=lambda: self._part_below(res.layer))
+            if motion.moved and scene.arrived(motion) < ARRIVED_MIN:  # bare bed where the layer would now be
+                motion = PartMotion(peak=motion.peak)
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]

@@ -47,6 +47,12 @@ ROTATION_MIN_DEG = 2.5
 ROTATION_GAIN = 1.45
 #: largest displacement searched, mm (the crop around the footprint is widened by it)
 MOVE_MAX_MM = 12.0
+#: a correlation peak at least this share of the zero-shift peak is a candidate for a moved layer's new place
+CANDIDATE_PEAK = 0.5
+#: most candidates compared (the highest)
+MAX_CANDIDATES = 8
+#: reference edges above this share of their 99th percentile are the plan's own (where a moved layer is not new)
+PLANNED_EDGE = 0.2
 #: rotations searched for a moved part, degrees
 ROTATIONS_DEG = np.arange(-10.0, 10.01, 1.0)
 #: most ECC iterations refining a moved part's motion
@@ -180,12 +186,48 @@ def _peak(r: np.ndarray, reach_px: float, exclude_px: float = 0.0) -> tuple[floa
     sub = r[v_lo:v_hi, u_lo:u_hi]
     rr = np.where(np.hypot(yy - cy, xx - cx) >= exclude_px, sub, -np.inf) if exclude_px > 0 else sub
     v, u = np.unravel_index(int(np.argmax(rr)), rr.shape)
-    v, u = int(v) + v_lo, int(u) + u_lo
+    return _centroid(r, int(v) + v_lo, int(u) + u_lo)
+
+
+def _centroid(r: np.ndarray, v: int, u: int) -> tuple[float, float, float]:
+    """``(du, dv, height)`` of the point ``(v, u)`` of a correlation surface, sub-pixel (see :func:`_peak`)."""
+    h, w = r.shape
+    cy, cx = h // 2, w // 2
     p = r[max(v - 1, 0): v + 2, max(u - 1, 0): u + 2]
     p = p - p.min()
     vy, vx = np.mgrid[max(v - 1, 0): v + 2, max(u - 1, 0): u + 2]
     s = float(p.sum()) or 1.0
     return float((vx * p).sum() / s - cx), float((vy * p).sum() / s - cy), float(r[v, u])
+
+
+def _candidates(r: np.ndarray, reach_px: float, near_px: float, floor: float) -> list[tuple[int, int]]:
+    """Local maxima ``(v, u)`` of a correlation surface at least ``near_px`` and at most ``reach_px`` from zero
+    shift and at least ``floor`` high, highest first, at most :data:`MAX_CANDIDATES` (5 x 5 neighbourhoods)."""
+    h, w = r.shape
+    cy, cx = h // 2, w // 2
+    n = int(math.floor(reach_px))
+    v_lo, v_hi, u_lo, u_hi = max(cy - n, 0), min(cy + n + 1, h), max(cx - n, 0), min(cx + n + 1, w)
+    sub = np.ascontiguousarray(r[v_lo:v_hi, u_lo:u_hi])
+    top = (sub >= cv2.dilate(sub, np.ones((5, 5), np.uint8))) & (sub >= floor)
+    vv, uu = np.nonzero(top)
+    vv, uu = vv + v_lo, uu + u_lo
+    far = np.hypot(vv - cy, uu - cx) >= near_px
+    vv, uu = vv[far], uu[far]
+    order = np.argsort(-r[vv, uu], kind="stable")[:MAX_CANDIDATES]
+    return [(int(vv[k]), int(uu[k])) for k in order]
+
+
+def _new_edges_match(a: np.ndarray, b: np.ndarray, planned: np.ndarray, du: int, dv: int) -> float:
+    """How well the layer's edges ``a`` moved by ``(du, dv)`` px match the photo's ``b`` where the plan has no edges.
+
+    Normalised correlation over the pixels outside ``planned`` (the reference's edges at zero shift,
+    widened): where the moved layer newly lies, its edges must be in the photo.
+    """
+    h, w = a.shape
+    shift = np.array([[1.0, 0.0, du], [0.0, 1.0, dv]], np.float32)
+    moved = cv2.warpAffine(a, shift, (w, h)) * ~planned
+    energy = float(np.sqrt(float((moved * moved).sum())))
+    return float((moved * b).sum()) / energy if energy > 0 else 0.0
 
 
 def _rotation(a: np.ndarray, b: np.ndarray, centre: tuple[float, float]) -> tuple[float, float]:
@@ -241,7 +283,12 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     is taken as the top layer's move. For a moved part the reference is
     also turned in 1 degree steps about the footprint's centroid
     (:data:`ROTATIONS_DEG`): a clear gain at a large angle is a part that
-    turned (a detachment).
+    turned (a detachment). A moved part that did not turn takes as its
+    translation the strong peak (the chosen one or any local maximum of at
+    least :data:`CANDIDATE_PEAK` of the zero-shift peak) whose moved edges the
+    photo shows best where the reference has none (:func:`_new_place`): at
+    a shift's first layers the layers below give peaks within about a
+    millimetre of zero that can outrank the moved layer's own.
     """
     fp = np.asarray(footprint, bool)
     fbox = mask_box(fp) if footprint_box is None else footprint_box
@@ -252,7 +299,8 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     k = int(round(topview.px_per_mm)) * 2 + 1
     top_layer = cv2.GaussianBlur(cv2.dilate(fp[box].astype(np.uint8), np.ones((k, k), np.uint8)).astype(np.float32),
                                  (0, 0), 2.0)
-    a = edges(reference[box]) * top_layer * seen  # unseen pixels 0 (edge strengths are finite)
+    ref_edges = edges(reference[box])
+    a = ref_edges * top_layer * seen  # unseen pixels 0 (edge strengths are finite)
     b = edges(top[box]) * seen
     h, w = a.shape
     if h < 16 or w < 16 or not a.any() or not b.any():
@@ -281,7 +329,43 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
         du, dv, height = _peak(corr.surface(turned), reach)
         d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
         motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, motion.pivot_mm)
-    return _refine(motion, a, b, centre, topview)
+    motion = _refine(motion, a, b, centre, topview)
+    if motion.turned:
+        return motion
+    # a part that did not turn: which of the strong peaks away from zero is the layer's new place
+    du2, dv2, height2 = _new_place(r, a, b, ref_edges, (du, dv, height), reach, near)
+    if (du2, dv2) == (du, dv):
+        return motion
+    d = topview.to_mm(np.array([du2, dv2], float)) - topview.to_mm(np.zeros(2))
+    return dataclasses.replace(motion, dx_mm=float(d[0]), dy_mm=float(d[1]), peak=height2)
+
+
+def _new_place(r: np.ndarray, a: np.ndarray, b: np.ndarray, ref_edges: np.ndarray,
+               chosen: tuple[float, float, float], reach: float, near: float) -> tuple[float, float, float]:
+    """The move among the strong correlation peaks whose new edges the photo shows best: ``(du, dv, height)``.
+
+    At a shift's first layers the unmoved layers below give the highest peak (zero shift) and
+    peaks within about a millimetre of it (their walls and perimeters seen at an angle), often
+    higher than the moved layer's own. The candidates are ``chosen`` and the local maxima at
+    least :data:`CANDIDATE_PEAK` of the zero-shift peak (:func:`_candidates`); each is scored by
+    :func:`_new_edges_match` outside the reference's own edges (above :data:`PLANNED_EDGE` of
+    their 99th percentile, widened by 2 px): the near peaks of the layers below land
+    mostly on those edges, the layer's true new place does not.
+    """
+    h, w = r.shape
+    zero = _peak(r, near)[2]
+    cands = _candidates(r, reach, near, CANDIDATE_PEAK * zero)
+    strong = ref_edges[ref_edges > 0]
+    if not cands or strong.size == 0:
+        return chosen
+    planned = cv2.dilate((ref_edges > PLANNED_EDGE * float(np.percentile(strong, 99))).view(np.uint8),
+                         np.ones((5, 5), np.uint8)).astype(bool)
+    best, best_score = chosen, _new_edges_match(a, b, planned, int(round(chosen[0])), int(round(chosen[1])))
+    for v, u in cands:
+        score = _new_edges_match(a, b, planned, u - w // 2, v - h // 2)
+        if score > best_score:
+            best, best_score = _centroid(r, v, u), score
+    return best
 
 
 def _refine(motion: PartMotion, a: np.ndarray, b: np.ndarray, centre: tuple[float, float],
