@@ -117,6 +117,43 @@ def test_a_moving_shade_is_explained_by_a_local_gain():
     assert not change_blocks(photo, E, usable, ratio, SceneSettings()).changed.any()
 
 
+def _fit_on_the_whole_image(photo, expected, usable, cell_px=32, smooth_cells=5):
+    """photometric_fit as it was before it took the log ratio on the usable box only (the reference)."""
+    from scipy import ndimage
+
+    from layerwatch.analysis.scene_change import OUTLIER_LOG, channel_max
+    h, w = usable.shape
+    ok = np.ascontiguousarray(usable[::2, ::2]).astype(np.float32)
+    lr = cv2.subtract(np.log1p(photo[::2, ::2]), np.log1p(expected[::2, ::2]))
+    c = max(1, cell_px // 2)
+    size = (-(-ok.shape[1] // c), -(-ok.shape[0] // c))
+    glob = np.array([np.median(lr[..., k][ok > 0]) for k in range(3)])
+    keep = ok
+    for _ in range(2):
+        frac = cv2.resize(keep, size, interpolation=cv2.INTER_AREA)
+        mean = cv2.resize(lr * keep[..., None], size, interpolation=cv2.INTER_AREA) / np.maximum(frac, 1e-6)[..., None]
+        mean = np.where((frac >= 0.25)[..., None], mean, glob).astype(np.float32)
+        near = cv2.resize(mean, ok.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        keep = ok * (channel_max(np.abs(lr - near)) < OUTLIER_LOG).astype(np.float32)
+    mean = ndimage.median_filter(mean, size=(smooth_cells, smooth_cells, 1), mode="nearest")
+    field = cv2.resize(mean, (size[0] * cell_px, size[1] * cell_px), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    return np.exp(np.ascontiguousarray(field, np.float32)), np.exp(glob).astype(np.float64)
+
+
+@pytest.mark.parametrize("box", [(slice(91, 326), slice(116, 524)), (slice(0, 360), slice(0, 640)),
+                                 (slice(40, 41), slice(7, 600)), (slice(201, 360), slice(333, 640))])
+def test_photometric_fit_on_the_usable_box_is_the_whole_image_fit_bit_for_bit(box):
+    E = _texture(360, 640, seed=3)
+    rng = np.random.default_rng(4)
+    photo = _noisy(E * np.float32(1.2), seed=5)
+    photo[100:140, 200:260] = 240.0  # an object: outliers of the fit
+    usable = np.zeros(E.shape[:2], bool)
+    usable[box] = rng.random(usable[box].shape) < 0.8
+    ratio, gain = photometric_fit(photo, E, usable)
+    want_ratio, want_gain = _fit_on_the_whole_image(photo, E, usable)
+    assert np.array_equal(ratio, want_ratio) and np.array_equal(gain, want_gain)
+
+
 def test_unusable_pixels_are_not_scored_and_a_black_frame_has_no_gain():
     E = _texture()
     usable = np.zeros(E.shape[:2], bool)

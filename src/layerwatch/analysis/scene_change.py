@@ -347,7 +347,13 @@ def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
     ok = np.ascontiguousarray(usable[::2, ::2]).astype(np.float32)
     if ok.sum() < 50:
         return np.ones((h, w, 3), np.float32), np.zeros(3)
-    lr = cv2.subtract(np.log1p(photo[::2, ::2]), np.log1p(expected[::2, ::2]))
+    # the log ratio only on the box of the usable pixels: elsewhere every use below weighs it by 0
+    # (``keep`` is 0 there), so 0 in its place gives the same field and gains, bit for bit
+    rows, cols = np.flatnonzero(ok.any(axis=1)), np.flatnonzero(ok.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    inner = cv2.subtract(np.log1p(photo[::2, ::2][box]), np.log1p(expected[::2, ::2][box]))
+    lr = np.zeros((*ok.shape, *inner.shape[2:]), inner.dtype)
+    lr[box] = inner
     c = max(1, cell_px // 2)
     size = (-(-ok.shape[1] // c), -(-ok.shape[0] // c))  # cells (m, n)
     glob = np.array([np.median(lr[..., k][ok > 0]) for k in range(3)])
