@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from layerwatch.analysis.histogram import middle_values
+from layerwatch.analysis.histogram import middle_values, percentiles
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
@@ -273,9 +273,18 @@ def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: fl
     return float(np.median(seen)) if len(seen) >= 2 else None
 
 
-def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str, float]) -> list[str]:
-    p1, p99 = (float(v) for v in np.percentile(small, (1, 99)))
-    fig.update(p1=p1, p99=p99, bright=float(np.mean(small >= 250)))
+def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str, float],
+                      small_u8: np.ndarray | None = None) -> list[str]:
+    """Black, over-exposed or flat frame; ``small_u8``: the reduced grey frame as uint8 (``small`` is its float32),
+    whose 256-bin histogram gives the same percentiles and white share, bit for bit, without partitioning it."""
+    if small_u8 is not None:
+        counts = cv2.calcHist([small_u8], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+        p1, p99 = percentiles(counts, (1, 99))
+        bright = int(counts[250:].sum()) / int(counts.sum())
+    else:
+        p1, p99 = (float(v) for v in np.percentile(small, (1, 99)))
+        bright = float(np.mean(small >= 250))
+    fig.update(p1=p1, p99=p99, bright=bright)
     out = []
     if p99 < s.dark_p99:
         out.append(f"black frame (99th percentile {p99:.0f}/255): light off or lens covered")
@@ -320,9 +329,14 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
     """
     s = settings or FrameQualitySettings()
     grey = grey_of(image_bgr)
-    small = _reduced(grey) if small is None else _given_small(small, grey.shape)
+    if small is None:
+        small_u8: np.ndarray | None = _shrunk(grey)
+        small = np.asarray(small_u8).astype(np.float32)  # (_reduced)
+    else:
+        small_u8 = np.ascontiguousarray(small) if np.asarray(small).dtype == np.uint8 else None
+        small = _given_small(small, grey.shape)
     fig: dict[str, float] = {}
-    reasons = _exposure_reasons(small, s, fig)
+    reasons = _exposure_reasons(small, s, fig, small_u8)
     fig["noise"] = noise_sigma(grey)
     fig["blockiness"] = blockiness(grey)
     fig["sharpness"] = sharpness(small, fig["p99"] - fig["p1"])
