@@ -210,3 +210,13 @@ def test_exposure_figures_from_the_histogram_are_numpys_percentiles(kind):
     assert assess_frame(frame).figures == hist
     for key in ("p1", "p99", "bright"):
         assert hist[key] == sorted_[key], key
+
+
+def test_median_and_percentile_from_one_partition_are_numpys():
+    from layerwatch.analysis.frame_quality import _median_and_percentile
+
+    rng = np.random.default_rng(12)
+    for n in (1, 2, 3, 1000, 1001, 230400):
+        for v in (rng.normal(0, 2, n), np.abs(rng.standard_cauchy(n)), rng.integers(0, 4, n).astype(np.float64)):
+            for q in (99.9, 50.0, 0.0, 100.0):
+                assert _median_and_percentile(v.copy(), q) == (float(np.median(v)), float(np.percentile(v, q)))

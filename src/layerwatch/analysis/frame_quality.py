@@ -248,8 +248,32 @@ def change_from(small: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
     # order statistics do not depend on the order of the values: the temporaries are partitioned in place
     # (no copy per statistic; the values, and so the figures, are the same bit for bit)
     dev = np.abs(resid - float(np.median(resid, overwrite_input=True)))
-    spread = float(np.median(dev, overwrite_input=True) / 0.6745)
-    return float(max(np.percentile(dev, 99.9, overwrite_input=True) - 3.0 * spread, 0.0)), spread
+    med, tail = _median_and_percentile(dev.ravel(), 99.9)
+    spread = float(med / 0.6745)
+    return float(max(tail - 3.0 * spread, 0.0)), spread
+
+
+def _median_and_percentile(values: np.ndarray, q: float) -> tuple[float, float]:
+    """``numpy.median(values)`` and ``numpy.percentile(values, q)`` (linear) of a float64 (n,) array, bit for bit,
+    from one partition in place (numpy partitions once per statistic).
+
+    The order statistics each needs are selected together; numpy's arithmetic on them is followed step
+    for step: the mean of the middle one or two for the median, the virtual index ``(n - 1) q / 100``,
+    its floor, and ``_lerp`` with a Python-float weight (``q`` is a Python float) for the percentile.
+    """
+    n = values.size
+    mid = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
+    virtual = (n - 1) * np.true_divide(q, 100)
+    lo = int(np.floor(virtual))
+    hi = lo + 1
+    if virtual >= n - 1:
+        lo = hi = n - 1
+    values.partition(sorted({*mid, lo, hi}))
+    med = float(np.mean(values[mid[0]:mid[-1] + 1]))
+    a, b = values[lo], values[hi]
+    t = float(virtual - np.floor(virtual)) if virtual < n - 1 else float(virtual - (n - 1))
+    diff = b - a
+    return med, float(b - diff * (1 - t) if t >= 0.5 else a + diff * t)
 
 
 def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:
