@@ -246,3 +246,33 @@ def test_bits_on_the_printed_box_render_every_layer_as_on_the_whole_view(source,
         for a, b in zip(boxed, whole, strict=True):
             np.testing.assert_array_equal(a, b, err_msg=f"layer {index}")
     assert grew == tp.n_layers  # the box was smaller than the view on every layer
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source", ["example", "prusaslicer-2.8.1_mini-cube_ascii.gcode",
+                                    "cura-4.10.0_m83_multi-object.gcode"])
+def test_height_map_held_on_the_printed_box_renders_every_layer_as_the_whole_map(source, shared_data, monkeypatch):
+    """Between renders a renderer keeps its height map on the box its capsules can reach: every layer's
+    camera-view reference and height map equal those of a renderer that keeps the whole map."""
+    from layerwatch.examples import PART_CONFIG, PART_GCODE
+    from layerwatch.gcode import read_toolpath
+    from layerwatch.pipeline.config import resolve_config
+
+    if source == "example":
+        tp = read_toolpath(PART_GCODE)
+        tv = resolve_config(PART_CONFIG).config.topview.topview()
+    else:
+        tp = read_toolpath((shared_data / "gcode" / source).read_bytes())
+        x0, y0, x1, y1 = tp.bounds
+        tv = TopViewSettings(center_mm=((x0 + x1) / 2, (y0 + y1) / 2), width_mm=max(150.0, x1 - x0 + 30),
+                             height_mm=max(150.0, y1 - y0 + 30), px_per_mm=3.0).topview()
+    cam = default_camera(tv).center_mm
+    boxed = StackRenderer(tp, tv)
+    whole = StackRenderer(tp, tv)
+    monkeypatch.setattr(whole, "_cover", lambda *a: setattr(whole, "_hbox", (0, tv.shape[0], 0, tv.shape[1])))
+    for index in [*range(tp.n_layers), tp.n_layers // 2, tp.n_layers - 1]:  # (then again from a reset)
+        a, b = boxed.render(index, cam), whole.render(index, cam)
+        np.testing.assert_array_equal(a.image, b.image, err_msg=f"layer {index}")
+        np.testing.assert_array_equal(a.height, b.height, err_msg=f"layer {index}")
+        np.testing.assert_array_equal(boxed.height, a.height)
+        assert boxed._held.size < 0.6 * whole._held.size
