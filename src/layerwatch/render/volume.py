@@ -9,8 +9,9 @@ on clean layers.
 
 :class:`OccupancyStack` keeps, for every *z slot* (the distinct layer tops of
 the toolpath), the footprint of the beads printed in it as a bit-packed
-raster: ``(n_slots, H, ceil(W / 8))`` uint8, 45 kB per slot at 600 x 600 px
-(500 layers: 22.5 MB). A layer fills the slots its thickness spans, so
+raster on the box the print covers: ``(n_slots, h, b)`` uint8, at most 45 kB per
+slot at 600 x 600 px (500 layers: 22.5 MB) when the part fills the view, a
+fraction of it otherwise (a 40 mm part on a 150 mm square: ~1/14). A layer fills the slots its thickness spans, so
 sequential prints and variable layer heights stack correctly. Short vertical
 gaps (at most ``fill_layers`` slots, e.g. the one-layer slit under a sparse
 infill line that crosses the previous layer's lines) are closed, as the
