@@ -205,6 +205,20 @@ def test_final_approach_over_bare_bed_is_the_full_march_bit_for_bit(cam, monkeyp
                 np.testing.assert_array_equal(a, b)
 
 
+def _job(source: str, shared_data):
+    """The example part on its own top view, or a slicer's file on a 150 mm square at 3 px/mm around it."""
+    from layerwatch.examples import PART_CONFIG, PART_GCODE
+    from layerwatch.gcode import read_toolpath
+    from layerwatch.pipeline.config import resolve_config
+
+    if source == "example":
+        return read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config.topview.topview()
+    tp = read_toolpath((shared_data / "gcode" / source).read_bytes())
+    x0, y0, x1, y1 = tp.bounds
+    return tp, TopViewSettings(center_mm=((x0 + x1) / 2, (y0 + y1) / 2), width_mm=max(150.0, x1 - x0 + 30),
+                               height_mm=max(150.0, y1 - y0 + 30), px_per_mm=3.0).topview()
+
+
 def _whole_view(volume: OccupancyStack) -> OccupancyStack:
     """The same occupancy with its bits on the whole top view (the layout before the printed box)."""
     import copy
@@ -220,18 +234,7 @@ def _whole_view(volume: OccupancyStack) -> OccupancyStack:
 def test_bits_on_the_printed_box_render_every_layer_as_on_the_whole_view(source, shared_data):
     """The occupancy kept on the print's box (grown as layers come) gives the march the images and hit heights
     of the whole-view bits, float for float, on every layer of the example part and two slicers' files."""
-    from layerwatch.examples import PART_CONFIG, PART_GCODE
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.pipeline.config import resolve_config
-
-    if source == "example":
-        tp = read_toolpath(PART_GCODE)
-        tv = resolve_config(PART_CONFIG).config.topview.topview()
-    else:
-        tp = read_toolpath((shared_data / "gcode" / source).read_bytes())
-        x0, y0, x1, y1 = tp.bounds
-        tv = TopViewSettings(center_mm=((x0 + x1) / 2, (y0 + y1) / 2), width_mm=max(150.0, x1 - x0 + 30),
-                             height_mm=max(150.0, y1 - y0 + 30), px_per_mm=3.0).topview()
+    tp, tv = _job(source, shared_data)
     cam = default_camera(tv).center_mm
     r = StackRenderer(tp, tv, RenderSettings(reference="volume"))
     grew = 0
@@ -254,18 +257,7 @@ def test_bits_on_the_printed_box_render_every_layer_as_on_the_whole_view(source,
 def test_height_map_held_on_the_printed_box_renders_every_layer_as_the_whole_map(source, shared_data, monkeypatch):
     """Between renders a renderer keeps its height map on the box its capsules can reach: every layer's
     camera-view reference and height map equal those of a renderer that keeps the whole map."""
-    from layerwatch.examples import PART_CONFIG, PART_GCODE
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.pipeline.config import resolve_config
-
-    if source == "example":
-        tp = read_toolpath(PART_GCODE)
-        tv = resolve_config(PART_CONFIG).config.topview.topview()
-    else:
-        tp = read_toolpath((shared_data / "gcode" / source).read_bytes())
-        x0, y0, x1, y1 = tp.bounds
-        tv = TopViewSettings(center_mm=((x0 + x1) / 2, (y0 + y1) / 2), width_mm=max(150.0, x1 - x0 + 30),
-                             height_mm=max(150.0, y1 - y0 + 30), px_per_mm=3.0).topview()
+    tp, tv = _job(source, shared_data)
     cam = default_camera(tv).center_mm
     boxed = StackRenderer(tp, tv)
     whole = StackRenderer(tp, tv)

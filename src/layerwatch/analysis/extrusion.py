@@ -71,18 +71,9 @@ BLUR_REACH_PX = 12
 def box_texture(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
     """``highpass(to_working(photo, size))[box]``, resizing and blurring only the box and the blurs' reach.
 
-    :func:`~layerwatch.analysis.scene_change.working_crop` with :data:`BLUR_REACH_PX`: the frame is cut
-    at the box grown by the reach of both blurs and aligned to whole source pixels, so the result equals
-    the whole-image computation (to float rounding).
-
-    Parameters
-    ----------
-    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
-        Frame as captured.
-    size : (int, int)
-        Working ``(width, height)`` px.
-    box : (slice, slice)
-        Rows and columns of the working image (steps of 1, bounds within it).
+    :func:`~layerwatch.analysis.scene_change.working_crop` (its ``photo``, ``size`` and ``box``) with
+    :data:`BLUR_REACH_PX`: the frame is cut at the box grown by the reach of both blurs and aligned to
+    whole source pixels, so the result is the whole-image computation's, bit for bit (tested).
 
     Returns
     -------
