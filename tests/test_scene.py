@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from layerwatch.analysis.scene_change import to_working
 from layerwatch.cli import main
 from layerwatch.evaluate.results import ResultsFolder
 from layerwatch.examples import PART_CONFIG, PART_GCODE
@@ -192,6 +193,22 @@ def test_plane_maps_and_body_kept_where_the_print_can_be_seen_give_the_same_reco
         beside += a["outside_anomalous_mm2"]
         assert near.scene.body.shape == near.scene.maps[0].shape[1:]
     assert beside > 0  # the scene channel found the strands beside the print
+
+
+def test_the_compared_working_image_is_the_whole_one_on_the_observed_box_and_zero_elsewhere():
+    """The scene model resizes and blurs only its observed box (nothing else is fitted or scored)."""
+    tp, cfg = read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config
+    sim = SimPrint(tp, cfg, "spaghetti", 6, 1, keep=4)
+    model = LayerPipeline(tp, sim.located, cfg, memo=2).scene
+    assert model is not None
+    photo = sim.frame(3)
+    whole = to_working(photo, model.size)
+    got = model._working(photo)
+    inside = np.zeros(model.observed.shape, bool)
+    inside[model.box] = True
+    assert model.observed[~inside].sum() == 0 and inside.mean() < 0.6
+    assert np.array_equal(got[inside], whole[inside])
+    assert not got[~inside].any()
 
 
 @pytest.mark.parametrize("dx, dy", [(1.0, 2.0), (-2.0, 1.0)])

@@ -188,3 +188,35 @@ def test_change_from_figures_are_the_copying_statistics_bit_for_bit():
         spread = float(np.median(dev) / 0.6745)
         want = (float(max(np.percentile(dev, 99.9) - 3.0 * spread, 0.0)), spread)
         assert change_from(small, prev) == want
+
+
+@pytest.mark.parametrize("kind", ["scene", "black", "white", "flat", "real"])
+def test_exposure_figures_from_the_histogram_are_numpys_percentiles(kind):
+    """The gate reads p1, p99 and the white share from the reduced frame's 256-bin histogram: the figures
+    numpy's percentile and mean give on the float32 frame (the path a caller's float32 ``small`` takes)."""
+    frames = {"scene": _scene(2), "black": (_scene() * 0.03).astype(np.uint8),
+              "white": np.clip(_scene().astype(int) * 4 + 80, 0, 255).astype(np.uint8),
+              "flat": np.full((360, 480, 3), 128, np.uint8)}
+    if kind == "real":
+        photos = sorted(PHOTOS.glob("*.jp*g"))
+        if not photos:
+            pytest.skip("no real photos in ../shared")
+        frame = cv2.imread(str(photos[0]), cv2.IMREAD_COLOR)
+    else:
+        frame = frames[kind]
+    small = compact_previous(frame)
+    hist = assess_frame(frame, small=small).figures
+    sorted_ = assess_frame(frame, small=small.astype(np.float32)).figures  # no uint8: numpy's percentile
+    assert assess_frame(frame).figures == hist
+    for key in ("p1", "p99", "bright"):
+        assert hist[key] == sorted_[key], key
+
+
+def test_median_and_percentile_from_one_partition_are_numpys():
+    from layerwatch.analysis.frame_quality import _median_and_percentile
+
+    rng = np.random.default_rng(12)
+    for n in (1, 2, 3, 1000, 1001, 230400):
+        for v in (rng.normal(0, 2, n), np.abs(rng.standard_cauchy(n)), rng.integers(0, 4, n).astype(np.float64)):
+            for q in (99.9, 50.0, 0.0, 100.0):
+                assert _median_and_percentile(v.copy(), q) == (float(np.median(v)), float(np.percentile(v, q)))

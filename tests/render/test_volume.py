@@ -109,7 +109,8 @@ def test_occupancy_memory_of_a_tall_part():
     mask[100:500, 100:500] = True
     for i in range(500):
         occ.add(i, mask)
-    assert occ.nbytes == 500 * 600 * 75
+    assert occ.max_nbytes == 500 * 600 * 75  # the bound, on the whole view
+    assert occ.nbytes == 500 * (400 + 2 * 16) * (51 + 2 * 2)  # the printed box (bytes 12..62) and its margin only
     assert occ.nbytes < 30e6
 
 
@@ -120,18 +121,18 @@ def test_slots_follow_layer_heights_and_close_short_gaps():
     a = np.zeros((4, 8), bool)
     a[1, 3] = True
     occ.add(1, a)
-    bits = np.unpackbits(occ.bits, axis=2, bitorder="little")
+    bits = np.unpackbits(occ.full_bits(), axis=2, bitorder="little")
     assert bits[1, 1, 3] and bits[2, 1, 3] and not bits[0, 1, 3]
     b = np.zeros((4, 8), bool)
     b[2, 5] = True
     occ.add(0, b)
     occ.add(3, b)  # one empty slot (0.4..0.6... only 2 slots: 0.4 and 0.6) between 0.2 and 1.4: closed
-    bits = np.unpackbits(occ.bits, axis=2, bitorder="little")
+    bits = np.unpackbits(occ.full_bits(), axis=2, bitorder="little")
     assert bits[:4, 2, 5].all()
     no_fill = OccupancyStack((4, 8), [0.2, 0.6, 0.4, 1.4], [0.2, 0.4, 0.2, 0.2], fill_layers=0)
     no_fill.add(0, b)
     no_fill.add(3, b)
-    bits = np.unpackbits(no_fill.bits, axis=2, bitorder="little")
+    bits = np.unpackbits(no_fill.full_bits(), axis=2, bitorder="little")
     assert bits[0, 2, 5] and bits[3, 2, 5] and not bits[1, 2, 5] and not bits[2, 2, 5]
 
 
@@ -202,3 +203,68 @@ def test_final_approach_over_bare_bed_is_the_full_march_bit_for_bit(cam, monkeyp
             monkeypatch.setattr(volume, "clear_map", on)
             for a, b in zip(fast_out, full_out, strict=True):
                 np.testing.assert_array_equal(a, b)
+
+
+def _job(source: str, shared_data):
+    """The example part on its own top view, or a slicer's file on a 150 mm square at 3 px/mm around it."""
+    from layerwatch.examples import PART_CONFIG, PART_GCODE
+    from layerwatch.gcode import read_toolpath
+    from layerwatch.pipeline.config import resolve_config
+
+    if source == "example":
+        return read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config.topview.topview()
+    tp = read_toolpath((shared_data / "gcode" / source).read_bytes())
+    x0, y0, x1, y1 = tp.bounds
+    return tp, TopViewSettings(center_mm=((x0 + x1) / 2, (y0 + y1) / 2), width_mm=max(150.0, x1 - x0 + 30),
+                               height_mm=max(150.0, y1 - y0 + 30), px_per_mm=3.0).topview()
+
+
+def _whole_view(volume: OccupancyStack) -> OccupancyStack:
+    """The same occupancy with its bits on the whole top view (the layout before the printed box)."""
+    import copy
+
+    whole = copy.copy(volume)
+    whole.bits, whole.origin = volume.full_bits(), (0, 0)
+    return whole
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source", ["example", "prusaslicer-2.8.1_mini-cube_ascii.gcode",
+                                    "cura-4.10.0_m83_multi-object.gcode"])
+def test_bits_on_the_printed_box_render_every_layer_as_on_the_whole_view(source, shared_data):
+    """The occupancy kept on the print's box (grown as layers come) gives the march the images and hit heights
+    of the whole-view bits, float for float, on every layer of the example part and two slicers' files."""
+    tp, tv = _job(source, shared_data)
+    cam = default_camera(tv).center_mm
+    r = StackRenderer(tp, tv, RenderSettings(reference="volume"))
+    grew = 0
+    for index in range(tp.n_layers):
+        lit = r.render(index, None).light
+        assert r.volume is not None
+        grew += r.volume.nbytes < r.volume.full_bits().nbytes
+        z = tp.layers[index].z
+        bed = np.full(tv.shape, 0.12, np.float32)
+        boxed = view_through_volume(r.height, lit, r.volume, bed, cam, tv, z)
+        whole = view_through_volume(r.height, lit, _whole_view(r.volume), bed, cam, tv, z)
+        for a, b in zip(boxed, whole, strict=True):
+            np.testing.assert_array_equal(a, b, err_msg=f"layer {index}")
+    assert grew == tp.n_layers  # the box was smaller than the view on every layer
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source", ["example", "prusaslicer-2.8.1_mini-cube_ascii.gcode",
+                                    "cura-4.10.0_m83_multi-object.gcode"])
+def test_height_map_held_on_the_printed_box_renders_every_layer_as_the_whole_map(source, shared_data, monkeypatch):
+    """Between renders a renderer keeps its height map on the box its capsules can reach: every layer's
+    camera-view reference and height map equal those of a renderer that keeps the whole map."""
+    tp, tv = _job(source, shared_data)
+    cam = default_camera(tv).center_mm
+    boxed = StackRenderer(tp, tv)
+    whole = StackRenderer(tp, tv)
+    monkeypatch.setattr(whole, "_cover", lambda *a: setattr(whole, "_hbox", (0, tv.shape[0], 0, tv.shape[1])))
+    for index in [*range(tp.n_layers), tp.n_layers // 2, tp.n_layers - 1]:  # (then again from a reset)
+        a, b = boxed.render(index, cam), whole.render(index, cam)
+        np.testing.assert_array_equal(a.image, b.image, err_msg=f"layer {index}")
+        np.testing.assert_array_equal(a.height, b.height, err_msg=f"layer {index}")
+        np.testing.assert_array_equal(boxed.height, a.height)
+        assert boxed._held.size < 0.6 * whole._held.size

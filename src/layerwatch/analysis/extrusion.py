@@ -43,12 +43,10 @@ Lewis (1995), "Fast normalized cross-correlation" (zero-mean NCC).
 
 from __future__ import annotations
 
-from fractions import Fraction
-
 import cv2
 import numpy as np
 
-from layerwatch.analysis.scene_change import channel_mean, to_working
+from layerwatch.analysis.scene_change import channel_mean, working_crop
 
 __all__ = ["HIGHPASS_SIGMA", "MIN_PARALLAX_PX", "block_ncc", "box_texture", "highpass", "rise_parallax_px", "shifted",
            "still_share"]
@@ -73,35 +71,18 @@ BLUR_REACH_PX = 12
 def box_texture(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
     """``highpass(to_working(photo, size))[box]``, resizing and blurring only the box and the blurs' reach.
 
-    The frame is cut at the working pixels ``box`` grown by :data:`BLUR_REACH_PX` and aligned to whole
-    source pixels (the area resize then averages the same source pixels with the same weights), so
-    the result equals the whole-image computation (to float rounding); a scale that aligns only every
-    more than 8 px, or differs between the axes, takes the whole image.
-
-    Parameters
-    ----------
-    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
-        Frame as captured.
-    size : (int, int)
-        Working ``(width, height)`` px.
-    box : (slice, slice)
-        Rows and columns of the working image (steps of 1, bounds within it).
+    :func:`~layerwatch.analysis.scene_change.working_crop` (its ``photo``, ``size`` and ``box``) with
+    :data:`BLUR_REACH_PX`: the frame is cut at the box grown by the reach of both blurs and aligned to
+    whole source pixels, so the result is the whole-image computation's, bit for bit (tested).
 
     Returns
     -------
     ndarray, float32, shape (rows, cols)
     """
-    arr = np.asarray(photo)
+    work, (y0, x0) = working_crop(photo, size, box, BLUR_REACH_PX)
+    grey = highpass(work)
     W, H = size
-    fx, fy = Fraction(arr.shape[1], W), Fraction(arr.shape[0], H)
-    if fx != fy or fx.denominator > 8 or arr.ndim < 2:
-        return highpass(to_working(arr, size))[box]
-    d = fx.denominator
     (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
-    y0, x0 = max(0, (r0 - BLUR_REACH_PX) // d * d), max(0, (c0 - BLUR_REACH_PX) // d * d)
-    y1, x1 = min(H, -(-(r1 + BLUR_REACH_PX) // d) * d), min(W, -(-(c1 + BLUR_REACH_PX) // d) * d)
-    crop = arr[int(y0 * fy):int(y1 * fy), int(x0 * fx):int(x1 * fx)]
-    grey = highpass(to_working(crop, (x1 - x0, y1 - y0)))
     return grey[r0 - y0:r1 - y0, c0 - x0:c1 - x0]
 
 

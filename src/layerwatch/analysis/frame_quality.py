@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from layerwatch.analysis.histogram import middle_values
+from layerwatch.analysis.histogram import middle_values, percentiles
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
@@ -248,8 +248,32 @@ def change_from(small: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
     # order statistics do not depend on the order of the values: the temporaries are partitioned in place
     # (no copy per statistic; the values, and so the figures, are the same bit for bit)
     dev = np.abs(resid - float(np.median(resid, overwrite_input=True)))
-    spread = float(np.median(dev, overwrite_input=True) / 0.6745)
-    return float(max(np.percentile(dev, 99.9, overwrite_input=True) - 3.0 * spread, 0.0)), spread
+    med, tail = _median_and_percentile(dev.ravel(), 99.9)
+    spread = float(med / 0.6745)
+    return float(max(tail - 3.0 * spread, 0.0)), spread
+
+
+def _median_and_percentile(values: np.ndarray, q: float) -> tuple[float, float]:
+    """``numpy.median(values)`` and ``numpy.percentile(values, q)`` (linear) of a float64 (n,) array, bit for bit,
+    from one partition in place (numpy partitions once per statistic).
+
+    The order statistics each needs are selected together; numpy's arithmetic on them is followed step
+    for step: the mean of the middle one or two for the median, the virtual index ``(n - 1) q / 100``,
+    its floor, and ``_lerp`` with a Python-float weight (``q`` is a Python float) for the percentile.
+    """
+    n = values.size
+    mid = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
+    virtual = (n - 1) * np.true_divide(q, 100)
+    lo = int(np.floor(virtual))
+    hi = lo + 1
+    if virtual >= n - 1:
+        lo = hi = n - 1
+    values.partition(sorted({*mid, lo, hi}))
+    med = float(np.mean(values[mid[0]:mid[-1] + 1]))
+    a, b = values[lo], values[hi]
+    t = float(virtual - np.floor(virtual)) if virtual < n - 1 else float(virtual - (n - 1))
+    diff = b - a
+    return med, float(b - diff * (1 - t) if t >= 0.5 else a + diff * t)
 
 
 def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:
@@ -273,9 +297,18 @@ def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: fl
     return float(np.median(seen)) if len(seen) >= 2 else None
 
 
-def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str, float]) -> list[str]:
-    p1, p99 = (float(v) for v in np.percentile(small, (1, 99)))
-    fig.update(p1=p1, p99=p99, bright=float(np.mean(small >= 250)))
+def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str, float],
+                      small_u8: np.ndarray | None = None) -> list[str]:
+    """Black, over-exposed or flat frame; ``small_u8``: the reduced grey frame as uint8 (``small`` is its float32),
+    whose 256-bin histogram gives the same percentiles and white share, bit for bit, without partitioning it."""
+    if small_u8 is not None:
+        counts = cv2.calcHist([small_u8], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+        p1, p99 = percentiles(counts, (1, 99))
+        bright = int(counts[250:].sum()) / int(counts.sum())
+    else:
+        p1, p99 = (float(v) for v in np.percentile(small, (1, 99)))
+        bright = float(np.mean(small >= 250))
+    fig.update(p1=p1, p99=p99, bright=bright)
     out = []
     if p99 < s.dark_p99:
         out.append(f"black frame (99th percentile {p99:.0f}/255): light off or lens covered")
@@ -320,9 +353,14 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
     """
     s = settings or FrameQualitySettings()
     grey = grey_of(image_bgr)
-    small = _reduced(grey) if small is None else _given_small(small, grey.shape)
+    if small is None:
+        small_u8: np.ndarray | None = _shrunk(grey)
+        small = np.asarray(small_u8).astype(np.float32)  # (_reduced)
+    else:
+        small_u8 = np.ascontiguousarray(small) if np.asarray(small).dtype == np.uint8 else None
+        small = _given_small(small, grey.shape)
     fig: dict[str, float] = {}
-    reasons = _exposure_reasons(small, s, fig)
+    reasons = _exposure_reasons(small, s, fig, small_u8)
     fig["noise"] = noise_sigma(grey)
     fig["blockiness"] = blockiness(grey)
     fig["sharpness"] = sharpness(small, fig["p99"] - fig["p1"])

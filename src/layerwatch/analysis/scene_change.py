@@ -42,6 +42,7 @@ milliseconds (``SceneObservation.timings_ms``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 
 import cv2
 import numpy as np
@@ -55,7 +56,7 @@ from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 
 __all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
-           "predicted_change", "rays_over", "to_working", "top_coords", "working_size", "working_to_top"]
+           "predicted_change", "rays_over", "to_working", "top_coords", "working_crop", "working_size", "working_to_top"]
 
 #: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
 OUTLIER_LOG = 0.2
@@ -104,6 +105,57 @@ def to_working(photo: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         arr = arr[..., :3]
     small = cv2.resize(arr, size, interpolation=cv2.INTER_AREA) if (w, h) != tuple(size) else arr
     return cv2.GaussianBlur(small.astype(np.float32), (0, 0), 0.7)
+
+
+#: working px beyond a pixel that :func:`to_working`'s blur reads (sigma 0.7: a 7-tap kernel)
+WORKING_BLUR_REACH_PX = 3
+
+
+def working_crop(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slice],
+                 reach_px: int = WORKING_BLUR_REACH_PX) -> tuple[np.ndarray, tuple[int, int]]:
+    """:func:`to_working` of the working pixels ``box`` grown by ``reach_px``, resizing and blurring only that.
+
+    The frame is cut at ``box`` grown by ``reach_px`` and aligned to whole source pixels (the area resize
+    then averages the same source pixels with the same weights), so on every pixel at least
+    :data:`WORKING_BLUR_REACH_PX` inside the cut (``box`` itself when ``reach_px`` is at least that) the
+    result is the whole-image one, bit for bit (tested). A cut that would reach the bottom or right edge
+    of the working image, or a scale that aligns only every more than 8 px or differs between the axes,
+    takes the whole image (OpenCV computes the last pixels of a row on another path, so a cut ending at
+    the edge differs there by ~1e-5 grey levels).
+
+    Parameters
+    ----------
+    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
+        Frame as captured.
+    size : (int, int)
+        Working ``(width, height)`` px.
+    box : (slice, slice)
+        Rows and columns of the working image (steps of 1, bounds within it).
+    reach_px : int
+        Working px around ``box`` that the caller reads too (a later filter's radius, plus the blur's).
+
+    Returns
+    -------
+    image : ndarray, float32, shape (rows, cols, 3)
+        ``to_working(photo, size)[rows, cols]`` of the cut.
+    origin : (int, int)
+        Working-image row and column of its first pixel.
+    """
+    arr = np.asarray(photo)
+    W, H = size
+    if arr.ndim < 2:
+        return to_working(arr, size), (0, 0)  # (raises: not an image)
+    fx, fy = Fraction(arr.shape[1], W), Fraction(arr.shape[0], H)
+    if fx != fy or fx.denominator > 8:
+        return to_working(arr, size), (0, 0)
+    d = fx.denominator
+    (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
+    y0, x0 = max(0, (r0 - reach_px) // d * d), max(0, (c0 - reach_px) // d * d)
+    y1, x1 = -(-(r1 + reach_px) // d) * d, -(-(c1 + reach_px) // d) * d
+    if y1 >= H or x1 >= W:  # OpenCV filters a row's last pixels on another path: whole-image values only there
+        return to_working(arr, size), (0, 0)
+    crop = arr[int(y0 * fy):int(y1 * fy), int(x0 * fx):int(x1 * fx)]
+    return to_working(crop, (x1 - x0, y1 - y0)), (y0, x0)
 
 
 def image_rays(camera: CameraModel, size: tuple[int, int]) -> np.ndarray:
@@ -295,7 +347,13 @@ def photometric_fit(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray,
     ok = np.ascontiguousarray(usable[::2, ::2]).astype(np.float32)
     if ok.sum() < 50:
         return np.ones((h, w, 3), np.float32), np.zeros(3)
-    lr = cv2.subtract(np.log1p(photo[::2, ::2]), np.log1p(expected[::2, ::2]))
+    # the log ratio only on the box of the usable pixels: elsewhere every use below weighs it by 0
+    # (``keep`` is 0 there), so 0 in its place gives the same field and gains, bit for bit
+    rows, cols = np.flatnonzero(ok.any(axis=1)), np.flatnonzero(ok.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    inner = cv2.subtract(np.log1p(photo[::2, ::2][box]), np.log1p(expected[::2, ::2][box]))
+    lr = np.zeros((*ok.shape, *inner.shape[2:]), inner.dtype)
+    lr[box] = inner
     c = max(1, cell_px // 2)
     size = (-(-ok.shape[1] // c), -(-ok.shape[0] // c))  # cells (m, n)
     glob = np.array([np.median(lr[..., k][ok > 0]) for k in range(3)])

@@ -161,10 +161,41 @@ class StackRenderer:
 
     def reset(self) -> None:
         """Forget the accumulated layers."""
-        self.height = np.zeros(self.topview.shape, np.float32)
-        self.done = -1  # last layer rasterised into self.height
+        #: the height map between renders, on :attr:`_hbox` (rows r0:r1, columns c0:c1) only: nothing is
+        #: printed elsewhere (0 there), so a printer holds the part's box, not the whole view
+        self._held = np.zeros((0, 0), np.float32)
+        self._hbox = (0, 0, 0, 0)
+        self._work: np.ndarray | None = None  # the whole height map while a render runs
+        self.done = -1  # last layer rasterised into the height map
         if self.volume is not None:
             self.volume.reset()
+
+    @property
+    def height(self) -> np.ndarray:
+        """Height map of the layers drawn so far, float32 (H, W), mm (0 = bare bed).
+
+        Between renders it is rebuilt from the printed box (a new array each time: read it, don't write it).
+        """
+        if self._work is not None:
+            return self._work
+        full = np.zeros(self.topview.shape, np.float32)
+        r0, r1, c0, c1 = self._hbox
+        full[r0:r1, c0:c1] = self._held
+        return full
+
+    def _cover(self, p0: np.ndarray, p1: np.ndarray, r: np.ndarray) -> None:
+        """Grow :attr:`_hbox` to take every pixel :func:`raster_capsules` can write for these capsules (and 1 px)."""
+        if p0.shape[0] == 0:
+            return
+        H, W = self.topview.shape
+        v0 = int(np.ceil(np.minimum(p0[:, 1], p1[:, 1]) - r).min()) - 1
+        v1 = int(np.floor(np.maximum(p0[:, 1], p1[:, 1]) + r).max()) + 2
+        u0 = int(np.ceil(np.minimum(p0[:, 0], p1[:, 0]) - r).min()) - 1
+        u1 = int(np.floor(np.maximum(p0[:, 0], p1[:, 0]) + r).max()) + 2
+        r0, r1, c0, c1 = self._hbox
+        if r1 > r0 and c1 > c0:
+            v0, v1, u0, u1 = min(v0, r0), max(v1, r1), min(u0, c0), max(u1, c1)
+        self._hbox = (max(v0, 0), min(max(v1, 0), H), max(u0, 0), min(max(u1, 0), W))
 
     @property
     def _bed(self) -> np.ndarray:
@@ -196,6 +227,7 @@ class StackRenderer:
         if mask is None and self.volume is not None:  # the volume needs every layer's footprint
             mask = np.zeros(self.topview.shape, bool)
         m = np.zeros((1, 1), bool) if mask is None else mask
+        self._cover(p0, p1, r)
         clipped = raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
         if self.volume is not None:
             self.volume.add(index, m)
@@ -222,6 +254,15 @@ class StackRenderer:
         index = _check_index(tp, index)
         if index < self.done:
             self.reset()
+        self._work = self.height  # the whole map for this render; only its printed box is kept after it
+        try:
+            return self._render(index, camera_center_mm)
+        finally:
+            r0, r1, c0, c1 = self._hbox
+            self._held, self._work = self._work[r0:r1, c0:c1].copy(), None
+
+    def _render(self, index: int, camera_center_mm: np.ndarray | None) -> Rendered:
+        tp = self.toolpath
         for i in range(self.done + 1, index):
             self._raster_height_only(i)
         mask = np.zeros(self.topview.shape, bool)
@@ -281,7 +322,7 @@ class StackRenderer:
         if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
             img = cv2.GaussianBlur(img, (0, 0), s.image_blur_px, borderType=cv2.BORDER_REPLICATE)
         image = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        return Rendered(image, self.height.copy(), mask, index, float(z), light, int(clipped))
+        return Rendered(image, self.height, mask, index, float(z), light, int(clipped))  # (the render's own map)
 
 
     def _camera_view(self, img: np.ndarray, center_mm: np.ndarray, z: float, lh: float) -> np.ndarray:

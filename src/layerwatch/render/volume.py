@@ -9,8 +9,9 @@ on clean layers.
 
 :class:`OccupancyStack` keeps, for every *z slot* (the distinct layer tops of
 the toolpath), the footprint of the beads printed in it as a bit-packed
-raster: ``(n_slots, H, ceil(W / 8))`` uint8, 45 kB per slot at 600 x 600 px
-(500 layers: 22.5 MB). A layer fills the slots its thickness spans, so
+raster on the box the print covers: ``(n_slots, h, b)`` uint8, at most 45 kB per
+slot at 600 x 600 px (500 layers: 22.5 MB) when the part fills the view, a
+fraction of it otherwise (a 40 mm part on a 150 mm square: ~1/14). A layer fills the slots its thickness spans, so
 sequential prints and variable layer heights stack correctly. Short vertical
 gaps (at most ``fill_layers`` slots, e.g. the one-layer slit under a sparse
 infill line that crosses the previous layer's lines) are closed, as the
@@ -64,8 +65,13 @@ __all__ = ["OccupancyStack", "view_through_volume"]
 _Z_TOL = 1e-4  # mm: a point this far above a slot's (rounded) top still belongs to it
 
 
+#: rows (and bytes of 8 columns, times 8 px) added around the printed box when it grows, so that a part that
+#: widens layer by layer does not copy its bits on every layer
+_BOX_MARGIN_PX = 16
+
+
 class OccupancyStack:
-    """Bit-packed occupancy of the printed layers, one raster per z slot.
+    """Bit-packed occupancy of the printed layers, one raster per z slot, on the box the print covers.
 
     Parameters
     ----------
@@ -83,9 +89,13 @@ class OccupancyStack:
     ----------
     tops : ndarray, shape (S,), float64
         Ascending slot tops, mm; slot ``s`` spans ``(tops[s - 1], tops[s]]`` (``tops[-1]`` = 0).
-    bits : ndarray, shape (S_alloc, H, ceil(W / 8)), uint8
-        Occupancy bits (little bit order along rows), allocated up to the
-        highest slot added so far.
+    bits : ndarray, shape (S_alloc, h, b), uint8
+        Occupancy bits (little bit order along rows) of the box :attr:`origin` ``(r0, b0)``: rows
+        ``r0 .. r0 + h`` and columns ``8 b0 .. 8 (b0 + b)`` of the top view (byte ``j`` of a row is byte
+        ``b0 + j`` of the whole row's :func:`numpy.packbits`), allocated up to the highest slot added so
+        far. Nothing is printed outside the box: it grows (with :data:`_BOX_MARGIN_PX`) to take every
+        footprint added, so the bits are those of the whole top view (:meth:`full_bits`), on the part's
+        box only (a part of 40 x 40 mm on a 150 mm square: 1/14 of the memory).
     """
 
     def __init__(self, shape: tuple[int, int], layer_z, layer_height, fill_layers: int = 2) -> None:
@@ -102,12 +112,12 @@ class OccupancyStack:
 
     def reset(self) -> None:
         """Forget every added layer (memory released)."""
-        H, W = self.shape
-        self.bits = np.zeros((0, H, (W + 7) // 8), np.uint8)
+        self.bits = np.zeros((0, 0, 0), np.uint8)
+        self.origin = (0, 0)
 
     @property
     def max_nbytes(self) -> int:
-        """Memory the bits reach once every slot is printed, bytes."""
+        """Memory the bits reach once every slot is printed over the whole top view, bytes (the bound)."""
         H, W = self.shape
         return len(self.tops) * H * ((W + 7) // 8)
 
@@ -115,6 +125,14 @@ class OccupancyStack:
     def nbytes(self) -> int:
         """Memory held by the occupancy bits, bytes."""
         return int(self.bits.nbytes)
+
+    def full_bits(self) -> np.ndarray:
+        """The bits on the whole top view, shape (S_alloc, H, ceil(W / 8)), uint8 (a copy: for checks and tools)."""
+        H, W = self.shape
+        out = np.zeros((self.bits.shape[0], H, (W + 7) // 8), np.uint8)
+        (r0, b0), (_, h, b) = self.origin, self.bits.shape
+        out[:, r0:r0 + h, b0:b0 + b] = self.bits
+        return out
 
     def _grow(self, n_slots: int) -> None:
         have = self.bits.shape[0]
@@ -125,6 +143,22 @@ class OccupancyStack:
         grown[:have] = self.bits
         self.bits = grown
 
+    def _cover(self, rows: tuple[int, int], byte_cols: tuple[int, int]) -> None:
+        """Grow the box to take rows ``rows`` and bytes ``byte_cols`` (half-open), with the margin; bits kept."""
+        (r0, b0), (S, h, b) = self.origin, self.bits.shape
+        if h and b and r0 <= rows[0] and rows[1] <= r0 + h and b0 <= byte_cols[0] and byte_cols[1] <= b0 + b:
+            return
+        H, W = self.shape
+        m = _BOX_MARGIN_PX
+        lo_r, hi_r = (min(rows[0], r0), max(rows[1], r0 + h)) if h and b else rows
+        lo_b, hi_b = (min(byte_cols[0], b0), max(byte_cols[1], b0 + b)) if h and b else byte_cols
+        nr0, nr1 = max(lo_r - m, 0), min(hi_r + m, H)
+        nb0, nb1 = max(lo_b - m // 8, 0), min(hi_b + m // 8, (W + 7) // 8)
+        grown = np.zeros((S, nr1 - nr0, nb1 - nb0), np.uint8)
+        if h and b:
+            grown[:, r0 - nr0:r0 - nr0 + h, b0 - nb0:b0 - nb0 + b] = self.bits
+        self.bits, self.origin = grown, (nr0, nb0)
+
     def add(self, layer: int, mask: np.ndarray) -> None:
         """Add the footprint of layer ``layer`` (bool (H, W)) to the slots it spans.
 
@@ -134,8 +168,12 @@ class OccupancyStack:
         lo, hi = int(self._lo[layer]), int(self._hi[layer])
         if hi >= len(self.tops) or not mask.any():
             return
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        self._cover((int(rows[0]), int(rows[-1]) + 1), (int(cols[0]) // 8, int(cols[-1]) // 8 + 1))
         self._grow(hi + 1)
-        packed = np.packbits(mask, axis=1, bitorder="little")
+        (r0, b0), (_, h, b) = self.origin, self.bits.shape
+        W = self.shape[1]
+        packed = np.packbits(mask[r0:r0 + h, 8 * b0:min(8 * (b0 + b), W)], axis=1, bitorder="little")
         lo = min(lo, hi)
         self.bits[lo : hi + 1] |= packed
         for d in range(2, self.fill_layers + 2):  # close gaps of d - 1 slots below the layer
@@ -147,22 +185,31 @@ class OccupancyStack:
 
 
 @njit(cache=True, inline="always")
-def _solid(bits, tops, xi, yi, z):
-    """1 when the point at pixel ``(xi, yi)`` and height ``z`` (mm) lies inside a printed bead, else 0."""
-    s = np.searchsorted(tops, z - _Z_TOL)
-    if s >= bits.shape[0]:
+def _bit(bits, r0, b0, s, xi, yi):
+    """1 when slot ``s`` is printed at pixel ``(xi, yi)``, else 0 (outside the box, or a slot not allocated yet: empty)."""
+    yy, bx = yi - r0, (xi >> 3) - b0
+    if s >= bits.shape[0] or yy < 0 or yy >= bits.shape[1] or bx < 0 or bx >= bits.shape[2]:
         return 0
-    return (bits[s, yi, xi >> 3] >> (xi & 7)) & 1
+    return (bits[s, yy, bx] >> (xi & 7)) & 1
+
+
+@njit(cache=True, inline="always")
+def _solid(bits, r0, b0, tops, xi, yi, z):
+    """1 when the point at pixel ``(xi, yi)`` and height ``z`` (mm) lies inside a printed bead, else 0."""
+    return _bit(bits, r0, b0, np.searchsorted(tops, z - _Z_TOL), xi, yi)
 
 
 @njit(cache=True)
-def _facing(bits, tops, xi, yi, z, du, dv, L):
-    """Cosine between the horizontal normal of the slot's occupancy at ``(xi, yi)`` and the ray."""
-    H, W = bits.shape[1], bits.shape[2] * 8
+def _facing(bits, r0, b0, tops, xi, yi, z, du, dv, L, H, W):
+    """Cosine between the horizontal normal of the slot's occupancy at ``(xi, yi)`` and the ray.
+
+    ``H``, ``W``: the top view's rows and its packed width in px (``8 ceil(W / 8)``), where the neighbours clamp.
+    """
     xm, xp = max(xi - 1, 0), min(xi + 1, W - 1)
     ym, yp = max(yi - 1, 0), min(yi + 1, H - 1)
-    gx = 1.0 * _solid(bits, tops, xp, yi, z) - _solid(bits, tops, xm, yi, z)
-    gy = 1.0 * _solid(bits, tops, xi, yp, z) - _solid(bits, tops, xi, ym, z)
+    s = np.searchsorted(tops, z - _Z_TOL)  # the four neighbours' slot: one search, not four
+    gx = 1.0 * _bit(bits, r0, b0, s, xp, yi) - _bit(bits, r0, b0, s, xm, yi)
+    gy = 1.0 * _bit(bits, r0, b0, s, xi, yp) - _bit(bits, r0, b0, s, xi, ym)
     g = math.sqrt(gx * gx + gy * gy)
     if g < 1e-9:
         return 1.0
@@ -208,7 +255,7 @@ def approach_reach_px(skip_px: float, step_px: float) -> int:
 
 
 @njit(cache=True)
-def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z, step_px, max_steps, look,
+def _march_volume(height, hmax, skip_px, shaded, bed, bits, r0, b0, tops, cu, cv, cz, z, step_px, max_steps, look,
                   out, hit_z, clear):
     """Follow the camera ray through every top-view pixel into the occupancy volume.
 
@@ -217,9 +264,11 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z,
     that can no longer skip (the skip would pass the bed) and stands on a clear pixel meets nothing
     but the bed before it: its last steps are taken without looking (the same steps, the same
     sample: the result is identical, bit for bit); the rest as in
-    :func:`~layerwatch.render.camera_view._march`.
+    :func:`~layerwatch.render.camera_view._march`. ``bits``: :attr:`OccupancyStack.bits` at its ``origin``
+    ``(r0, b0)``.
     """
     H, W = height.shape
+    WB = (W + 7) // 8 * 8  # the packed rows' width, where a wall's neighbours clamp
     wall_value, wall_ambient, line_contrast, layer_h = look[0], look[1], look[2], look[3]
     hidden, depth_scale, depth_dark = look[4], look[5], look[6]
     jump = skip_px / step_px
@@ -249,12 +298,12 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, tops, cu, cv, cz, z,
                     val = bilinear(shaded, x, y)
                     break
                 h = height[yi, xi]
-                if h >= zz and _solid(bits, tops, xi, yi, zz) != 0:  # (below the bed: the first slot)
+                if h >= zz and _solid(bits, r0, b0, tops, xi, yi, zz) != 0:  # (below the bed: the first slot)
                     hz = zz
                     if k == 0 or h - zz <= 1.5 * dz:  # the column's top surface
                         val, hz = bilinear(shaded, x, y), h
-                    elif _solid(bits, tops, xi, yi, zz + 1.5 * dz) != 0:  # entered through a side: a wall
-                        facing = _facing(bits, tops, xi, yi, zz, du, dv, L)
+                    elif _solid(bits, r0, b0, tops, xi, yi, zz + 1.5 * dz) != 0:  # entered through a side: a wall
+                        facing = _facing(bits, r0, b0, tops, xi, yi, zz, du, dv, L, H, WB)
                         val = wall_light(facing, zz, layer_h, wall_value, wall_ambient, line_contrast)
                     else:  # a top surface under something higher (sill, floor seen through a window)
                         f = min((z - zz) / depth_scale, 1.0) if depth_scale > 0.0 else 1.0
@@ -333,6 +382,7 @@ def view_through_volume(
                         hidden_value, depth_scale_mm, depth_darkening], np.float64)
     hmax = skip_map(h, SKIP_PX)
     clear = clear_map(hmax, SKIP_PX, approach_reach_px(SKIP_PX, look.step_px))
-    _march_volume(h, hmax, float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits,
+    r0, b0 = volume.origin
+    _march_volume(h, hmax, float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits, int(r0), int(b0),
                   volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit, clear)
     return out, hit
