@@ -114,4 +114,4 @@ def test_frame_digest_tells_one_changed_pixel_and_is_skipped_without_the_stale_c
     cam = SimCamera(lambda i: next(frames))
     assert cam.stale_check is False
     cam.grab(), cam.grab()
-    assert cam._last_digest is None  # nothing hashed when the check is off
+    assert cam._stale.last is None  # nothing hashed when the check is off
