@@ -143,3 +143,33 @@ def test_lane_is_an_executor_with_keyword_arguments_and_cancel_futures():
     lane2 = FrameLane(1)
     assert lane2.submit(lambda a, *, b: a + b, 1, b=2).result(timeout=10) == 3
     lane2.shutdown()
+
+
+def test_fair_slots_hand_a_freed_slot_to_the_longest_waiter():
+    """A thread that frees a slot and asks again at once waits behind those that asked before (a semaphore would
+    let it barge in: under saturation a printer whose verdict just came would starve the others)."""
+    from layerwatch.farm.pool import FairSlots
+
+    slots, order, lock = FairSlots(1), [], threading.Lock()
+    slots.acquire()
+    ready = []
+
+    def waiter(name):
+        ready.append(name)
+        with slots:
+            with lock:
+                order.append(name)
+
+    threads = [threading.Thread(target=waiter, args=(n,)) for n in ("a", "b")]
+    for t in threads:
+        t.start()
+        while len(ready) < len(order) + threads.index(t) + 1:
+            time.sleep(0.001)
+        time.sleep(0.05)  # it waits for the slot
+    slots.release()
+    slots.acquire()  # asked again at once: after "a" and "b"
+    order.append("me")
+    slots.release()
+    for t in threads:
+        t.join(5)
+    assert order == ["a", "b", "me"]
