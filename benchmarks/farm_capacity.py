@@ -548,15 +548,16 @@ def _farm_printer(pool: WorkerPool, scene: Scene, key: str) -> FarmMonitor:
 
 
 def _drive(mon: FarmMonitor, scene: Scene, jpegs: list[bytes], layers: list[int], done: list[float],
-           records: list[dict]) -> None:
-    """One printer's frames, each sent as soon as its previous verdict came (its lane is never empty)."""
+           records: list) -> None:
+    """One printer's frames, each sent as soon as its previous verdict came (its lane is never empty); their
+    results go to ``records`` (made into dicts after the timing: that is the benchmark's work, ~20 ms a frame)."""
     assert isinstance(mon.camera, SnapshotBytes)
     for data, layer in zip(jpegs, layers, strict=True):
         mon.camera.data = data
         res = mon.handle_trigger(SnapshotTrigger(layer, float(scene.toolpath.layers[layer].z), "bench",
                                                  time.monotonic()))
         done.append(time.perf_counter())
-        records.append(_record(res))
+        records.append(res)
 
 
 def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
@@ -602,7 +603,7 @@ def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
             pools.append(pool)
             mons.append([_farm_printer(pool, scene, f"speed/{w}/{k}") for k in range(printers)])
         pids = [list(pool.client.run(os.getpid).values()) for pool in pools]
-        records: list[list[list[dict]]] = [[[] for _ in range(printers)] for _ in pools]
+        records: list[list[list]] = [[[] for _ in range(printers)] for _ in pools]
         frames, seconds, cpu = np.zeros(2), np.zeros(2), np.zeros((2, 2))  # per pool: counted frames, s; CPU s
         with ThreadPoolExecutor(printers) as lanes:
             for j in (0, 1):  # untimed: each job's first frame (its worker builds the pipeline)
@@ -623,15 +624,23 @@ def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
                     seconds[j] += t_end - t0
         local_pool = WorkerPool(1)
         try:
-            mine: list[dict] = []
+            mine: list = []
             mon = _farm_printer(local_pool, scene, "speed/local/0")
             _drive(mon, scene, jpegs[0], plan[0], [], mine)
             mon.close()
         finally:
             local_pool.close()
-        strip = [[[{k: v for k, v in r.items() if k not in ("photo_ms", "trigger_to_pause_ms")} for r in rs]
+        strip = [[[{k: v for k, v in _record(r).items() if k not in ("photo_ms", "trigger_to_pause_ms")} for r in rs]
                   for rs in pool_recs] for pool_recs in records + [[mine]]]
         same = strip[0] == strip[1] and strip[2][0] == strip[1][0]
+        if not same:  # say where
+            for k, (a, b) in enumerate(zip(strip[0] + strip[2], strip[1] + strip[1][:1], strict=True)):
+                for r, q in zip(a, b, strict=False):
+                    if r != q:
+                        diff = sorted(f for f in set(r) | set(q) if r.get(f) != q.get(f))
+                        print(f"dask: records differ: printer {k if k < printers else 'local 0'}, layer {r.get('layer')}: "
+                              + "; ".join(f"{f}: {r.get(f)!r:.120} vs {q.get(f)!r:.120}" for f in diff), flush=True)
+                        break
         loads = [sorted(p.jobs_per_worker.values()) for p in pools]
         rate = frames / seconds
         total = printers * SPEEDUP_FRAMES * SPEEDUP_PHASES
