@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
 
 import cv2
@@ -130,10 +131,11 @@ class _JpegCamera(Camera):
 
 class _Alerts:
     def __init__(self) -> None:
-        self.sent: list[tuple[str, str, str]] = []
+        self.sent: list[tuple[str, str, str, str | None]] = []
 
     def notify(self, title, message, *, level="warning", image=None, data=None, force=False):
-        self.sent.append((title, message, level))
+        picture = hashlib.sha256(image.tobytes()).hexdigest() if isinstance(image, np.ndarray) else image
+        self.sent.append((title, message, level, picture))
 
 
 def _farm_run(pool: WorkerPool, sims, tp, cfg, layers, history) -> dict:
@@ -192,6 +194,7 @@ def test_dask_farm_monitor_judges_the_jpeg_on_the_worker_with_the_records_of_loc
 
         monkeypatch.setattr(cameras, "decode_image", not_here)  # the worker processes have their own modules
         monkeypatch.setattr(frame_checks.FrameChecks, "gate", not_here)
+        monkeypatch.setattr(LayerPipeline, "reference", not_here)  # alert overlays: the verdict brings the footprint
         got = _farm_run(WorkerPool(2, client=client), sims, tp, cfg, layers, history)
     history.close()
     for k in sims:
@@ -206,4 +209,5 @@ def test_dask_farm_monitor_judges_the_jpeg_on_the_worker_with_the_records_of_loc
     assert "unusable frame" in faults[4]["message"] and "same frame twice" in faults[7]["message"]
     assert all(r["decision"] == "none" for r in faults.values()) and clean["pauses"] == 0  # never a pause
     assert sum("camera fault" in a[1] for a in clean["alerts"]) >= 2  # alerted
+    assert any(isinstance(a[3], str) and len(a[3]) == 64 for a in got["spaghetti"]["alerts"])  # with the same overlay
     assert any(r["decision"] == "pause" for r in got["spaghetti"]["records"])  # the failure still pauses (can fail)

@@ -96,6 +96,7 @@ class PoolPipeline:
         self.pool, self.local = pool, pipeline
         self.with_reference = with_reference
         self._reference: tuple[int, Reference] | None = None  # the last verdict's (layer, reference)
+        self._footprint: tuple[int, FrameVerdict] | None = None  # the last verdict's (layer, packed footprint)
         self.context = pool.scatter(context) if pool.distributed else None
         self.key = context.key if context is not None and self.context is not None else None  # the job's worker pin
         self.topview = pipeline.topview
@@ -128,7 +129,17 @@ class PoolPipeline:
                                         self.with_reference, key=self.key)
         self.last_top, self.last_thumb = v.top, v.thumb
         self._reference = (v.result.layer, v.reference) if v.reference is not None else None
+        self._footprint = (v.result.layer, v) if v.footprint is not None else None
         return v
+
+    def alert_footprint(self, index: int) -> np.ndarray:
+        """The top-view footprint of layer ``index`` (bool) for an alert's overlay: the last verdict's, else its
+        reference's."""
+        if self._footprint is not None and self._footprint[0] == index:
+            foot = self._footprint[1].layer_footprint()
+            if foot is not None:
+                return foot
+        return self.reference(index).footprint
 
     def reference(self, index: int) -> Reference:
         """The reference of layer ``index``: the one the last verdict brought, else rendered here (alert overlays)."""
@@ -148,7 +159,7 @@ class PoolPipeline:
     def layer_done(self) -> None:
         """The layer is recorded: drop its top view, reference, the warper's remap tables and distortion lookup
         (built again in ~3 ms; a printer holds nothing between layers but the small box the lag check keeps)."""
-        self.last_top = self._reference = None
+        self.last_top = self._reference = self._footprint = None
         self.local.forget_references()
         self.local.warper.clear(lookups=True)
 
@@ -156,7 +167,7 @@ class PoolPipeline:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""
         if self.key is not None:
             self.pool.release(self.key)
-        self.last_top = self.last_thumb = self._reference = None
+        self.last_top = self.last_thumb = self._reference = self._footprint = None
 
 
 class FarmMonitor(Monitor):
@@ -218,6 +229,11 @@ class FarmMonitor(Monitor):
         res = self.judge_late(res, v.late, v.late_count)
         top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None
         return self.finish_layer(trigger, res, top)
+
+    def _footprint(self, layer: int) -> np.ndarray:
+        """:meth:`Monitor._footprint`: on a Dask cluster the verdict brought it (no reference rendered here)."""
+        foot = getattr(self.pipeline, "alert_footprint", None)  # a PoolPipeline, possibly inside a StoringPipeline
+        return foot(layer) if foot is not None else super()._footprint(layer)
 
     def _stream_interrupted(self) -> None:
         """:meth:`Monitor._stream_interrupted`, and the job's worker hears of it with the next frame."""

@@ -238,6 +238,10 @@ class FrameVerdict:
         service does not read), for :meth:`Monitor.judge_late <layerwatch.monitor.service.Monitor.judge_late>`.
     late_count : int
         Excused late frames in a row on the worker (the alert's figure).
+    footprint : ndarray, uint8, or None
+        The analysed layer's top-view footprint, bit-packed (``np.packbits``, ~45 kB at 600 x 600 px): an
+        alert's overlay on the service needs it, which would otherwise render the reference there
+        (:meth:`layer_footprint` unpacks it).
     """
 
     result: LayerResult
@@ -247,6 +251,14 @@ class FrameVerdict:
     reference: Reference | None = None
     late: LateCheck | None = None
     late_count: int = 0
+    footprint: np.ndarray | None = None
+
+    def layer_footprint(self) -> np.ndarray | None:
+        """The analysed layer's top-view footprint (bool, the top view's shape), or None."""
+        if self.footprint is None or self.top is None:
+            return None
+        h, w = self.top.shape[:2]
+        return np.unpackbits(self.footprint, count=h * w).reshape(h, w).astype(bool)
 
 
 def judge_on(job: WorkerJob, frame: EncodedFrame | np.ndarray, layer: int, z: float, photo_ms: float,
@@ -299,6 +311,7 @@ def judge_on(job: WorkerJob, frame: EncodedFrame | np.ndarray, layer: int, z: fl
         return FrameVerdict(res)
     res = v.result
     res.photo_ms = photo_ms
+    foot = np.packbits(pipe.reference(layer).footprint) if v.top is not None else None  # memoised: no render
     pipe.last_top = v.top  # the lag check reads the analysed top view (the monitor's pipeline gives it)
     try:
         late = checks.late(pipe, photo, res, rules.policy)
@@ -308,7 +321,7 @@ def judge_on(job: WorkerJob, frame: EncodedFrame | np.ndarray, layer: int, z: fl
         pipe.forget_references()
     if late is not None:
         late = dataclasses.replace(late, progress=None, verdict=None)
-    return FrameVerdict(res, False, v.top, v.thumb, v.reference, late, checks.late_stream.count)
+    return FrameVerdict(res, False, v.top, v.thumb, v.reference, late, checks.late_stream.count, foot)
 
 
 def _job_for(ctx: JobContext) -> WorkerJob:

@@ -408,11 +408,15 @@ class Monitor:
         if top is None or res.heatmap is None:
             return None
         try:
-            foot = self.pipeline.reference(res.layer).footprint
+            foot = self._footprint(res.layer)
             return overlay_image(top, res, self.pipeline.topview, foot)
         except (LayerwatchError, ValueError, AttributeError) as exc:  # the alert goes out without a picture
             log.warning("overlay for layer %d not drawn: %s", res.layer, exc)
             return None
+
+    def _footprint(self, layer: int) -> np.ndarray:
+        """Top-view footprint of layer ``layer`` (bool, (H, W)), for an alert's overlay."""
+        return self.pipeline.reference(layer).footprint
 
     def _track_camera(self, res: LayerResult) -> None:
         """Open, count, notify or close the camera-fault episode after one layer (lock held)."""
