@@ -55,10 +55,15 @@ What is measured
 
 ``--dask N``: the per-layer task runs through the farm's :class:`WorkerPool` on a
 :class:`distributed.LocalCluster` of ``N`` worker processes (jobs pinned, each
-layer's photo sent to its worker); the run then compares the pool on ``N``
-workers with one on the same frames (:func:`dask_speedup`) and prints the
-throughput ratio. ``--dask-speedup N`` runs only that comparison (about a minute):
-its last line reads ``dask_speedup=<r> workers=<N> records_identical=<bool>``.
+layer's JPEG snapshot sent to its worker, which decodes, gates and analyses it); the
+run then compares a farm on ``N`` workers with one (:func:`dask_speedup`) and prints the
+throughput ratio. ``--dask-speedup N`` runs only that comparison (1-2 minutes):
+its last line reads ``dask_speedup=<r> workers=<N> records_identical=<bool>``. It runs
+the farm's whole per-frame path (a :class:`FarmMonitor` per printer on JPEG snapshots)
+with the printers' jobs staggered and **no rounds**: each printer sends its next frame
+when its verdict came, and the throughput is read while every printer is still sending
+(:func:`dask_speedup` says why: an earlier version's rounds were a barrier the farm
+does not have, and it timed only the pool's task, not the decoding, gate and lag check).
 
 The last line reads ``printers_per_core=<n> mb_per_printer=<m> p99_s=<s>``.
 """

@@ -11,8 +11,10 @@ Two pieces give back-pressure without unbounded queues:
   holds a shared worker.
 * :class:`WorkerPool` (one per farm) runs the per-layer compute (reference
   rendering + warp + analysis) for every printer: on ``workers`` local threads,
-  or as tasks on a Dask cluster (:mod:`layerwatch.farm.remote`), each job pinned
-  to the least loaded worker process, with a few frames in flight per worker. A
+  or as tasks on a Dask cluster (:mod:`layerwatch.farm.remote`: there the whole
+  frame, from the camera's JPEG bytes to the lag check's analysis), each job pinned
+  to the least loaded worker process, with a few frames in flight per worker
+  (handed out first come, first served: :class:`FairSlots`). A
   printer's lane thread waits for its own layer, so the pool's queue never holds
   more than one frame per printer.
 
