@@ -211,3 +211,50 @@ def test_dask_farm_monitor_judges_the_jpeg_on_the_worker_with_the_records_of_loc
     assert sum("camera fault" in a[1] for a in clean["alerts"]) >= 2  # alerted
     assert any(isinstance(a[3], str) and len(a[3]) == 64 for a in got["spaghetti"]["alerts"])  # with the same overlay
     assert any(r["decision"] == "pause" for r in got["spaghetti"]["records"])  # the failure still pauses (can fail)
+
+
+def test_a_lost_worker_costs_one_frame_and_the_job_starts_afresh_on_another(tmp_path, monkeypatch):
+    """The job's worker leaves: the frame it held is a recorded, alerted error (never a pause, never a camera
+    fault); the next frames go to the other worker, where the job's pipeline and frame checks are built anew."""
+    from layerwatch.farm import pool as pool_mod
+
+    monkeypatch.setattr(pool_mod, "LOST_CHECK_S", 0.5)
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    sim = SimPrint(tp, cfg, None, 1, 1, keep=12)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        pool = WorkerPool(2, client=client)
+        ctx = JobContext("lost", tp, sim.located, cfg)
+        mon = FarmMonitor(VirtualPrinter(b"G1 Z0.2\n"), _JpegCamera(sim, black=-1, repeat=-1),
+                          PoolPipeline(pool, ctx.pipeline(), ctx), PausePolicy(cfg.policy), wait_for_verdict=True,
+                          faults=cfg.faults, frame_quality=cfg.frame_quality)
+
+        def frame(i):
+            return mon.handle_trigger(SnapshotTrigger(i, float(tp.layers[i].z), "t", time.monotonic()))
+
+        def held() -> dict:  # per worker: the job's frame checks there, and whether they hold a previous frame
+            def look():
+                job = __import__("layerwatch.farm.remote").farm.remote._pipelines.get("lost")
+                return None if job is None or job.checks is None else job.checks.last_good is not None
+            return client.run(look)
+
+        try:
+            assert [frame(i).status for i in range(3)] == ["ok"] * 3
+            first = mon.pipeline.pool._pinned["lost"]
+            assert held()[first] is True
+            client.retire_workers([first], close_workers=True)
+            for _ in range(100):
+                if first not in client.scheduler_info()["workers"]:
+                    break
+                time.sleep(0.1)
+            lost = frame(3)
+            assert lost.status == "error" and "left" in lost.message and lost.decision == "notify"  # alerted
+            after = [frame(i) for i in range(4, 6)]
+            second = mon.pipeline.pool._pinned["lost"]
+            assert second != first and [r.status for r in after] == ["ok", "ok"]
+            assert list(held().values()) == [True]  # the job's frame checks now on the other worker
+            assert mon.printer.pause_count == 0 and mon.report.camera_faults == 0
+        finally:
+            mon.close()
+            mon.pipeline.close()
