@@ -12,6 +12,10 @@ worker (:class:`WorkerJob`); a worker that takes over a job whose worker left st
 the pipeline does. The service keeps everything that acts (the policy, pauses, alerts, the
 history): a camera fault the service itself saw (no frame) reaches the worker's late-stream series
 with the job's next frame (``interrupted``), as it reaches the monitor's before its next frame.
+One difference from a camera that decodes: a frame dropped from a saturated printer's lane never
+reaches the worker, so the stale-frame check compares the next frame with the last one analysed,
+not the last one taken (a stream frozen at a dropped frame is told one frame later, and the gate's
+repeated-frame check sees it too).
 
 :func:`analyse_on` runs :meth:`LayerPipeline.process <layerwatch.pipeline.step.LayerPipeline.process>`
 (reference rendering, warp, analysis: the one per-layer step) and draws the
