@@ -152,20 +152,18 @@ def test_fair_slots_hand_a_freed_slot_to_the_longest_waiter():
 
     slots, order, lock = FairSlots(1), [], threading.Lock()
     slots.acquire()
-    ready = []
 
     def waiter(name):
-        ready.append(name)
         with slots:
             with lock:
                 order.append(name)
 
     threads = [threading.Thread(target=waiter, args=(n,)) for n in ("a", "b")]
-    for t in threads:
+    for i, t in enumerate(threads):
         t.start()
-        while len(ready) < len(order) + threads.index(t) + 1:
+        deadline = time.monotonic() + 10
+        while len(slots._waiters) < i + 1 and time.monotonic() < deadline:  # it waits for the slot
             time.sleep(0.001)
-        time.sleep(0.05)  # it waits for the slot
     slots.release()
     slots.acquire()  # asked again at once: after "a" and "b"
     order.append("me")
