@@ -361,13 +361,25 @@ class WorkerPool:
         with self._lock:
             if not refresh and now - self._seen_at < REFRESH_S and self._alive:
                 return self._alive
-        info = self._client.scheduler_info()["workers"]
+        info = self._scheduler_workers()
         with self._lock:
             self._alive, self._seen_at = sorted(info), now
             for w, d in info.items():
                 if w not in self._slots:
                     self._slots[w] = FairSlots(self.inflight * max(1, int(d.get("nthreads", 1))))
             return self._alive
+
+    def _scheduler_workers(self) -> dict[str, dict]:
+        """The scheduler's workers now (address -> its info), asked of the scheduler itself.
+
+        Not ``Client.scheduler_info()``: it stores the scheduler's answer in a field of the client
+        and returns that field, which the client's own periodic refresh (every 2 s) overwrites
+        with an identity *without* workers; a pool that read it in between saw an empty cluster
+        (measured: a frame recorded as "the Dask cluster has no worker" on a live 2-worker cluster),
+        and a job's worker that seemed gone would be moved, restarting its pipeline.
+        """
+        client = self._client
+        return dict(client.sync(client.scheduler.identity, n_workers=-1)["workers"])
 
     def _slot(self, worker: str) -> FairSlots:
         with self._lock:
