@@ -55,10 +55,15 @@ What is measured
 
 ``--dask N``: the per-layer task runs through the farm's :class:`WorkerPool` on a
 :class:`distributed.LocalCluster` of ``N`` worker processes (jobs pinned, each
-layer's photo sent to its worker); the run then compares the pool on ``N``
-workers with one on the same frames (:func:`dask_speedup`) and prints the
-throughput ratio. ``--dask-speedup N`` runs only that comparison (about a minute):
-its last line reads ``dask_speedup=<r> workers=<N> records_identical=<bool>``.
+layer's JPEG snapshot sent to its worker, which decodes, gates and analyses it); the
+run then compares a farm on ``N`` workers with one (:func:`dask_speedup`) and prints the
+throughput ratio. ``--dask-speedup N`` runs only that comparison (1-2 minutes):
+its last line reads ``dask_speedup=<r> workers=<N> records_identical=<bool>``. It runs
+the farm's whole per-frame path (a :class:`FarmMonitor` per printer on JPEG snapshots)
+with the printers' jobs staggered and **no rounds**: each printer sends its next frame
+when its verdict came, and the throughput is read while every printer is still sending
+(:func:`dask_speedup` says why: an earlier version's rounds were a barrier the farm
+does not have, and it timed only the pool's task, not the decoding, gate and lag check).
 
 The last line reads ``printers_per_core=<n> mb_per_printer=<m> p99_s=<s>``.
 """
@@ -86,7 +91,7 @@ cv2.setNumThreads(1)  # one core per worker: OpenCV's own thread pool would spre
 from layerwatch.examples import PART_CONFIG, PART_GCODE  # noqa: E402
 from layerwatch.farm.monitor import FarmMonitor, PoolPipeline  # noqa: E402
 from layerwatch.farm.pool import WorkerPool  # noqa: E402
-from layerwatch.farm.remote import JobContext, analyse_on  # noqa: E402
+from layerwatch.farm.remote import JobContext  # noqa: E402
 from layerwatch.gcode import read_toolpath  # noqa: E402
 from layerwatch.monitor.cameras import Camera, SimCamera, decode_image  # noqa: E402
 from layerwatch.monitor.printers.base import SnapshotTrigger  # noqa: E402
@@ -175,7 +180,10 @@ class SnapshotBytes(Camera):
         super().__init__(retries=0, stale_check=True)  # as a snapshot URL camera
         self.data = b""
 
-    def _read(self) -> np.ndarray:
+    def _fetch(self) -> bytes:
+        return self.data  # on the farm's Dask workers: sent as they are (grab_encoded), decoded there
+
+    def _read(self) -> np.ndarray:  # grab(): decoded here (as the base class does; kept for older checkouts)
         return decode_image(self.data, self.where)
 
 
@@ -387,8 +395,8 @@ def main(argv: list[str] | None = None) -> str:
         ap.error("--fast-share must be in [0, 1], --dask >= 0 and --dask-speedup in [2, 64]")
     t_start = time.perf_counter()
     if a.dask_speedup:
-        scene = Scene(layers=8)
-        ratio, same = dask_speedup(scene, a.dask_speedup, scene.layers)
+        scene = Scene(layers=speedup_layers())
+        ratio, same = dask_speedup(scene, a.dask_speedup)
         line = f"dask_speedup={ratio:.2f} workers={a.dask_speedup} records_identical={same}"
         print(line)
         return line
@@ -421,7 +429,7 @@ def main(argv: list[str] | None = None) -> str:
             pool.close()
     n_ok, mb, p99 = best
     if a.dask:
-        ratio, same = dask_speedup(scene, a.dask, 8)
+        ratio, same = dask_speedup(scene, a.dask)
         print(f"dask: {a.dask} worker processes, throughput {ratio:.2f}x one worker process on the same frames, "
               f"records identical: {same}")
     ppc = n_ok / workers
@@ -524,59 +532,136 @@ def _cpu(pids: list[int]) -> np.ndarray:
     return np.array([time.process_time(), sum(one(p) for p in pids)])
 
 
-def dask_speedup(scene: Scene, n: int, layers: int) -> tuple[float, bool]:
-    """Throughput of the farm pool on ``n`` Dask worker processes over one, and whether the records match.
+#: frames each printer sends per timed phase of :func:`dask_speedup`, and the phases per pool
+SPEEDUP_FRAMES, SPEEDUP_PHASES = 6, 2
+#: printers of :func:`dask_speedup` start their jobs at these layers (cycled): staggered, as a farm's are
+SPEEDUP_STARTS = (0, 3, 6, 9)
 
-    Both clusters run in this process at once; ``4 n`` printers' jobs go through
-    :class:`WorkerPool` as a farm sends them (one lane thread per printer, jobs pinned). Each
-    round is one layer of every printer, on one pool then the other (the order alternating, so
-    both see the same load); the photos are made before a round (the camera's part, not timed)
-    and the first layer, which builds each worker's pipelines, is not timed. The records of
-    both pools are compared with each other and, for the first printer, with a local pipeline.
+
+def speedup_layers() -> int:
+    """Layers of the scene :func:`dask_speedup` needs (the latest start, its untimed frame and the timed ones)."""
+    return max(SPEEDUP_STARTS) + 1 + SPEEDUP_FRAMES * SPEEDUP_PHASES
+
+
+def _farm_printer(pool: WorkerPool, scene: Scene, key: str) -> FarmMonitor:
+    """A printer's monitor as a farm station builds it (its camera delivers the benchmark's JPEG snapshots)."""
+    cfg = scene.cfg
+    ctx = JobContext(key, scene.toolpath, scene.camera, cfg)
+    return FarmMonitor(VirtualPrinter(b"G1 Z0.2\n"), SnapshotBytes(), PoolPipeline(pool, ctx.pipeline(), ctx),
+                       PausePolicy(cfg.policy), wait_for_verdict=True, faults=cfg.faults,
+                       frame_quality=cfg.frame_quality)
+
+
+def _drive(mon: FarmMonitor, scene: Scene, jpegs: list[bytes], layers: list[int], done: list[float],
+           records: list) -> None:
+    """One printer's frames, each sent as soon as its previous verdict came (its lane is never empty); their
+    results go to ``records`` (made into dicts after the timing: that is the benchmark's work, ~20 ms a frame)."""
+    assert isinstance(mon.camera, SnapshotBytes)
+    for data, layer in zip(jpegs, layers, strict=True):
+        mon.camera.data = data
+        res = mon.handle_trigger(SnapshotTrigger(layer, float(scene.toolpath.layers[layer].z), "bench",
+                                                 time.monotonic()))
+        done.append(time.perf_counter())
+        records.append(res)
+
+
+def dask_speedup(scene: Scene, n: int) -> tuple[float, bool]:
+    """Throughput of a farm on ``n`` Dask worker processes over one, and whether the records match.
+
+    What a farm runs per frame, as it runs it: ``4 n`` printers, each a :class:`FarmMonitor` (the
+    farm's :class:`PoolPipeline`, jobs pinned to workers) whose camera delivers the benchmark's
+    1080p JPEG snapshots (made before, the camera's part), so the decoding, the stale-frame check,
+    the camera-fault gate, the analysis, the lag check, the policy and the records are all in the
+    measurement, wherever the farm runs them (the service or the workers).
+
+    **No rounds.** A farm has no rounds: each printer sends a frame per layer, on its own clock. An
+    earlier version sent one layer of every printer, waited for all of their verdicts, then sent
+    the next layer (a *barrier*): each round waited for its slowest job, and a worker whose jobs
+    were done idled meanwhile, which the farm never does. Here each printer has its own thread
+    and sends its next frame as soon as its verdict came (a saturated farm: every printer always
+    has a frame waiting), and the printers' jobs are staggered (they start at the layers
+    :data:`SPEEDUP_STARTS`, so their frames are of different layers and cost different times).
+    The throughput is read over the window in which **every** printer is still sending (from the
+    phase's start to the moment the first printer has sent its :data:`SPEEDUP_FRAMES` frames), so
+    a tail where only a few printers are left (and a worker idles) is not counted either.
+
+    Both pools are alive at once; the phases alternate between them (1, n, n, 1 ... so both see
+    the same load), each printer's first frame (which builds its worker's pipeline) is not timed.
+    The records of the two pools are compared with each other (every field but timings) and, for
+    the first printer, with the same frames on local threads.
 
     Returns
     -------
     (float, bool)
-        Wall time on one worker / on ``n`` workers; every record identical.
+        Frames per second on ``n`` workers / on one; every record identical.
     """
     printers = 4 * n
-    pools, pipes = [], []
+    starts = [SPEEDUP_STARTS[k % len(SPEEDUP_STARTS)] for k in range(printers)]
+    plan = [list(range(s, s + 1 + SPEEDUP_FRAMES * SPEEDUP_PHASES)) for s in starts]  # layers each printer prints
+    jpegs = [[scene.jpeg(k, layer) for layer in plan[k]] for k in range(printers)]
+    pools: list[WorkerPool] = []
+    mons: list[list[FarmMonitor]] = []
     try:
         for w in (1, n):
             pool = WorkerPool(w, scheduler="local")
             pool.client.run(cv2.setNumThreads, 1)  # one core per worker process: OpenCV's threads would let one use both
             pools.append(pool)
-            pipes.append([PoolPipeline(pool, ctx.pipeline(), ctx) for ctx in (
-                JobContext(f"speed/{w}/{k}", scene.toolpath, scene.camera, scene.cfg) for k in range(printers))])
-        elapsed, cpu = [0.0, 0.0], np.zeros((2, 2))  # per pool: wall s; (service, workers) CPU s
+            mons.append([_farm_printer(pool, scene, f"speed/{w}/{k}") for k in range(printers)])
         pids = [list(pool.client.run(os.getpid).values()) for pool in pools]
-        records: list[list[dict]] = [[], []]
+        records: list[list[list]] = [[[] for _ in range(printers)] for _ in pools]
+        frames, seconds, cpu = np.zeros(2), np.zeros(2), np.zeros((2, 2))  # per pool: counted frames, s; CPU s
         with ThreadPoolExecutor(printers) as lanes:
-            for layer in range(layers):
-                photos = [scene.photo(k, layer) for k in range(printers)]
-                for j in ((0, 1) if layer % 2 else (1, 0)):
-                    t, c = time.perf_counter(), _cpu(pids[j])
-                    out = list(lanes.map(PoolPipeline.process, pipes[j], photos, [layer] * printers))
-                    if layer > 0:
-                        elapsed[j] += time.perf_counter() - t
-                        cpu[j] += _cpu(pids[j]) - c
-                    records[j] += [_record(r) for r in out]
-        local = scene.pipeline()
-        mine = [_record(analyse_on(local, scene.photo(0, i), i).result) for i in range(layers)]
-        same = records[0] == records[1] and mine == records[1][::printers]
+            for j in (0, 1):  # untimed: each job's first frame (its worker builds the pipeline)
+                list(lanes.map(lambda k, j=j: _drive(mons[j][k], scene, jpegs[k][:1], plan[k][:1], [],
+                                                     records[j][k]), range(printers)))
+            order = [(0, 1), (1, 0)]
+            for phase in range(SPEEDUP_PHASES):
+                lo = 1 + phase * SPEEDUP_FRAMES
+                for j in order[phase % 2]:
+                    done: list[list[float]] = [[] for _ in range(printers)]
+                    c, t0 = _cpu(pids[j]), time.perf_counter()
+                    list(lanes.map(lambda k, j=j, lo=lo, done=done: _drive(
+                        mons[j][k], scene, jpegs[k][lo:lo + SPEEDUP_FRAMES], plan[k][lo:lo + SPEEDUP_FRAMES],
+                        done[k], records[j][k]), range(printers)))
+                    cpu[j] += _cpu(pids[j]) - c
+                    t_end = min(d[-1] for d in done)  # the first printer done: until then every printer was sending
+                    frames[j] += sum(t <= t_end for d in done for t in d)
+                    seconds[j] += t_end - t0
+        local_pool = WorkerPool(1)
+        try:
+            mine: list = []
+            mon = _farm_printer(local_pool, scene, "speed/local/0")
+            _drive(mon, scene, jpegs[0], plan[0], [], mine)
+            mon.close()
+        finally:
+            local_pool.close()
+        strip = [[[{k: v for k, v in _record(r).items() if k not in ("photo_ms", "trigger_to_pause_ms")} for r in rs]
+                  for rs in pool_recs] for pool_recs in records + [[mine]]]
+        same = strip[0] == strip[1] and strip[2][0] == strip[1][0]
+        if not same:  # say where
+            for k, (a, b) in enumerate(zip(strip[0] + strip[2], strip[1] + strip[1][:1], strict=True)):
+                for r, q in zip(a, b, strict=False):
+                    if r != q:
+                        diff = sorted(f for f in set(r) | set(q) if r.get(f) != q.get(f))
+                        print(f"dask: records differ: printer {k if k < printers else 'local 0'}, layer {r.get('layer')}: "
+                              + "; ".join(f"{f}: {r.get(f)!r:.120} vs {q.get(f)!r:.120}" for f in diff), flush=True)
+                        break
         loads = [sorted(p.jobs_per_worker.values()) for p in pools]
-        frames = printers * (layers - 1)
-        print(f"dask: {printers} printers x {layers - 1} timed layers; one worker {elapsed[0]:.2f} s, {n} workers "
-              f"{elapsed[1]:.2f} s (jobs per worker {loads[1]}); {os.cpu_count()} cores, load average "
-              f"{os.getloadavg()[0]:.1f}", flush=True)
+        rate = frames / seconds
+        total = printers * SPEEDUP_FRAMES * SPEEDUP_PHASES
+        print(f"dask: {printers} printers (jobs from layers {sorted(set(starts))}) x {SPEEDUP_FRAMES * SPEEDUP_PHASES} "
+              f"timed frames; one worker {rate[0]:.2f} frames/s ({frames[0]:.0f} frames in {seconds[0]:.2f} s while every "
+              f"printer sent), {n} workers {rate[1]:.2f} frames/s ({frames[1]:.0f} in {seconds[1]:.2f} s; jobs per worker "
+              f"{loads[1]}); {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}", flush=True)
         print("dask: CPU per frame (service process with the scheduler + worker processes): "
-              + "; ".join(f"{w} worker(s) {cpu[j, 0] / frames * 1e3:.0f} + {cpu[j, 1] / frames * 1e3:.0f} ms"
+              + "; ".join(f"{w} worker(s) {cpu[j, 0] / total * 1e3:.0f} + {cpu[j, 1] / total * 1e3:.0f} ms"
                           for j, w in enumerate((1, n))), flush=True)
-        return elapsed[0] / elapsed[1], same
+        return float(rate[1] / rate[0]), same
     finally:
-        for row in pipes:
-            for pp in row:
-                pp.close()
+        for row in mons:
+            for mon in row:
+                mon.close()
+                mon.pipeline.close()
         for pool in pools:
             pool.close()
 

@@ -143,3 +143,31 @@ def test_lane_is_an_executor_with_keyword_arguments_and_cancel_futures():
     lane2 = FrameLane(1)
     assert lane2.submit(lambda a, *, b: a + b, 1, b=2).result(timeout=10) == 3
     lane2.shutdown()
+
+
+def test_fair_slots_hand_a_freed_slot_to_the_longest_waiter():
+    """A thread that frees a slot and asks again at once waits behind those that asked before (a semaphore would
+    let it barge in: under saturation a printer whose verdict just came would starve the others)."""
+    from layerwatch.farm.pool import FairSlots
+
+    slots, order, lock = FairSlots(1), [], threading.Lock()
+    slots.acquire()
+
+    def waiter(name):
+        with slots:
+            with lock:
+                order.append(name)
+
+    threads = [threading.Thread(target=waiter, args=(n,)) for n in ("a", "b")]
+    for i, t in enumerate(threads):
+        t.start()
+        deadline = time.monotonic() + 10
+        while len(slots._waiters) < i + 1 and time.monotonic() < deadline:  # it waits for the slot
+            time.sleep(0.001)
+    slots.release()
+    slots.acquire()  # asked again at once: after "a" and "b"
+    order.append("me")
+    slots.release()
+    for t in threads:
+        t.join(5)
+    assert order == ["a", "b", "me"]

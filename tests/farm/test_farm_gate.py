@@ -57,7 +57,7 @@ def test_farm_monitor_runs_the_marker_and_lag_checks_of_the_single_printer_monit
                        PausePolicy(cfg.policy), **kw)
     single = Monitor(VirtualPrinter(b"G1 Z0.2\n"), SimCamera(sim.frame), ctx.pipeline(), PausePolicy(cfg.policy), **kw)
     try:
-        assert farm._markers is not None and single._markers is not None  # the bed markers are checked
+        assert farm.frame_checks.markers is not None and single.frame_checks.markers is not None  # the bed markers are checked
         got = {"farm": [], "single": []}
         for layer in range(3):
             for name, mon in (("farm", farm), ("single", single)):

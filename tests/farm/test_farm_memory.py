@@ -163,9 +163,14 @@ class _FakeClient:
         self.queries = 0
         self.submitted = []
 
-    def scheduler_info(self):
+        self.scheduler = self  # the scheduler's rpc: identity()
+
+    def identity(self, n_workers=0):
         self.queries += 1
-        return {"workers": dict(self.workers)}
+        return {"workers": dict(self.workers) if n_workers else {}}  # as a scheduler: no workers unless asked
+
+    def sync(self, fn, *args, **kwargs):
+        return fn(*args, **kwargs)
 
     def submit(self, fn, *args, workers=None, **kw):
         self.submitted.append((fn.__name__, args, workers))

@@ -321,7 +321,7 @@ def _watch_markers(frames, pipe, counts=None):
                   faults=FaultSettings(camera_alert_after=3), frame_quality=FrameQualitySettings())
     rep = mon.run(poll_s=0.001)
     if counts is not None:  # frames whose markers were confirmed in place / fully detected
-        counts.extend([mon._markers.confirmed, mon._markers.detected])
+        counts.extend([mon.frame_checks.markers.confirmed, mon.frame_checks.markers.detected])
     return rep, rec
 
 

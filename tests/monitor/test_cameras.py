@@ -114,4 +114,46 @@ def test_frame_digest_tells_one_changed_pixel_and_is_skipped_without_the_stale_c
     cam = SimCamera(lambda i: next(frames))
     assert cam.stale_check is False
     cam.grab(), cam.grab()
-    assert cam._last_digest is None  # nothing hashed when the check is off
+    assert cam._stale.last is None  # nothing hashed when the check is off
+
+
+def test_encoded_frames_are_decoded_and_checked_where_they_are_analysed(server):
+    """A farm's Dask workers get the camera's bytes (grab_encoded): decoding them gives what grab() gives, with the
+    same errors; a web page or bytes that are no image are refused at the camera (where it retries)."""
+    from layerwatch.monitor.cameras import EncodedFrame, StaleCheck
+    from layerwatch.monitor.parked import FrameNotParked, ParkCheck, ParkedCamera
+
+    cam = SnapshotCamera(server + "/snap?action=snapshot", sleep=lambda s: None)
+    assert cam.encoded and MjpegCamera(server + "/stream").encoded
+    assert not SimCamera(lambda i: None).encoded and not FolderCamera(".").encoded  # these give arrays
+    frame = cam.grab_encoded()
+    assert isinstance(frame, EncodedFrame) and frame.stale_check and frame.where == cam.where
+    stale = StaleCheck()
+    img = frame.decode(stale)
+    assert img.shape == (48, 64, 3) and img.dtype == np.uint8
+    with pytest.raises(CameraError, match="same frame twice"):
+        frame.decode(stale)  # the frame again: a frozen stream, as grab() says
+    assert np.array_equal(EncodedFrame(frame.data, "x", stale_check=False).decode(stale), img)  # no check asked
+    stream = MjpegCamera(server + "/stream").grab_encoded()
+    assert abs(int(stream.decode().mean()) - 128) <= 2
+    sleeps = []
+    with pytest.raises(CameraError, match="web page"):
+        SnapshotCamera(server + "/html", retries=2, sleep=sleeps.append).grab_encoded()
+    assert len(sleeps) == 2  # retried at the camera
+    with pytest.raises(CameraError, match="not an image"):
+        EncodedFrame(b"\xff\xd8 truncated", "x", False).decode()
+    with pytest.raises(CameraError, match="1x1"):
+        SnapshotCamera(server + "/tiny", sleep=lambda s: None).grab_encoded().decode()
+
+    class Garbage(SnapshotCamera):
+        def _fetch(self) -> bytes:
+            return b"GIF89a not what a snapshot URL should send"
+
+    with pytest.raises(CameraError, match="not an image"):
+        Garbage(server + "/x", retries=0).grab_encoded()
+    # a parked camera checks the head's position after the encoded frame too
+    check = ParkCheck({0: (0.0, 0.0, 0.2)}, tolerance_mm=1.0)
+    parked = ParkedCamera(cam, check, lambda: (0.0, 0.0, 0.2))
+    assert parked.encoded and isinstance(parked.grab_encoded(), EncodedFrame)
+    with pytest.raises(FrameNotParked):
+        ParkedCamera(cam, check, lambda: (50.0, 0.0, 0.2)).grab_encoded()

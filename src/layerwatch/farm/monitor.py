@@ -14,6 +14,13 @@ public hooks (the ``executor`` it analyses on, :meth:`Monitor.finish_layer`,
   camera model and settings (bed-marker check on every frame) and the top view and
   references of the layers (lag check where a result would count toward a pause),
   so a farm printer's frames are judged as ``layerwatch monitor`` judges them;
+* on a Dask cluster the whole frame goes to the job's worker
+  (:func:`~layerwatch.farm.remote.judge_remote`): the camera's JPEG bytes when it sends
+  them (:meth:`~layerwatch.monitor.cameras.Camera.grab_encoded`; ~0.3 MB instead of the
+  6 MB decoded frame), decoded there, with the stale-frame check, the camera-fault gate and
+  marker check, the analysis and the lag check's analysis; the service only applies the
+  verdict (policy, pause, alerts, history, images), so a camera fault is still an alert and
+  never a pause, and the records are those of local threads;
 * it keeps only the last :data:`RESULTS_KEPT` layer records in memory
   (:attr:`report`): the farm reads its layers from the history, and a printer's
   memory must not grow with the length of its prints;
@@ -40,7 +47,15 @@ import numpy as np
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
 from layerwatch.farm.pool import FrameLane, WorkerPool
-from layerwatch.farm.remote import JobContext, Verdict, analyse_on, analyse_remote
+from layerwatch.farm.remote import (
+    FrameRules,
+    FrameVerdict,
+    JobContext,
+    Verdict,
+    analyse_on,
+    analyse_remote,
+    judge_remote,
+)
 from layerwatch.monitor.printers.base import SnapshotTrigger
 from layerwatch.monitor.service import Monitor, MonitorReport
 from layerwatch.pipeline.step import LayerPipeline, Reference
@@ -81,6 +96,7 @@ class PoolPipeline:
         self.pool, self.local = pool, pipeline
         self.with_reference = with_reference
         self._reference: tuple[int, Reference] | None = None  # the last verdict's (layer, reference)
+        self._footprint: tuple[int, FrameVerdict] | None = None  # the last verdict's (layer, packed footprint)
         self.context = pool.scatter(context) if pool.distributed else None
         self.key = context.key if context is not None and self.context is not None else None  # the job's worker pin
         self.topview = pipeline.topview
@@ -100,6 +116,31 @@ class PoolPipeline:
         self._reference = (v.result.layer, v.reference) if v.reference is not None else None
         return v.result
 
+    @property
+    def remote(self) -> bool:
+        """The job's frames go to a Dask worker (:meth:`judge`)."""
+        return self.context is not None
+
+    def judge(self, frame: Any, layer: int, z: float, photo_ms: float, interrupted: bool,
+              rules: FrameRules) -> FrameVerdict:
+        """The whole frame on the job's Dask worker (:func:`~layerwatch.farm.remote.judge_remote`): decode, gate,
+        analysis, thumbnail, lag check's analysis; blocks this printer's lane."""
+        v: FrameVerdict = self.pool.run(judge_remote, self.context, frame, layer, z, photo_ms, interrupted, rules,
+                                        self.with_reference, key=self.key)
+        self.last_top, self.last_thumb = v.top, v.thumb
+        self._reference = (v.result.layer, v.reference) if v.reference is not None else None
+        self._footprint = (v.result.layer, v) if v.footprint is not None else None
+        return v
+
+    def alert_footprint(self, index: int) -> np.ndarray:
+        """The top-view footprint of layer ``index`` (bool) for an alert's overlay: the last verdict's, else its
+        reference's."""
+        if self._footprint is not None and self._footprint[0] == index:
+            foot = self._footprint[1].layer_footprint()
+            if foot is not None:
+                return foot
+        return self.reference(index).footprint
+
     def reference(self, index: int) -> Reference:
         """The reference of layer ``index``: the one the last verdict brought, else rendered here (alert overlays)."""
         if self._reference is not None and self._reference[0] == index:
@@ -118,7 +159,7 @@ class PoolPipeline:
     def layer_done(self) -> None:
         """The layer is recorded: drop its top view, reference, the warper's remap tables and distortion lookup
         (built again in ~3 ms; a printer holds nothing between layers but the small box the lag check keeps)."""
-        self.last_top = self._reference = None
+        self.last_top = self._reference = self._footprint = None
         self.local.forget_references()
         self.local.warper.clear(lookups=True)
 
@@ -126,7 +167,7 @@ class PoolPipeline:
         """The job ended: free its Dask worker (pin and pipeline) and the last top view kept here."""
         if self.key is not None:
             self.pool.release(self.key)
-        self.last_top = self.last_thumb = self._reference = None
+        self.last_top = self.last_thumb = self._reference = self._footprint = None
 
 
 class FarmMonitor(Monitor):
@@ -153,6 +194,51 @@ class FarmMonitor(Monitor):
         self.dropped = self.late = 0
         self.observe = observe
         self._generation_lock = threading.RLock()
+        #: the frames go to the job's Dask worker whole (:meth:`PoolPipeline.judge`)
+        self.remote = bool(getattr(self.pipeline, "remote", False))
+        self._interrupted = False  # a camera fault since the last frame sent (the worker's late stream hears of it)
+
+    def _grab(self) -> Any:
+        """The frame as the camera sent it when it goes to a Dask worker (decoded there), else decoded here."""
+        if self.remote and getattr(self.camera, "encoded", False):
+            return self.camera.grab_encoded()
+        return self.camera.grab()
+
+    def _analyse(self, trigger: SnapshotTrigger, photo: Any, t_photo: float) -> LayerResult:
+        """:meth:`Monitor._analyse`; on a Dask cluster the frame's checks and analysis run on the job's worker and
+        only the verdict is applied here (module notes)."""
+        if not self.remote:
+            return super()._analyse(trigger, photo, t_photo)
+        photo_ms = round((t_photo - trigger.time) * 1000, 1)
+        rules = FrameRules(self.frame_quality, self.faults.camera_alert_after, self.policy.settings)
+        try:
+            pipe: Any = self.pipeline  # a PoolPipeline, possibly inside a StoringPipeline
+            v = pipe.judge(photo, trigger.layer, trigger.z, photo_ms, self._interrupted, rules)
+        except Exception as exc:  # noqa: BLE001 - a lost worker or a pipeline bug must not stop the monitor
+            log.exception("pipeline failed on layer %d", trigger.layer)
+            res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
+            res.photo_ms = photo_ms
+            return self.finish_layer(trigger, res)
+        self._interrupted = False
+        res = v.result
+        if v.gated:
+            return self.finish_layer(trigger, res)
+        store = getattr(self.pipeline, "store_layer", None)  # a StoringPipeline around the PoolPipeline
+        if store is not None:
+            res = store(res)
+        res = self.judge_late(res, v.late, v.late_count)
+        top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None
+        return self.finish_layer(trigger, res, top)
+
+    def _footprint(self, layer: int) -> np.ndarray:
+        """:meth:`Monitor._footprint`: on a Dask cluster the verdict brought it (no reference rendered here)."""
+        foot = getattr(self.pipeline, "alert_footprint", None)  # a PoolPipeline, possibly inside a StoringPipeline
+        return foot(layer) if foot is not None else super()._footprint(layer)
+
+    def _stream_interrupted(self) -> None:
+        """:meth:`Monitor._stream_interrupted`, and the job's worker hears of it with the next frame."""
+        super()._stream_interrupted()
+        self._interrupted = True
 
     def handle_trigger(self, trigger: SnapshotTrigger) -> LayerResult | None:
         """Stamp the trigger with the current generation, then take and queue the photo."""

@@ -11,8 +11,10 @@ Two pieces give back-pressure without unbounded queues:
   holds a shared worker.
 * :class:`WorkerPool` (one per farm) runs the per-layer compute (reference
   rendering + warp + analysis) for every printer: on ``workers`` local threads,
-  or as tasks on a Dask cluster (:mod:`layerwatch.farm.remote`), each job pinned
-  to the least loaded worker process, with a few frames in flight per worker. A
+  or as tasks on a Dask cluster (:mod:`layerwatch.farm.remote`: there the whole
+  frame, from the camera's JPEG bytes to the lag check's analysis), each job pinned
+  to the least loaded worker process, with a few frames in flight per worker
+  (handed out first come, first served: :class:`FairSlots`). A
   printer's lane thread waits for its own layer, so the pool's queue never holds
   more than one frame per printer.
 
@@ -46,7 +48,7 @@ import numpy as np
 from layerwatch.errors import ConfigError, LayerwatchError, require
 from layerwatch.farm.remote import forget_pipeline
 
-__all__ = ["FrameLane", "WorkerLost", "WorkerPool", "LOST_CHECK_S", "REFRESH_S", "dynamic_malloc"]
+__all__ = ["FairSlots", "FrameLane", "WorkerLost", "WorkerPool", "LOST_CHECK_S", "REFRESH_S", "dynamic_malloc"]
 
 log = logging.getLogger("layerwatch.farm")
 
@@ -80,6 +82,51 @@ def dynamic_malloc() -> Iterator[None]:
         os.environ.pop(TRIM_VARIABLE, None)
         if saved is not None:
             os.environ[TRIM_VARIABLE] = saved
+
+
+class FairSlots:
+    """A counting semaphore that hands a freed slot to the longest waiter (first come, first served).
+
+    :class:`threading.Semaphore` lets the thread that just released a slot take it again before the
+    woken waiter runs (it keeps the GIL): a printer whose verdict just came would send its next frame
+    ahead of printers that waited longer, and under saturation some printers would starve. Here a
+    released slot goes straight to the oldest waiter. A context manager, as a semaphore.
+
+    Parameters
+    ----------
+    value : int
+        Slots, >= 1.
+    """
+
+    def __init__(self, value: int) -> None:
+        self._free = int(value)
+        self._waiters: deque[threading.Event] = deque()
+        self._lock = threading.Lock()
+
+    def acquire(self) -> None:
+        """Take a slot; waits behind every thread that asked before."""
+        with self._lock:
+            if self._free > 0 and not self._waiters:
+                self._free -= 1
+                return
+            turn = threading.Event()
+            self._waiters.append(turn)
+        turn.wait()  # the releasing thread handed its slot over
+
+    def release(self) -> None:
+        """Free a slot: to the oldest waiter, if any."""
+        with self._lock:
+            if self._waiters:
+                self._waiters.popleft().set()
+            else:
+                self._free += 1
+
+    def __enter__(self) -> FairSlots:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
 
 
 class WorkerLost(LayerwatchError):
@@ -191,7 +238,8 @@ class WorkerPool:
     job ends. Each worker has its own slots: at most ``inflight`` frames per worker
     thread are on the cluster, so one busy worker never holds frames meant for an idle
     one, and the next frame is already on the worker when the previous one finishes
-    (its transfer overlaps the compute). The worker list is cached (refreshed every
+    (its transfer overlaps the compute); a freed slot goes to the printer that waited longest
+    (:class:`FairSlots`), so no printer starves when the workers are saturated. The worker list is cached (refreshed every
     :data:`REFRESH_S` seconds or when a pinned worker is missing), so a frame costs one
     task round trip, not a scheduler query as well.
 
@@ -220,7 +268,7 @@ class WorkerPool:
         self._client = client
         self._threads: ThreadPoolExecutor | None = None
         self._pinned: dict[str, str] = {}  # live job key -> Dask worker address
-        self._slots: dict[str, threading.BoundedSemaphore] = {}  # worker address -> its frames in flight
+        self._slots: dict[str, FairSlots] = {}  # worker address -> its frames in flight (first come, first served)
         self._alive: list[str] = []
         self._seen_at = -math.inf
         self._direct = True  # photos straight to their worker (until that fails once)
@@ -313,15 +361,27 @@ class WorkerPool:
         with self._lock:
             if not refresh and now - self._seen_at < REFRESH_S and self._alive:
                 return self._alive
-        info = self._client.scheduler_info()["workers"]
+        info = self._scheduler_workers()
         with self._lock:
             self._alive, self._seen_at = sorted(info), now
             for w, d in info.items():
                 if w not in self._slots:
-                    self._slots[w] = threading.BoundedSemaphore(self.inflight * max(1, int(d.get("nthreads", 1))))
+                    self._slots[w] = FairSlots(self.inflight * max(1, int(d.get("nthreads", 1))))
             return self._alive
 
-    def _slot(self, worker: str) -> threading.BoundedSemaphore:
+    def _scheduler_workers(self) -> dict[str, dict]:
+        """The scheduler's workers now (address -> its info), asked of the scheduler itself.
+
+        Not ``Client.scheduler_info()``: it stores the scheduler's answer in a field of the client
+        and returns that field, which the client's own periodic refresh (every 2 s) overwrites
+        with an identity *without* workers; a pool that read it in between saw an empty cluster
+        (measured: a frame recorded as "the Dask cluster has no worker" on a live 2-worker cluster),
+        and a job's worker that seemed gone would be moved, restarting its pipeline.
+        """
+        client = self._client
+        return dict(client.sync(client.scheduler.identity, n_workers=-1)["workers"])
+
+    def _slot(self, worker: str) -> FairSlots:
         with self._lock:
             return self._slots[worker]
 

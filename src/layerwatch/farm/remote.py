@@ -1,5 +1,22 @@
 """The per-layer task a farm hands to its workers: one photo through the job's pipeline.
 
+On a Dask cluster the task is :func:`judge_remote`: the frame as the camera sent it (an
+:class:`~layerwatch.monitor.cameras.EncodedFrame`, ~0.3 MB for a 1080p JPEG; a simulated camera's
+array as it is) goes to the worker that holds the job, which decodes it (and checks for a
+repeated frame), runs the camera-fault gate and the bed-marker check
+(:class:`~layerwatch.monitor.frame_checks.FrameChecks`), the per-layer step, the thumbnail and the
+lag check's analysis, and returns a :class:`FrameVerdict`: the record, what the lag check found,
+the top view and thumbnail. The gate's state (the previous usable frame, where the markers were,
+the late-stream series, the last frame's fingerprint) lives with the job's pipeline on that
+worker (:class:`WorkerJob`); a worker that takes over a job whose worker left starts it afresh, as
+the pipeline does. The service keeps everything that acts (the policy, pauses, alerts, the
+history): a camera fault the service itself saw (no frame) reaches the worker's late-stream series
+with the job's next frame (``interrupted``), as it reaches the monitor's before its next frame.
+One difference from a camera that decodes: a frame dropped from a saturated printer's lane never
+reaches the worker, so the stale-frame check compares the next frame with the last one analysed,
+not the last one taken (a stream frozen at a dropped frame is told one frame later, and the gate's
+repeated-frame check sees it too).
+
 :func:`analyse_on` runs :meth:`LayerPipeline.process <layerwatch.pipeline.step.LayerPipeline.process>`
 (reference rendering, warp, analysis: the one per-layer step) and draws the
 small overlay thumbnail the farm dashboard shows. On local threads the
@@ -14,9 +31,11 @@ The records are the same either way: the same code runs on the same inputs.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,11 +46,18 @@ from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.monitor.camera_checks import LateCheck
+from layerwatch.monitor.cameras import EncodedFrame, StaleCheck
+from layerwatch.monitor.frame_checks import CAMERA_FAULT, FrameChecks
+from layerwatch.monitor.service import camera_error, frame_problem
 from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.policy import PolicySettings
 from layerwatch.pipeline.step import LayerPipeline, Reference
 
-__all__ = ["JobContext", "Verdict", "analyse_on", "analyse_remote", "forget_pipeline", "MEMO", "PIPELINES_PER_WORKER",
-           "THUMB_WIDTH", "WARP_MAPS"]
+__all__ = ["FrameRules", "FrameVerdict", "JobContext", "Verdict", "WorkerJob", "analyse_on", "analyse_remote",
+           "forget_pipeline", "judge_on", "judge_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH", "WARP_MAPS"]
+
+log = logging.getLogger("layerwatch.farm")
 
 #: references a farm pipeline keeps in memory: the layer being judged (its thumbnail reuses it; dropped once the
 #: layer is recorded, :meth:`LayerPipeline.forget_references`); memory per printer
@@ -46,7 +72,7 @@ PIPELINES_PER_WORKER = 1024
 #: width of the overlay thumbnail, px
 THUMB_WIDTH = 160
 
-_pipelines: OrderedDict[str, LayerPipeline] = OrderedDict()
+_pipelines: OrderedDict[str, WorkerJob] = OrderedDict()
 _lock = threading.Lock()
 
 
@@ -162,18 +188,168 @@ def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_referenc
     return Verdict(res, top, thumb, ref)
 
 
-def _pipeline_for(ctx: JobContext) -> LayerPipeline:
+@dataclass(frozen=True)
+class FrameRules:
+    """The monitor's settings a worker's frame checks read (sent with each frame: the policy's are the monitor's
+    at that moment).
+
+    Attributes
+    ----------
+    frame_quality : FrameQualitySettings or None
+        The camera-fault gate's (``None``: no gate, no marker or lag check).
+    after_n : int
+        Excused late frames in a row before the lag is alerted.
+    policy : PolicySettings
+        The pause policy's (which results count toward a pause: the lag check runs on those).
+    """
+
+    frame_quality: Any
+    after_n: int
+    policy: PolicySettings
+
+
+class WorkerJob:
+    """What a worker process holds for one job: its pipeline and, once its first frame is judged, its frame
+    checks and the stale-frame fingerprint (module notes)."""
+
+    def __init__(self, ctx: JobContext) -> None:
+        self.pipeline = ctx.pipeline()
+        self.checks: FrameChecks | None = None
+        self.stale = StaleCheck()
+
+    def frame_checks(self, rules: FrameRules) -> FrameChecks:
+        """The job's :class:`FrameChecks` (made with the first frame's ``rules``)."""
+        if self.checks is None:
+            self.checks = FrameChecks(self.pipeline, rules.frame_quality, rules.after_n)
+        return self.checks
+
+
+@dataclass
+class FrameVerdict:
+    """A worker's answer for one frame (:func:`judge_on`).
+
+    Attributes
+    ----------
+    result : LayerResult
+        The frame's record before the lag check acts: a ``camera_fault`` (``gated``), or the
+        pipeline's result (``photo_ms`` set).
+    gated : bool
+        The frame never reached the pipeline (not decodable, a repeated frame, refused by the gate).
+    top, thumb, reference
+        As :class:`Verdict`.
+    late : LateCheck or None
+        The lag check's outcome (its ``judged`` record, ``why``, ``alert``; without the figures the
+        service does not read), for :meth:`Monitor.judge_late <layerwatch.monitor.service.Monitor.judge_late>`.
+    late_count : int
+        Excused late frames in a row on the worker (the alert's figure).
+    footprint : ndarray, uint8, or None
+        The analysed layer's top-view footprint, bit-packed (``np.packbits``, ~45 kB at 600 x 600 px): an
+        alert's overlay on the service needs it, which would otherwise render the reference there
+        (:meth:`layer_footprint` unpacks it).
+    """
+
+    result: LayerResult
+    gated: bool = False
+    top: np.ndarray | None = None
+    thumb: bytes | None = None
+    reference: Reference | None = None
+    late: LateCheck | None = None
+    late_count: int = 0
+    footprint: np.ndarray | None = None
+
+    def layer_footprint(self) -> np.ndarray | None:
+        """The analysed layer's top-view footprint (bool, the top view's shape), or None."""
+        if self.footprint is None or self.top is None:
+            return None
+        h, w = self.top.shape[:2]
+        return np.unpackbits(self.footprint, count=h * w).reshape(h, w).astype(bool)
+
+
+def judge_on(job: WorkerJob, frame: EncodedFrame | np.ndarray, layer: int, z: float, photo_ms: float,
+             interrupted: bool, rules: FrameRules, with_reference: bool = False) -> FrameVerdict:
+    """One frame of ``job`` as the monitor's analysis thread judges it, up to what acts (module notes).
+
+    Parameters
+    ----------
+    job : WorkerJob
+    frame : EncodedFrame or ndarray
+        The camera's bytes (decoded here, with the stale-frame check when the camera has it) or a
+        BGR uint8 frame, shape (h, w, 3).
+    layer : int
+        0-based layer index of the trigger.
+    z : float
+        The trigger's height, mm.
+    photo_ms : float
+        Trigger to photo, ms (the record's ``photo_ms``).
+    interrupted : bool
+        The monitor recorded a camera fault since the job's previous frame (the late stream may slip there).
+    rules : FrameRules
+    with_reference : bool
+        Return the reference of an analysed layer too.
+    """
+    checks = job.frame_checks(rules)
+    if interrupted:
+        checks.late_stream.interrupted()
+    if isinstance(frame, EncodedFrame):
+        try:
+            photo = frame.decode(job.stale)
+            problem = frame_problem(photo)
+        except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a crash
+            problem = camera_error(exc)
+        if problem is not None:
+            return FrameVerdict(LayerResult(layer=layer, z=z, status=CAMERA_FAULT, message=problem), gated=True)
+    else:
+        photo = frame
+    gated = checks.gate(layer, z, photo)
+    if gated is not None:
+        return FrameVerdict(gated, gated=True)
+    pipe = job.pipeline
+    try:
+        v = analyse_on(pipe, photo, layer, with_reference, keep_lookup=True)
+    except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
+        log.exception("pipeline failed on layer %d", layer)
+        res = LayerResult(layer=layer, z=z, status="error", message=f"pipeline failed: {exc}")
+        res.photo_ms = photo_ms
+        pipe.warper.clear(lookups=True)
+        pipe.forget_references()
+        return FrameVerdict(res)
+    res = v.result
+    res.photo_ms = photo_ms
+    foot = np.packbits(pipe.reference(layer).footprint) if v.top is not None else None  # memoised: no render
+    pipe.last_top = v.top  # the lag check reads the analysed top view (the monitor's pipeline gives it)
+    try:
+        late = checks.late(pipe, photo, res, rules.policy)
+    finally:  # the layer is done here: as PoolPipeline.layer_done on local threads
+        pipe.last_top = None
+        pipe.warper.clear(lookups=True)
+        pipe.forget_references()
+    if late is not None:
+        late = dataclasses.replace(late, progress=None, verdict=None)
+    return FrameVerdict(res, False, v.top, v.thumb, v.reference, late, checks.late_stream.count, foot)
+
+
+def _job_for(ctx: JobContext) -> WorkerJob:
     with _lock:
-        pipe = _pipelines.get(ctx.key)
-        if pipe is not None:
+        job = _pipelines.get(ctx.key)
+        if job is not None:
             _pipelines.move_to_end(ctx.key)
-            return pipe
-    pipe = ctx.pipeline()
+            return job
+    job = WorkerJob(ctx)
     with _lock:
-        pipe = _pipelines.setdefault(ctx.key, pipe)
+        job = _pipelines.setdefault(ctx.key, job)
         while len(_pipelines) > PIPELINES_PER_WORKER:
             _pipelines.popitem(last=False)
-    return pipe
+    return job
+
+
+def _pipeline_for(ctx: JobContext) -> LayerPipeline:
+    return _job_for(ctx).pipeline
+
+
+def judge_remote(ctx: JobContext, frame: EncodedFrame | np.ndarray, layer: int, z: float, photo_ms: float,
+                 interrupted: bool, rules: FrameRules, with_reference: bool = False) -> FrameVerdict:
+    """:func:`judge_on` with the worker process's :class:`WorkerJob` of ``ctx``'s job (a Dask task)."""
+    return judge_on(_job_for(ctx), frame, layer, z, photo_ms, interrupted, rules, with_reference)
 
 
 def analyse_remote(ctx: JobContext, photo: np.ndarray, layer: int, with_reference: bool = False) -> Verdict:

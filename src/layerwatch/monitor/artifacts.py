@@ -160,7 +160,11 @@ class StoringPipeline:
 
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """Analyse (see the wrapped pipeline) and store the layer's top view, reference and overlay."""
-        res = self.pipeline.process(photo, layer_index)
+        return self.store_layer(self.pipeline.process(photo, layer_index))
+
+    def store_layer(self, res: LayerResult) -> LayerResult:
+        """Store the images of the wrapped pipeline's last analysis ``res`` (its ``last_top`` and reference) and
+        name them in ``res.images``; a result that is not ``ok`` is returned as it is."""
         if res.status != "ok":
             return res
         try:

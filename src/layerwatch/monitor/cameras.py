@@ -12,6 +12,7 @@ import time
 import zlib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
@@ -19,19 +20,44 @@ import numpy as np
 
 from layerwatch.errors import CameraError
 
-__all__ = ["Camera", "SnapshotCamera", "MjpegCamera", "DeviceCamera", "FolderCamera", "SimCamera", "open_camera", "decode_image", "frame_digest"]
+__all__ = ["Camera", "SnapshotCamera", "MjpegCamera", "DeviceCamera", "FolderCamera", "SimCamera", "open_camera", "decode_image",
+           "frame_digest", "EncodedFrame", "StaleCheck", "sniff_image"]
 
 MIN_SIDE = 16
 
 
-def decode_image(data: bytes, where: str) -> np.ndarray:
-    """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) image or raise CameraError."""
+def _web_page(data: bytes, where: str) -> None:
     head = data[:64].lstrip().lower()
     if head.startswith((b"<!doctype", b"<html", b"<?xml", b"{")):
         raise CameraError(f"{where} returned a web page, not an image; use the snapshot URL (e.g. ...?action=snapshot).")
+
+
+def _not_an_image(data: bytes, where: str) -> CameraError:
+    return CameraError(f"{where} returned {len(data)} bytes that are not an image; check the camera URL.")
+
+
+#: how JPEG and PNG files start
+_MAGIC = (b"\xff\xd8", b"\x89PNG\r\n\x1a\n")
+
+
+def sniff_image(data: bytes, where: str) -> bytes:
+    """``data`` when it looks like a JPEG or PNG file (by its first bytes, without decoding), else CameraError.
+
+    The cheap part of :func:`decode_image`, for frames decoded elsewhere (:class:`EncodedFrame`):
+    a web page or bytes that are no image file are refused where the camera can still retry.
+    """
+    _web_page(data, where)
+    if not data.startswith(_MAGIC):
+        raise _not_an_image(data, where)
+    return data
+
+
+def decode_image(data: bytes, where: str) -> np.ndarray:
+    """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) image or raise CameraError."""
+    _web_page(data, where)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
     if img is None:
-        raise CameraError(f"{where} returned {len(data)} bytes that are not an image; check the camera URL.")
+        raise _not_an_image(data, where)
     return check_frame(img, where)
 
 
@@ -52,6 +78,53 @@ def frame_digest(img: np.ndarray) -> tuple[int, int]:
     """
     buf = np.ascontiguousarray(img).data.cast("B")
     return zlib.crc32(buf), zlib.adler32(buf)
+
+
+class StaleCheck:
+    """The stale-frame check: a frame byte-identical to the previous one is a frozen stream.
+
+    Holds the last frame's :func:`frame_digest` (a camera's, or a farm job's on the worker that
+    decodes its frames).
+    """
+
+    def __init__(self) -> None:
+        self.last: tuple[int, int] | None = None
+
+    def __call__(self, img: np.ndarray, where: str) -> np.ndarray:
+        """``img``, remembered; raises CameraError when it repeats the previous frame."""
+        digest = frame_digest(img)
+        if digest == self.last:
+            raise CameraError(f"{where} returned the same frame twice; the stream looks frozen, restart the camera service.")
+        self.last = digest
+        return img
+
+
+class EncodedFrame:
+    """A camera frame as the camera sent it (JPEG or PNG bytes), to be decoded where it is analysed.
+
+    A farm on a Dask cluster sends these to its workers (a 1080p JPEG is ~0.3 MB, decoded 6 MB);
+    :meth:`decode` does there what :meth:`Camera.grab` does after reading the bytes.
+
+    Parameters
+    ----------
+    data : bytes
+        The file's bytes (checked with :func:`sniff_image`).
+    where : str
+        The camera, for messages.
+    stale_check : bool
+        The camera checks for repeated frames (the decoder's :class:`StaleCheck` then runs).
+    """
+
+    __slots__ = ("data", "where", "stale_check")
+
+    def __init__(self, data: bytes, where: str, stale_check: bool) -> None:
+        self.data, self.where, self.stale_check = data, where, bool(stale_check)
+
+    def decode(self, stale: StaleCheck | None = None) -> np.ndarray:
+        """The frame, BGR uint8 (H, W, 3); CameraError as :meth:`Camera.grab` raises it (not an image, a
+        repeated frame when ``stale`` is given and the camera checks)."""
+        img = decode_image(self.data, self.where)
+        return stale(img, self.where) if stale is not None and self.stale_check else img
 
 
 class Camera:
@@ -75,33 +148,46 @@ class Camera:
         self.settle_s = float(settle_s)
         self.stale_check = stale_check
         self._sleep = sleep
-        self._last_digest: tuple[int, int] | None = None
+        self._stale = StaleCheck()
 
     def _read(self) -> np.ndarray:
+        return decode_image(self._fetch(), self.where)
+
+    def _fetch(self) -> bytes:
+        """The frame's encoded bytes (sources whose frames arrive as JPEG/PNG files override it)."""
         raise NotImplementedError
 
-    def grab(self) -> np.ndarray:
-        """One fresh frame, BGR uint8 (H, W, 3)."""
+    @property
+    def encoded(self) -> bool:
+        """The frames arrive encoded: :meth:`grab_encoded` gives them without decoding."""
+        return type(self)._fetch is not Camera._fetch
+
+    def _attempts(self, read: Callable[[], Any]) -> Any:
+        """``read()`` after the settle delay, retried on CameraError."""
         if self.settle_s > 0:
             self._sleep(self.settle_s)
         err: CameraError | None = None
         for attempt in range(self.retries + 1):
             try:
-                img = self._read()
-                break
+                return read()
             except CameraError as exc:
                 err = exc
                 if attempt < self.retries:
                     self._sleep(min(0.2 * 2**attempt, 2.0))
-        else:
-            assert err is not None
-            raise err
-        if self.stale_check:
-            digest = frame_digest(img)
-            if digest == self._last_digest:
-                raise CameraError(f"{self.where} returned the same frame twice; the stream looks frozen, restart the camera service.")
-            self._last_digest = digest
-        return img
+        assert err is not None
+        raise err
+
+    def grab(self) -> np.ndarray:
+        """One fresh frame, BGR uint8 (H, W, 3)."""
+        img = self._attempts(self._read)
+        return self._stale(img, self.where) if self.stale_check else img
+
+    def grab_encoded(self) -> EncodedFrame:
+        """One fresh frame as the camera sent it (only when :attr:`encoded`): retried as :meth:`grab` is when the
+        bytes are no image file (:func:`sniff_image`); decoding and the stale-frame check are the caller's
+        (:meth:`EncodedFrame.decode`)."""
+        return EncodedFrame(self._attempts(lambda: sniff_image(self._fetch(), self.where)), self.where,
+                            self.stale_check)
 
     def close(self) -> None:
         return None
@@ -114,14 +200,14 @@ class SnapshotCamera(Camera):
         super().__init__(**kw)
         self.url, self.timeout_s, self.where = url, timeout_s, f"camera {url}"
 
-    def _read(self) -> np.ndarray:
+    def _fetch(self) -> bytes:
         try:
             r = httpx.get(self.url, timeout=self.timeout_s, follow_redirects=True)
         except httpx.HTTPError as exc:
             raise CameraError(f"{self.where} unreachable ({type(exc).__name__}); check the URL and that the camera service runs.") from exc
         if r.status_code != 200:
             raise CameraError(f"{self.where} answered HTTP {r.status_code}; check the snapshot URL.")
-        return decode_image(r.content, self.where)
+        return r.content
 
 
 class MjpegCamera(Camera):
@@ -131,7 +217,7 @@ class MjpegCamera(Camera):
         super().__init__(**kw)
         self.url, self.timeout_s, self.max_bytes, self.where = url, timeout_s, max_bytes, f"stream {url}"
 
-    def _read(self) -> np.ndarray:
+    def _fetch(self) -> bytes:
         buf = b""
         try:
             with httpx.stream("GET", self.url, timeout=self.timeout_s) as r:
@@ -139,12 +225,12 @@ class MjpegCamera(Camera):
                     raise CameraError(f"{self.where} answered HTTP {r.status_code}; check the stream URL.")
                 ctype = r.headers.get("content-type", "")
                 if "multipart" not in ctype:
-                    return decode_image(r.read(), self.where)
+                    return r.read()
                 for chunk in r.iter_bytes():
                     buf += chunk
                     frame = _first_jpeg(buf)
                     if frame is not None:
-                        return decode_image(frame, self.where)
+                        return frame
                     if len(buf) > self.max_bytes:
                         break
         except httpx.HTTPError as exc:

@@ -172,7 +172,15 @@ class ParkedCamera:
         CameraError
             From the wrapped camera.
         """
-        frame = self.camera.grab()
+        return self._parked(self.camera.grab())
+
+    def grab_encoded(self) -> Any:
+        """:meth:`grab` of the wrapped camera's :meth:`~layerwatch.monitor.cameras.Camera.grab_encoded` (the frame
+        as the camera sent it; only when the camera is ``encoded``)."""
+        return self._parked(self.camera.grab_encoded())
+
+    def _parked(self, frame: Any) -> Any:
+        """``frame`` if the head is still at the layer's park spot (see :meth:`grab`)."""
         pos = self._where()
         why = None if pos is None else self.check.reason(self.layer, pos)
         if why is not None:

@@ -52,19 +52,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from layerwatch.analysis.frame_quality import (
-    REPEATED_FRAME,
-    FrameQualitySettings,
-    assess_frame,
-    compact_previous,
-    grey_of,
-)
+from layerwatch.analysis.frame_quality import REPEATED_FRAME, FrameQualitySettings
 from layerwatch.analysis.overlay import overlay_image
 from layerwatch.analysis.result import LayerResult
 from layerwatch.errors import LayerwatchError
 from layerwatch.gcode.objects import ObjectMap
 from layerwatch.geometry.topview import TopView
-from layerwatch.monitor.camera_checks import LateStream, MarkerWatch, lag_checkable
+from layerwatch.monitor.camera_checks import LateCheck
+from layerwatch.monitor.cameras import EncodedFrame
+from layerwatch.monitor.frame_checks import CAMERA_FAULT, FrameChecks
 from layerwatch.monitor.health import FaultSettings, FaultTracker
 from layerwatch.monitor.printers.base import TRANSIENT_STATES, Printer, SnapshotTrigger
 from layerwatch.monitor.printers.replies import RateLimitedLog
@@ -72,10 +68,7 @@ from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.step import Reference
 
-__all__ = ["Monitor", "MonitorReport", "CAMERA_FAULT", "frame_problem"]
-
-#: ``LayerResult.status`` of a layer whose photo was unusable (the policy does not judge it)
-CAMERA_FAULT = "camera_fault"
+__all__ = ["Monitor", "MonitorReport", "CAMERA_FAULT", "camera_error", "frame_problem"]
 
 #: smallest side of a usable camera frame, px
 MIN_FRAME_SIDE = 16
@@ -122,8 +115,11 @@ def frame_problem(photo: Any) -> str | None:
     """Why a camera's return value is no image to analyse, or None.
 
     A usable frame is a ``uint8`` ndarray of shape (H, W, 3) (or (H, W)) with both sides
-    at least :data:`MIN_FRAME_SIDE` px.
+    at least :data:`MIN_FRAME_SIDE` px, or an :class:`~layerwatch.monitor.cameras.EncodedFrame`
+    (checked where it is decoded).
     """
+    if isinstance(photo, EncodedFrame):
+        return None
     if not isinstance(photo, np.ndarray):
         return f"the camera returned {type(photo).__name__}, not an image"
     if photo.dtype != np.uint8:
@@ -133,6 +129,11 @@ def frame_problem(photo: Any) -> str | None:
     if min(photo.shape[:2]) < MIN_FRAME_SIDE:
         return f"the camera returned a {photo.shape[1]}x{photo.shape[0]} image (empty or a placeholder)"
     return None
+
+
+def camera_error(exc: BaseException) -> str:
+    """The record's message for a camera that raised ``exc`` instead of giving a frame."""
+    return f"camera error: {type(exc).__name__}: {exc}"
 
 
 class Monitor:
@@ -204,11 +205,8 @@ class Monitor:
         self._printer_fault = FaultTracker("printer", grace_s=self.faults.printer_grace_s)
         self._camera_fault = FaultTracker("camera", after_n=self.faults.camera_alert_after)
         self._warn = RateLimitedLog(log, self.faults.warn_interval_s)
-        self._last_good: np.ndarray | None = None  # last frame the gate passed (analysis thread only)
-        self._markers = (MarkerWatch.of_pipeline(pipeline, self.frame_quality.max_marker_shift_px)
-                         if self.frame_quality is not None else None)
-        self._late_stream = LateStream(self.faults.camera_alert_after)  # analysis thread only
-        self._lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
+        #: the gate, marker watch and late-stream series of this job (analysis thread only)
+        self.frame_checks = FrameChecks(pipeline, self.frame_quality, self.faults.camera_alert_after, self._warn)
 
     def health(self) -> dict[str, dict | None]:
         """Ongoing faults: ``{"printer": {...} or None, "camera": {...} or None}`` (see :class:`Fault`)."""
@@ -233,10 +231,10 @@ class Monitor:
         try:
             if hasattr(self.camera, "set_layer"):
                 self.camera.set_layer(trigger.layer)
-            photo = self.camera.grab()
+            photo = self._grab()
             problem = frame_problem(photo)
         except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a crash
-            problem = f"camera error: {type(exc).__name__}: {exc}"
+            problem = camera_error(exc)
         self._photo_done(trigger)
         if problem is not None:
             res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT, message=problem)
@@ -249,6 +247,10 @@ class Monitor:
             return self._analyse(trigger, photo, t_photo)
         self._queue(self._analyse, trigger, photo, t_photo)
         return None
+
+    def _grab(self) -> Any:
+        """The layer's frame from the camera (a farm on a Dask cluster takes it encoded: its workers decode it)."""
+        return self.camera.grab()
 
     def _quiet_reason(self, trigger: SnapshotTrigger) -> str | None:
         """Why ``trigger``'s layer is not judged (start/end G-code, a macro's quiet signal), or None."""
@@ -297,7 +299,7 @@ class Monitor:
             photo = self.camera.grab()
             problem = frame_problem(photo)
         except Exception as exc:  # noqa: BLE001 - any camera failure is a camera fault, never a hold
-            problem = f"camera error: {type(exc).__name__}: {exc}"
+            problem = camera_error(exc)
         if problem is not None:
             log.warning("bed not checked at job start: %s", problem)
             return None
@@ -314,36 +316,6 @@ class Monitor:
         except Exception:  # noqa: BLE001 - the hold ends by its own time-out; keep watching
             log.exception("could not tell the printer the photo of layer %d was taken", trigger.layer)
 
-    def _gate(self, trigger: SnapshotTrigger, photo: np.ndarray) -> LayerResult | None:
-        """The camera-fault gate: a ``camera_fault`` record for a frame unfit for analysis, else None."""
-        if self.frame_quality is None:
-            return None
-        try:
-            grey = grey_of(photo)  # converted once: the gate's checks, the markers and the next frame's "previous"
-            small = compact_previous(grey)  # reduced once: the gate's and, if it passes, the next frame's previous
-            quality = assess_frame(grey, self._last_good, self.frame_quality, small=small,
-                                   **self._marker_positions(grey))
-        except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
-            log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", trigger.layer)
-            return None
-        if quality.ok:
-            self._last_good = small  # not the frame: a farm holds one per printer
-            return None
-        res = LayerResult(layer=trigger.layer, z=trigger.z, status=CAMERA_FAULT,
-                          message="unusable frame: " + "; ".join(quality.reasons))
-        res.frame_quality = {k: round(float(v), 3) for k, v in quality.figures.items()}
-        return res
-
-    def _marker_positions(self, photo: np.ndarray) -> dict[str, np.ndarray]:
-        """Detected and expected bed markers for the gate (empty without a marker calibration); ``photo`` BGR or grey."""
-        if self._markers is None:
-            return {}
-        try:
-            return self._markers(photo)
-        except Exception as exc:  # noqa: BLE001 - no marker verdict rather than no gate
-            self._warn.warning("markers", "bed markers not checked on this frame: %s: %s", type(exc).__name__, exc)
-            return {}
-
     def _lag_check(self, trigger: SnapshotTrigger, photo: np.ndarray, res: LayerResult) -> LayerResult:
         """A frame that shows the previous layer, told over the series (:meth:`LateStream.check`): judged against it.
 
@@ -351,20 +323,26 @@ class Monitor:
         and height, its message and ``frame_quality`` saying what the frame showed; otherwise
         ``res`` (its message says why a frame that looked late was judged as it is).
         """
-        if not self._lag_checks or res.status != "ok":
+        if not self.frame_checks.lag_checks or res.status != "ok":
             return res
-        try:
-            excuse = bool(self.frame_quality and self.frame_quality.excuse_late_frames)
-            late = self._late_stream.check(self.pipeline, photo, res, self.policy.settings, excuse=excuse)
-        except Exception:  # noqa: BLE001 - a check bug must not hide the layer: judge it as analysed
-            log.exception("lag check failed on layer %d; the layer is judged as analysed", trigger.layer)
+        late = self.frame_checks.late(self.pipeline, photo, res, self.policy.settings)
+        return self.judge_late(res, late, self.frame_checks.late_stream.count)
+
+    def judge_late(self, res: LayerResult, late: LateCheck | None, count: int) -> LayerResult:
+        """Act on the late-stream check of ``res`` (:meth:`FrameChecks.late`, ``None``: it did not run).
+
+        ``count``: the excused frames in a row so far (the alert's figure). Returns what the policy
+        judges: ``res`` (its message noting why a frame that looked late is judged as it is), or the
+        frame's analysis against the layer it shows; alerts once when the lag became consistent.
+        """
+        if late is None:
             return res
         if late.judged is None:
             if late.why:
                 res.message = (res.message + "; " if res.message else "") + late.why
             return res
         if late.alert:
-            message = (f"camera lagging: {self._late_stream.count} frames showed the layer before theirs (each judged "
+            message = (f"camera lagging: {count} frames showed the layer before theirs (each judged "
                        f"against the layer it shows): {late.judged.message}")
             self.record_event("camera_fault", message, {"layer": res.layer, **late.judged.frame_quality})
             self._alert(message, res, force=True)
@@ -376,7 +354,7 @@ class Monitor:
         return late.judged
 
     def _analyse(self, trigger: SnapshotTrigger, photo: np.ndarray, t_photo: float) -> LayerResult:
-        res = self._gate(trigger, photo)
+        res = self.frame_checks.gate(trigger.layer, trigger.z, photo)
         if res is not None:
             return self.finish_layer(trigger, res)
         try:
@@ -430,11 +408,15 @@ class Monitor:
         if top is None or res.heatmap is None:
             return None
         try:
-            foot = self.pipeline.reference(res.layer).footprint
+            foot = self._footprint(res.layer)
             return overlay_image(top, res, self.pipeline.topview, foot)
         except (LayerwatchError, ValueError, AttributeError) as exc:  # the alert goes out without a picture
             log.warning("overlay for layer %d not drawn: %s", res.layer, exc)
             return None
+
+    def _footprint(self, layer: int) -> np.ndarray:
+        """Top-view footprint of layer ``layer`` (bool, (H, W)), for an alert's overlay."""
+        return self.pipeline.reference(layer).footprint
 
     def _track_camera(self, res: LayerResult) -> None:
         """Open, count, notify or close the camera-fault episode after one layer (lock held)."""
@@ -450,7 +432,7 @@ class Monitor:
                                 force=True)
             return
         self.report.camera_faults += 1
-        self._late_stream.interrupted()  # the stream may come back one layer late
+        self._stream_interrupted()  # the stream may come back one layer late
         started, notify = self._camera_fault.failed(res.message)
         self._warn.warning("camera", "camera fault on layer %d (never a pause): %s", res.layer, res.message)
         if started:
@@ -461,6 +443,10 @@ class Monitor:
                      "look at it" if REPEATED_FRAME in res.message else "")
             self._alert(f"camera fault: {n} unusable frames in a row, layers are not being checked: {res.message}"
                         f"{still}", res, force=True)
+
+    def _stream_interrupted(self) -> None:
+        """A frame was unusable: the late-stream series may come back one layer late (analysis thread)."""
+        self.frame_checks.late_stream.interrupted()
 
     def record_event(self, kind: str, message: str, data: dict | None = None) -> None:
         """Append an event to this job's history (none without a history; a failed write is a warning)."""
