@@ -267,7 +267,6 @@ class StackRenderer:
             s.layers_visible_below * lh,
             s.depth_darkening,
             light,
-            s.shoulder_layers * lh,
         )
         if s.cavity > 0:
             # ambient occlusion of valleys: how far a pixel lies below its neighbourhood

@@ -142,7 +142,7 @@ def _lambert(gx, gy, lights, ambient, k, flat):
 
 
 @njit(cache=True)
-def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_dark, out, max_step=0.0):
+def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_dark, out):
     """Lambertian shading of a height map under the given lights.
 
     Parameters
@@ -164,10 +164,6 @@ def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_d
         Brightness lost at ``depth_scale`` of depth.
     out : ndarray, shape (H, W), float32
         Light factor in [0, 1] (flat, top surface = 1).
-    max_step : float
-        Largest height difference (mm) between a pixel's two neighbours that
-        the slope is taken from; a larger one (the edge of a top surface over a
-        drop of several layers) is shaded as this step. ``<= 0``: no limit.
     """
     H, W = height.shape
     k = lights.shape[0]
@@ -183,14 +179,9 @@ def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_d
         for u in range(W):
             um = max(u - 1, 0)
             up = min(u + 1, W - 1)
-            dx = height[v, up] - height[v, um]
-            dy = height[vp, u] - height[vm, u]
-            if max_step > 0.0:  # a bead's shoulder, however deep the drop beyond it
-                dx = min(max(dx, -max_step), max_step)
-                dy = min(max(dy, -max_step), max_step)
-            gx = dx * half_s * (2.0 / max(up - um, 1))
+            gx = (height[v, up] - height[v, um]) * half_s * (2.0 / max(up - um, 1))
             # image rows grow towards -Y of the bed
-            gy = -dy * half_s * (2.0 / max(vp - vm, 1))
+            gy = -(height[vp, u] - height[vm, u]) * half_s * (2.0 / max(vp - vm, 1))
             light = level if gx == 0.0 and gy == 0.0 else _lambert(gx, gy, lights, ambient, k, flat)
             h = height[v, u]
             if h > 0.0:

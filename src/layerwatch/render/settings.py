@@ -59,13 +59,6 @@ class RenderSettings(Section):
     relief : float
         Exaggeration of the height map's slopes in the shading, so bead
         edges stand out at a few pixels per bead.
-    shoulder_layers : float
-        Height step, in layers, that the shading takes the edge of a top
-        surface to be: a bead's shoulder is rounded over about its own height,
-        whatever the drop beyond it (a wall's top over a floor several layers
-        down, a part's edge over the bed), and what lies below the edge is
-        drawn by the camera view. 0 shades the whole drop as one slope (a dark
-        line as wide as the smoothing at every tall edge, which no camera sees).
     smooth_px : float
         Gaussian sigma (px) applied to the height map before the normals
         are taken (anti-aliasing of the bead profile); 0 disables it.
@@ -107,7 +100,6 @@ class RenderSettings(Section):
     layers_visible_below: int = Field(3, ge=0)
     depth_darkening: float = Field(0.2, ge=0, le=1)
     relief: float = Field(1.5, gt=0, le=20)
-    shoulder_layers: float = Field(0.0, ge=0, le=50)
     smooth_px: float = Field(0.7, ge=0, le=5)
     cavity: float = Field(0.1, ge=0, le=1)
     cavity_radius_mm: float = Field(0.35, gt=0, le=5)
