@@ -58,7 +58,7 @@ from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
-           "near_footprint", "reference_hog", "to_grey255"]
+           "near_footprint", "reference_hog", "tile_share", "to_grey255"]
 
 #: ``cv2.transform`` row giving ``floor((B + G + R) / 3)`` of uint8 pixels: cv2 rounds
 #: ``s / 3 - 1/3`` to nearest, whose fraction is never near .5 (checked on all 2**24 colours)
@@ -316,6 +316,34 @@ def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
     return keep[labels]
 
 
+def tile_share(footprint: np.ndarray, grid_shape: tuple[int, int], cell_px: int, block_cells: int,
+               footprint_integral: np.ndarray | None = None) -> np.ndarray:
+    """Printed share of each block's tile: the footprint's fraction of the cell at the block's centre.
+
+    The blocks overlap with a stride of one cell, so each stands for one cell-sized tile
+    (what a% of eq. 5 counts per anomalous block).
+
+    Parameters
+    ----------
+    footprint : ndarray, shape (H, W), bool
+    grid_shape : (N, M)
+        Block grid of the HOG.
+    cell_px, block_cells : int
+    footprint_integral : ndarray, optional
+        ``cv2.integral`` of ``footprint`` when the caller has it.
+
+    Returns
+    -------
+    ndarray, shape (N, M), float64
+        In [0, 1].
+    """
+    c, b = int(cell_px), int(block_cells)
+    n, m = grid_shape
+    foot_int = _integral(np.asarray(footprint, bool)) if footprint_integral is None else footprint_integral
+    off = (b - 1) * c // 2
+    return _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
+
+
 def _mask(arr, shape, name) -> np.ndarray:
     m = np.asarray(arr)
     if m.shape != shape:
@@ -517,8 +545,7 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     n, m = heat.shape
     foot_int = _integral(foot)
     considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm, seen, foot_int)
-    off = (b - 1) * c // 2
-    foot_frac = _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
+    foot_frac = tile_share(foot, heat.shape, c, b, foot_int)
     grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
     anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
     shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
@@ -528,11 +555,13 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     tile_mm2 = (c / topview.px_per_mm) ** 2
     n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
     printed = n_printed / topview.px_per_mm**2
+    share = foot_frac[anom]  # printed share of each anomalous block's tile
+    n_counted = float(share.sum()) if st.anomalous_area == "printed" else float(share.size)
     res = LayerResult(
         layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
-        anomaly_ratio=anomaly_ratio(int(anom.sum()), tile_mm2, printed),
-        printed_area_mm2=printed, anomalous_area_mm2=float(anom.sum()) * tile_mm2,
-        outside_area_mm2=float((1.0 - foot_frac[anom]).sum()) * tile_mm2,
+        anomaly_ratio=anomaly_ratio(n_counted, tile_mm2, printed),
+        printed_area_mm2=printed, anomalous_area_mm2=n_counted * tile_mm2,
+        outside_area_mm2=float((1.0 - share).sum()) * tile_mm2,
         n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
         heatmap=heat, mask=considered,
         grid=BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,
