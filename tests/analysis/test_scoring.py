@@ -245,3 +245,52 @@ def test_a_reference_hog_computed_ahead_gives_the_same_result_and_is_not_changed
         b = analyze_layer(photo, ref, foot, TOPVIEW, st, ref_hog=ahead)
         assert np.array_equal(a.heatmap, b.heatmap) and a.anomaly_ratio == b.anomaly_ratio
         assert np.array_equal(ahead[0], before) and not ahead[0].flags.writeable
+
+
+def _wall_scene(texture_rows: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A wall's top (grey 200, rows 85-96: it starts 5 px into a cell) on a flat grey-60 surround; the
+    photo is the reference with strong vertical stripes in ``texture_rows`` (columns 64-159)."""
+    h, w = TOPVIEW.shape
+    foot = np.zeros((h, w), bool)
+    foot[85:97, 40:200] = True
+    ref = np.full((h, w), 60, np.uint8)
+    ref[foot] = 200
+    photo = ref.copy()
+    stripes = ((np.arange(w)[None, :] // 3) % 2 == 0) & (np.arange(w)[None, :] >= 64) & (np.arange(w)[None, :] < 160)
+    band = np.zeros((h, w), bool)
+    band[texture_rows] = True
+    photo[band & stripes] = 150
+    return ref, photo, foot
+
+
+def test_printed_area_counts_what_lies_beside_a_wall_as_outside_not_as_a_percent():
+    """The cause of the window part's clean alarms (issue 18): a camera at 45 degrees sees past a wall's edge
+    (the floor of a hollow part through its opening, the wall's own face), and a block is considered when
+    one of its cells touches the footprint, although its tile (the cell at its centre) lies beside it.
+    Texture there that the reference lacks made whole tiles of S_A; with ``anomalous_area = "printed"`` a
+    block adds only the printed part of its tile, and the rest is the area beside the layer."""
+    tile = (8 / TOPVIEW.px_per_mm) ** 2
+    tiles, printed = AnalysisSettings(footprint_margin_mm=0.0), AnalysisSettings(footprint_margin_mm=0.0,
+                                                                                anomalous_area="printed")
+    ref, photo, foot = _wall_scene(slice(72, 80))  # the cell just beside the wall (blocks of row 9 touch it)
+    a = analyze_layer(photo, ref, foot, TOPVIEW, tiles)
+    b = analyze_layer(photo, ref, foot, TOPVIEW, printed)
+    assert a.n_anomalous == b.n_anomalous >= 8  # the same blocks fail
+    assert a.anomaly_ratio > 0.025  # above the recommended pause ratio: an alarm on a clean layer
+    assert b.anomaly_ratio == 0.0 and b.anomalous_area_mm2 == 0.0
+    assert b.outside_area_mm2 == pytest.approx(a.outside_area_mm2) == pytest.approx(a.n_anomalous * tile)
+    # texture on the wall's top itself is a failure of the printed layer: counted by its printed share
+    ref, photo, foot = _wall_scene(slice(88, 96))
+    a = analyze_layer(photo, ref, foot, TOPVIEW, tiles)
+    b = analyze_layer(photo, ref, foot, TOPVIEW, printed)
+    assert b.n_anomalous == a.n_anomalous >= 8
+    assert b.anomaly_ratio > 0.5 * a.anomaly_ratio > 0.0
+    assert b.anomalous_area_mm2 + b.outside_area_mm2 == pytest.approx(a.anomalous_area_mm2)
+    assert b.anomaly_ratio == pytest.approx(b.anomalous_area_mm2 / b.printed_area_mm2)
+
+
+def test_recommended_settings_count_the_printed_area_and_the_paper_its_tiles():
+    from layerwatch.pipeline.config import resolve_config
+
+    assert resolve_config(None).config.analysis.anomalous_area == "printed"
+    assert resolve_config(None, recommended=False).config.analysis.anomalous_area == "tiles"
