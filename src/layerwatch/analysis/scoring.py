@@ -58,7 +58,8 @@ from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
-           "near_footprint", "reference_hog", "tile_share", "to_grey255"]
+           "near_footprint", "printed_weight", "reference_hog", "tile_share",
+           "to_grey255", "PART_GAP_MM"]
 
 #: ``cv2.transform`` row giving ``floor((B + G + R) / 3)`` of uint8 pixels: cv2 rounds
 #: ``s / 3 - 1/3`` to nearest, whose fraction is never near .5 (checked on all 2**24 colours)
@@ -344,6 +345,42 @@ def tile_share(footprint: np.ndarray, grid_shape: tuple[int, int], cell_px: int,
     return _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
 
 
+#: gaps of a layer's footprint up to about this wide (mm) are the part's own inside (sparse-infill cells,
+#: the room between perimeters and infill), not beside it: :func:`printed_weight`
+PART_GAP_MM = 6.0
+
+
+def printed_weight(share: np.ndarray, tile_mm: float, gap_mm: float = PART_GAP_MM) -> np.ndarray:
+    """What each block's tile adds to S_A with ``anomalous_area = "printed"``: the part's share of the tile.
+
+    The part at this layer is the footprint with its own gaps closed (a morphological closing of the
+    tiles holding printed pixels, over gaps up to about ``gap_mm``): a tile inside it counts whole (a
+    sparse-infill cell shows the layers below through the part, as in the paper), a tile on its edge
+    counts its printed share, a tile beside it (the bed, a hollow part's floor through a wider opening,
+    a wall's face below the layer) counts nothing.
+
+    Parameters
+    ----------
+    share : ndarray, shape (N, M)
+        :func:`tile_share` of the footprint.
+    tile_mm : float
+        Side of a tile (one cell), mm.
+    gap_mm : float
+        Widest gap of the footprint taken as the part's inside, mm.
+
+    Returns
+    -------
+    ndarray, shape (N, M), float64
+        In [0, 1].
+    """
+    occ = (np.asarray(share) > 0).astype(np.uint8)
+    r = max(int(np.ceil(0.5 * gap_mm / tile_mm)), 1)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    closed = cv2.morphologyEx(occ, cv2.MORPH_CLOSE, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    inside = cv2.erode(closed, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return np.where(inside, 1.0, np.asarray(share, np.float64))
+
+
 def _mask(arr, shape, name) -> np.ndarray:
     m = np.asarray(arr)
     if m.shape != shape:
@@ -555,13 +592,15 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     tile_mm2 = (c / topview.px_per_mm) ** 2
     n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
     printed = n_printed / topview.px_per_mm**2
-    share = foot_frac[anom]  # printed share of each anomalous block's tile
-    n_counted = float(share.sum()) if st.anomalous_area == "printed" else float(share.size)
+    # what each anomalous block adds to S_A: its whole tile (the paper) or the part's share of it
+    share = (printed_weight(foot_frac, c / topview.px_per_mm)[anom] if st.anomalous_area == "printed"
+             else np.ones(int(anom.sum())))
+    n_counted = float(share.sum())
     res = LayerResult(
         layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
         anomaly_ratio=anomaly_ratio(n_counted, tile_mm2, printed),
         printed_area_mm2=printed, anomalous_area_mm2=n_counted * tile_mm2,
-        outside_area_mm2=float((1.0 - share).sum()) * tile_mm2,
+        outside_area_mm2=float((1.0 - foot_frac[anom]).sum()) * tile_mm2,
         n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
         heatmap=heat, mask=considered,
         grid=BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,

@@ -38,6 +38,7 @@ from layerwatch.analysis.scoring import (
     block_hogs,
     grow_regions,
     growth_reach,
+    printed_weight,
     tile_share,
 )
 from layerwatch.analysis.settings import METRIC_NAMES
@@ -238,8 +239,8 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
             reach = growth_reach(considered, ref.footprint, pipe.topview, settings, valid)
     reg = np.zeros_like(a)
     # what each anomalous block adds to S_A (``[analysis] anomalous_area``): its tile, or its printed part
-    weight = (tile_share(ref.footprint, (n, m), c, b)[considered] if settings.anomalous_area == "printed"
-              else np.ones(int(considered.sum())))
+    weight = (printed_weight(tile_share(ref.footprint, (n, m), c, b), c / pipe.topview.px_per_mm)[considered]
+              if settings.anomalous_area == "printed" else np.ones(int(considered.sum())))
     for k, name in enumerate(METRIC_NAMES):
         if regions is not None:
             full = sims[name]
