@@ -294,3 +294,26 @@ def test_recommended_settings_count_the_printed_area_and_the_paper_its_tiles():
 
     assert resolve_config(None).config.analysis.anomalous_area == "printed"
     assert resolve_config(None, recommended=False).config.analysis.anomalous_area == "tiles"
+
+
+def test_printed_weight_counts_the_parts_own_gaps_whole_and_nothing_beside_it():
+    """Sparse infill (lines 3 mm apart) is the part's inside: its cells show lower layers through the part
+    and count whole, as in the paper; a hollow part's 12 mm opening and the bed around it count nothing."""
+    from layerwatch.analysis.scoring import PART_GAP_MM, printed_weight, tile_share
+
+    px = TOPVIEW.px_per_mm
+    foot = np.zeros(TOPVIEW.shape, bool)
+    r0, r1, c0, c1 = (int(round(v * px)) for v in (5, 35, 5, 40))
+    foot[r0:r1, c0:c0 + 3] = foot[r0:r1, c1 - 3:c1] = foot[r0:r0 + 3, c0:c1] = foot[r1 - 3:r1, c0:c1] = True
+    for x in np.arange(8, 22, 3.0):  # sparse infill in the left half: 0.45 mm lines every 3 mm
+        c = int(round(x * px))
+        foot[r0:r1, c:c + 3] = True
+    foot[r0:r1, int(round(22 * px)):int(round(23.8 * px))] = True  # a wall; right of it a 16 mm opening
+    share = tile_share(foot, (TOPVIEW.shape[0] // 8 - 1, TOPVIEW.shape[1] // 8 - 1), 8, 2)
+    w = printed_weight(share, 8 / px)
+    tile = lambda x, y: (int((y * px - 4) // 8), int((x * px - 4) // 8))  # noqa: E731  block whose tile holds (x, y) mm
+    assert w[tile(15.5, 20)] == 1.0 and share[tile(15.5, 20)] < 0.5  # a sparse-infill cell: whole
+    assert w[tile(31, 20)] == 0.0  # the middle of the opening: beside the part
+    assert w[tile(43, 20)] == 0.0  # the bed
+    assert 0.0 < w[tile(23.9, 20)] < 1.0  # the wall's edge: its printed share
+    assert PART_GAP_MM < 12.0
