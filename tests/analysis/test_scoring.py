@@ -317,3 +317,15 @@ def test_printed_weight_counts_the_parts_own_gaps_whole_and_nothing_beside_it():
     assert w[tile(43, 20)] == 0.0  # the bed
     assert 0.0 < w[tile(23.9, 20)] < 1.0  # the wall's edge: its printed share
     assert PART_GAP_MM < 12.0
+
+
+def test_area_weight_modes():
+    from layerwatch.analysis.scoring import area_weight
+
+    share = np.zeros((12, 12))
+    share[5, 2:10] = 0.4  # a thin wall's edge tiles
+    share[0, 0] = 1.0
+    tiles, part, printed = (area_weight(share, 1.2, m) for m in ("tiles", "part", "printed"))
+    assert (tiles == 1).all()
+    assert (part[5, 2:10] == 1).all() and part[8, 8] == 0 and part[0, 0] == 1  # wholly beside the part: nothing
+    assert np.allclose(printed[5, 2:10], 0.4) and printed[8, 8] == 0

@@ -58,7 +58,7 @@ from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
-           "near_footprint", "printed_weight", "reference_hog", "tile_share",
+           "near_footprint", "area_weight", "printed_weight", "reference_hog", "tile_share",
            "to_grey255", "PART_GAP_MM"]
 
 #: ``cv2.transform`` row giving ``floor((B + G + R) / 3)`` of uint8 pixels: cv2 rounds
@@ -381,6 +381,18 @@ def printed_weight(share: np.ndarray, tile_mm: float, gap_mm: float = PART_GAP_M
     return np.where(inside, 1.0, np.asarray(share, np.float64))
 
 
+def area_weight(share: np.ndarray, tile_mm: float, mode: str) -> np.ndarray:
+    """What each block's tile adds to S_A under ``[analysis] anomalous_area = mode``, shape of ``share``.
+
+    ``"tiles"``: 1; ``"printed"``: :func:`printed_weight`; ``"part"``: 1 where the tile holds a printed
+    pixel or lies inside the part, else 0 (only tiles wholly beside the part are left out).
+    """
+    if mode == "tiles":
+        return np.ones(np.shape(share))
+    w = printed_weight(share, tile_mm)
+    return np.where(np.asarray(share) > 0, 1.0, w) if mode == "part" else w
+
+
 def _mask(arr, shape, name) -> np.ndarray:
     m = np.asarray(arr)
     if m.shape != shape:
@@ -593,7 +605,7 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
     printed = n_printed / topview.px_per_mm**2
     # what each anomalous block adds to S_A: its whole tile (the paper) or the part's share of it
-    share = (printed_weight(foot_frac, c / topview.px_per_mm)[anom] if st.anomalous_area == "printed"
+    share = (area_weight(foot_frac, c / topview.px_per_mm, st.anomalous_area)[anom] if st.anomalous_area != "tiles"
              else np.ones(int(anom.sum())))
     n_counted = float(share.sum())
     res = LayerResult(

@@ -89,7 +89,9 @@ class AnalysisSettings(Section):
     # outside_area_mm2, its own figure. On a 45-degree camera the tiles along
     # a wall's edge show what lies below the layer (a floor through an
     # opening, the wall's own face), which the reference draws least well.
-    anomalous_area: Literal["tiles", "printed"] = "tiles"
+    # "part": a tile holding a printed pixel (or inside the part) counts
+    # whole, only the tiles wholly beside the part count nothing.
+    anomalous_area: Literal["tiles", "part", "printed"] = "tiles"
     # How a gradient votes (:mod:`layerwatch.analysis.hog`): "one_bin"
     # (skimage, the paper); "split_ties": a gradient exactly on the 0/180-
     # degree bin edge (a rendered reference's straight edge along the top

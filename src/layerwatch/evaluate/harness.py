@@ -35,10 +35,10 @@ from layerwatch.analysis.metrics import similarity_all
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scoring import (
     anomaly_ratio,
+    area_weight,
     block_hogs,
     grow_regions,
     growth_reach,
-    printed_weight,
     tile_share,
 )
 from layerwatch.analysis.settings import METRIC_NAMES
@@ -239,8 +239,8 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
             reach = growth_reach(considered, ref.footprint, pipe.topview, settings, valid)
     reg = np.zeros_like(a)
     # what each anomalous block adds to S_A (``[analysis] anomalous_area``): its tile, or its printed part
-    weight = (printed_weight(tile_share(ref.footprint, (n, m), c, b), c / pipe.topview.px_per_mm)[considered]
-              if settings.anomalous_area == "printed" else np.ones(int(considered.sum())))
+    weight = area_weight(tile_share(ref.footprint, (n, m), c, b), c / pipe.topview.px_per_mm,
+                         settings.anomalous_area)[considered]
     for k, name in enumerate(METRIC_NAMES):
         if regions is not None:
             full = sims[name]
