@@ -245,3 +245,87 @@ def test_a_reference_hog_computed_ahead_gives_the_same_result_and_is_not_changed
         b = analyze_layer(photo, ref, foot, TOPVIEW, st, ref_hog=ahead)
         assert np.array_equal(a.heatmap, b.heatmap) and a.anomaly_ratio == b.anomaly_ratio
         assert np.array_equal(ahead[0], before) and not ahead[0].flags.writeable
+
+
+def _wall_scene(texture_rows: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A wall's top (grey 200, rows 85-96: it starts 5 px into a cell) on a flat grey-60 surround; the
+    photo is the reference with strong vertical stripes in ``texture_rows`` (columns 64-159)."""
+    h, w = TOPVIEW.shape
+    foot = np.zeros((h, w), bool)
+    foot[85:97, 40:200] = True
+    ref = np.full((h, w), 60, np.uint8)
+    ref[foot] = 200
+    photo = ref.copy()
+    stripes = ((np.arange(w)[None, :] // 3) % 2 == 0) & (np.arange(w)[None, :] >= 64) & (np.arange(w)[None, :] < 160)
+    band = np.zeros((h, w), bool)
+    band[texture_rows] = True
+    photo[band & stripes] = 150
+    return ref, photo, foot
+
+
+def test_printed_area_counts_what_lies_beside_a_wall_as_outside_not_as_a_percent():
+    """The cause of the window part's clean alarms (issue 18): a camera at 45 degrees sees past a wall's edge
+    (the floor of a hollow part through its opening, the wall's own face), and a block is considered when
+    one of its cells touches the footprint, although its tile (the cell at its centre) lies beside it.
+    Texture there that the reference lacks made whole tiles of S_A; with ``anomalous_area = "printed"`` a
+    block adds only the printed part of its tile, and the rest is the area beside the layer."""
+    tile = (8 / TOPVIEW.px_per_mm) ** 2
+    tiles, printed = AnalysisSettings(footprint_margin_mm=0.0), AnalysisSettings(footprint_margin_mm=0.0,
+                                                                                anomalous_area="printed")
+    ref, photo, foot = _wall_scene(slice(72, 80))  # the cell just beside the wall (blocks of row 9 touch it)
+    a = analyze_layer(photo, ref, foot, TOPVIEW, tiles)
+    b = analyze_layer(photo, ref, foot, TOPVIEW, printed)
+    assert a.n_anomalous == b.n_anomalous >= 8  # the same blocks fail
+    assert a.anomaly_ratio > 0.025  # above the recommended pause ratio: an alarm on a clean layer
+    assert b.anomaly_ratio == 0.0 and b.anomalous_area_mm2 == 0.0
+    assert b.outside_area_mm2 == pytest.approx(a.outside_area_mm2) == pytest.approx(a.n_anomalous * tile)
+    # texture on the wall's top itself is a failure of the printed layer: counted by its printed share
+    ref, photo, foot = _wall_scene(slice(88, 96))
+    a = analyze_layer(photo, ref, foot, TOPVIEW, tiles)
+    b = analyze_layer(photo, ref, foot, TOPVIEW, printed)
+    assert b.n_anomalous == a.n_anomalous >= 8
+    assert b.anomaly_ratio > 0.5 * a.anomaly_ratio > 0.0
+    assert b.anomalous_area_mm2 + b.outside_area_mm2 == pytest.approx(a.anomalous_area_mm2)
+    assert b.anomaly_ratio == pytest.approx(b.anomalous_area_mm2 / b.printed_area_mm2)
+
+
+def test_recommended_settings_count_the_printed_area_and_the_paper_its_tiles():
+    from layerwatch.pipeline.config import resolve_config
+
+    assert resolve_config(None).config.analysis.anomalous_area == "printed"
+    assert resolve_config(None, recommended=False).config.analysis.anomalous_area == "tiles"
+
+
+def test_printed_weight_counts_the_parts_own_gaps_whole_and_nothing_beside_it():
+    """Sparse infill (lines 3 mm apart) is the part's inside: its cells show lower layers through the part
+    and count whole, as in the paper; a hollow part's 12 mm opening and the bed around it count nothing."""
+    from layerwatch.analysis.scoring import PART_GAP_MM, printed_weight, tile_share
+
+    px = TOPVIEW.px_per_mm
+    foot = np.zeros(TOPVIEW.shape, bool)
+    r0, r1, c0, c1 = (int(round(v * px)) for v in (5, 35, 5, 40))
+    foot[r0:r1, c0:c0 + 3] = foot[r0:r1, c1 - 3:c1] = foot[r0:r0 + 3, c0:c1] = foot[r1 - 3:r1, c0:c1] = True
+    for x in np.arange(8, 22, 3.0):  # sparse infill in the left half: 0.45 mm lines every 3 mm
+        c = int(round(x * px))
+        foot[r0:r1, c:c + 3] = True
+    foot[r0:r1, int(round(22 * px)):int(round(23.8 * px))] = True  # a wall; right of it a 16 mm opening
+    share = tile_share(foot, (TOPVIEW.shape[0] // 8 - 1, TOPVIEW.shape[1] // 8 - 1), 8, 2)
+    w = printed_weight(share, 8 / px)
+    tile = lambda x, y: (int((y * px - 4) // 8), int((x * px - 4) // 8))  # noqa: E731  block whose tile holds (x, y) mm
+    assert w[tile(15.5, 20)] == 1.0 and share[tile(15.5, 20)] < 0.5  # a sparse-infill cell: whole
+    assert w[tile(31, 20)] == 0.0  # the middle of the opening: beside the part
+    assert w[tile(43, 20)] == 0.0  # the bed
+    assert 0.0 < w[tile(23.9, 20)] < 1.0  # the wall's edge: its printed share
+    assert PART_GAP_MM < 12.0
+
+
+def test_area_weight_modes():
+    from layerwatch.analysis.scoring import area_weight
+
+    share = np.zeros((12, 12))
+    share[5, 2:10] = 0.4  # a thin wall's edge tiles
+    share[0, 0] = 1.0
+    tiles, part, printed = (area_weight(share, 1.2, m) for m in ("tiles", "part", "printed"))
+    assert (tiles == 1).all()
+    assert (part[5, 2:10] == 1).all() and part[8, 8] == 0 and part[0, 0] == 1  # wholly beside the part: nothing
+    assert np.allclose(printed[5, 2:10], 0.4) and printed[8, 8] == 0

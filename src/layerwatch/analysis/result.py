@@ -246,10 +246,13 @@ class LayerResult:
     printed_area_mm2 : float
         ``S_P``, printed (footprint) area considered, mm^2.
     anomalous_area_mm2 : float
-        ``S_A``, anomalous area, mm^2.
+        ``S_A``, anomalous area, mm^2: the anomalous blocks' tiles, or with
+        ``[analysis] anomalous_area = "printed"`` the part's share of each
+        (:func:`~layerwatch.analysis.scoring.printed_weight`).
     outside_area_mm2 : float
-        Part of ``anomalous_area_mm2`` outside the layer's (undilated)
-        footprint, i.e. in the margin band around the part, mm^2.
+        Area of the anomalous blocks' tiles outside the layer's (undilated)
+        footprint, i.e. beside the part or in the margin band around it, mm^2
+        (part of ``anomalous_area_mm2`` only when whole tiles are counted).
     n_blocks, n_anomalous : int
         Blocks considered and blocks below threshold.
     regions : list of Region

@@ -58,7 +58,8 @@ from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
-           "near_footprint", "reference_hog", "to_grey255"]
+           "near_footprint", "area_weight", "printed_weight", "reference_hog", "tile_share",
+           "to_grey255", "PART_GAP_MM"]
 
 #: ``cv2.transform`` row giving ``floor((B + G + R) / 3)`` of uint8 pixels: cv2 rounds
 #: ``s / 3 - 1/3`` to nearest, whose fraction is never near .5 (checked on all 2**24 colours)
@@ -316,6 +317,82 @@ def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
     return keep[labels]
 
 
+def tile_share(footprint: np.ndarray, grid_shape: tuple[int, int], cell_px: int, block_cells: int,
+               footprint_integral: np.ndarray | None = None) -> np.ndarray:
+    """Printed share of each block's tile: the footprint's fraction of the cell at the block's centre.
+
+    The blocks overlap with a stride of one cell, so each stands for one cell-sized tile
+    (what a% of eq. 5 counts per anomalous block).
+
+    Parameters
+    ----------
+    footprint : ndarray, shape (H, W), bool
+    grid_shape : (N, M)
+        Block grid of the HOG.
+    cell_px, block_cells : int
+    footprint_integral : ndarray, optional
+        ``cv2.integral`` of ``footprint`` when the caller has it.
+
+    Returns
+    -------
+    ndarray, shape (N, M), float64
+        In [0, 1].
+    """
+    c, b = int(cell_px), int(block_cells)
+    n, m = grid_shape
+    foot_int = _integral(np.asarray(footprint, bool)) if footprint_integral is None else footprint_integral
+    off = (b - 1) * c // 2
+    return _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
+
+
+#: gaps of a layer's footprint up to about this wide (mm) are the part's own inside (sparse-infill cells,
+#: the room between perimeters and infill), not beside it: :func:`printed_weight`
+PART_GAP_MM = 6.0
+
+
+def printed_weight(share: np.ndarray, tile_mm: float, gap_mm: float = PART_GAP_MM) -> np.ndarray:
+    """What each block's tile adds to S_A with ``anomalous_area = "printed"``: the part's share of the tile.
+
+    The part at this layer is the footprint with its own gaps closed (a morphological closing of the
+    tiles holding printed pixels, over gaps up to about ``gap_mm``): a tile inside it counts whole (a
+    sparse-infill cell shows the layers below through the part, as in the paper), a tile on its edge
+    counts its printed share, a tile beside it (the bed, a hollow part's floor through a wider opening,
+    a wall's face below the layer) counts nothing.
+
+    Parameters
+    ----------
+    share : ndarray, shape (N, M)
+        :func:`tile_share` of the footprint.
+    tile_mm : float
+        Side of a tile (one cell), mm.
+    gap_mm : float
+        Widest gap of the footprint taken as the part's inside, mm.
+
+    Returns
+    -------
+    ndarray, shape (N, M), float64
+        In [0, 1].
+    """
+    occ = (np.asarray(share) > 0).astype(np.uint8)
+    r = max(int(np.ceil(0.5 * gap_mm / tile_mm)), 1)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    closed = cv2.morphologyEx(occ, cv2.MORPH_CLOSE, disk, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    inside = cv2.erode(closed, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return np.where(inside, 1.0, np.asarray(share, np.float64))
+
+
+def area_weight(share: np.ndarray, tile_mm: float, mode: str) -> np.ndarray:
+    """What each block's tile adds to S_A under ``[analysis] anomalous_area = mode``, shape of ``share``.
+
+    ``"tiles"``: 1; ``"printed"``: :func:`printed_weight`; ``"part"``: 1 where the tile holds a printed
+    pixel or lies inside the part, else 0 (only tiles wholly beside the part are left out).
+    """
+    if mode == "tiles":
+        return np.ones(np.shape(share))
+    w = printed_weight(share, tile_mm)
+    return np.where(np.asarray(share) > 0, 1.0, w) if mode == "part" else w
+
+
 def _mask(arr, shape, name) -> np.ndarray:
     m = np.asarray(arr)
     if m.shape != shape:
@@ -517,8 +594,7 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     n, m = heat.shape
     foot_int = _integral(foot)
     considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm, seen, foot_int)
-    off = (b - 1) * c // 2
-    foot_frac = _box_sums(foot_int, np.arange(n) * c + off, np.arange(m) * c + off, c) / float(c * c)
+    foot_frac = tile_share(foot, heat.shape, c, b, foot_int)
     grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
     anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)
     shown = anom  # what the overlay draws: grown by hysteresis when asked (regions and a% are not)
@@ -528,10 +604,14 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     tile_mm2 = (c / topview.px_per_mm) ** 2
     n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
     printed = n_printed / topview.px_per_mm**2
+    # what each anomalous block adds to S_A: its whole tile (the paper) or the part's share of it
+    share = (area_weight(foot_frac, c / topview.px_per_mm, st.anomalous_area)[anom] if st.anomalous_area != "tiles"
+             else np.ones(int(anom.sum())))
+    n_counted = float(share.sum())
     res = LayerResult(
         layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
-        anomaly_ratio=anomaly_ratio(int(anom.sum()), tile_mm2, printed),
-        printed_area_mm2=printed, anomalous_area_mm2=float(anom.sum()) * tile_mm2,
+        anomaly_ratio=anomaly_ratio(n_counted, tile_mm2, printed),
+        printed_area_mm2=printed, anomalous_area_mm2=n_counted * tile_mm2,
         outside_area_mm2=float((1.0 - foot_frac[anom]).sum()) * tile_mm2,
         n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
         heatmap=heat, mask=considered,

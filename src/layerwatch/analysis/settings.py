@@ -80,6 +80,18 @@ class AnalysisSettings(Section):
     # what a hole, an object or strands look like. 1 = both below min_gradient.
     flat_tolerance: float = Field(1.0, ge=1.0, le=10.0)
     gamma: bool = False
+    # What an anomalous block adds to S_A of eq. (5): "tiles" (the paper) its
+    # whole tile (one cell, where the overlapping blocks are centred), even
+    # when the tile lies beside the printed layer and the block is considered
+    # only because one of its cells touches the footprint; "printed" only the
+    # printed part of its tile (the footprint's share of it), so a% is the
+    # anomalous share of the printed area and what lies beside it is
+    # outside_area_mm2, its own figure. On a 45-degree camera the tiles along
+    # a wall's edge show what lies below the layer (a floor through an
+    # opening, the wall's own face), which the reference draws least well.
+    # "part": a tile holding a printed pixel (or inside the part) counts
+    # whole, only the tiles wholly beside the part count nothing.
+    anomalous_area: Literal["tiles", "part", "printed"] = "tiles"
     # How a gradient votes (:mod:`layerwatch.analysis.hog`): "one_bin"
     # (skimage, the paper); "split_ties": a gradient exactly on the 0/180-
     # degree bin edge (a rendered reference's straight edge along the top

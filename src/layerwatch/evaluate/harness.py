@@ -33,7 +33,14 @@ from scipy import ndimage
 
 from layerwatch.analysis.metrics import similarity_all
 from layerwatch.analysis.result import LayerResult
-from layerwatch.analysis.scoring import anomaly_ratio, block_hogs, grow_regions, growth_reach
+from layerwatch.analysis.scoring import (
+    anomaly_ratio,
+    area_weight,
+    block_hogs,
+    grow_regions,
+    growth_reach,
+    tile_share,
+)
 from layerwatch.analysis.settings import METRIC_NAMES
 from layerwatch.errors import AnalysisError
 from layerwatch.evaluate.modes import MODES, ModeScore, mode_score
@@ -231,6 +238,9 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
         if grow > 0:
             reach = growth_reach(considered, ref.footprint, pipe.topview, settings, valid)
     reg = np.zeros_like(a)
+    # what each anomalous block adds to S_A (``[analysis] anomalous_area``): its tile, or its printed part
+    weight = area_weight(tile_share(ref.footprint, (n, m), c, b), c / pipe.topview.px_per_mm,
+                         settings.anomalous_area)[considered]
     for k, name in enumerate(METRIC_NAMES):
         if regions is not None:
             full = sims[name]
@@ -238,7 +248,7 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
                 reg[k, j] = _largest(considered & (full < t)) * tile_mm2
         s = sims[name][considered]
         below = s[:, None] < T[None, :]  # (blocks, T)
-        cnt = below.sum(axis=0)
+        cnt = weight @ below
         a[k] = anomaly_ratio(cnt, tile_mm2, printed)
         if iou is not None:
             if grow > 0:  # the regions the operator sees (hysteresis), as analyze_layer draws them
@@ -248,7 +258,7 @@ def _score(res: LayerResult, pipe: LayerPipeline, frame, regions: list | None = 
                 n_shown = shown.sum(axis=0)
                 inter = (shown * truth_full.ravel()[:, None]).sum(axis=0)
             else:
-                n_shown = cnt
+                n_shown = below.sum(axis=0)
                 inter = (below * truth_tiles[:, None]).sum(axis=0)
             union = n_shown * tile_px + truth_px - inter
             iou[k] = np.where(union > 0, inter / np.maximum(union, 1e-9), 1.0)
