@@ -215,21 +215,27 @@ def test_blocks_are_carried_to_the_top_view_and_counted_once_into_a_percent():
     assert add_unchanged(again, top, [region], tv) < added
 
 
-def test_an_unchanged_band_along_the_front_edge_of_a_wide_surface_is_dropped_a_thin_wall_is_kept():
+def test_an_unchanged_band_along_either_silhouette_edge_is_dropped_a_gap_through_a_wall_is_kept():
     # parallax (0, 1.5): a lower point is seen lower in the image, so the edge facing the camera is the bottom one
     surface = np.zeros((H, W), bool)
     surface[60:200, 40:150] = True  # a wide top surface
-    surface[194:200, 180:300] = True  # a thin wall, 6 px: nothing behind its edge
+    surface[194:200, 180:300] = True  # a thin wall, 6 px
+    surface[20:29, 180:300] = True  # a 1.8 mm wall, 9 px (the window part's box)
     unchanged = np.zeros((H, W), bool)
     unchanged[193:200, 60:120] = True  # the wide surface's front edge band
-    unchanged[194:200, 200:260] = True  # the thin wall's gap
+    unchanged[60:65, 60:120] = True  # its back edge band (the far silhouette)
+    unchanged[194:200, 200:260] = True  # the thin wall's gap: its whole cross-section
     unchanged[100:120, 60:80] = True  # a patch inside the wide surface
-    kept = drop_edge_slivers(unchanged, surface, SHIFT, 6, 12)
-    assert not kept[193:200, 60:120].any(), "the front-edge band of a wider surface goes"
-    assert kept[194:200, 200:260].all() and kept[100:120, 60:80].all(), "a thin wall's gap and an inner patch stay"
-    flipped = drop_edge_slivers(unchanged, surface, (0.0, -1.5), 6, 12)  # camera on the other side: the back edge
-    assert flipped[193:200, 60:120].all()
-    assert drop_edge_slivers(unchanged, surface, (0.0, 0.0), 6, 12).sum() == unchanged.sum()
+    unchanged[24:29, 190:240] = True  # the 9 px wall's front silhouette stayed in place, its back half changed
+    unchanged[20:29, 250:290] = True  # a gap through the 9 px wall
+    kept = drop_edge_slivers(unchanged, surface, SHIFT, 6, 3)
+    assert not kept[193:200, 60:120].any() and not kept[60:65, 60:120].any(), "silhouette bands of a surface go"
+    assert not kept[24:29, 190:240].any(), "a wall's front silhouette alone goes"
+    assert kept[194:200, 200:260].all() and kept[20:29, 250:290].all(), "a gap through a wall stays"
+    assert kept[100:120, 60:80].all(), "an inner patch stays"
+    flipped = drop_edge_slivers(unchanged, surface, (0.0, -1.5), 6, 3)  # camera on the other side: the same edges
+    assert np.array_equal(flipped, kept)
+    assert drop_edge_slivers(unchanged, surface, (0.0, 0.0), 6, 3).sum() == unchanged.sum()
 
 
 def test_a_glare_spot_that_stays_in_place_is_not_taken_for_an_unchanged_surface():

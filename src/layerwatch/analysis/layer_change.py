@@ -84,7 +84,7 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
-__all__ = ["CLIP_LEVEL", "EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "clipped_box", "drop_edge_slivers", "pair_noise",
+__all__ = ["CLIP_LEVEL", "EDGE_DEPTH", "EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "clipped_box", "drop_edge_slivers", "pair_noise",
            "parallax_px", "printed_kind", "unchanged_regions", "window_change"]
 
 #: quiet blocks need this much texture variance (grey levels^2) in both photos to calibrate the noise on
@@ -99,6 +99,8 @@ CLIP_LEVEL = 250
 OWN_GROW_PX = 2
 #: share of an unchanged area within the camera-facing edge band of a wider surface that drops it (:func:`drop_edge_slivers`)
 EDGE_SHARE = 0.8
+#: the footprint must go on this far (in window sigmas) beyond a silhouette band's pixel for the band to be a sliver (:func:`drop_edge_slivers`)
+EDGE_DEPTH = 1.0
 #: segment features that are walls / infill (the kind of an unchanged region, :func:`printed_kind`)
 _WALLS = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -366,7 +368,7 @@ def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nd
     judged[box] = ok
     found = ok & (s_same >= settings.min_ncc) & (s_same - s_twin >= settings.min_gain)
     band = int(round(2 * sig))
-    unchanged[box] = drop_edge_slivers(found, surface[box], parallax, band, 2 * band)
+    unchanged[box] = drop_edge_slivers(found, surface[box], parallax, band, max(1, int(round(EDGE_DEPTH * sig))))
     same[box], twin[box] = np.where(ok, s_same, 0), np.where(ok, s_twin, 0)
     return WindowChange(same, twin, judged, unchanged, noise)
 
@@ -382,12 +384,19 @@ def _line_kernel(direction: tuple[float, float], steps: range) -> tuple[np.ndarr
 
 def drop_edge_slivers(unchanged: np.ndarray, surface: np.ndarray, parallax: tuple[float, float],
                       band_px: int, depth_px: int) -> np.ndarray:
-    """``unchanged`` without its areas that lie along the camera-facing edge of a wider surface (module notes).
+    """``unchanged`` without its areas that lie along a silhouette edge of the footprint (module notes).
 
-    An 8-connected unchanged area is dropped when at least :data:`EDGE_SHARE` of
-    its pixels lie within ``band_px`` of the footprint's edge in the parallax
-    direction (toward the camera: a lower point is seen there) while the
-    footprint goes on for ``depth_px`` the other way.
+    The footprint's edges across the parallax direction are silhouettes: the
+    one facing the camera (a lower point is seen beyond it, in the parallax
+    direction) and the one facing away (beyond it the camera sees what lies
+    behind). Where a bead lies a tenth of a millimetre off the one below,
+    either silhouette moves by about the rise's parallax against it, so it can
+    stay in place although the layer was printed. An 8-connected unchanged
+    area is dropped when at least :data:`EDGE_SHARE` of its pixels lie within
+    ``band_px`` of one such edge while the footprint goes on for ``depth_px``
+    from each of them the other way (the silhouette band is not the whole
+    cross-section: the rest of it was seen to change). A gap through a wall
+    (its whole cross-section unchanged) or a patch inside a surface stays.
 
     Parameters
     ----------
@@ -403,18 +412,20 @@ def drop_edge_slivers(unchanged: np.ndarray, surface: np.ndarray, parallax: tupl
     norm = float(np.hypot(*parallax))
     if norm < 1e-6 or not unchanged.any() or band_px < 1:
         return unchanged
-    u = (parallax[0] / norm, parallax[1] / norm)
     sm = surface.astype(np.uint8)
-    k_front, a_front = _line_kernel(u, range(1, band_px + 1))
-    k_back, a_back = _line_kernel(u, range(-depth_px, 0))
-    # erode: min over the kernel's offsets, so 1 where the footprint holds at every step (outside the image: not)
-    front_held = cv2.erode(sm, k_front, anchor=a_front, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    back_held = cv2.erode(sm, k_back, anchor=a_back, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    sliver = ~front_held & back_held
     n, lab = cv2.connectedComponents(unchanged.astype(np.uint8), connectivity=8)
     total = np.bincount(lab.ravel(), minlength=n)
-    edge = np.bincount(lab[sliver & unchanged].ravel(), minlength=n)
-    drop = edge >= EDGE_SHARE * np.maximum(total, 1)
+    drop = np.zeros(n, bool)
+    for sign in (1.0, -1.0):  # the edge facing the camera, then the one facing away
+        u = (sign * parallax[0] / norm, sign * parallax[1] / norm)
+        k_front, a_front = _line_kernel(u, range(1, band_px + 1))
+        k_back, a_back = _line_kernel(u, range(-depth_px, 0))
+        # erode: min over the kernel's offsets, so 1 where the footprint holds at every step (outside the image: not)
+        front_held = cv2.erode(sm, k_front, anchor=a_front, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        back_held = cv2.erode(sm, k_back, anchor=a_back, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        sliver = ~front_held & back_held
+        edge = np.bincount(lab[sliver & unchanged].ravel(), minlength=n)
+        drop |= edge >= EDGE_SHARE * np.maximum(total, 1)
     drop[0] = False
     return unchanged & ~drop[lab]
 
