@@ -42,15 +42,21 @@ around every footprint pixel (:func:`window_change`; a wall 0.45-1 mm wide is
   along the parallax direction looks the same shifted, so there the test
   cannot tell a gap from a twin), and it is *unchanged* when ``same >=
   min_ncc`` and ``same - twin >= min_gain``.
-* **not the front edge of a wider surface** (:func:`drop_edge_slivers`): the
-  edge of a printed surface that faces the camera is the silhouette of its
-  outer bead, and a bead a tenth of a millimetre wider than the one below
-  moves that silhouette toward the camera by about the rise's parallax: the
-  edge looks unchanged although the layer was printed. An unchanged area that
-  lies (80 %) within ``2 window_px`` of such an edge, with the footprint going
-  on behind it for ``4 window_px``, is dropped. (A missing outer bead of a
-  wide surface looks the same at its onset and is not found; a thin wall has
-  no surface behind its edge and is kept.)
+* **not a silhouette band** (:func:`drop_edge_slivers`): the footprint's
+  edges across the parallax direction are silhouettes, the one facing the
+  camera (a lower surface is seen beyond it) and the one facing away (what
+  lies behind is seen beyond it). A bead a tenth of a millimetre wider than
+  the one below, or placed that much off it, moves a silhouette against the
+  rise's parallax (at 0.2 mm layers, 1 px of parallax, by about as much as
+  the rise itself): the edge can look unchanged although the layer was
+  printed, while the rest of the cross-section changed. An unchanged area
+  that lies (80 %) within ``2 window_px`` of one silhouette, where the
+  footprint goes on for at least ``window_px`` beyond it, is dropped (seen on
+  the 1.8 mm walls of the evaluation's window part: the front wall's front
+  edge, the back wall's far edge, 10-20 % of the judged pixels of a clean
+  layer). A gap through a wall leaves its whole cross-section unchanged and
+  is kept; a missing outer bead of a wide surface looks like the silhouette
+  case and is not found.
 
 Connected unchanged areas are carried to the top view of the layer's plane
 (the pipeline's own warp maps), kept on the footprint, and those of at least
