@@ -1,4 +1,4 @@
-"""The "changed as predicted" channel (issue 18): unchanged footprint blocks on synthetic photo pairs."""
+"""The "changed as predicted" channel (issue 18): unchanged footprint pixels on synthetic photo pairs."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ from layerwatch.analysis.extrusion import highpass
 from layerwatch.analysis.layer_change import (
     LayerChangeSettings,
     add_unchanged,
-    block_change,
     blocks_on_top,
+    clipped_box,
+    drop_edge_slivers,
     parallax_px,
-    persistent_groups,
+    window_change,
 )
 from layerwatch.analysis.result import BlockGrid, LayerResult, Region
 from layerwatch.geometry.topview import TopView
@@ -64,9 +65,23 @@ def _pair(*, gap: bool, twin: bool = False, gain: float = 1.0, offset: float = 0
     return highpass(_photo(before, rng)), highpass(_photo(after, rng, gain, offset))
 
 
-def _gap_blocks(bp: int) -> np.ndarray:
-    out = np.zeros((H // bp, W // bp), bool)
-    out[GAP[0].start // bp:GAP[0].stop // bp, GAP[1].start // bp:GAP[1].stop // bp] = True
+def _gap_px(reach: int) -> np.ndarray:
+    """The gap's pixels farther than ``reach`` from its border (their windows see the gap only)."""
+    out = np.zeros((H, W), bool)
+    out[GAP[0].start + reach:GAP[0].stop - reach, GAP[1].start + reach:GAP[1].stop - reach] = True
+    return out
+
+
+def _inner(margin: int) -> np.ndarray:
+    """The footprint's pixels at least ``margin`` px inside it (its outer rows mix the cut of the synthetic bead)."""
+    out = np.zeros((H, W), bool)
+    out[SURFACE[0].start + margin:SURFACE[0].stop - margin, SURFACE[1].start + margin:SURFACE[1].stop - margin] = True
+    return out
+
+
+def _near_gap(reach: int) -> np.ndarray:
+    out = np.zeros((H, W), bool)
+    out[GAP[0].start - reach:GAP[0].stop + reach, GAP[1].start - reach:GAP[1].stop + reach] = True
     return out
 
 
@@ -75,11 +90,13 @@ def test_a_gap_in_the_new_layer_is_unchanged_and_the_printed_rest_is_not(twin):
     st = LayerChangeSettings(enabled=True)
     b, a = _pair(gap=True, twin=twin)
     surface, near = _masks()
-    ch = block_change(a, b, surface, near, SHIFT, st)
-    assert ch is not None and ch.judged.sum() > 100
-    gap = _gap_blocks(st.block_px)
-    assert ch.unchanged[gap].mean() >= 0.8, "the missed area looks as in the previous photo"
-    assert not ch.unchanged[~gap].any(), "new beads (or a twin one layer higher) changed the rest"
+    ch = window_change(a, b, surface, near, SHIFT, st)
+    assert ch is not None and ch.judged.sum() > 5000
+    reach = int(2 * st.window_px)
+    assert ch.unchanged[_gap_px(reach)].mean() >= 0.9, "the missed area looks as in the previous photo"
+    rest = ~_near_gap(reach)
+    assert not ch.unchanged[rest & _inner(1)].any(), "new beads (or a twin one layer higher) changed the rest"
+    assert ch.unchanged[rest].sum() < 10, "only stray pixels on the footprint's outer row (far below min_area_mm2)"
     assert 0 < ch.noise < 20
 
 
@@ -87,30 +104,56 @@ def test_a_perimeter_laid_on_its_twin_looks_alike_at_the_same_pixels_and_more_so
     # what the parallax test is for: against the same pixels alone, a twin bead one layer up looks alike
     b, a = _pair(gap=False, twin=True)
     surface, near = _masks()
-    ch = block_change(a, b, surface, near, SHIFT, LayerChangeSettings(enabled=True))
-    assert ch is not None and not ch.unchanged.any()
-    assert np.median(ch.ncc[ch.judged]) > 0.3
-    assert np.all(ch.ncc_twin[ch.judged] > ch.ncc[ch.judged])
+    ch = window_change(a, b, surface, near, SHIFT, LayerChangeSettings(enabled=True))
+    assert ch is not None and not ch.unchanged[_inner(1)].any() and ch.unchanged.sum() < 10
+    assert np.median(ch.same[ch.judged]) > 0.3
+    assert np.mean((ch.twin > ch.same)[ch.judged & _inner(1)]) > 0.99
 
 
 @pytest.mark.parametrize(("gain", "offset"), [(1.0, 0.0), (1.35, -20.0), (0.7, 15.0)])
-def test_a_clean_layer_under_new_exposure_and_noise_has_no_unchanged_block(gain, offset):
+def test_a_clean_layer_under_new_exposure_and_noise_has_no_unchanged_pixel(gain, offset):
     b, a = _pair(gap=False, gain=gain, offset=offset, seed=3)
     surface, near = _masks()
-    ch = block_change(a, b, surface, near, SHIFT, LayerChangeSettings(enabled=True))
-    assert ch is not None and ch.judged.sum() > 100
-    assert not ch.unchanged.any()
+    ch = window_change(a, b, surface, near, SHIFT, LayerChangeSettings(enabled=True))
+    assert ch is not None and ch.judged.sum() > 5000
+    # only stray pixels on the footprint's outer rows, whose windows are mostly the unchanged texture beside it
+    assert not ch.unchanged[_inner(1)].any() and ch.unchanged.sum() < 10
+
+
+@pytest.mark.parametrize(("gain", "offset"), [(1.35, -20.0), (0.7, 15.0)])
+def test_a_gap_under_new_exposure_is_still_found(gain, offset):
+    st = LayerChangeSettings(enabled=True)
+    b, a = _pair(gap=True, gain=gain, offset=offset, seed=5)
+    surface, near = _masks()
+    ch = window_change(a, b, surface, near, SHIFT, st)
+    assert ch is not None and ch.unchanged[_gap_px(int(2 * st.window_px))].mean() >= 0.9
+
+
+def test_a_bead_along_the_parallax_is_not_judged():
+    # texture that does not vary along the parallax direction looks the same shifted: no verdict, not a gap
+    rng = np.random.default_rng(2)
+    cols = cv2.GaussianBlur(rng.normal(0, 1, (1, W)).astype(np.float32), (0, 0), 1.2)
+    stripes = np.clip(128 + 40 * np.repeat(cols / cols.std(), H, axis=0), 0, 255).astype(np.float32)
+    before = _scene(0)
+    before[SURFACE] = stripes[SURFACE]
+    after = before.copy()  # nothing printed: the same stripes
+    b, a = highpass(_photo(before, rng)), highpass(_photo(after, rng))
+    surface, near = _masks()
+    ch = window_change(a, b, surface, near, SHIFT, LayerChangeSettings(enabled=True))
+    inner = np.zeros((H, W), bool)
+    inner[SURFACE[0].start + 10:SURFACE[0].stop - 10, SURFACE[1].start + 10:SURFACE[1].stop - 10] = True
+    assert ch is not None and not ch.judged[inner].any() and not ch.unchanged[inner].any()
 
 
 def test_a_black_previous_photo_gives_no_verdict():
     _, a = _pair(gap=True)
     surface, near = _masks()
     black = highpass(np.zeros((H, W), np.uint8))
-    assert block_change(a, black, surface, near, SHIFT, LayerChangeSettings(enabled=True)) is None
+    assert window_change(a, black, surface, near, SHIFT, LayerChangeSettings(enabled=True)) is None
 
 
 def test_flat_texture_is_not_judged():
-    # a dark, textureless filament: no block stands above the noise, so none is unchanged (and none failed)
+    # a dark, textureless filament: no window stands above the noise, so none is unchanged (and none failed)
     rng = np.random.default_rng(1)
     before, after = _scene(0), _scene(0)
     flat = np.full((H, W), 20.0, np.float32)
@@ -119,16 +162,22 @@ def test_flat_texture_is_not_judged():
     b, a = highpass(_photo(before, rng)), highpass(_photo(after, rng))
     surface, near = _masks()
     st = LayerChangeSettings(enabled=True)
-    ch = block_change(a, b, surface, near, SHIFT, st)
-    assert ch is not None and not ch.unchanged.any()
-    bp = st.block_px  # inside, away from the textured border that the high pass spreads over its edge
-    inner = ch.judged[SURFACE[0].start // bp + 2:SURFACE[0].stop // bp - 2, SURFACE[1].start // bp + 2:SURFACE[1].stop // bp - 2]
-    assert inner.size > 50 and not inner.any()
+    ch = window_change(a, b, surface, near, SHIFT, st)
+    # stray pixels where the high pass spreads the footprint's static side edge into it: specks of a few
+    # pixels (a 0.5 mm^2 region, min_area_mm2, is about 18 px at the simulator's 0.14 x 0.2 mm per px)
+    assert ch is not None and not ch.unchanged[_inner(4)].any()
+    n, _, stats, _ = cv2.connectedComponentsWithStats(ch.unchanged.astype(np.uint8), connectivity=8)
+    assert stats[1:, cv2.CC_STAT_AREA].max(initial=0) < 16
+    m = int(4 * st.window_px)  # inside, away from the textured border that the high pass spreads over its edge
+    inner = ch.judged[SURFACE[0].start + m:SURFACE[0].stop - m, SURFACE[1].start + m:SURFACE[1].stop - m]
+    assert inner.size > 5000 and not inner.any()
 
 
 def test_settings_refuse_out_of_range_values():
     with pytest.raises(ValidationError):
         LayerChangeSettings(block_px=1)
+    with pytest.raises(ValidationError):
+        LayerChangeSettings(window_px=0)
     with pytest.raises(ValidationError):
         LayerChangeSettings(min_ncc=1.5)
 
@@ -166,14 +215,57 @@ def test_blocks_are_carried_to_the_top_view_and_counted_once_into_a_percent():
     assert add_unchanged(again, top, [region], tv) < added
 
 
-def test_only_groups_unchanged_in_the_previous_pair_too_fail():
-    now = np.zeros((10, 12), bool)
-    now[2:4, 2:5] = True  # the gap, unchanged again
-    now[7, 9] = True  # a chance likeness, new here
-    before = np.zeros_like(now)
-    before[3, 5] = True  # touches the gap's group (8-connected, one block off)
-    before[0, 0] = True
-    kept = persistent_groups(now, before, 1)
-    assert kept[2:4, 2:5].all() and not kept[7, 9] and kept.sum() == 6
-    assert not persistent_groups(now, None, 1).any(), "the first judged pair of a print reports nothing"
-    assert not persistent_groups(now, before, 7).any(), "a group smaller than min_blocks is dropped"
+def test_an_unchanged_band_along_either_silhouette_edge_is_dropped_a_gap_through_a_wall_is_kept():
+    # parallax (0, 1.5): a lower point is seen lower in the image, so the edge facing the camera is the bottom one
+    surface = np.zeros((H, W), bool)
+    surface[60:200, 40:150] = True  # a wide top surface
+    surface[194:200, 180:300] = True  # a thin wall, 6 px
+    surface[20:29, 180:300] = True  # a 1.8 mm wall, 9 px (the window part's box)
+    unchanged = np.zeros((H, W), bool)
+    unchanged[193:200, 60:120] = True  # the wide surface's front edge band
+    unchanged[60:65, 60:120] = True  # its back edge band (the far silhouette)
+    unchanged[194:200, 200:260] = True  # the thin wall's gap: its whole cross-section
+    unchanged[100:120, 60:80] = True  # a patch inside the wide surface
+    unchanged[24:29, 190:240] = True  # the 9 px wall's front silhouette stayed in place, its back half changed
+    unchanged[20:29, 250:290] = True  # a gap through the 9 px wall
+    kept = drop_edge_slivers(unchanged, surface, SHIFT, 6, 3)
+    assert not kept[193:200, 60:120].any() and not kept[60:65, 60:120].any(), "silhouette bands of a surface go"
+    assert not kept[24:29, 190:240].any(), "a wall's front silhouette alone goes"
+    assert kept[194:200, 200:260].all() and kept[20:29, 250:290].all(), "a gap through a wall stays"
+    assert kept[100:120, 60:80].all(), "an inner patch stays"
+    flipped = drop_edge_slivers(unchanged, surface, (0.0, -1.5), 6, 3)  # camera on the other side: the same edges
+    assert np.array_equal(flipped, kept)
+    assert drop_edge_slivers(unchanged, surface, (0.0, 0.0), 6, 3).sum() == unchanged.sum()
+
+
+def test_a_glare_spot_that_stays_in_place_is_not_taken_for_an_unchanged_surface():
+    # a fixed lamp's highlight on a glossy top surface: clipped in both photos at the same place while the
+    # layer under it was printed; its border is static texture, which without the clipped mask looks unchanged
+    rng = np.random.default_rng(100)
+    before = _scene(0)
+    after = before.copy()
+    after[SURFACE] = _scene(1)[SURFACE]
+    yy, xx = np.mgrid[0:H, 0:W]
+    blob = ((yy - 130) ** 2 / 400 + (xx - 170) ** 2 / 900) < 1
+    before[blob] = after[blob] = 255.0
+    p0, p1 = _photo(before, rng), _photo(after, rng)
+    b, a = highpass(p0), highpass(p1)
+    surface, near = _masks()
+    st = LayerChangeSettings(enabled=True)
+    whole = (slice(0, H), slice(0, W))
+    clipped = clipped_box(p0, (W, H), whole) | clipped_box(p1, (W, H), whole)
+    assert clipped[130, 170] and not clipped[200, 60] and clipped.shape == (H, W)
+    blind = window_change(a, b, surface, near, SHIFT, st)
+    assert blind is not None and blind.unchanged.sum() > 100, "the glare's border looks unchanged"
+    ch = window_change(a, b, surface, near, SHIFT, st, clipped)
+    assert ch is not None and not ch.unchanged[_inner(1)].any() and ch.judged.sum() > 4000
+
+
+def test_clipped_pixels_are_found_in_a_larger_colour_frame():
+    photo = np.full((480, 640, 3), 120, np.uint8)
+    photo[100:110, 200:220] = 255  # white glare: every channel clipped
+    photo[300:310, 200:220, 2] = 255  # a saturated red filament: one channel clipped, the others carry texture
+    out = clipped_box(photo, (320, 240), (slice(40, 160), slice(90, 130)))  # working px = 2 x 2 photo px
+    assert out.shape == (120, 40)
+    assert out[50 - 40, 100 - 90] and out.sum() == 5 * 10, "the glare, at half the photo's scale"
+    assert not out[150 - 40].any(), "a clipped colour channel is not glare"

@@ -6,44 +6,67 @@ photo (layer ``j < k``) every point of the new layer's footprint received new
 plastic: its fine texture must differ. A patch missing from the infill or a
 gap in a thin wall leaves the surface printed before in place, and the photo
 shows there what the previous photo showed: **the same texture at the same
-pixels**. That is what this channel looks for, per block of the layer's
+pixels**. That is what this channel looks for, per pixel of the layer's
 footprint projected into the image on the layer's plane (the nothing-extruded
 check's projection, :mod:`layerwatch.analysis.extrusion`, asks the same
 question for the whole layer).
 
-Per block of ``block_px`` working pixels, on the high-passed grey texture
+The comparison runs on the high-passed grey texture
 (:func:`~layerwatch.analysis.extrusion.box_texture`: exposure drift, white
 balance and a smooth change of light are a gain, which the high pass and the
-per-block normalisation remove):
+normalisation remove), in a Gaussian window of ``window_px`` working pixels
+around every footprint pixel (:func:`window_change`; a wall 0.45-1 mm wide is
+3-7 px, narrower than any block):
 
-* **noise aware** (:func:`block_change`): the sensor noise, independent in
-  the two photos, and the blur that changes from photo to photo lower the
-  correlation of an unchanged block to about ``s / (s + n)`` (signal and
-  noise variance; ``docs/checks.md``, the diagnosis). The noise variance
-  ``n`` of the pair is half the median variance of ``a - b`` on the quiet
-  blocks (off the new layer's projection: bed, earlier surfaces, which did
-  not change); a block is judged only when the texture on its footprint
-  pixels stands above it (``v >= (1 + min_snr) n`` in both photos), so that
-  an unchanged block's correlation can reach ``min_ncc``; the correlation is
-  the zero-mean NCC over the footprint pixels of the block
-  (:func:`~layerwatch.analysis.extrusion.block_ncc`). (Correcting the NCC
-  for the noise, ``cov / sqrt((v_a - n)(v_b - n))``, on whole blocks was
-  tried first: a block mixes sparse infill with the unchanged holes between
-  its lines, and clean layers gave more chance likenesses.)
+* **noise aware**: the sensor noise, independent in the two photos, lowers
+  the correlation of an unchanged surface. The noise variance ``n`` of the
+  pair is half the median variance of ``a - b`` on quiet blocks of
+  ``block_px`` (off the new layer's projection: bed, earlier surfaces, which
+  did not change; :func:`pair_noise`); a pixel is judged only when the
+  texture in its window stands above it (``>= (1 + min_snr) n`` in both
+  photos) and at least :data:`OWN_SHARE` of that texture's energy lies on the
+  footprint grown by :data:`OWN_GROW_PX` (on its edge a window can see mostly
+  the unchanged surface beside it), and it reaches no clipped pixel of either
+  photo (a glare spot of a fixed lamp stays in place from layer to layer,
+  and its border is the light's, not the surface's).
 * **against the printed twin**: a perimeter laid on its twin, or sparse infill
   repeating the line below, looks alike too, but one layer higher: the camera
   sees it shifted by the parallax of the height printed since the previous
-  photo (:func:`parallax_px`). A block is *unchanged* when its correlation at
-  the same pixels is at least ``min_ncc`` **and** exceeds the correlation with
-  the previous texture shifted by that parallax by ``min_gain``.
+  photo (:func:`parallax_px`). The window's NCC with the previous texture at
+  the same pixels (``same``) is set against its NCC with the previous texture
+  shifted by that parallax (``twin``; the better of the full parallax and
+  ``1 - twin_tolerance`` of it: a bead's width and place vary by a tenth of a
+  millimetre from layer to layer, which moves its edge against the rise). A
+  pixel is judged only where the shift changes the previous texture
+  (``1 - NCC(prev, shifted prev) >= min_parallax_change``: a bead running
+  along the parallax direction looks the same shifted, so there the test
+  cannot tell a gap from a twin), and it is *unchanged* when ``same >=
+  min_ncc`` and ``same - twin >= min_gain``.
+* **not a silhouette band** (:func:`drop_edge_slivers`): the footprint's
+  edges across the parallax direction are silhouettes, the one facing the
+  camera (a lower surface is seen beyond it) and the one facing away (what
+  lies behind is seen beyond it). A bead a tenth of a millimetre wider than
+  the one below, or placed that much off it, moves a silhouette against the
+  rise's parallax (at 0.2 mm layers, 1 px of parallax, by about as much as
+  the rise itself): the edge can look unchanged although the layer was
+  printed, while the rest of the cross-section changed. An unchanged area
+  that lies (80 %) within ``2 window_px`` of one silhouette, where the
+  footprint goes on for at least ``window_px`` beyond it, is dropped (seen on
+  the 1.8 mm walls of the evaluation's window part: the front wall's front
+  edge, the back wall's far edge, 10-20 % of the judged pixels of a clean
+  layer). A gap through a wall leaves its whole cross-section unchanged and
+  is kept; a missing outer bead of a wide surface looks like the silhouette
+  case and is not found.
 
-Groups of unchanged blocks that were unchanged in the previous pair too
-(:func:`persistent_groups`) are carried to the top view of the layer's plane
-(the pipeline's own warp maps), kept on the footprint, and connected regions
-of at least ``min_area_mm2`` become failing regions, typed ``thin_wall`` or
+Connected unchanged areas are carried to the top view of the layer's plane
+(the pipeline's own warp maps), kept on the footprint, and those of at least
+``min_area_mm2`` become failing regions, typed ``thin_wall`` or
 ``infill_defect`` by what the G-code prints there (:func:`printed_kind`).
-Blocks too flat to judge (a dark filament, a black or missing previous photo)
-give no verdict, never a failure.
+Pixels too flat to judge (a dark filament, a black or missing previous photo)
+give no verdict, never a failure. A gap is reported from its onset layer on:
+the photo of the onset shows the layer below, one layer height lower, where
+the plan put the new layer (0.3 mm: 1.5 px of parallax at the simulator's
+camera, found by the twin test).
 
 References
 ----------
@@ -59,7 +82,6 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from layerwatch.analysis.extrusion import block_ncc
 from layerwatch.analysis.overlay import block_tiles
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import change_regions, top_coords
@@ -68,13 +90,23 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
-__all__ = ["BlockChange", "LayerChangeSettings", "add_unchanged", "block_change", "blocks_on_top", "parallax_px", "persistent_groups", "printed_kind",
-           "unchanged_regions"]
+__all__ = ["CLIP_LEVEL", "EDGE_DEPTH", "EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "clipped_box", "drop_edge_slivers", "pair_noise",
+           "parallax_px", "printed_kind", "unchanged_regions", "window_change"]
 
 #: quiet blocks need this much texture variance (grey levels^2) in both photos to calibrate the noise on
 QUIET_MIN_VAR = 1.0
 #: fewest quiet blocks to calibrate on; fewer: the pair is not judged
 MIN_QUIET_BLOCKS = 20
+#: share of a window's texture energy that must lie on the footprint for the pixel to be judged (:func:`window_change`)
+OWN_SHARE = 0.5
+#: a photo pixel at this level or above in every channel is clipped: a glare spot (:func:`clipped_box`)
+CLIP_LEVEL = 250
+#: the footprint grown by this (working px) for :data:`OWN_SHARE` (its edges and their blur are its own texture)
+OWN_GROW_PX = 2
+#: share of an unchanged area within the camera-facing edge band of a wider surface that drops it (:func:`drop_edge_slivers`)
+EDGE_SHARE = 0.8
+#: the footprint must go on this far (in window sigmas) beyond a silhouette band's pixel for the band to be a sliver (:func:`drop_edge_slivers`)
+EDGE_DEPTH = 1.0
 #: segment features that are walls / infill (the kind of an unchanged region, :func:`printed_kind`)
 _WALLS = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -94,51 +126,55 @@ class LayerChangeSettings(Section):
         Look for footprint areas that did not change since the previous photo.
     min_area_mm2 : float
         Smallest connected unchanged area of the footprint that fails, mm^2 on the layer's plane.
-    min_blocks : int
-        Fewest 8-connected unchanged blocks a failing area needs (in the working image); the
-        group must also touch a block unchanged in the previous pair (:func:`persistent_groups`).
     min_ncc : float
-        NCC over a block's footprint pixels at the same pixels from which the block is unchanged.
+        Window NCC at the same pixels from which a pixel is unchanged.
     min_gain : float
         How much that correlation must exceed the correlation with the previous
         texture shifted by the layer's parallax (a twin printed on top).
+    twin_tolerance : float
+        The twin is also tried shifted by ``1 - twin_tolerance`` of the parallax (an edge
+        bead a little wider or displaced toward the camera); the better NCC counts.
+    min_parallax_change : float
+        ``1 - NCC`` of the previous texture with itself shifted by the parallax that a
+        pixel's window needs to be judged (below it the twin test cannot decide).
     min_snr : float
-        Texture variance above the noise a block needs, in units of the noise variance.
+        Texture energy above the noise a window needs, in units of the noise variance.
+    window_px : float
+        Gaussian sigma of the comparison window, px of the working image.
     block_px : int
-        Block side, px of the working image.
-    min_share : float
-        Share of a block the projected footprint must cover for it to be judged.
+        Block side of the noise calibration on quiet blocks, px of the working image.
     """
 
     enabled: bool = False
-    min_area_mm2: float = Field(1.0, ge=0, le=2500)
-    min_blocks: int = Field(1, ge=1, le=10000)
+    min_area_mm2: float = Field(0.5, ge=0, le=2500)
     min_ncc: float = Field(0.8, ge=0, le=1)
-    min_gain: float = Field(0.2, ge=0, le=2)
+    min_gain: float = Field(0.1, ge=0, le=2)
+    twin_tolerance: float = Field(0.3, ge=0, lt=1)
+    min_parallax_change: float = Field(0.2, ge=0, le=2)
     min_snr: float = Field(1.0, ge=0, le=100)
+    window_px: float = Field(3.0, ge=0.5, le=16)
     block_px: int = Field(8, ge=2, le=64)
-    min_share: float = Field(0.25, gt=0, le=1)
 
 
 @dataclass
-class BlockChange:
-    """One photo pair's verdict per block (shape ``(n, m)`` = the working box in blocks).
+class WindowChange:
+    """One photo pair's verdict per pixel of the footprint's box (shape ``(h, w)`` = the working box).
 
     Attributes
     ----------
-    ncc, ncc_twin : ndarray, float32, shape (n, m)
-        NCC over the block's footprint pixels at the same pixels, and with the
-        previous texture shifted by the parallax (0 where not judged).
-    judged : ndarray, bool, shape (n, m)
-        Footprint blocks with texture above the noise.
-    unchanged : ndarray, bool, shape (n, m)
-        Judged blocks that look as in the previous photo.
+    same, twin : ndarray, float32, shape (h, w)
+        Window NCC with the previous texture at the same pixels, and shifted by
+        the parallax (0 where not judged).
+    judged : ndarray, bool, shape (h, w)
+        Footprint pixels whose window has texture above the noise that the parallax changes.
+    unchanged : ndarray, bool, shape (h, w)
+        Judged pixels that look as in the previous photo.
     noise : float
         Noise variance of one photo's texture, grey levels^2.
     """
 
-    ncc: np.ndarray
-    ncc_twin: np.ndarray
+    same: np.ndarray
+    twin: np.ndarray
     judged: np.ndarray
     unchanged: np.ndarray
     noise: float
@@ -196,28 +232,81 @@ def _shifted(b: np.ndarray, d: tuple[float, float]) -> np.ndarray:
                           borderMode=cv2.BORDER_REPLICATE)
 
 
-def _masked_variance(v: np.ndarray, mask: np.ndarray, bp: int) -> np.ndarray:
-    """Per-block variance of ``v`` over the ``mask`` pixels (0 where a block has none)."""
-    k = mask.astype(np.float32)
-    frac = np.maximum(_block_sum(k, bp), 1e-6)
-    mean = _block_sum(v * k, bp) / frac
-    return np.maximum(_block_sum(v * v * k, bp) / frac - mean * mean, 0)
-
-
-def _aligned_box(mask: np.ndarray, bp: int) -> tuple[slice, slice] | None:
-    """Rows and columns of ``mask``'s bounding box, grown to whole ``bp`` blocks of the image (``None``: empty)."""
+def _aligned_box(mask: np.ndarray, grow: int) -> tuple[slice, slice] | None:
+    """Rows and columns of ``mask``'s bounding box grown by ``grow`` px, within the image (``None``: empty)."""
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if rows.size == 0:
         return None
-    n, m = mask.shape[0] // bp, mask.shape[1] // bp
-    r0, c0 = min(rows[0] // bp, n), min(cols[0] // bp, m)
-    r1, c1 = min(rows[-1] // bp + 1, n), min(cols[-1] // bp + 1, m)
-    return slice(r0 * bp, r1 * bp), slice(c0 * bp, c1 * bp)
+    return (slice(max(int(rows[0]) - grow, 0), min(int(rows[-1]) + 1 + grow, mask.shape[0])),
+            slice(max(int(cols[0]) - grow, 0), min(int(cols[-1]) + 1 + grow, mask.shape[1])))
 
 
-def block_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.ndarray,
-                 parallax: tuple[float, float], settings: LayerChangeSettings) -> BlockChange | None:
-    """Which blocks of the new layer's projected footprint look as in the previous photo (module notes).
+def pair_noise(a: np.ndarray, b: np.ndarray, near: np.ndarray, block_px: int) -> float | None:
+    """Noise variance of one photo's texture: half the median variance of ``a - b`` on quiet blocks.
+
+    Quiet blocks lie off ``near`` (what the print may have changed) and have
+    texture (variance above :data:`QUIET_MIN_VAR`) in both photos.
+
+    Parameters
+    ----------
+    a, b : ndarray, float32, shape (h, w)
+        High-passed textures of the new and the previous photo.
+    near : ndarray, bool, shape (h, w)
+    block_px : int
+
+    Returns
+    -------
+    float or None
+        ``None`` when fewer than :data:`MIN_QUIET_BLOCKS` blocks are quiet (a
+        black, blank or foreign previous photo): the pair cannot be judged.
+    """
+    va, vb, cov = _moments(a, b, block_px)
+    calm = (_block_sum(near.astype(np.float32), block_px) == 0) & (np.minimum(va, vb) > QUIET_MIN_VAR)
+    if int(calm.sum()) < MIN_QUIET_BLOCKS:
+        return None
+    return 0.5 * float(np.median((va + vb - 2 * cov)[calm]))
+
+
+def clipped_box(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
+    """Working-image pixels of ``box`` that touch a clipped photo pixel (every channel >= :data:`CLIP_LEVEL`).
+
+    A glare spot is white (a specular reflection has the lamp's colour); a saturated colour
+    clips one channel while the others still carry the texture, so it does not count.
+
+    Parameters
+    ----------
+    photo : ndarray, uint8, shape (h, w) or (h, w, 3)
+        Frame as captured.
+    size : (int, int)
+        Working ``(width, height)`` px.
+    box : (slice, slice)
+        Rows and columns of the working image (bounds within it).
+
+    Returns
+    -------
+    ndarray, bool, shape (rows, cols)
+    """
+    arr = np.asarray(photo)
+    h, w = arr.shape[:2]
+    W, H = size
+    (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
+    y0, y1 = int(np.floor(r0 * h / H)), int(np.ceil(r1 * h / H))
+    x0, x1 = int(np.floor(c0 * w / W)), int(np.ceil(c1 * w / W))
+    crop = np.ascontiguousarray(arr[y0:y1, x0:x1])
+    lo = (CLIP_LEVEL,) * (crop.shape[2] if crop.ndim == 3 else 1)
+    hot = cv2.inRange(crop, lo, (255,) * len(lo))  # 255 where every channel is clipped (one pass)
+    if cv2.countNonZero(hot) == 0:
+        return np.zeros((r1 - r0, c1 - c0), bool)
+    # the share of each working pixel's source area that is clipped (area resize): any share counts
+    return cv2.resize(hot, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) > 0
+
+
+def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.ndarray,
+                  parallax: tuple[float, float], settings: LayerChangeSettings,
+                  clipped: np.ndarray | None = None) -> WindowChange | None:
+    """Which pixels of the new layer's projected footprint look as in the previous photo (module notes).
+
+    Computed on the footprint's bounding box (grown by the window's reach) only.
 
     Parameters
     ----------
@@ -231,66 +320,120 @@ def block_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nda
     parallax : (float, float)
         :func:`parallax_px` of the height printed since the previous photo.
     settings : LayerChangeSettings
+    clipped : ndarray, bool, shape (h, w), optional
+        Pixels clipped in either photo (:func:`clipped_box`): a glare spot has no texture, and its
+        border is the light's, which a fixed lamp keeps in place from layer to layer; pixels whose
+        window reaches one (``2 window_px``) are not judged.
 
     Returns
     -------
-    BlockChange or None
-        ``None`` when the pair cannot be calibrated (fewer than
-        :data:`MIN_QUIET_BLOCKS` textured quiet blocks: a black, blank or
-        foreign previous photo).
+    WindowChange or None
+        ``None`` when the pair cannot be calibrated (:func:`pair_noise`).
     """
-    bp = settings.block_px
-    va, vb, cov = _moments(a, b, bp)
-    calm = (_block_sum(near.astype(np.float32), bp) == 0) & (np.minimum(va, vb) > QUIET_MIN_VAR)
-    if int(calm.sum()) < MIN_QUIET_BLOCKS:
+    noise = pair_noise(a, b, near, settings.block_px)
+    if noise is None:
         return None
-    noise = 0.5 * float(np.median((va + vb - 2 * cov)[calm]))
-    ncc, twin = np.zeros_like(va), np.zeros_like(va)
-    scored = np.zeros(va.shape, bool)
-    box = _aligned_box(surface, bp)
-    texture = np.zeros_like(va)
-    if box is not None:  # the footprint's blocks only (block_ncc per block: the same values as on the whole box)
-        blocks = (slice(box[0].start // bp, box[0].stop // bp), slice(box[1].start // bp, box[1].stop // bp))
-        x, y, m = a[box], b[box], surface[box]
-        ncc[blocks], scored[blocks] = block_ncc(x, y, m, bp, settings.min_share)
-        twin[blocks] = block_ncc(x, _shifted(b, parallax)[box], m, bp, settings.min_share)[0]
-        texture[blocks] = np.minimum(_masked_variance(x, m, bp), _masked_variance(y, m, bp))
-    judged = scored & (texture >= (1.0 + settings.min_snr) * noise)
-    unchanged = judged & (ncc >= settings.min_ncc) & (ncc - twin >= settings.min_gain)
-    return BlockChange(np.where(judged, ncc, 0).astype(np.float32), np.where(judged, twin, 0).astype(np.float32),
-                       judged, unchanged, noise)
+    shape = a.shape
+    same, twin = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    judged, unchanged = np.zeros(shape, bool), np.zeros(shape, bool)
+    sig = float(settings.window_px)
+    box = _aligned_box(surface, int(np.ceil(3 * sig)))
+    if box is None:
+        return WindowChange(same, twin, judged, unchanged, noise)
+    reach = int(np.ceil(max(abs(parallax[0]), abs(parallax[1])))) + 2  # the shifted crop's source pixels
+    outer = _aligned_box(surface, int(np.ceil(3 * sig)) + reach)
+    assert outer is not None
+    inner = (slice(box[0].start - outer[0].start, box[0].stop - outer[0].start),
+             slice(box[1].start - outer[1].start, box[1].stop - outer[1].start))
+    x = np.ascontiguousarray(a[box], np.float32)
+    y = np.ascontiguousarray(b[box], np.float32)
+    ys = np.ascontiguousarray(_shifted(np.ascontiguousarray(b[outer], np.float32), parallax)[inner])
+
+    def g(v: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(v, (0, 0), sig)
+
+    xx, yy, ss = g(x * x), g(y * y), g(ys * ys)
+    tiny = 1e-6
+    s_same = g(x * y) / np.sqrt(xx * yy + tiny)
+    s_twin = g(x * ys) / np.sqrt(xx * ss + tiny)
+    moved = 1.0 - g(y * ys) / np.sqrt(yy * ss + tiny)
+    if settings.twin_tolerance > 0:  # an edge bead that grew toward the camera: the rise seen short
+        k = 1.0 - settings.twin_tolerance
+        yk = np.ascontiguousarray(_shifted(np.ascontiguousarray(b[outer], np.float32), (k * parallax[0], k * parallax[1]))[inner])
+        s_twin = np.maximum(s_twin, g(x * yk) / np.sqrt(xx * g(yk * yk) + tiny))
+    # the window's texture must be the footprint's own: on the footprint's edge a window that mostly sees
+    # the unchanged surface beside it (a lower floor, the bed) would look unchanged although the layer was printed
+    grow = 2 * OWN_GROW_PX + 1  # the footprint's own edges lie on its border, and the camera's blur spreads them
+    m = cv2.dilate(surface[box].astype(np.uint8), np.ones((grow, grow), np.uint8)).astype(np.float32)
+    own = np.minimum(g(m * x * x) / (xx + tiny), g(m * y * y) / (yy + tiny))
+    ok = (surface[box] & (np.minimum(xx, yy) >= (1.0 + settings.min_snr) * noise)
+          & (moved >= settings.min_parallax_change) & (own >= OWN_SHARE))
+    if clipped is not None and clipped[box].any():
+        reach = 2 * int(np.ceil(2 * sig)) + 1
+        ok &= cv2.dilate(clipped[box].astype(np.uint8), np.ones((reach, reach), np.uint8)) == 0
+    judged[box] = ok
+    found = ok & (s_same >= settings.min_ncc) & (s_same - s_twin >= settings.min_gain)
+    band = int(round(2 * sig))
+    unchanged[box] = drop_edge_slivers(found, surface[box], parallax, band, max(1, int(round(EDGE_DEPTH * sig))))
+    same[box], twin[box] = np.where(ok, s_same, 0), np.where(ok, s_twin, 0)
+    return WindowChange(same, twin, judged, unchanged, noise)
 
 
-def persistent_groups(unchanged: np.ndarray, previous: np.ndarray | None, min_blocks: int) -> np.ndarray:
-    """The 8-connected groups of ``unchanged`` blocks that were unchanged in the previous pair too.
+def _line_kernel(direction: tuple[float, float], steps: range) -> tuple[np.ndarray, tuple[int, int]]:
+    """A structuring element with ones at ``round(k * direction)`` for ``k`` in ``steps`` (anchor: the centre)."""
+    r = max(abs(steps.start), abs(steps.stop)) + 1
+    kern = np.zeros((2 * r + 1, 2 * r + 1), np.uint8)
+    for k in steps:
+        kern[r + int(round(k * direction[1])), r + int(round(k * direction[0]))] = 1
+    return kern, (r, r)
 
-    A missing patch stays missing: where the nozzle left a gap, the next photo
-    shows the same old surface again (the hole deepens under new layers
-    around it), so its blocks are unchanged in two pairs in a row. A clean
-    layer's chance coincidences (a bead that happens to look like the one
-    below) do not repeat at the same place. A group is kept when it has at
-    least ``min_blocks`` blocks and one of them is, or touches, a block that
-    was unchanged in ``previous``.
+
+def drop_edge_slivers(unchanged: np.ndarray, surface: np.ndarray, parallax: tuple[float, float],
+                      band_px: int, depth_px: int) -> np.ndarray:
+    """``unchanged`` without its areas that lie along a silhouette edge of the footprint (module notes).
+
+    The footprint's edges across the parallax direction are silhouettes: the
+    one facing the camera (a lower point is seen beyond it, in the parallax
+    direction) and the one facing away (beyond it the camera sees what lies
+    behind). Where a bead lies a tenth of a millimetre off the one below,
+    either silhouette moves by about the rise's parallax against it, so it can
+    stay in place although the layer was printed. An 8-connected unchanged
+    area is dropped when at least :data:`EDGE_SHARE` of its pixels lie within
+    ``band_px`` of one such edge while the footprint goes on for ``depth_px``
+    from each of them the other way (the silhouette band is not the whole
+    cross-section: the rest of it was seen to change). A gap through a wall
+    (its whole cross-section unchanged) or a patch inside a surface stays.
 
     Parameters
     ----------
-    unchanged : ndarray, bool, shape (n, m)
-        This pair's unchanged blocks (:attr:`BlockChange.unchanged`).
-    previous : ndarray, bool, shape (n, m), or None
-        The previous pair's (same working box); ``None``: none, nothing is kept.
-    min_blocks : int
+    unchanged, surface : ndarray, bool, shape (h, w)
+    parallax : (float, float)
+        Image shift of a lower surface, px (:func:`parallax_px`); zero: nothing dropped.
+    band_px, depth_px : int
 
     Returns
     -------
-    ndarray, bool, shape (n, m)
+    ndarray, bool, shape (h, w)
     """
-    if previous is None or previous.shape != unchanged.shape or not unchanged.any():
-        return np.zeros(unchanged.shape, bool)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(unchanged.astype(np.uint8), connectivity=8)
-    near = cv2.dilate(previous.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    ids = np.unique(lab[unchanged & near])
-    ids = ids[(ids > 0) & (stats[ids, cv2.CC_STAT_AREA] >= min_blocks)]
-    return np.isin(lab, ids)
+    norm = float(np.hypot(*parallax))
+    if norm < 1e-6 or not unchanged.any() or band_px < 1:
+        return unchanged
+    sm = surface.astype(np.uint8)
+    n, lab = cv2.connectedComponents(unchanged.astype(np.uint8), connectivity=8)
+    total = np.bincount(lab.ravel(), minlength=n)
+    drop = np.zeros(n, bool)
+    for sign in (1.0, -1.0):  # the edge facing the camera, then the one facing away
+        u = (sign * parallax[0] / norm, sign * parallax[1] / norm)
+        k_front, a_front = _line_kernel(u, range(1, band_px + 1))
+        k_back, a_back = _line_kernel(u, range(-depth_px, 0))
+        # erode: min over the kernel's offsets, so 1 where the footprint holds at every step (outside the image: not)
+        front_held = cv2.erode(sm, k_front, anchor=a_front, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        back_held = cv2.erode(sm, k_back, anchor=a_back, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        sliver = ~front_held & back_held
+        edge = np.bincount(lab[sliver & unchanged].ravel(), minlength=n)
+        drop |= edge >= EDGE_SHARE * np.maximum(total, 1)
+    drop[0] = False
+    return unchanged & ~drop[lab]
 
 
 def blocks_on_top(blocks: np.ndarray, block_px: int, origin: tuple[int, int], scale: tuple[float, float],

@@ -162,11 +162,9 @@ class LayerChangeStats:
         texture to calibrate the noise on); ``note`` says why not.
     previous_layer : int
         Layer of the previous photo compared with (-1: none).
-    blocks_judged, blocks_unchanged : int
-        Footprint blocks (working image) with texture above the noise, and of
-        those the ones that look as in the previous photo.
-    blocks_confirmed : int
-        Unchanged blocks in groups that were unchanged in the previous pair too (the failing ones).
+    px_judged, px_unchanged : int
+        Footprint pixels (working image) whose window has texture above the noise
+        that the parallax changes, and of those the ones that look as in the previous photo.
     unchanged_mm2 : float
         Area of the failing regions it reported, mm^2 on the layer's plane.
     added_mm2 : float
@@ -182,9 +180,8 @@ class LayerChangeStats:
 
     judged: bool = False
     previous_layer: int = -1
-    blocks_judged: int = 0
-    blocks_unchanged: int = 0
-    blocks_confirmed: int = 0
+    px_judged: int = 0
+    px_unchanged: int = 0
     unchanged_mm2: float = 0.0
     added_mm2: float = 0.0
     noise: float = 0.0

@@ -2,7 +2,7 @@
 
 :class:`LayerChange` keeps the high-passed texture of the last analysed photo
 of the print and, for each new analysed photo, asks
-:mod:`layerwatch.analysis.layer_change` which blocks of the new layer's
+:mod:`layerwatch.analysis.layer_change` which pixels of the new layer's
 footprint look as they did then. It works on the nothing-extruded check's
 working image and camera rays (:class:`~layerwatch.pipeline.checks.JobChecks`:
 ``size``, ``box``, ``maps``), so the projection is the same.
@@ -10,14 +10,11 @@ working image and camera rays (:class:`~layerwatch.pipeline.checks.JobChecks`:
 A photo the pipeline did not analyse (rejected frame, error) neither is judged
 nor becomes the previous photo; a skipped layer is covered because the
 previous photo is the last analysed one, whatever its layer (the parallax
-is the height printed since). Unchanged blocks fail only where the previous
-pair found them unchanged too (:func:`~layerwatch.analysis.layer_change.persistent_groups`):
-a gap stays, a chance likeness does not, so a defect is reported from the
-photo after its onset on. The first photo of a print, and a photo whose
+is the height printed since). The first photo of a print, and a photo whose
 previous photo shows no texture to calibrate on (black, blank), get no
 verdict (``LayerResult.layer_change.judged`` is False with a note). A layer
 that looks as before over most of its footprint (more than
-:data:`MAX_UNCHANGED_SHARE` of the judged blocks) is not a local defect but
+:data:`MAX_UNCHANGED_SHARE` of the judged pixels) is not a local defect but
 nothing extruded, the nothing-extruded check's failure: no region here. Nor
 is a layer that the failure typer found moved (a region typed layer shift or
 detachment, :data:`~layerwatch.analysis.failure_kinds.MOVED_KINDS`): its
@@ -38,11 +35,11 @@ from layerwatch.analysis.failure_kinds import MOVED_KINDS
 from layerwatch.analysis.layer_change import (
     LayerChangeSettings,
     add_unchanged,
-    block_change,
     blocks_on_top,
+    clipped_box,
     parallax_px,
-    persistent_groups,
     unchanged_regions,
+    window_change,
 )
 from layerwatch.analysis.result import LayerChangeStats, LayerResult
 from layerwatch.analysis.scene_change import predicted_change
@@ -55,7 +52,7 @@ __all__ = ["MAX_UNCHANGED_SHARE", "NEAR_MARGIN_MM", "LayerChange"]
 
 #: the new layer's projection grown by this (mm) is never a quiet block (the noise is calibrated off it)
 NEAR_MARGIN_MM = 1.5
-#: more than this share of the judged blocks unchanged: the whole layer looks as before, which is the
+#: more than this share of the judged pixels unchanged: the whole layer looks as before, which is the
 #: nothing-extruded check's failure (clog, run-out; ``[extrusion]``), not a local defect: no region here
 MAX_UNCHANGED_SHARE = 0.5
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)`` (the pipeline's references)
@@ -71,7 +68,7 @@ class LayerChange:
         The pipeline's checks: their working image size, crop box and camera rays.
     topview : TopView
     warper : TopViewWarper
-        The pipeline's warper (its maps carry unchanged blocks to the top view).
+        The pipeline's warper (its maps carry unchanged pixels to the top view).
     toolpath : Toolpath
         The job's G-code (what each layer prints: walls or infill).
     settings : LayerChangeSettings
@@ -85,10 +82,8 @@ class LayerChange:
 
     def new_print(self) -> None:
         """Forget the previous photo (a new print, or the single-photo mode's reset)."""
-        #: ``(layer, z top mm, texture)`` of the last analysed photo
-        self._previous: tuple[int, float, np.ndarray] | None = None
-        #: the previous pair's unchanged blocks (``None``: that pair was not judged), for :func:`persistent_groups`
-        self._unchanged: np.ndarray | None = None
+        #: ``(layer, z top mm, texture, clipped pixels)`` of the last analysed photo (working box)
+        self._previous: tuple[int, float, np.ndarray, np.ndarray] | None = None
         #: image shift per mm of height printed, working px (:func:`parallax_px`; the camera's, computed once)
         self._shift_per_mm: tuple[float, float] | None = None
 
@@ -102,21 +97,21 @@ class LayerChange:
         if texture is None:
             texture = np.ascontiguousarray(box_texture(photo, self.checks.size, self.checks.box))
         fp, _, z = footprint(index)
-        previous, self._previous = self._previous, (index, z, texture)
+        clipped = clipped_box(photo, self.checks.size, self.checks.box)
+        previous, self._previous = self._previous, (index, z, texture, clipped)
         stats = LayerChangeStats(previous_layer=-1 if previous is None else previous[0])
         res.layer_change = stats
         try:
             if previous is None or previous[0] >= index:
                 stats.note = "no earlier photo of this print to compare with"
-                self._unchanged = None
                 return
-            self._compare(res, stats, texture, previous, fp, z, index, maps, photo)
+            self._compare(res, stats, texture, clipped, previous, fp, z, index, maps, photo)
         finally:
             # the time goes with the step's other timings, not into the record (records compare equal across runs)
             res.timings_ms["layer_change"] = round((time.perf_counter() - t0) * 1e3, 3)
 
-    def _compare(self, res: LayerResult, stats: LayerChangeStats, texture: np.ndarray,
-                 previous: tuple[int, float, np.ndarray], fp: np.ndarray, z: float, index: int,
+    def _compare(self, res: LayerResult, stats: LayerChangeStats, texture: np.ndarray, clipped: np.ndarray,
+                 previous: tuple[int, float, np.ndarray, np.ndarray], fp: np.ndarray, z: float, index: int,
                  maps: tuple[np.ndarray, np.ndarray], photo: np.ndarray) -> None:
         st = self.settings
         z_before = previous[1]
@@ -126,19 +121,17 @@ class LayerChange:
             self._shift_per_mm = parallax_px(maps, z, 1.0)
         shift = (self._shift_per_mm[0] * (z - z_before), self._shift_per_mm[1] * (z - z_before))
         stats.parallax_px = round(float(np.hypot(*shift)), 3)
-        change = block_change(texture, previous[2], surface, near, shift, st)
-        before, self._unchanged = self._unchanged, (None if change is None else change.unchanged)
+        glare = previous[3] | clipped if previous[3].shape == clipped.shape else clipped
+        change = window_change(texture, previous[2], surface, near, shift, st, glare)
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
         stats.judged, stats.noise = True, round(change.noise, 4)
-        stats.blocks_judged, stats.blocks_unchanged = int(change.judged.sum()), int(change.unchanged.sum())
-        if stats.blocks_unchanged > MAX_UNCHANGED_SHARE * stats.blocks_judged:
+        stats.px_judged, stats.px_unchanged = int(change.judged.sum()), int(change.unchanged.sum())
+        if stats.px_unchanged > MAX_UNCHANGED_SHARE * stats.px_judged:
             stats.note = "most of the layer looks as in the previous photo: left to the nothing-extruded check"
             return
-        groups = persistent_groups(change.unchanged, before, st.min_blocks)
-        stats.blocks_confirmed = int(groups.sum())
-        if not groups.any():
+        if not change.unchanged.any():
             return
         if any(r.kind in MOVED_KINDS for r in res.regions):
             # a shifted or detached layer leaves its planned place as it was: the typer's moved
@@ -150,7 +143,7 @@ class LayerChange:
         source = cv2.convertMaps(map1, map2, cv2.CV_32FC1)
         size = self.checks.size
         rows, cols = self.checks.box
-        top = blocks_on_top(groups, st.block_px, (rows.start or 0, cols.start or 0),
+        top = blocks_on_top(change.unchanged, 1, (rows.start or 0, cols.start or 0),
                             (size[0] / w, size[1] / h), source, fp & valid)
         mask, regions = unchanged_regions(top, fp, self.toolpath, index, self.topview, st.min_area_mm2)
         stats.added_mm2 = round(add_unchanged(res, mask, regions, self.topview), 3)
