@@ -289,11 +289,15 @@ def test_printed_area_counts_what_lies_beside_a_wall_as_outside_not_as_a_percent
     assert b.anomaly_ratio == pytest.approx(b.anomalous_area_mm2 / b.printed_area_mm2)
 
 
-def test_recommended_settings_count_the_printed_area_and_the_paper_its_tiles():
+def test_anomalous_area_is_a_job_setting_and_whole_tiles_stay_recommended():
+    """``printed`` halves the clean alarms but loses foreign bodies whose anomalous tiles lie beside the
+    footprint where the series scene channel sees no change (docs/evaluation/single_photo.md): opt-in."""
     from layerwatch.pipeline.config import resolve_config
 
-    assert resolve_config(None).config.analysis.anomalous_area == "printed"
-    assert resolve_config(None, recommended=False).config.analysis.anomalous_area == "tiles"
+    assert resolve_config(None).config.analysis.anomalous_area == "tiles"
+    chosen = resolve_config(None, flags={"analysis": {"anomalous_area": "printed"}})
+    assert chosen.config.analysis.anomalous_area == "printed"
+    assert chosen.config.analysis.metric == "jaccard"  # the rest of the recommendation still applies
 
 
 def test_printed_weight_counts_the_parts_own_gaps_whole_and_nothing_beside_it():
