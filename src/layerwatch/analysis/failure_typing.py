@@ -433,33 +433,31 @@ class _Scene:
         part, bed = self.part_colour, self.bed_colour
         if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
             return 0.5
+        below = None if self._below is None else self._below()
         if arrived:
             uncovered = self.moved_area(motion) & ~self.outline
-            below = None if self._below is None else self._below()
             if below is not None:  # on the part's lower layers (planned place): the part's colour either way
                 uncovered &= ~below
-            k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1
-            uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
-            if self.valid is not None:
-                uncovered &= self.valid
-            if uncovered.sum() < 20:
-                return 0.5
-            lab = _lab(self.lab_u8[uncovered])
-            return float(np.mean(_lab_distance(lab, part) < _lab_distance(lab, bed)))
+            return self._part_coloured_share(uncovered, part, bed)
         uncovered = self.outline & self.moved_area(motion)
-        below = None if self._below is None else self._below()
         if below is not None:  # where the moved part's own lower layers would show: no evidence either way
             h, w = self.shape
             carried = cv2.warpAffine(below.view(np.uint8), top_from_plan(motion, self.topview), (w, h),
                                      flags=cv2.INTER_NEAREST)
             uncovered &= carried == 0
-        k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1  # slivers: registration error, walls' parallax
-        uncovered = cv2.erode(uncovered.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+        return self._part_coloured_share(uncovered, part, bed)
+
+    def _part_coloured_share(self, area: np.ndarray, part: np.ndarray, bed: np.ndarray) -> float:
+        """Share of ``area``'s photo pixels (bool, top view) nearer the part's colour than the bed's, 0.5 (no
+        evidence) when fewer than 20 are left after trimming ``LEDGE_TRIM_MM`` off its edges (slivers:
+        registration error, walls' parallax) and keeping the valid pixels."""
+        k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1
+        area = cv2.erode(area.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         if self.valid is not None:
-            uncovered &= self.valid
-        if uncovered.sum() < 20:
+            area &= self.valid
+        if area.sum() < 20:
             return 0.5
-        lab = _lab(self.lab_u8[uncovered])
+        lab = _lab(self.lab_u8[area])
         return float(np.mean(_lab_distance(lab, part) < _lab_distance(lab, bed)))
 
     def solid(self, box: tuple[slice, slice]) -> np.ndarray:

@@ -347,7 +347,8 @@ def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nd
              slice(box[1].start - outer[1].start, box[1].stop - outer[1].start))
     x = np.ascontiguousarray(a[box], np.float32)
     y = np.ascontiguousarray(b[box], np.float32)
-    ys = np.ascontiguousarray(_shifted(np.ascontiguousarray(b[outer], np.float32), parallax)[inner])
+    b_outer = np.ascontiguousarray(b[outer], np.float32)  # the previous texture the shifted twins are cut from
+    ys = np.ascontiguousarray(_shifted(b_outer, parallax)[inner])
 
     def g(v: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(v, (0, 0), sig)
@@ -359,7 +360,7 @@ def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.nd
     moved = 1.0 - g(y * ys) / np.sqrt(yy * ss + tiny)
     if settings.twin_tolerance > 0:  # an edge bead that grew toward the camera: the rise seen short
         k = 1.0 - settings.twin_tolerance
-        yk = np.ascontiguousarray(_shifted(np.ascontiguousarray(b[outer], np.float32), (k * parallax[0], k * parallax[1]))[inner])
+        yk = np.ascontiguousarray(_shifted(b_outer, (k * parallax[0], k * parallax[1]))[inner])
         s_twin = np.maximum(s_twin, g(x * yk) / np.sqrt(xx * g(yk * yk) + tiny))
     # the window's texture must be the footprint's own: on the footprint's edge a window that mostly sees
     # the unchanged surface beside it (a lower floor, the bed) would look unchanged although the layer was printed

@@ -605,9 +605,7 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     n_printed = int(foot_int[-1, -1]) if seen is None else int(np.count_nonzero(foot & seen))
     printed = n_printed / topview.px_per_mm**2
     # what each anomalous block adds to S_A: its whole tile (the paper) or the part's share of it
-    share = (area_weight(foot_frac, c / topview.px_per_mm, st.anomalous_area)[anom] if st.anomalous_area != "tiles"
-             else np.ones(int(anom.sum())))
-    n_counted = float(share.sum())
+    n_counted = float(area_weight(foot_frac, c / topview.px_per_mm, st.anomalous_area)[anom].sum())
     res = LayerResult(
         layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
         anomaly_ratio=anomaly_ratio(n_counted, tile_mm2, printed),

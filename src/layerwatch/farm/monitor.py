@@ -57,7 +57,7 @@ from layerwatch.farm.remote import (
     judge_remote,
 )
 from layerwatch.monitor.printers.base import SnapshotTrigger
-from layerwatch.monitor.service import Monitor, MonitorReport
+from layerwatch.monitor.service import Monitor, MonitorReport, pipeline_error
 from layerwatch.pipeline.step import LayerPipeline, Reference
 
 __all__ = ["FarmMonitor", "PoolPipeline", "StampedTrigger", "RESULTS_KEPT"]
@@ -215,8 +215,7 @@ class FarmMonitor(Monitor):
             pipe: Any = self.pipeline  # a PoolPipeline, possibly inside a StoringPipeline
             v = pipe.judge(photo, trigger.layer, trigger.z, photo_ms, self._interrupted, rules)
         except Exception as exc:  # noqa: BLE001 - a lost worker or a pipeline bug must not stop the monitor
-            log.exception("pipeline failed on layer %d", trigger.layer)
-            res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
+            res = pipeline_error(trigger.layer, trigger.z, exc, log)
             res.photo_ms = photo_ms
             return self.finish_layer(trigger, res)
         self._interrupted = False

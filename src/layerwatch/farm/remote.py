@@ -49,7 +49,7 @@ from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.camera_checks import LateCheck
 from layerwatch.monitor.cameras import EncodedFrame, StaleCheck
 from layerwatch.monitor.frame_checks import CAMERA_FAULT, FrameChecks
-from layerwatch.monitor.service import camera_error, frame_problem
+from layerwatch.monitor.service import camera_error, frame_problem, pipeline_error
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PolicySettings
 from layerwatch.pipeline.step import LayerPipeline, Reference
@@ -307,8 +307,7 @@ def judge_on(job: WorkerJob, frame: EncodedFrame | np.ndarray, layer: int, z: fl
     try:
         v = analyse_on(pipe, photo, layer, with_reference, keep_lookup=True)
     except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
-        log.exception("pipeline failed on layer %d", layer)
-        res = LayerResult(layer=layer, z=z, status="error", message=f"pipeline failed: {exc}")
+        res = pipeline_error(layer, z, exc, log)
         res.photo_ms = photo_ms
         pipe.warper.clear(lookups=True)
         pipe.forget_references()

@@ -68,7 +68,7 @@ from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.step import Reference
 
-__all__ = ["Monitor", "MonitorReport", "CAMERA_FAULT", "camera_error", "frame_problem"]
+__all__ = ["Monitor", "MonitorReport", "CAMERA_FAULT", "camera_error", "frame_problem", "pipeline_error"]
 
 #: smallest side of a usable camera frame, px
 MIN_FRAME_SIDE = 16
@@ -134,6 +134,13 @@ def frame_problem(photo: Any) -> str | None:
 def camera_error(exc: BaseException) -> str:
     """The record's message for a camera that raised ``exc`` instead of giving a frame."""
     return f"camera error: {type(exc).__name__}: {exc}"
+
+
+def pipeline_error(layer: int, z: float, exc: BaseException, logger: logging.Logger | None = None) -> LayerResult:
+    """The ``error`` record of a layer whose analysis raised ``exc``, logged with its traceback on ``logger``
+    (the monitor's by default; the monitor goes on: a pipeline bug never stops it)."""
+    (logger or log).error("pipeline failed on layer %d", layer, exc_info=exc)
+    return LayerResult(layer=layer, z=z, status="error", message=f"pipeline failed: {exc}")
 
 
 class Monitor:
@@ -360,8 +367,7 @@ class Monitor:
         try:
             res = self.pipeline.process(photo, trigger.layer)
         except Exception as exc:  # noqa: BLE001 - a pipeline bug must not stop the monitor
-            log.exception("pipeline failed on layer %d", trigger.layer)
-            res = LayerResult(layer=trigger.layer, z=trigger.z, status="error", message=f"pipeline failed: {exc}")
+            res = pipeline_error(trigger.layer, trigger.z, exc)
         res.photo_ms = round((t_photo - trigger.time) * 1000, 1)
         res = self._lag_check(trigger, photo, res)
         top = getattr(self.pipeline, "last_top", None) if res.status == "ok" else None  # one analysis thread
