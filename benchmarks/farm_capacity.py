@@ -93,7 +93,7 @@ from layerwatch.farm.monitor import FarmMonitor, PoolPipeline  # noqa: E402
 from layerwatch.farm.pool import WorkerPool  # noqa: E402
 from layerwatch.farm.remote import JobContext  # noqa: E402
 from layerwatch.gcode import read_toolpath  # noqa: E402
-from layerwatch.monitor.cameras import Camera, SimCamera, decode_image  # noqa: E402
+from layerwatch.monitor.cameras import Camera, SimCamera  # noqa: E402
 from layerwatch.monitor.printers.base import SnapshotTrigger  # noqa: E402
 from layerwatch.monitor.printers.virtual import VirtualPrinter  # noqa: E402
 from layerwatch.monitor.service import Monitor  # noqa: E402
@@ -181,10 +181,7 @@ class SnapshotBytes(Camera):
         self.data = b""
 
     def _fetch(self) -> bytes:
-        return self.data  # on the farm's Dask workers: sent as they are (grab_encoded), decoded there
-
-    def _read(self) -> np.ndarray:  # grab(): decoded here (as the base class does; kept for older checkouts)
-        return decode_image(self.data, self.where)
+        return self.data  # grab(): decoded here; on the farm's Dask workers sent as they are (grab_encoded)
 
 
 @dataclass

@@ -7,6 +7,7 @@ import pytest
 
 from layerwatch.errors import CameraError
 from layerwatch.monitor.cameras import (
+    Camera,
     FolderCamera,
     MjpegCamera,
     SimCamera,
@@ -115,6 +116,32 @@ def test_frame_digest_tells_one_changed_pixel_and_is_skipped_without_the_stale_c
     assert cam.stale_check is False
     cam.grab(), cam.grab()
     assert cam._stale.last is None  # nothing hashed when the check is off
+
+
+def test_the_stale_check_of_a_camera_that_sends_files_reads_the_file():
+    """A snapshot camera's frames are fingerprinted as the files it sent (0.3 MB, not 6 MB of pixels): the same
+    file twice is a frozen stream; the same pixels in another file (a comment added) are left to the gate."""
+    from layerwatch.monitor.cameras import file_digest
+
+    img = np.random.default_rng(3).integers(0, 256, (64, 80, 3), dtype=np.uint8)
+    jpg = cv2.imencode(".jpg", img)[1].tobytes()
+    commented = jpg[:2] + b"\xff\xfe\x00\x05abc" + jpg[2:]  # a COM segment: other bytes, the same pixels
+
+    class Files(Camera):
+        def __init__(self, files):
+            super().__init__(retries=0)
+            self.files = iter(files)
+
+        def _fetch(self):
+            return next(self.files)
+
+    cam = Files([jpg, commented, jpg, jpg])
+    first = cam.grab()
+    assert np.array_equal(cam.grab(), first)  # the same pixels in another file: not this check's to tell
+    assert cam._stale.last == file_digest(commented)
+    cam.grab()
+    with pytest.raises(CameraError, match="same frame twice"):
+        cam.grab()
 
 
 def test_encoded_frames_are_decoded_and_checked_where_they_are_analysed(server):
