@@ -383,6 +383,59 @@ def test_confirm_dots_refuses_dots_off_their_place_or_of_another_size():
     assert np.isnan(unknown[[0, 4]]).all() and np.isfinite(unknown[1:4]).all()  # no area, outside the frame
 
 
+def _refine_before(grey, box):
+    """geometry.markers._refine as it was written with numpy's median, percentile and full grids (the reference)."""
+    x, y, w, h = box
+    H, W = grey.shape
+    pad = max(3, int(0.6 * max(w, h)))
+    x0, y0, x1, y1 = max(x - pad, 0), max(y - pad, 0), min(x + w + pad, W), min(y + h + pad, H)
+    roi = grey[y0:y1, x0:x1].astype(np.float32)
+    border = np.concatenate([roi[0], roi[-1], roi[:, 0], roi[:, -1]])
+    bg = float(np.median(border))
+    peak = float(np.percentile(roi, 99.5))
+    if peak - bg < 20:
+        return None
+    cov = np.clip((roi - bg) / (peak - bg) * 1.15 - 0.075, 0.0, 1.0)
+    n, lab = cv2.connectedComponents((cov > 0.5).astype(np.uint8))
+    if n < 2:
+        return None
+    cy, cx = (y + h / 2 - y0), (x + w / 2 - x0)
+    yy, xx = np.nonzero(lab)
+    k = lab[yy, xx][np.argmin((yy - cy) ** 2 + (xx - cx) ** 2)]
+    keep = cv2.dilate((lab == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    cov = np.where(keep, cov, 0.0)
+    s = float(cov.sum())
+    if s <= 0:
+        return None
+    gy, gx = np.mgrid[0 : roi.shape[0], 0 : roi.shape[1]]
+    return float((cov * gx).sum() / s + x0), float((cov * gy).sum() / s + y0), s
+
+
+def test_marker_refinement_gives_the_figures_of_numpys_median_percentile_and_grids_bit_for_bit():
+    from layerwatch.geometry import markers
+
+    rng = np.random.default_rng(5)
+    grey = cv2.cvtColor(_marked(2), cv2.COLOR_BGR2GRAY)
+    noisy = np.clip(grey + rng.normal(0, 6, grey.shape), 0, 255).astype(np.uint8)
+    H, W = grey.shape
+    found = 0
+    for img in (grey, noisy):
+        boxes = [(int(u) - 12 + int(rng.integers(-6, 7)), int(v) - 12 + int(rng.integers(-6, 7)), 24, 24)
+                 for u, v in MARKS_PX for _ in range(10)]
+        boxes += [(int(rng.integers(-20, W)), int(rng.integers(-20, H)), int(rng.integers(1, 60)), int(rng.integers(1, 60)))
+                  for _ in range(200)]  # anywhere, edges and corners too, odd and even sizes
+        for box in boxes:
+            got, want = markers._refine(img, box), _refine_before(img, box)
+            assert got == want, box
+            found += got is not None
+    assert found >= 80  # most boxes on a dot refine one
+    values = rng.integers(0, 256, 1001).astype(np.float32)
+    for n in (1, 2, 3, 7, 8, 200, 1001):
+        for q in (0.0, 1.0, 50.0, 99.5, 99.9, 100.0):
+            assert markers._percentile(values[:n].copy(), q) == float(np.percentile(values[:n], q))
+        assert markers._median(values[:n].copy()) == float(np.median(values[:n]))
+
+
 def test_marker_watch_refuses_a_bad_confirm_distance():
     with pytest.raises(ValueError, match="confirm_px"):
         MarkerWatch(CAMERA, confirm_px=-1.0)

@@ -65,16 +65,54 @@ def photo_problem(photo: np.ndarray) -> str | None:
     return None
 
 
+def _order_stats(values: np.ndarray, ks: list[int]) -> np.ndarray:
+    """The order statistics ``ks`` (0-based sorted positions) of a flat array, partitioned in a copy."""
+    return np.partition(values, ks)[ks]
+
+
+def _median(values: np.ndarray) -> float:
+    """:func:`numpy.median` of a flat float32 array of integers, bit for bit (the mean of the middle one or two
+    values: exact for integers below 2**23), without numpy's general machinery (~0.1 ms on a small array)."""
+    n = values.size
+    ks = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
+    mid = _order_stats(values, ks)
+    return float(mid[0] if len(mid) == 1 else (mid[0] + mid[1]) / np.float32(2))
+
+
+def _percentile(values: np.ndarray, q: float) -> float:
+    """:func:`numpy.percentile` (linear) of a flat float32 array, bit for bit, for a Python-float ``q``.
+
+    numpy's steps on the two order statistics it needs: the virtual index ``(n - 1) q / 100`` in float64,
+    its floor and the next (both ``n - 1`` at the top), and ``_lerp`` with the weight as a Python float
+    (float32 arithmetic).
+    """
+    n = values.size
+    virtual = (n - 1) * np.true_divide(q, 100)
+    lo = int(np.floor(virtual))
+    hi = lo + 1
+    if virtual >= n - 1:
+        lo = hi = n - 1
+    a, b = _order_stats(values, sorted({lo, hi}))[[0, -1]]
+    t = float(virtual - lo) if virtual < n - 1 else float(virtual - (n - 1))
+    diff = b - a
+    return float(b - diff * (1 - t) if t >= 0.5 else a + diff * t)
+
+
 def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, float, float] | None:
-    """Coverage centroid ``(u, v, area)`` of the bright blob in ``box`` (x, y, w, h) at full resolution."""
+    """Coverage centroid ``(u, v, area)`` of the bright blob in ``box`` (x, y, w, h) at full resolution.
+
+    The background's median and the 99.5th percentile are read from two order statistics each (the
+    figures of :func:`numpy.median` and :func:`numpy.percentile`, bit for bit; tested), and the centroid's
+    coordinates are broadcast rows and columns instead of full grids (the same products and sums).
+    """
     x, y, w, h = box
     H, W = grey.shape
     pad = max(3, int(0.6 * max(w, h)))
     x0, y0, x1, y1 = max(x - pad, 0), max(y - pad, 0), min(x + w + pad, W), min(y + h + pad, H)
     roi = grey[y0:y1, x0:x1].astype(np.float32)
     border = np.concatenate([roi[0], roi[-1], roi[:, 0], roi[:, -1]])
-    bg = float(np.median(border))
-    peak = float(np.percentile(roi, 99.5))
+    bg = _median(border)
+    peak = _percentile(roi.ravel(), 99.5)
     if peak - bg < 20:
         return None
     cov = np.clip((roi - bg) / (peak - bg) * 1.15 - 0.075, 0.0, 1.0)  # soft background floor
@@ -91,7 +129,7 @@ def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, fl
     s = float(cov.sum())
     if s <= 0:
         return None
-    gy, gx = np.mgrid[0 : roi.shape[0], 0 : roi.shape[1]]
+    gy, gx = np.arange(roi.shape[0])[:, None], np.arange(roi.shape[1])[None, :]
     return float((cov * gx).sum() / s + x0), float((cov * gy).sum() / s + y0), s
 
 
