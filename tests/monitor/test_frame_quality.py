@@ -152,6 +152,19 @@ def test_noise_and_blockiness_are_their_definitions_on_uint8_frames():
         assert blockiness(g) == pytest.approx(float(np.mean(ratios)), rel=1e-12)
 
 
+def test_the_noise_response_of_two_separable_passes_is_the_3x3_kernels():
+    """noise_sigma's two 3-tap passes give the 3 x 3 kernel's integer response everywhere, extremes included."""
+    from layerwatch.analysis.frame_quality import _NOISE_ROW
+
+    rng = np.random.default_rng(11)
+    checker = (np.indices((64, 96)).sum(axis=0) % 2 * 255).astype(np.uint8)  # |response| 2040, the largest
+    for g in (checker, rng.integers(0, 256, (1080, 1920), dtype=np.uint8), rng.choice([0, 255], (37, 53)).astype(np.uint8)):
+        want = cv2.filter2D(g.astype(np.float32), -1, _NOISE_KERNEL)[1:-1, 1:-1]
+        got = cv2.sepFilter2D(g, cv2.CV_16S, _NOISE_ROW, _NOISE_ROW)[1:-1, 1:-1]
+        assert np.array_equal(got, want)
+    assert np.abs(cv2.filter2D(checker.astype(np.float32), -1, _NOISE_KERNEL)).max() == 2040
+
+
 def test_noise_of_a_pure_noise_frame_is_its_definition_past_the_histogram_of_small_responses():
     """A median |response| of 255 or more (pure noise) is read from the full histogram: the same figure."""
     g = np.random.default_rng(5).integers(0, 256, (240, 320), dtype=np.uint8)
