@@ -7,6 +7,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from geometry_scenes import posed_camera
 
 from layerwatch.errors import LayerwatchError, WarpError
 from layerwatch.geometry.homography import top_from_image
@@ -192,3 +193,19 @@ def test_a_kept_box_warps_the_next_photo_as_a_fresh_table_does():
         warper.clear()
         got, want = warper.warp(second, 2.8, b), fresh.warp(second, 2.8, b)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("dist", [(-0.3, 0.09, 0.001, -0.001, 0.0), (-0.5, 0.0, 0.0, 0.0, 0.0)])
+def test_a_lookup_rebuilt_after_clear_is_the_fresh_one_with_its_kept_fold_back_mask(topview, dist):
+    """clear(lookups=True) keeps only the fold-back mask (bits); the lookup rebuilt from it is a fresh warper's,
+    bit for bit, at the camera's size and another (a lens that folds back inside the lookup, and one that does not)."""
+    cam = posed_camera(dist=dist)
+    warper = TopViewWarper(cam, topview)
+    for size in (cam.image_size, (cam.image_size[0] // 2, cam.image_size[1] // 2)):
+        first = warper._lookup(size)[2].copy()
+        warper.clear(lookups=True)
+        assert size in warper._folds and size not in warper._lookups
+        again, fresh = warper._lookup(size)[2], TopViewWarper(cam, topview)._lookup(size)[2]
+        assert np.array_equal(again, fresh) and np.array_equal(first, fresh)
+        far = (fresh[..., 0] == -1.0e4).sum()
+        assert far < fresh.shape[0] * fresh.shape[1] and (far > 0) == (dist[0] == -0.5)  # the strong lens folds
