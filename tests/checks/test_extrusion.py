@@ -149,3 +149,40 @@ def test_clean_window_layers_that_look_alike_rose():
     measured = {i: still for i, (_, (sim, _), _, still) in out.items() if np.isfinite(still)}
     assert not [i for i, (r, *_) in out.items() if r.failed_check]
     assert len(measured) >= 3 and max(measured.values()) < 0.8, measured
+
+
+@pytest.mark.parametrize("part", ["example", "window", "wide"])
+@pytest.mark.parametrize("photo_size", [(1920, 1080), (1280, 720)])
+def test_the_checks_box_and_plane_maps_from_the_box_alone_are_the_whole_images(part, photo_size):
+    """JobChecks finds its box from sampled rays and computes the rays of that region only: the same box and the
+    same A, B as from the rays of the whole working image; a print whose prism reaches an image edge, or none,
+    takes the whole image as before."""
+    from layerwatch.analysis.scene_change import image_rays, plane_maps
+    from layerwatch.examples import PART_CONFIG, PART_GCODE
+    from layerwatch.pipeline.checks import JobChecks, _rays, print_reach_mm, print_top_z_mm
+    from layerwatch.pipeline.config import resolve_config
+    from layerwatch.pipeline.step import LayerPipeline
+    from layerwatch.simulate import default_camera
+
+    cfg = resolve_config(PART_CONFIG).config
+    toolpath = window_part() if part == "window" else read_toolpath(PART_GCODE)
+    tv = cfg.topview.topview()
+    camera = default_camera(tv, image_size=photo_size)
+    pipe = LayerPipeline(toolpath, camera, cfg)
+    reach, top = print_reach_mm(toolpath), print_top_z_mm(toolpath)
+    if part == "wide":  # a reach past the view: its prism meets the image's edges
+        reach = (reach[0] - 200.0, reach[1] - 200.0, reach[2] + 200.0, reach[3] + 200.0)
+    checks = JobChecks(camera, tv, pipe.warper, cfg, reach_mm=reach, top_z_mm=top)
+    got_box, (a, b) = checks._box_maps()
+    A, B = plane_maps(image_rays(camera, checks.size), camera.center_mm, tv)
+    want_box = checks._crop_box(A, B)
+    assert got_box == want_box
+    rows, cols = want_box
+    np.testing.assert_array_equal(a, A[:, rows, cols])
+    np.testing.assert_array_equal(b, B[:, rows, cols])
+    if part != "wide":
+        assert (rows.stop - rows.start) * (cols.stop - cols.start) < 0.5 * checks.size[0] * checks.size[1]
+    h, w = checks.size[1], checks.size[0]
+    whole = image_rays(camera, checks.size)
+    for r, c in (((0, 7), (0, 9)), ((h - 5, h), (w - 3, w)), ((100, 300), (0, w)), ((3, 4), (500, 501))):
+        np.testing.assert_array_equal(_rays(camera, checks.size, np.arange(*r), np.arange(*c)), whole[slice(*r), slice(*c)])
