@@ -32,7 +32,9 @@ import numpy as np
 
 from layerwatch.errors import RenderError
 from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.camera_image import CameraImageRays
 from layerwatch.render.camera_view import WallLook, view_from_camera
 from layerwatch.render.raster import (
     directional_light,
@@ -133,9 +135,15 @@ class StackRenderer:
     toolpath : Toolpath
     topview : TopView
     settings : RenderSettings, optional
+    camera : CameraModel, optional
+        The posed camera whose view :meth:`render` draws (``camera_center_mm`` its centre). Given,
+        with ``settings.reference = "volume"`` and ``settings.march = "image"``, the volume is
+        marched once per camera pixel and kept, each layer adding only what it changed
+        (:mod:`layerwatch.render.camera_image`); otherwise every layer's plane is marched anew.
     """
 
-    def __init__(self, toolpath: Toolpath, topview: TopView, settings: RenderSettings | None = None):
+    def __init__(self, toolpath: Toolpath, topview: TopView, settings: RenderSettings | None = None,
+                 camera: CameraModel | None = None):
         self.toolpath = toolpath
         self.topview = topview
         self.settings = settings or RenderSettings()
@@ -157,6 +165,10 @@ class StackRenderer:
                             "map reference (lower topview.px_per_mm to use the volume)", len(self.volume.tops),
                             topview.shape[1], topview.shape[0], self.volume.max_nbytes / 1e6)
                 self.volume = None
+        #: the camera-image rays (``march = "image"``), else ``None``
+        self.rays: CameraImageRays | None = None
+        if self.volume is not None and s.march == "image" and camera is not None and camera.has_pose:
+            self.rays = _camera_rays(toolpath, topview, camera)
         self.reset()
 
     def reset(self) -> None:
@@ -169,6 +181,8 @@ class StackRenderer:
         self.done = -1  # last layer rasterised into the height map
         if self.volume is not None:
             self.volume.reset()
+        if self.rays is not None:
+            self.rays.reset()
 
     @property
     def height(self) -> np.ndarray:
@@ -187,15 +201,11 @@ class StackRenderer:
         """Grow :attr:`_hbox` to take every pixel :func:`raster_capsules` can write for these capsules (and 1 px)."""
         if p0.shape[0] == 0:
             return
-        H, W = self.topview.shape
-        v0 = int(np.ceil(np.minimum(p0[:, 1], p1[:, 1]) - r).min()) - 1
-        v1 = int(np.floor(np.maximum(p0[:, 1], p1[:, 1]) + r).max()) + 2
-        u0 = int(np.ceil(np.minimum(p0[:, 0], p1[:, 0]) - r).min()) - 1
-        u1 = int(np.floor(np.maximum(p0[:, 0], p1[:, 0]) + r).max()) + 2
+        u0, u1, v0, v1 = _capsule_box(p0, p1, r, self.topview.shape)
         r0, r1, c0, c1 = self._hbox
         if r1 > r0 and c1 > c0:
             v0, v1, u0, u1 = min(v0, r0), max(v1, r1), min(u0, c0), max(u1, c1)
-        self._hbox = (max(v0, 0), min(max(v1, 0), H), max(u0, 0), min(max(u1, 0), W))
+        self._hbox = (v0, v1, u0, u1)
 
     @property
     def _bed(self) -> np.ndarray:
@@ -228,10 +238,37 @@ class StackRenderer:
             mask = np.zeros(self.topview.shape, bool)
         m = np.zeros((1, 1), bool) if mask is None else mask
         self._cover(p0, p1, r)
+        box = _capsule_box(p0, p1, r, self.topview.shape) if self.rays is not None else None
+        old = None if box is None else self.height[box[2]:box[3], box[0]:box[1]].copy()
         clipped = raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
         if self.volume is not None:
             self.volume.add(index, m)
+        if box is not None and old is not None:
+            self._rays_add(index, box, old, m)
         return clipped
+
+    def _rays_add(self, index: int, box: tuple[int, int, int, int], old: np.ndarray, mask: np.ndarray) -> None:
+        """Give the camera-image rays what layer ``index`` changed in ``box`` (its heights before: ``old``)."""
+        assert self.rays is not None and self.volume is not None
+        u0, u1, v0, v1 = box
+        new = self.height[v0:v1, u0:u1]
+        changed = (new != old) | mask[v0:v1, u0:u1]
+        if not changed.any():
+            return
+        vol = self.volume
+        low = max(int(vol._lo[index]) - vol.fill_layers, 0)  # the lowest slot add() may have set bits in
+        floor = float(vol.tops[low - 1]) if low > 0 else -1e9
+        deep = np.where(changed, np.minimum(old, np.float32(floor)), np.inf)
+        zhi = float(new[changed].max())
+        split = zhi - 3.0 * max(self.rays.dzmax * 2.0, 0.2)
+        shallow = changed & (deep >= split)
+        deeper = changed & ~shallow
+        boxes = []
+        for part, zlo in ((shallow, split), (deeper, float(deep[deeper].min()) if deeper.any() else 0.0)):
+            if part.any():
+                rows, cols = np.flatnonzero(part.any(axis=1)), np.flatnonzero(part.any(axis=0))
+                boxes.append((u0 + int(cols[0]), u0 + int(cols[-1]) + 1, v0 + int(rows[0]), v0 + int(rows[-1]) + 1, zlo))
+        self.rays.add(self.height, vol, boxes, zhi)
 
     def render(self, index: int, camera_center_mm: np.ndarray | None = None) -> Rendered:
         """Render layer ``index`` (all layers ``0..index``), reusing earlier work.
@@ -332,10 +369,40 @@ class StackRenderer:
                         wall_line_contrast=s.wall_line_contrast, wall_ambient=s.wall_ambient)
         if self.volume is None:
             return view_from_camera(self.height, img, center_mm, self.topview, z, look=look)[0]
+        if self.rays is not None:
+            shading = np.array([look.wall_value, look.wall_ambient, look.wall_line_contrast, look.layer_height_mm,
+                                self._mat, s.layers_visible_below * lh, s.depth_darkening], np.float64)
+            return self.rays.view(self.height, img, self._bed, self.volume, z, shading)
         return view_through_volume(
             self.height, img, self.volume, self._bed, center_mm, self.topview, z, look=look, hidden_value=self._mat,
             depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening,
         )[0]
+
+
+def _capsule_box(p0: np.ndarray, p1: np.ndarray, r: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(u0, u1, v0, v1)``: top-view columns and rows (half-open) :func:`raster_capsules` can write (and 1 px)."""
+    H, W = shape
+    if p0.shape[0] == 0:
+        return 0, 0, 0, 0
+    v0 = int(np.ceil(np.minimum(p0[:, 1], p1[:, 1]) - r).min()) - 1
+    v1 = int(np.floor(np.maximum(p0[:, 1], p1[:, 1]) + r).max()) + 2
+    u0 = int(np.ceil(np.minimum(p0[:, 0], p1[:, 0]) - r).min()) - 1
+    u1 = int(np.floor(np.maximum(p0[:, 0], p1[:, 0]) + r).max()) + 2
+    return min(max(u0, 0), W), min(max(u1, 0), W), min(max(v0, 0), H), min(max(v1, 0), H)
+
+
+def _camera_rays(toolpath: Toolpath, topview: TopView, camera: CameraModel) -> CameraImageRays | None:
+    """The camera-image rays of a print: the grid over what the print's box projects to (``None``: nothing printed)."""
+    if toolpath.n_layers == 0 or len(toolpath.start) == 0:
+        return None
+    p0, p1, r = segment_pixels(toolpath, slice(0, len(toolpath.start)), topview)
+    box = _capsule_box(p0, p1, r, topview.shape)
+    if box[1] <= box[0] or box[3] <= box[2]:
+        return None
+    hs = np.asarray([la.height for la in toolpath.layers], np.float64)
+    hs = hs[np.isfinite(hs) & (hs > 0)]
+    zs = np.asarray([la.z for la in toolpath.layers], np.float64)
+    return CameraImageRays(camera, topview, box, float(np.nanmax(zs)), float(hs.min()) if hs.size else 0.2)
 
 
 _LAST: dict[str, object] = {}  # the most recent renderer (holds one toolpath alive)
