@@ -131,3 +131,24 @@ def test_bad_camera():
         CameraImageRays(cam, TV, (100, 200, 100, 200), z_top=float(cam.center_mm[2]) + 5.0)
     # without a camera the plane march is used
     assert StackRenderer(tp, TV, IMAGE).rays is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source", ["example", "prusaslicer-2.8.1_mini-cube_ascii.gcode",
+                                    "cura-4.10.0_m83_multi-object.gcode"])
+def test_light_on_the_printed_box_equals_the_whole_view(source, shared_data):
+    """The top view's light computed on the printed box grown by its reach, the level bed's elsewhere, equals
+    the light computed on the whole view, float for float, on every layer."""
+    tp, tv = _job(source, shared_data)
+    r = StackRenderer(tp, tv, RenderSettings())
+    smaller = 0
+    for index in range(tp.n_layers):
+        r.render(index, None)
+        lay = tp.layers[index]
+        lh = lay.height if lay.height > 0 else 0.2
+        r._work = r.height
+        box = r._shade_box()
+        smaller += box is not None
+        np.testing.assert_array_equal(r._light(lay.z, lh, box), r._light(lay.z, lh, None), err_msg=f"layer {index}")
+        r._work = None
+    assert smaller == tp.n_layers

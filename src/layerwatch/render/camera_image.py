@@ -78,18 +78,35 @@ def _ray(G, i, j, cu, cv, cz, ztop, step, dzmax):
     return cu + du * f, cv + dv * f, du * dz / cz, dv * dz / cz, dz, du, dv, max(L, 1e-9)
 
 
+@njit(cache=True, inline="always")
+def _gone(sx, sy, dx, dy, dz, ztop, k, H, W):
+    """True when sample ``k`` lies out of the square or at or below the bed (monotonic in ``k``)."""
+    xi, yi = int(sx + k * dx + 0.5), int(sy + k * dy + 0.5)
+    return xi < 0 or yi < 0 or xi >= W or yi >= H or ztop - k * dz <= 0.0
+
+
 @njit(cache=True)
 def _ends(hits, i0, j0, G, cu, cv, cz, ztop, step, dzmax, H, W):
-    """Where every ray of ``hits`` (rows from ``i0``, columns from ``j0``) ends in an empty volume: on the bed or out of the square."""
+    """Where every ray of ``hits`` (rows from ``i0``, columns from ``j0``) ends in an empty volume: on the bed or out of the square.
+
+    The first sample of :func:`_gone` (a monotonic test): estimated from the ray's crossings of the bed and the
+    square's edges (``int(x + 0.5)`` leaves ``[0, W)`` at ``x <= -1.5`` or ``x >= W - 0.5``), then settled by the
+    test itself around the estimate, so that it is the sample a march step by step stops at.
+    """
     gh, gw = hits.shape
     for i in range(gh):
         for j in range(gw):
             sx, sy, dx, dy, dz, du, dv, L = _ray(G, i0 + i, j0 + j, cu, cv, cz, ztop, step, dzmax)
-            k = 0
-            while k < _IDX:
-                xi, yi = int(sx + k * dx + 0.5), int(sy + k * dy + 0.5)
-                if xi < 0 or yi < 0 or xi >= W or yi >= H or ztop - k * dz <= 0.0:
-                    break
+            est = ztop / dz
+            for s, d, n in ((sx, dx, W), (sy, dy, H)):
+                if d > 1e-12:
+                    est = min(est, (n - 0.5 - s) / d)
+                elif d < -1e-12:
+                    est = min(est, (-1.5 - s) / d)
+            k = min(max(int(est) - 2, 0), _IDX)
+            while k > 0 and _gone(sx, sy, dx, dy, dz, ztop, k - 1, H, W):
+                k -= 1
+            while k < _IDX and not _gone(sx, sy, dx, dy, dz, ztop, k, H, W):
                 k += 1
             hits[i, j] = _END | k
 
@@ -182,14 +199,18 @@ def _shade(hits, i0, j0, G, cu, cv, cz, ztop, step, dzmax, height, shaded, bed, 
             x, y, zz = sx + k * dx, sy + k * dy, ztop - k * dz
             xi, yi = int(x + 0.5), int(y + 0.5)
             if hv & _END:
-                if xi < 0 or yi < 0 or xi >= W or yi >= H or height[yi, xi] <= 0.0:
-                    out[i, j] = bilinear(shaded, x, y)  # bare bed, or out of the square
+                if xi < 0 or yi < 0 or xi >= W or yi >= H:
+                    out[i, j] = bilinear(shaded, x, y)  # out of the square
+                elif height[yi, xi] <= 0.0:  # bare bed: where the ray meets it (the sample is up to a step below)
+                    t = min(max(zz, -dz), 0.0) / dz
+                    out[i, j] = bilinear(shaded, x + t * dx, y + t * dy)
                 else:
                     out[i, j] = bed[yi, xi]  # the bed under an overhang or a bridge
                 continue
             h = height[yi, xi]
-            if k == 0 or h - zz <= 1.5 * dz:  # the column's top surface
-                out[i, j] = bilinear(shaded, x, y)
+            if k == 0 or h - zz <= 1.5 * dz:  # the column's top surface, where the ray meets it
+                t = min(max(h - zz, 0.0), 1.5 * dz) / dz
+                out[i, j] = bilinear(shaded, x - t * dx, y - t * dy)
             elif _solid(bits, r0, b0, tops, xi, yi, zz + 1.5 * dz) != 0:  # entered through a side: a wall
                 facing = _facing(bits, r0, b0, tops, xi, yi, zz, du, dv, L, H, WB)
                 out[i, j] = wall_light(facing, zz, layer_h, wall_value, wall_ambient, line_contrast)

@@ -328,30 +328,72 @@ class StackRenderer:
         dummy = np.zeros(p0.shape[0], np.float64)
         return raster_capsules(self.height, mask, p0, p1, r, dummy, dummy, False, True)
 
+    def _shade_box(self) -> tuple[int, int, int, int] | None:
+        """Rows and columns ``(r0, r1, c0, c1)`` outside which the light is the bare bed's (``None``: the whole view).
+
+        The printed box grown by the reach of the height map's smoothing, the shading's gradient and the
+        cavity's dilation: beyond it the smoothed surface and its neighbours are 0 (OpenCV's Gaussian
+        kernel has a radius of ``round(4 sigma)`` for float images), so every pixel is lit as a level bed.
+        """
+        r0, r1, c0, c1 = self._hbox
+        if r1 <= r0 or c1 <= c0:
+            return None
+        reach = self._light_reach()
+        H, W = self.topview.shape
+        box = (max(r0 - reach, 0), min(r1 + reach, H), max(c0 - reach, 0), min(c1 + reach, W))
+        return None if box == (0, H, 0, W) else box
+
+    def _light_reach(self) -> int:
+        """How far (px) a height reaches into the light: smoothing (``round(4 sigma)``), gradient and cavity, with 1 px spare."""
+        s = self.settings
+        reach = (int(np.ceil(4 * s.smooth_px)) + 1 if s.smooth_px > 0 else 0) + 2
+        if s.cavity > 0:
+            reach += int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
+        return reach
+
+    def _light(self, z: float, lh: float, box: tuple[int, int, int, int] | None) -> np.ndarray:
+        """Light factor of the top view (float32 (H, W), 0-1): shading, depth darkening and cavities.
+
+        With ``box`` (:meth:`_shade_box`) it is computed on the box grown by its own reach (so that every
+        value in the box reads the same neighbours as on the whole view) and the rest is the level bed's
+        light: the same values as on the whole view, float for float (``tests/render/test_camera_image.py``).
+        """
+        s = self.settings
+        H, W = self.topview.shape
+        if box is None:
+            g, inner = (0, H, 0, W), (slice(0, H), slice(0, W))
+        else:
+            r0, r1, c0, c1 = box
+            m = self._light_reach()
+            g = (max(r0 - m, 0), min(r1 + m, H), max(c0 - m, 0), min(c1 + m, W))
+            inner = (slice(r0 - g[0], r1 - g[0]), slice(c0 - g[2], c1 - g[2]))
+        height = self.height[g[0]:g[1], g[2]:g[3]]
+        part = np.empty(height.shape, np.float32)
+        surf: np.ndarray = height
+        if s.smooth_px > 0:
+            surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
+        args = (z, self.topview.px_per_mm * s.relief, self._lights, s.ambient, s.layers_visible_below * lh,
+                s.depth_darkening)
+        shade_height(surf, *args, part)
+        if s.cavity > 0:
+            # ambient occlusion of valleys: how far a pixel lies below its neighbourhood
+            k = 2 * int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
+            top = cv2.dilate(height, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+            occl = np.minimum((top - height) * np.float32(1.0 / lh), 1.0)
+            part *= 1.0 - np.float32(s.cavity) * occl
+        if box is None:
+            return part
+        level = np.empty((3, 3), np.float32)
+        shade_height(np.zeros((3, 3), np.float32), *args, level)
+        light = np.full((H, W), level[1, 1], np.float32)
+        light[box[0]:box[1], box[2]:box[3]] = part[inner]
+        return light
+
     def _shade(self, index: int, z: float, lh: float, mask: np.ndarray, clipped: int,
                camera_center_mm: np.ndarray | None = None) -> Rendered:
         s = self.settings
         lh = lh if lh > 0 and np.isfinite(lh) else 0.2
-        light = np.empty(self.topview.shape, np.float32)
-        surf: np.ndarray = self.height
-        if s.smooth_px > 0:
-            surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
-        shade_height(
-            surf,
-            z,
-            self.topview.px_per_mm * s.relief,
-            self._lights,
-            s.ambient,
-            s.layers_visible_below * lh,
-            s.depth_darkening,
-            light,
-        )
-        if s.cavity > 0:
-            # ambient occlusion of valleys: how far a pixel lies below its neighbourhood
-            k = 2 * int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
-            top = cv2.dilate(self.height, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-            occl = np.minimum((top - self.height) * np.float32(1.0 / lh), 1.0)
-            light *= 1.0 - np.float32(s.cavity) * occl
+        light = self._light(z, lh, self._shade_box())
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
         img: np.ndarray = albedo * light
         if camera_center_mm is not None:
