@@ -98,11 +98,14 @@ def _ends(hits, i0, j0, G, cu, cv, cz, ztop, step, dzmax, H, W):
         for j in range(gw):
             sx, sy, dx, dy, dz, du, dv, L = _ray(G, i0 + i, j0 + j, cu, cv, cz, ztop, step, dzmax)
             est = ztop / dz
-            for s, d, n in ((sx, dx, W), (sy, dy, H)):
-                if d > 1e-12:
-                    est = min(est, (n - 0.5 - s) / d)
-                elif d < -1e-12:
-                    est = min(est, (-1.5 - s) / d)
+            if dx > 1e-12:
+                est = min(est, (W - 0.5 - sx) / dx)
+            elif dx < -1e-12:
+                est = min(est, (-1.5 - sx) / dx)
+            if dy > 1e-12:
+                est = min(est, (H - 0.5 - sy) / dy)
+            elif dy < -1e-12:
+                est = min(est, (-1.5 - sy) / dy)
             k = min(max(int(est) - 2, 0), _IDX)
             while k > 0 and _gone(sx, sy, dx, dy, dz, ztop, k - 1, H, W):
                 k -= 1
@@ -294,14 +297,11 @@ class CameraImageRays:
         """Memory of the kept hits, bytes."""
         return int(self.hits.nbytes)
 
-    def _args(self):
-        return self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax
-
     def reset(self) -> None:
         """An empty volume: every ray ends on the bed or out of the square."""
         self.hits = np.empty(self.shape, np.uint16)
         H, W = self.topview.shape
-        _ends(self.hits, 0, 0, *self._args(), H, W)
+        _ends(self.hits, 0, 0, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, H, W)
 
     def grid_box(self, box_px: tuple[int, int, int, int], zlo: float, zhi: float) -> tuple[int, int, int, int]:
         """Grid rows and columns ``(i0, i1, j0, j1)`` whose rays can cross the top-view box between ``zlo`` and ``zhi``."""
@@ -341,7 +341,7 @@ class CameraImageRays:
         if i1 <= i0 or j1 <= j0:
             return
         r0, b0 = volume.origin
-        _update(self.hits, i0, i1, j0, j1, *self._args(), height, volume.bits, int(r0), int(b0), volume.tops,
+        _update(self.hits, i0, i1, j0, j1, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, height, volume.bits, int(r0), int(b0), volume.tops,
                 np.array([b[:4] for b in boxes], np.float64), np.array([b[4] for b in boxes], np.float64),
                 float(zhi))
 
@@ -349,7 +349,7 @@ class CameraImageRays:
         """The hits of a from-scratch march of every ray through the current volume (checks: equals :attr:`hits`)."""
         out = np.empty(self.shape, np.uint16)
         r0, b0 = volume.origin
-        _march_all(out, 0, 0, *self._args(), np.ascontiguousarray(height, np.float32), volume.bits, int(r0), int(b0),
+        _march_all(out, 0, 0, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, np.ascontiguousarray(height, np.float32), volume.bits, int(r0), int(b0),
                    volume.tops)
         return out
 
@@ -358,7 +358,7 @@ class CameraImageRays:
         """The grid's camera image under the layer at ``z`` (float32 (gh, gw), 0-1), from :attr:`hits` (or ``hits``)."""
         out = np.empty(self.shape, np.float32)
         r0, b0 = volume.origin
-        _shade(self.hits if hits is None else hits, 0, 0, *self._args(), np.ascontiguousarray(height, np.float32),
+        _shade(self.hits if hits is None else hits, 0, 0, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, np.ascontiguousarray(height, np.float32),
                np.ascontiguousarray(shaded, np.float32), np.ascontiguousarray(bed, np.float32), volume.bits,
                int(r0), int(b0), volume.tops, float(z), np.asarray(look, np.float64), out)
         return out

@@ -241,14 +241,20 @@ class StackRenderer:
         box = _capsule_box(p0, p1, r, self.topview.shape) if self.rays is not None else None
         old = None if box is None else self.height[box[2]:box[3], box[0]:box[1]].copy()
         clipped = raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
-        if self.volume is not None:
-            self.volume.add(index, m)
+        lowest = self.volume.add(index, m) if self.volume is not None else None
         if box is not None and old is not None:
-            self._rays_add(index, box, old, m)
+            self._rays_add(box, old, m, lowest, h)
         return clipped
 
-    def _rays_add(self, index: int, box: tuple[int, int, int, int], old: np.ndarray, mask: np.ndarray) -> None:
-        """Give the camera-image rays what layer ``index`` changed in ``box`` (its heights before: ``old``)."""
+    def _rays_add(self, box: tuple[int, int, int, int], old: np.ndarray, mask: np.ndarray, lowest: int | None,
+                  lh: float) -> None:
+        """Give the camera-image rays what a layer of thickness ``lh`` changed in ``box`` (its heights before:
+        ``old``; ``lowest``: the lowest slot the occupancy may have changed in, ``None``: none).
+
+        A point became solid only in a pixel whose height or occupancy changed, above its old height or above
+        the floor of the lowest changed slot: the changed pixels are split into those where that bound lies
+        within two layers of the new top (most of a layer: a short segment of each ray) and the rest.
+        """
         assert self.rays is not None and self.volume is not None
         u0, u1, v0, v1 = box
         new = self.height[v0:v1, u0:u1]
@@ -256,11 +262,10 @@ class StackRenderer:
         if not changed.any():
             return
         vol = self.volume
-        low = max(int(vol._lo[index]) - vol.fill_layers, 0)  # the lowest slot add() may have set bits in
-        floor = float(vol.tops[low - 1]) if low > 0 else -1e9
+        floor = (float(vol.tops[lowest - 1]) if lowest > 0 else -1e9) if lowest is not None else np.inf
         deep = np.where(changed, np.minimum(old, np.float32(floor)), np.inf)
         zhi = float(new[changed].max())
-        split = zhi - 3.0 * max(self.rays.dzmax * 2.0, 0.2)
+        split = zhi - 2.0 * lh
         shallow = changed & (deep >= split)
         deeper = changed & ~shallow
         boxes = []
