@@ -67,7 +67,8 @@ _IDX = 0x7FFF
 
 @njit(cache=True, inline="always")
 def _ray(G, i, j, cu, cv, cz, ztop, step, dzmax):
-    """Start ``(sx, sy)`` (top-view px at ``z_top``), step ``(dx, dy, dz)`` and horizontal direction of grid ray ``(i, j)``."""
+    """Start ``(sx, sy)`` (top-view px at ``z_top``), step ``(dx, dy, dz)`` and horizontal direction
+    ``(du, dv)``, length ``L`` of grid ray ``(i, j)``."""
     X = G[0, 0] * j + G[0, 1] * i + G[0, 2]
     Y = G[1, 0] * j + G[1, 1] * i + G[1, 2]
     w = G[2, 0] * j + G[2, 1] * i + G[2, 2]
@@ -87,7 +88,7 @@ def _gone(sx, sy, dx, dy, dz, ztop, k, H, W):
 
 @njit(cache=True)
 def _ends(hits, i0, j0, G, cu, cv, cz, ztop, step, dzmax, H, W):
-    """Where every ray of ``hits`` (rows from ``i0``, columns from ``j0``) ends in an empty volume: on the bed or out of the square.
+    """Where every ray of ``hits`` (rows from ``i0``, columns from ``j0``) ends in an empty volume (bed, or out of the square).
 
     The first sample of :func:`_gone` (a monotonic test): estimated from the ray's crossings of the bed and the
     square's edges (``int(x + 0.5)`` leaves ``[0, W)`` at ``x <= -1.5`` or ``x >= W - 0.5``), then settled by the
@@ -290,6 +291,9 @@ class CameraImageRays:
         G = top_from_image(camera, topview, 0.0) @ self.A  # grid px -> bed point, top-view px
         self.G = np.ascontiguousarray(G / G[2, 2], np.float64)
         self.shape = (gh, gw)
+        #: what every kernel takes to rebuild a ray: ``(G, cu, cv, cz, z_top, step, dzmax)``
+        self._ray_args: tuple[np.ndarray, float, float, float, float, float, float] = (
+            self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax)
         self.reset()
 
     @property
@@ -301,7 +305,7 @@ class CameraImageRays:
         """An empty volume: every ray ends on the bed or out of the square."""
         self.hits = np.empty(self.shape, np.uint16)
         H, W = self.topview.shape
-        _ends(self.hits, 0, 0, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, H, W)
+        _ends(self.hits, 0, 0, *self._ray_args, H, W)
 
     def grid_box(self, box_px: tuple[int, int, int, int], zlo: float, zhi: float) -> tuple[int, int, int, int]:
         """Grid rows and columns ``(i0, i1, j0, j1)`` whose rays can cross the top-view box between ``zlo`` and ``zhi``."""
@@ -341,7 +345,7 @@ class CameraImageRays:
         if i1 <= i0 or j1 <= j0:
             return
         r0, b0 = volume.origin
-        _update(self.hits, i0, i1, j0, j1, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, height, volume.bits, int(r0), int(b0), volume.tops,
+        _update(self.hits, i0, i1, j0, j1, *self._ray_args, height, volume.bits, int(r0), int(b0), volume.tops,
                 np.array([b[:4] for b in boxes], np.float64), np.array([b[4] for b in boxes], np.float64),
                 float(zhi))
 
@@ -349,8 +353,8 @@ class CameraImageRays:
         """The hits of a from-scratch march of every ray through the current volume (checks: equals :attr:`hits`)."""
         out = np.empty(self.shape, np.uint16)
         r0, b0 = volume.origin
-        _march_all(out, 0, 0, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, np.ascontiguousarray(height, np.float32), volume.bits, int(r0), int(b0),
-                   volume.tops)
+        _march_all(out, 0, 0, *self._ray_args, np.ascontiguousarray(height, np.float32), volume.bits,
+                   int(r0), int(b0), volume.tops)
         return out
 
     def camera_image(self, height: np.ndarray, shaded: np.ndarray, bed: np.ndarray, volume: OccupancyStack,
@@ -358,7 +362,7 @@ class CameraImageRays:
         """The grid's camera image under the layer at ``z`` (float32 (gh, gw), 0-1), from :attr:`hits` (or ``hits``)."""
         out = np.empty(self.shape, np.float32)
         r0, b0 = volume.origin
-        _shade(self.hits if hits is None else hits, 0, 0, self.G, self.cu, self.cv, self.cz, self.z_top, self.step, self.dzmax, np.ascontiguousarray(height, np.float32),
+        _shade(self.hits if hits is None else hits, 0, 0, *self._ray_args, np.ascontiguousarray(height, np.float32),
                np.ascontiguousarray(shaded, np.float32), np.ascontiguousarray(bed, np.float32), volume.bits,
                int(r0), int(b0), volume.tops, float(z), np.asarray(look, np.float64), out)
         return out
