@@ -152,3 +152,21 @@ def test_light_on_the_printed_box_equals_the_whole_view(source, shared_data):
         np.testing.assert_array_equal(r._light(lay.z, lh, box), r._light(lay.z, lh, None), err_msg=f"layer {index}")
         r._work = None
     assert smaller == tp.n_layers
+
+
+def test_the_pipeline_gives_its_camera_to_the_renderer():
+    """``render.march = "image"`` in a job's settings: the pipeline's renderer keeps camera rays, and its references
+    differ from the plane march's by resampling only (same size, mean difference < 2 grey levels)."""
+    from layerwatch.pipeline.config import JobConfig
+    from layerwatch.pipeline.step import LayerPipeline
+
+    tp = blocks_part(WINDOW_WALL)
+    tvs = TopViewSettings(center_mm=(0.0, 0.0), width_mm=50.0, height_mm=50.0, px_per_mm=8.0)
+    cam = default_camera(tvs.topview())
+    refs = {}
+    for march in ("plane", "image"):
+        pipe = LayerPipeline(tp, cam, JobConfig(topview=tvs, render=RenderSettings(march=march)))
+        assert (pipe.renderer.rays is not None) == (march == "image")
+        refs[march] = pipe.reference(tp.n_layers - 1).image
+    assert refs["image"].shape == refs["plane"].shape
+    assert np.abs(refs["image"].astype(int) - refs["plane"]).mean() < 2.0
