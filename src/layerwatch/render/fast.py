@@ -183,6 +183,8 @@ class StackRenderer:
             self.volume.reset()
         if self.rays is not None:
             self.rays.reset()
+        #: changes rasterised but not yet given to the camera-image rays (:meth:`_rays_flush`)
+        self._pending: list[tuple[list[tuple[int, int, int, int, float]], float]] = []
 
     @property
     def height(self) -> np.ndarray:
@@ -273,7 +275,26 @@ class StackRenderer:
             if part.any():
                 rows, cols = np.flatnonzero(part.any(axis=1)), np.flatnonzero(part.any(axis=0))
                 boxes.append((u0 + int(cols[0]), u0 + int(cols[-1]) + 1, v0 + int(rows[0]), v0 + int(rows[-1]) + 1, zlo))
-        self.rays.add(self.height, vol, boxes, zhi)
+        self._pending.append((boxes, zhi))
+
+    def _rays_flush(self) -> None:
+        """Hand the layers rasterised since the last render to the camera-image rays in one pass.
+
+        One layer: its own boxes. Several (a render that catches up, e.g. after a reset): their union with
+        the lowest bound, so that each ray is looked at once, not once per layer (points only ever
+        become solid, so one pass over the union finds the same first hits).
+        """
+        pending, self._pending = self._pending, []
+        if self.rays is None or self.volume is None or not pending:
+            return
+        if len(pending) == 1:
+            boxes, zhi = pending[0]
+        else:
+            every = [b for bs, _ in pending for b in bs]
+            boxes = [(min(b[0] for b in every), max(b[1] for b in every), min(b[2] for b in every),
+                      max(b[3] for b in every), min(b[4] for b in every))] if every else []
+            zhi = max(z for _, z in pending)
+        self.rays.add(self.height, self.volume, boxes, zhi)
 
     def render(self, index: int, camera_center_mm: np.ndarray | None = None) -> Rendered:
         """Render layer ``index`` (all layers ``0..index``), reusing earlier work.
@@ -319,6 +340,7 @@ class StackRenderer:
                 "layer %d: %d segments reach outside the observed square and are clipped",
                 index, clipped,
             )
+        self._rays_flush()
         return self._shade(index, layer.z, layer.height, mask, clipped, camera_center_mm)
 
     def _raster_height_only(self, i: int) -> None:
