@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from render_parts import square_part
+from test_volume import _job
 
 from layerwatch.geometry.settings import TopViewSettings
 from layerwatch.geometry.topview import TopView
@@ -18,20 +19,6 @@ TV = TopView(8.0, 50.0, 50.0, (0.0, 0.0))  # 400 x 400 px
 WINDOW_WALL = [(-10, -1, 10, 1, 0, 3), (-10, -1, -4, 1, 3, 7), (4, -1, 10, 1, 3, 7), (-10, -1, 10, 1, 7, 10)]
 BRIDGE = [(-10, -2, -6, 2, 0, 6), (6, -2, 10, 2, 0, 6), (-10, -2, 10, 2, 6, 8)]
 IMAGE = RenderSettings(march="image")
-
-
-def _job(source: str, shared_data):
-    """The example part on its own top view, or a slicer's file on a 150 mm square at 3 px/mm around it."""
-    from layerwatch.examples import PART_CONFIG, PART_GCODE
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.pipeline.config import resolve_config
-
-    if source == "example":
-        return read_toolpath(PART_GCODE), resolve_config(PART_CONFIG).config.topview.topview()
-    tp = read_toolpath((shared_data / "gcode" / source).read_bytes())
-    x0, y0, x1, y1 = tp.bounds
-    return tp, TopViewSettings(center_mm=((x0 + x1) / 2, (y0 + y1) / 2), width_mm=max(150.0, x1 - x0 + 30),
-                               height_mm=max(150.0, y1 - y0 + 30), px_per_mm=3.0).topview()
 
 
 def _check_every_layer(tp, tv, camera, layers=None):
