@@ -115,6 +115,18 @@ def _ends(hits, i0, j0, G, cu, cv, cz, ztop, step, dzmax, H, W):
             hits[i, j] = _END | k
 
 
+@njit(cache=True, inline="always")
+def _slab(t0, t1, s, inv, a, e):
+    """``(t0, t1)`` narrowed to the samples ``k`` whose coordinate ``s + k / inv`` lies in ``[a, e]`` (``inv`` = 0:
+    the coordinate does not move; empty, ``t0 > t1``, when it lies outside)."""
+    if inv != 0.0:
+        ta, tb = (a - s) * inv, (e - s) * inv
+        return max(t0, min(ta, tb)), min(t1, max(ta, tb))
+    if s < a or s > e:
+        return 1.0, 0.0
+    return t0, t1
+
+
 @njit(cache=True)
 def _update(hits, i0, i1, j0, j1, G, cu, cv, cz, ztop, step, dzmax, height, bits, r0, b0, tops, boxes, zlos, zhi):
     """First solid sample of the rays of grid rows ``i0:i1``, columns ``j0:j1`` inside the changed boxes.
@@ -135,18 +147,8 @@ def _update(hits, i0, i1, j0, j1, G, cu, cv, cz, ztop, step, dzmax, height, bits
                 hv = hits[i, j]
                 last = (hv & _IDX) if hv & _END else (hv & _IDX) - 1
                 t0, t1 = (ztop - zhi - dz) * idx, (ztop - zlos[b] + dz) * idx
-                a, e = boxes[b, 0] - 1.5, boxes[b, 1] + 0.5
-                if ix != 0.0:
-                    ta, tb = (a - sx) * ix, (e - sx) * ix
-                    t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-                elif sx < a or sx > e:
-                    continue
-                a, e = boxes[b, 2] - 1.5, boxes[b, 3] + 0.5
-                if iy != 0.0:
-                    ta, tb = (a - sy) * iy, (e - sy) * iy
-                    t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-                elif sy < a or sy > e:
-                    continue
+                t0, t1 = _slab(t0, t1, sx, ix, boxes[b, 0] - 1.5, boxes[b, 1] + 0.5)
+                t0, t1 = _slab(t0, t1, sy, iy, boxes[b, 2] - 1.5, boxes[b, 3] + 0.5)
                 if t0 > t1:
                     continue
                 ka = max(int(math.floor(t0)) - 1, 0)
