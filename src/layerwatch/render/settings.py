@@ -45,7 +45,10 @@ class RenderSettings(Section):
         rays of a fixed grid of camera pixels, marched once and kept (2 bytes a ray),
         each layer adding only what it printed, then warped onto the layer's plane
         (:mod:`layerwatch.render.camera_image`; needs the camera model, which the
-        pipeline passes).
+        pipeline passes). Default ``"plane"``: the kept rays cost about the same per
+        layer on the example part (1.09x), half on a part that fills little of the view
+        (window part 0.50x), more from scratch and after a reset, and detect neither
+        clearly better nor worse (``docs/evaluation/volume.md``).
     volume_fill_layers : int
         ``reference = "volume"``: vertical gaps of up to this many layers
         between printed beads of a pixel are closed (the slit under a sparse
