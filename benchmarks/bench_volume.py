@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 from layerwatch.geometry.topview import TopView  # noqa: E402
 from layerwatch.render.fast import StackRenderer  # noqa: E402
 from layerwatch.render.settings import RenderSettings  # noqa: E402
+from layerwatch.simulate import default_camera  # noqa: E402
 from layerwatch.simulate.parts import window_part  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -47,7 +48,16 @@ from render_parts import dense_layer  # noqa: E402
 cv2.setNumThreads(1)
 TV = TopView(6.67, 90.0, 90.0, (0.0, 0.0))
 CAM = np.array([0.0, -212.0, 212.0])
-REFS = ("height", "volume")
+#: the variants timed: today's height map and volume (the march through each layer's plane) and the volume
+#: marched once per camera pixel and kept (``render.march = "image"``)
+REFS = ("height", "volume", "image")
+CAMERA = default_camera(TV, distance_mm=float(np.hypot(*CAM[1:])))  # centre CAM: 45 deg, in front
+
+
+def _renderer(tp, ref: str) -> StackRenderer:
+    if ref == "image":
+        return StackRenderer(tp, TV, RenderSettings(reference="volume", march="image"), CAMERA)
+    return StackRenderer(tp, TV, RenderSettings(reference=ref))
 #: LAYERWATCH_BENCH_CLOCK=cpu times the thread's CPU time (a busy shared machine inflates wall-clock time)
 _clock = time.thread_time if os.environ.get("LAYERWATCH_BENCH_CLOCK") == "cpu" else time.perf_counter
 
@@ -68,7 +78,7 @@ def from_scratch(n_segments: int, repeats: int) -> dict:
     tp = dense_layer(n_segments)
     fns = {}
     for ref in REFS:
-        sr = StackRenderer(tp, TV, RenderSettings(reference=ref))
+        sr = _renderer(tp, ref)
         sr.render(0, CAM)  # JIT warm-up
 
         def once(sr=sr):
@@ -84,7 +94,7 @@ def march_on_stack(n_segments: int, repeats: int) -> dict:
     stack = _stack(6, n_segments)
     fns = {}
     for ref in REFS:
-        sr = StackRenderer(stack, TV, RenderSettings(reference=ref))
+        sr = _renderer(stack, ref)
         sr.render(stack.n_layers - 1, CAM)
         fns[ref] = lambda sr=sr: sr.render(stack.n_layers - 1, CAM)
     return _interleaved_ms(fns, repeats)
@@ -93,24 +103,26 @@ def march_on_stack(n_segments: int, repeats: int) -> dict:
 def tall_part() -> tuple[dict, int]:
     """``window_part`` layer by layer (both references in turn): mean ms per layer, occupancy bytes at the end."""
     tp = window_part()
-    srs = {ref: StackRenderer(tp, TV, RenderSettings(reference=ref)) for ref in REFS}
+    srs = {ref: _renderer(tp, ref) for ref in REFS}
     total = dict.fromkeys(REFS, 0.0)
     for i in range(tp.n_layers):
         for ref, sr in srs.items():
             t = _clock()
             sr.render(i, CAM)
             total[ref] += _clock() - t
-    return {ref: v / tp.n_layers * 1000 for ref, v in total.items()}, srs["volume"].volume.nbytes
+    rays = srs["image"].rays
+    return ({ref: v / tp.n_layers * 1000 for ref, v in total.items()}, srs["volume"].volume.nbytes,
+            0 if rays is None else rays.nbytes)
 
 
 def run(n_segments: int = 20_000, repeats: int = 7) -> dict:
     scratch, march = from_scratch(n_segments, repeats), march_on_stack(n_segments, repeats)
     res = {ref: {"scratch_ms": scratch[ref], "march_ms": march[ref]} for ref in REFS}
-    tall, nbytes = tall_part()
+    tall, nbytes, ray_bytes = tall_part()
     for ref in REFS:
         res[ref]["tall_ms"] = tall[ref]
     res["volume"]["bytes"] = nbytes
-    h, v = res["height"], res["volume"]
+    h, v, im = res["height"], res["volume"], res["image"]
     print(f"{n_segments} segments, {TV.shape[1]}x{TV.shape[0]} px, camera view, one core; "
           f"{'wall-clock' if _clock is time.perf_counter else 'CPU (thread) time'}")
     print(f"from scratch: height map {h['scratch_ms']:.1f} ms, volume {v['scratch_ms']:.1f} ms "
@@ -120,6 +132,10 @@ def run(n_segments: int = 20_000, repeats: int = 7) -> dict:
     print(f"window_part, 70 layers one by one: height map {h['tall_ms']:.1f} ms/layer, volume "
           f"{v['tall_ms']:.1f} ms/layer -> ratio {v['tall_ms'] / h['tall_ms']:.2f}x; occupancy "
           f"{v['bytes'] / 1e6:.2f} MB (500 layers at this size: {500 * TV.shape[0] * ((TV.shape[1] + 7) // 8) / 1e6:.1f} MB)")
+    print(f"march = 'image' (kept camera rays, {ray_bytes / 1e6:.2f} MB of hits on the window part): from scratch "
+          f"{im['scratch_ms']:.1f} ms ({im['scratch_ms'] / v['scratch_ms']:.2f}x the plane march), top of the stack "
+          f"{im['march_ms']:.1f} ms ({im['march_ms'] / v['march_ms']:.2f}x), window_part {im['tall_ms']:.1f} ms/layer "
+          f"({im['tall_ms'] / v['tall_ms']:.2f}x)")
     return res
 
 

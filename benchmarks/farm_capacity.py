@@ -144,8 +144,10 @@ def malloc_in_use_mb() -> float:
 class Scene:
     """The example part, its settings, a 1080p camera and the simulated photos of its layers."""
 
-    def __init__(self, layers: int) -> None:
+    def __init__(self, layers: int, march: str | None = None) -> None:
         self.cfg = resolve_config(PART_CONFIG).config
+        if march is not None:  # ``--march``: how the volume reference is ray-marched (``render.march``)
+            self.cfg = self.cfg.model_copy(update={"render": self.cfg.render.model_copy(update={"march": march})})
         self.toolpath = read_toolpath(PART_GCODE)
         tv = self.cfg.topview.topview()
         self.camera = default_camera(tv, image_size=PHOTO)
@@ -387,19 +389,21 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("--fast-share", type=float, default=0.1, help="share of printers at one layer per 10 s")
     ap.add_argument("--window", type=float, default=None, help="farm seconds per ramp step (default 20 quick, 120)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--march", choices=("plane", "image"), default=None,
+                    help="render.march of the printers' references (default: the settings' own)")
     a = ap.parse_args(argv)
     if not (0.0 <= a.fast_share <= 1.0) or a.dask < 0 or not (a.dask_speedup == 0 or 2 <= a.dask_speedup <= 64):
         ap.error("--fast-share must be in [0, 1], --dask >= 0 and --dask-speedup in [2, 64]")
     t_start = time.perf_counter()
     if a.dask_speedup:
-        scene = Scene(layers=speedup_layers())
+        scene = Scene(layers=speedup_layers(), march=a.march)
         ratio, same = dask_speedup(scene, a.dask_speedup)
         line = f"dask_speedup={ratio:.2f} workers={a.dask_speedup} records_identical={same}"
         print(line)
         return line
     win = a.window or (20.0 if a.quick else 120.0)
     step = 1.5 if a.quick else 1.25
-    scene = Scene(layers=33)  # every layer of the part: a printer at one layer per 10 s prints past layer 12
+    scene = Scene(layers=33, march=a.march)  # every layer of the part: a printer at one layer per 10 s prints past layer 12
     warm = Runner(scene)
     first = Printer(-1, 60.0, 0.0)
     warm.attach(first)

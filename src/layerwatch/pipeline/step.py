@@ -189,7 +189,7 @@ class LayerPipeline:
         self.config = (config or JobConfig()).for_camera(camera)  # [topview] scale = "camera" resolved
         self.topview = self.config.topview.topview()
         self.warper = TopViewWarper(camera, self.topview)
-        self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
+        self.renderer = StackRenderer(toolpath, self.topview, self.config.render, self.camera)
         self.match_camera = bool(match_camera)
         self.all_metrics = bool(all_metrics)
         self.frame_gate = frame_gate
@@ -279,7 +279,7 @@ class LayerPipeline:
         if toolpath.n_layers != self.toolpath.n_layers:
             raise RenderError(f"the new toolpath has {toolpath.n_layers} layers, the job {self.toolpath.n_layers}")
         self.toolpath = toolpath
-        self.renderer = StackRenderer(toolpath, self.topview, self.config.render)
+        self.renderer = StackRenderer(toolpath, self.topview, self.config.render, self.camera)
         if self.layer_change is not None:
             self.layer_change.toolpath = toolpath
         self._memo.clear()

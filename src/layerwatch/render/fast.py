@@ -32,7 +32,9 @@ import numpy as np
 
 from layerwatch.errors import RenderError
 from layerwatch.gcode.toolpath import Toolpath
+from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
+from layerwatch.render.camera_image import CameraImageRays
 from layerwatch.render.camera_view import WallLook, view_from_camera
 from layerwatch.render.raster import (
     directional_light,
@@ -133,9 +135,15 @@ class StackRenderer:
     toolpath : Toolpath
     topview : TopView
     settings : RenderSettings, optional
+    camera : CameraModel, optional
+        The posed camera whose view :meth:`render` draws (``camera_center_mm`` its centre). Given,
+        with ``settings.reference = "volume"`` and ``settings.march = "image"``, the volume is
+        marched once per camera pixel and kept, each layer adding only what it changed
+        (:mod:`layerwatch.render.camera_image`); otherwise every layer's plane is marched anew.
     """
 
-    def __init__(self, toolpath: Toolpath, topview: TopView, settings: RenderSettings | None = None):
+    def __init__(self, toolpath: Toolpath, topview: TopView, settings: RenderSettings | None = None,
+                 camera: CameraModel | None = None):
         self.toolpath = toolpath
         self.topview = topview
         self.settings = settings or RenderSettings()
@@ -157,6 +165,10 @@ class StackRenderer:
                             "map reference (lower topview.px_per_mm to use the volume)", len(self.volume.tops),
                             topview.shape[1], topview.shape[0], self.volume.max_nbytes / 1e6)
                 self.volume = None
+        #: the camera-image rays (``march = "image"``), else ``None``
+        self.rays: CameraImageRays | None = None
+        if self.volume is not None and s.march == "image" and camera is not None and camera.has_pose:
+            self.rays = _camera_rays(toolpath, topview, camera)
         self.reset()
 
     def reset(self) -> None:
@@ -169,6 +181,10 @@ class StackRenderer:
         self.done = -1  # last layer rasterised into the height map
         if self.volume is not None:
             self.volume.reset()
+        if self.rays is not None:
+            self.rays.reset()
+        #: changes rasterised but not yet given to the camera-image rays (:meth:`_rays_flush`)
+        self._pending: list[tuple[list[tuple[int, int, int, int, float]], float]] = []
 
     @property
     def height(self) -> np.ndarray:
@@ -187,15 +203,11 @@ class StackRenderer:
         """Grow :attr:`_hbox` to take every pixel :func:`raster_capsules` can write for these capsules (and 1 px)."""
         if p0.shape[0] == 0:
             return
-        H, W = self.topview.shape
-        v0 = int(np.ceil(np.minimum(p0[:, 1], p1[:, 1]) - r).min()) - 1
-        v1 = int(np.floor(np.maximum(p0[:, 1], p1[:, 1]) + r).max()) + 2
-        u0 = int(np.ceil(np.minimum(p0[:, 0], p1[:, 0]) - r).min()) - 1
-        u1 = int(np.floor(np.maximum(p0[:, 0], p1[:, 0]) + r).max()) + 2
+        u0, u1, v0, v1 = _capsule_box(p0, p1, r, self.topview.shape)
         r0, r1, c0, c1 = self._hbox
         if r1 > r0 and c1 > c0:
             v0, v1, u0, u1 = min(v0, r0), max(v1, r1), min(u0, c0), max(u1, c1)
-        self._hbox = (max(v0, 0), min(max(v1, 0), H), max(u0, 0), min(max(u1, 0), W))
+        self._hbox = (v0, v1, u0, u1)
 
     @property
     def _bed(self) -> np.ndarray:
@@ -228,10 +240,61 @@ class StackRenderer:
             mask = np.zeros(self.topview.shape, bool)
         m = np.zeros((1, 1), bool) if mask is None else mask
         self._cover(p0, p1, r)
+        box = _capsule_box(p0, p1, r, self.topview.shape) if self.rays is not None else None
+        old = None if box is None else self.height[box[2]:box[3], box[0]:box[1]].copy()
         clipped = raster_capsules(self.height, m, p0, p1, r, ztop, hh, True, mask is not None)
-        if self.volume is not None:
-            self.volume.add(index, m)
+        lowest = self.volume.add(index, m) if self.volume is not None else None
+        if box is not None and old is not None:
+            self._rays_add(box, old, m, lowest, h)
         return clipped
+
+    def _rays_add(self, box: tuple[int, int, int, int], old: np.ndarray, mask: np.ndarray, lowest: int | None,
+                  lh: float) -> None:
+        """Give the camera-image rays what a layer of thickness ``lh`` changed in ``box`` (its heights before:
+        ``old``; ``lowest``: the lowest slot the occupancy may have changed in, ``None``: none).
+
+        A point became solid only in a pixel whose height or occupancy changed, above its old height or above
+        the floor of the lowest changed slot: the changed pixels are split into those where that bound lies
+        within two layers of the new top (most of a layer: a short segment of each ray) and the rest.
+        """
+        assert self.rays is not None and self.volume is not None
+        u0, u1, v0, v1 = box
+        new = self.height[v0:v1, u0:u1]
+        changed = (new != old) | mask[v0:v1, u0:u1]
+        if not changed.any():
+            return
+        vol = self.volume
+        floor = (float(vol.tops[lowest - 1]) if lowest > 0 else -1e9) if lowest is not None else np.inf
+        deep = np.where(changed, np.minimum(old, np.float32(floor)), np.inf)
+        zhi = float(new[changed].max())
+        split = zhi - 2.0 * lh
+        shallow = changed & (deep >= split)
+        deeper = changed & ~shallow
+        boxes = []
+        for part, zlo in ((shallow, split), (deeper, float(deep[deeper].min()) if deeper.any() else 0.0)):
+            if part.any():
+                rows, cols = np.flatnonzero(part.any(axis=1)), np.flatnonzero(part.any(axis=0))
+                boxes.append((u0 + int(cols[0]), u0 + int(cols[-1]) + 1, v0 + int(rows[0]), v0 + int(rows[-1]) + 1, zlo))
+        self._pending.append((boxes, zhi))
+
+    def _rays_flush(self) -> None:
+        """Hand the layers rasterised since the last render to the camera-image rays in one pass.
+
+        One layer: its own boxes. Several (a render that catches up, e.g. after a reset): their union with
+        the lowest bound, so that each ray is looked at once, not once per layer (points only ever
+        become solid, so one pass over the union finds the same first hits).
+        """
+        pending, self._pending = self._pending, []
+        if self.rays is None or self.volume is None or not pending:
+            return
+        if len(pending) == 1:
+            boxes, zhi = pending[0]
+        else:
+            every = [b for bs, _ in pending for b in bs]
+            boxes = [(min(b[0] for b in every), max(b[1] for b in every), min(b[2] for b in every),
+                      max(b[3] for b in every), min(b[4] for b in every))] if every else []
+            zhi = max(z for _, z in pending)
+        self.rays.add(self.height, self.volume, boxes, zhi)
 
     def render(self, index: int, camera_center_mm: np.ndarray | None = None) -> Rendered:
         """Render layer ``index`` (all layers ``0..index``), reusing earlier work.
@@ -277,6 +340,7 @@ class StackRenderer:
                 "layer %d: %d segments reach outside the observed square and are clipped",
                 index, clipped,
             )
+        self._rays_flush()
         return self._shade(index, layer.z, layer.height, mask, clipped, camera_center_mm)
 
     def _raster_height_only(self, i: int) -> None:
@@ -291,30 +355,72 @@ class StackRenderer:
         dummy = np.zeros(p0.shape[0], np.float64)
         return raster_capsules(self.height, mask, p0, p1, r, dummy, dummy, False, True)
 
+    def _shade_box(self) -> tuple[int, int, int, int] | None:
+        """Rows and columns ``(r0, r1, c0, c1)`` outside which the light is the bare bed's (``None``: the whole view).
+
+        The printed box grown by the reach of the height map's smoothing, the shading's gradient and the
+        cavity's dilation: beyond it the smoothed surface and its neighbours are 0 (OpenCV's Gaussian
+        kernel has a radius of ``round(4 sigma)`` for float images), so every pixel is lit as a level bed.
+        """
+        r0, r1, c0, c1 = self._hbox
+        if r1 <= r0 or c1 <= c0:
+            return None
+        reach = self._light_reach()
+        H, W = self.topview.shape
+        box = (max(r0 - reach, 0), min(r1 + reach, H), max(c0 - reach, 0), min(c1 + reach, W))
+        return None if box == (0, H, 0, W) else box
+
+    def _light_reach(self) -> int:
+        """How far (px) a height reaches into the light: smoothing (``round(4 sigma)``), gradient and cavity, with 1 px spare."""
+        s = self.settings
+        reach = (int(np.ceil(4 * s.smooth_px)) + 1 if s.smooth_px > 0 else 0) + 2
+        if s.cavity > 0:
+            reach += int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
+        return reach
+
+    def _light(self, z: float, lh: float, box: tuple[int, int, int, int] | None) -> np.ndarray:
+        """Light factor of the top view (float32 (H, W), 0-1): shading, depth darkening and cavities.
+
+        With ``box`` (:meth:`_shade_box`) it is computed on the box grown by its own reach (so that every
+        value in the box reads the same neighbours as on the whole view) and the rest is the level bed's
+        light: the same values as on the whole view, float for float (``tests/render/test_camera_image.py``).
+        """
+        s = self.settings
+        H, W = self.topview.shape
+        if box is None:
+            g, inner = (0, H, 0, W), (slice(0, H), slice(0, W))
+        else:
+            r0, r1, c0, c1 = box
+            m = self._light_reach()
+            g = (max(r0 - m, 0), min(r1 + m, H), max(c0 - m, 0), min(c1 + m, W))
+            inner = (slice(r0 - g[0], r1 - g[0]), slice(c0 - g[2], c1 - g[2]))
+        height = self.height[g[0]:g[1], g[2]:g[3]]
+        part = np.empty(height.shape, np.float32)
+        surf: np.ndarray = height
+        if s.smooth_px > 0:
+            surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
+        args = (z, self.topview.px_per_mm * s.relief, self._lights, s.ambient, s.layers_visible_below * lh,
+                s.depth_darkening)
+        shade_height(surf, *args, part)
+        if s.cavity > 0:
+            # ambient occlusion of valleys: how far a pixel lies below its neighbourhood
+            k = 2 * int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
+            top = cv2.dilate(height, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+            occl = np.minimum((top - height) * np.float32(1.0 / lh), 1.0)
+            part *= 1.0 - np.float32(s.cavity) * occl
+        if box is None:
+            return part
+        level = np.empty((3, 3), np.float32)
+        shade_height(np.zeros((3, 3), np.float32), *args, level)
+        light = np.full((H, W), level[1, 1], np.float32)
+        light[box[0]:box[1], box[2]:box[3]] = part[inner]
+        return light
+
     def _shade(self, index: int, z: float, lh: float, mask: np.ndarray, clipped: int,
                camera_center_mm: np.ndarray | None = None) -> Rendered:
         s = self.settings
         lh = lh if lh > 0 and np.isfinite(lh) else 0.2
-        light = np.empty(self.topview.shape, np.float32)
-        surf: np.ndarray = self.height
-        if s.smooth_px > 0:
-            surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
-        shade_height(
-            surf,
-            z,
-            self.topview.px_per_mm * s.relief,
-            self._lights,
-            s.ambient,
-            s.layers_visible_below * lh,
-            s.depth_darkening,
-            light,
-        )
-        if s.cavity > 0:
-            # ambient occlusion of valleys: how far a pixel lies below its neighbourhood
-            k = 2 * int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
-            top = cv2.dilate(self.height, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-            occl = np.minimum((top - self.height) * np.float32(1.0 / lh), 1.0)
-            light *= 1.0 - np.float32(s.cavity) * occl
+        light = self._light(z, lh, self._shade_box())
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
         img: np.ndarray = albedo * light
         if camera_center_mm is not None:
@@ -332,10 +438,40 @@ class StackRenderer:
                         wall_line_contrast=s.wall_line_contrast, wall_ambient=s.wall_ambient)
         if self.volume is None:
             return view_from_camera(self.height, img, center_mm, self.topview, z, look=look)[0]
+        if self.rays is not None:
+            shading = np.array([look.wall_value, look.wall_ambient, look.wall_line_contrast, look.layer_height_mm,
+                                self._mat, s.layers_visible_below * lh, s.depth_darkening], np.float64)
+            return self.rays.view(self.height, img, self._bed, self.volume, z, shading)
         return view_through_volume(
             self.height, img, self.volume, self._bed, center_mm, self.topview, z, look=look, hidden_value=self._mat,
             depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening,
         )[0]
+
+
+def _capsule_box(p0: np.ndarray, p1: np.ndarray, r: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(u0, u1, v0, v1)``: top-view columns and rows (half-open) :func:`raster_capsules` can write (and 1 px)."""
+    H, W = shape
+    if p0.shape[0] == 0:
+        return 0, 0, 0, 0
+    v0 = int(np.ceil(np.minimum(p0[:, 1], p1[:, 1]) - r).min()) - 1
+    v1 = int(np.floor(np.maximum(p0[:, 1], p1[:, 1]) + r).max()) + 2
+    u0 = int(np.ceil(np.minimum(p0[:, 0], p1[:, 0]) - r).min()) - 1
+    u1 = int(np.floor(np.maximum(p0[:, 0], p1[:, 0]) + r).max()) + 2
+    return min(max(u0, 0), W), min(max(u1, 0), W), min(max(v0, 0), H), min(max(v1, 0), H)
+
+
+def _camera_rays(toolpath: Toolpath, topview: TopView, camera: CameraModel) -> CameraImageRays | None:
+    """The camera-image rays of a print: the grid over what the print's box projects to (``None``: nothing printed)."""
+    if toolpath.n_layers == 0 or len(toolpath.start) == 0:
+        return None
+    p0, p1, r = segment_pixels(toolpath, slice(0, len(toolpath.start)), topview)
+    box = _capsule_box(p0, p1, r, topview.shape)
+    if box[1] <= box[0] or box[3] <= box[2]:
+        return None
+    hs = np.asarray([la.height for la in toolpath.layers], np.float64)
+    hs = hs[np.isfinite(hs) & (hs > 0)]
+    zs = np.asarray([la.z for la in toolpath.layers], np.float64)
+    return CameraImageRays(camera, topview, box, float(np.nanmax(zs)), float(hs.min()) if hs.size else 0.2)
 
 
 _LAST: dict[str, object] = {}  # the most recent renderer (holds one toolpath alive)

@@ -38,6 +38,17 @@ class RenderSettings(Section):
         ~1.06x the height map's time (``docs/evaluation/volume.md``,
         ``benchmarks/bench_volume.py``). Beyond 512 MB of occupancy the height
         map is used (logged).
+    march : {"plane", "image"}
+        How the volume (``reference = "volume"``, ``view = "camera"``) is ray-marched.
+        ``"plane"``: every layer, the ray through every top-view pixel of that layer's
+        plane (:func:`~layerwatch.render.volume.view_through_volume`); ``"image"``: the
+        rays of a fixed grid of camera pixels, marched once and kept (2 bytes a ray),
+        each layer adding only what it printed, then warped onto the layer's plane
+        (:mod:`layerwatch.render.camera_image`; needs the camera model, which the
+        pipeline passes). Default ``"plane"``: the kept rays cost about the same per
+        layer on the example part (1.09x), half on a part that fills little of the view
+        (window part 0.50x), more from scratch and after a reset, and detect neither
+        clearly better nor worse (``docs/evaluation/volume.md``).
     volume_fill_layers : int
         ``reference = "volume"``: vertical gaps of up to this many layers
         between printed beads of a pixel are closed (the slit under a sparse
@@ -90,6 +101,7 @@ class RenderSettings(Section):
     backend: Literal["fast", "blender"] = "fast"
     view: Literal["camera", "top"] = "camera"
     reference: Literal["height", "volume"] = "volume"
+    march: Literal["plane", "image"] = "plane"
     volume_fill_layers: int = Field(2, ge=0, le=20)
     material_rgb: tuple[float, float, float] = (0.85, 0.85, 0.82)
     bed_rgb: tuple[float, float, float] = (0.12, 0.12, 0.13)

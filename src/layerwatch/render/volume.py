@@ -159,15 +159,21 @@ class OccupancyStack:
             grown[:, r0 - nr0:r0 - nr0 + h, b0 - nb0:b0 - nb0 + b] = self.bits
         self.bits, self.origin = grown, (nr0, nb0)
 
-    def add(self, layer: int, mask: np.ndarray) -> None:
+    def add(self, layer: int, mask: np.ndarray) -> int | None:
         """Add the footprint of layer ``layer`` (bool (H, W)) to the slots it spans.
 
         Layers are added in print order; a slot's bits are the union of the
         layers printed in it.
+
+        Returns
+        -------
+        int or None
+            The lowest slot whose bits may have changed (the layer's own lowest, or a closed gap's);
+            ``None`` when nothing was added.
         """
         lo, hi = int(self._lo[layer]), int(self._hi[layer])
         if hi >= len(self.tops) or not mask.any():
-            return
+            return None
         rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
         self._cover((int(rows[0]), int(rows[-1]) + 1), (int(cols[0]) // 8, int(cols[-1]) // 8 + 1))
         self._grow(hi + 1)
@@ -175,6 +181,7 @@ class OccupancyStack:
         W = self.shape[1]
         packed = np.packbits(mask[r0:r0 + h, 8 * b0:min(8 * (b0 + b), W)], axis=1, bitorder="little")
         lo = min(lo, hi)
+        lowest = lo
         self.bits[lo : hi + 1] |= packed
         for d in range(2, self.fill_layers + 2):  # close gaps of d - 1 slots below the layer
             if lo - d < 0:
@@ -182,6 +189,8 @@ class OccupancyStack:
             both = packed & self.bits[lo - d]
             if both.any():
                 self.bits[lo - d + 1 : lo] |= both
+                lowest = min(lowest, lo - d + 1)
+        return lowest
 
 
 @njit(cache=True, inline="always")
