@@ -565,3 +565,45 @@ def test_a_shift_is_measured_at_its_new_place_not_at_the_lower_layers_near_peaks
     moved = [r for r in (*res.regions, *res.outside_regions) if r.kind == "layer_shift"]
     assert moved and moved[0].displacement_mm is not None
     assert np.hypot(*(np.asarray(moved[0].displacement_mm) - sim.failures[0].offset)) < 0.5
+
+
+def _plate_below(foot: np.ndarray) -> np.ndarray:
+    """The print's lower layers: the layer's own outline and a second object of the plate, a 6 x 5 mm block at
+    (104-110, 113-118) mm, 5 mm beyond the part's edge (two objects printed in turns, as KISSlicer does)."""
+    other = np.zeros(foot.shape, bool)
+    (u0, v1), (u1, v0) = TOPVIEW.to_px(np.array([[104.0, 113.0], [110.0, 118.0]])).round().astype(int)
+    other[v0:v1, u0:u1] = True
+    return foot | other
+
+
+@pytest.mark.parametrize(("turn", "plate", "moved_kind"), [(0.0, True, True), (0.0, False, False),
+                                                           (6.0, True, False)])
+def test_a_shift_moves_the_plates_other_objects_too(monkeypatch, turn, plate, moved_kind):
+    """Change beside another object of the plate is the shifted print when the registered move is a shift (the
+    gantry moved: everything printed after it is off), and not when the part turned (it came off alone) or when no
+    object of the print lies there (strands on the bed)."""
+    top, ref, foot = _part(7, shift_mm=(2.5, -1.0), turn_deg=turn, ledge=True)
+    below = _plate_below(foot) if plate else foot.copy()
+    monkeypatch.setattr(failure_typing, "part_below", lambda tp, index, topview: below)
+    beside_other = _region(104.0, 118.5, 110.0, 121.5, outside=1.0)  # 10.5 mm from the part: beyond its own reach
+    res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108)], outside_regions=[beside_other])
+    motion = FailureTyper(box_part(center=tuple(CENTRE)), TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+    assert motion is not None and motion.moved and motion.turned == (turn > 0)
+    assert (beside_other.kind in ("layer_shift", "detachment")) == moved_kind
+    if moved_kind:
+        assert beside_other.kind == "layer_shift" and beside_other.displacement_mm is not None
+
+
+def test_a_turn_too_small_to_move_the_parts_edge_is_not_a_turn():
+    """ECC's 3 degrees on a 4 mm object move its corners 0.15 mm (a pixel): no evidence of a turn; on a 20 mm part,
+    0.7 mm. Unknown extent (0) keeps the angle rule alone."""
+    from layerwatch.analysis.part_registration import TURN_MIN_MM
+
+    def m(extent):
+        return PartMotion(2.0, 1.0, rotation_deg=3.0, peak=0.1, pivot_mm=(100.0, 100.0), refined=True, extent_mm=extent)
+
+    assert not m(2.8).turned and m(14.0).turned and m(0.0).turned
+    assert np.radians(3.0) * 2.8 < TURN_MIN_MM < np.radians(3.0) * 14.0
+    top, ref, foot = _part(3, shift_mm=(2.5, 1.0), turn_deg=6.0)
+    motion = part_motion(top, ref, foot, TOPVIEW)
+    assert motion.turned and 12.0 < motion.extent_mm < 14.0  # the 20 x 16 mm part: half diagonal 12.8 mm
