@@ -588,8 +588,8 @@ def layer_alarm(ratio: float, area_mm2: float, settings: PolicySettings, limit: 
     16 mm^2 layer), so a share alone is no evidence there. The rule also asks
     for ``settings.min_area_mm2`` of anomalous area, in mm^2: the smallest
     failure the targets name is 5 mm across (about 20 mm^2), and the default
-    5 mm^2 is a quarter of it, above the 1-3 blocks (at most 4.3 mm^2) that
-    fired on clean layers of the cross-part runs (docs/evaluation/parts/README.md).
+    5 mm^2 is a quarter of it, above the 1-3 blocks (up to 4.3 mm^2) that fire
+    on a clean small footprint (docs/evaluation/parts/README.md, session 11).
     The evaluation counts its single-layer alarms with this same test.
 
     Parameters
