@@ -593,17 +593,3 @@ def test_a_shift_moves_the_plates_other_objects_too(monkeypatch, turn, plate, mo
     if moved_kind:
         assert beside_other.kind == "layer_shift" and beside_other.displacement_mm is not None
 
-
-def test_a_turn_too_small_to_move_the_parts_edge_is_not_a_turn():
-    """ECC's 3 degrees on a 4 mm object move its corners 0.15 mm (a pixel): no evidence of a turn; on a 20 mm part,
-    0.7 mm. Unknown extent (0) keeps the angle rule alone."""
-    from layerwatch.analysis.part_registration import TURN_MIN_MM
-
-    def m(extent):
-        return PartMotion(2.0, 1.0, rotation_deg=3.0, peak=0.1, pivot_mm=(100.0, 100.0), refined=True, extent_mm=extent)
-
-    assert not m(2.8).turned and m(14.0).turned and m(0.0).turned
-    assert np.radians(3.0) * 2.8 < TURN_MIN_MM < np.radians(3.0) * 14.0
-    top, ref, foot = _part(3, shift_mm=(2.5, 1.0), turn_deg=6.0)
-    motion = part_motion(top, ref, foot, TOPVIEW)
-    assert motion.turned and 12.0 < motion.extent_mm < 14.0  # the 20 x 16 mm part: half diagonal 12.8 mm

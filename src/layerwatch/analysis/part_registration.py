@@ -35,7 +35,7 @@ import scipy.fft as sfft
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["EDGE_PAD_PX", "MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATION_GAIN", "ROTATION_MIN_DEG", "ROTATIONS_DEG",
-           "SECOND_PEAK", "TURN_MIN_MM", "PartMotion", "edges", "mask_box", "moved_area", "pad_box", "part_motion", "top_from_plan"]
+           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "moved_area", "pad_box", "part_motion", "top_from_plan"]
 
 #: smallest displacement of the part's top layer reported as a move, mm (registration noise is ~0.2 mm)
 MOVE_MIN_MM = 0.75
@@ -45,10 +45,6 @@ SECOND_PEAK = 0.6
 ROTATION_MIN_DEG = 2.5
 #: ... when the best rotated reference correlates this many times better than the unrotated one
 ROTATION_GAIN = 1.45
-#: a turn counts only when it carries the part's farthest point (from the pivot) at least this far, mm: twice the
-#: registration noise (~0.2 mm). A 2.5 degree turn of a 4 mm object moves its corners 0.12 mm (under a pixel of a
-#: 6.67 px/mm top view), so ECC's angle there is noise; of a 20 mm part, 0.6 mm
-TURN_MIN_MM = 0.4
 #: largest displacement searched, mm (the crop around the footprint is widened by it)
 MOVE_MAX_MM = 12.0
 #: a correlation peak at least this share of the zero-shift peak is a candidate for a moved layer's new place
@@ -87,10 +83,6 @@ class PartMotion:
     refined : bool
         Translation and rotation refined by ECC (:func:`_refine`); the rotation is then
         measured, not only the better of 1 degree steps.
-    extent_mm : float
-        Largest distance of the footprint's pixels from the pivot, mm (0: not measured);
-        what a turn of :attr:`rotation_deg` moves the part's farthest point by is this
-        times the angle in radians.
     """
 
     dx_mm: float = 0.0
@@ -100,7 +92,6 @@ class PartMotion:
     peak: float = 0.0
     pivot_mm: tuple[float, float] | None = None
     refined: bool = False
-    extent_mm: float = 0.0
 
     @property
     def magnitude_mm(self) -> float:
@@ -116,13 +107,9 @@ class PartMotion:
         """The part turned by :data:`ROTATION_MIN_DEG` or more, clearly (a detachment, not a shift).
 
         Clearly: measured by ECC (:attr:`refined`), or the best of the 1 degree
-        steps correlates :data:`ROTATION_GAIN` times better than no turn; and,
-        when the part's :attr:`extent_mm` is known, the turn carries its
-        farthest point at least :data:`TURN_MIN_MM` (a small object's angle is
-        below the registration's resolution: the ledge evidence decides then).
+        steps correlates :data:`ROTATION_GAIN` times better than no turn.
         """
-        clear = abs(self.rotation_deg) >= ROTATION_MIN_DEG and (self.refined or self.rotation_gain >= ROTATION_GAIN)
-        return clear and (self.extent_mm <= 0 or math.radians(abs(self.rotation_deg)) * self.extent_mm >= TURN_MIN_MM)
+        return abs(self.rotation_deg) >= ROTATION_MIN_DEG and (self.refined or self.rotation_gain >= ROTATION_GAIN)
 
 
 def edges(grey: np.ndarray) -> np.ndarray:
@@ -335,15 +322,13 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     vv, uu = np.nonzero(fp[box][v0: v0 + fbox[1] - fbox[0], u0: u0 + fbox[3] - fbox[2]])
     centre = (float(uu.mean()) + u0, float(vv.mean()) + v0)
     pivot = topview.to_mm(np.array([centre[0] + box[1].start, centre[1] + box[0].start], float))
-    extent = float(np.sqrt(np.max((uu + u0 - centre[0]) ** 2 + (vv + v0 - centre[1]) ** 2))) / topview.px_per_mm
     angle, gain = _rotation(a, b, centre)
-    motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, (float(pivot[0]), float(pivot[1])),
-                        extent_mm=extent)
+    motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, (float(pivot[0]), float(pivot[1])))
     if motion.turned:  # the translation of the turned part: register the turned reference
         turned = cv2.warpAffine(a, cv2.getRotationMatrix2D(centre, angle, 1.0), (w, h))
         du, dv, height = _peak(corr.surface(turned), reach)
         d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
-        motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, motion.pivot_mm, extent_mm=extent)
+        motion = PartMotion(float(d[0]), float(d[1]), angle, gain, height, motion.pivot_mm)
     motion = _refine(motion, a, b, centre, topview)
     if motion.turned:
         return motion
@@ -418,7 +403,7 @@ def _refine(motion: PartMotion, a: np.ndarray, b: np.ndarray, centre: tuple[floa
     if abs(angle) < ROTATION_MIN_DEG:  # not turned: ECC's translation drifts toward the layers below a shift
         return dataclasses.replace(motion, rotation_deg=angle, refined=True)
     return PartMotion(float(moved_px[0] / s), float(-moved_px[1] / s), angle, motion.rotation_gain, motion.peak,
-                      motion.pivot_mm, refined=True, extent_mm=motion.extent_mm)
+                      motion.pivot_mm, refined=True)
 
 
 def top_from_plan(motion: PartMotion, topview: TopView) -> np.ndarray:
