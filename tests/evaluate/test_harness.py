@@ -124,6 +124,7 @@ def test_clean_false_alarms_counts(job):
     everything = recommended_config(analysis={"threshold": 1.0})
     always = clean_false_alarms(tp, everything, cam, n_layers=8, pause_ratio=0.0, window_share=0.0)
     assert always["layer_alarms"] == tp.n_layers - 1 and always["pauses"] == 1
+    assert always["ratio_layers"] >= always["layer_alarms"]  # a% alone; the alarm also needs the minimum area
     assert always["policy_alarms"] >= 1  # the pause itself (and the notice before it)
     assert len(always["parts"]) == 1  # window_share 0: the part alone
 

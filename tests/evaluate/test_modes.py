@@ -126,11 +126,12 @@ def test_report_section_shows_both_modes_and_the_targets():
     class S:  # the part of Summary the section reads
         modes = summarize_modes(both, 5.0)
 
-    run = {"layers": 3000, "pauses": 0, "layer_alarms": 2, "parts": {"part.gcode": {"prints": 1, "layers": 33,
-           "layer_alarms": 0, "policy_alarms": 0, "pauses": 0, "outside_layers": 0}}}
+    run = {"layers": 3000, "pauses": 0, "layer_alarms": 2, "ratio_layers": 5, "parts": {"part.gcode": {
+           "prints": 1, "layers": 33, "layer_alarms": 0, "ratio_layers": 1, "policy_alarms": 0, "pauses": 0,
+           "outside_layers": 0}}}
     text = "\n".join(_modes(S, run))
     assert "### single mode" in text and "### series mode" in text
     assert "| AUROC single mode: foreign body, spaghetti, detachment, layer shift | >= 0.97 | layer_shift 1.000 | yes |" in text
     assert "| false pauses in >= 3000 clean layers (series mode) | 0 | 0 in 3000 layers | yes |" in text
-    assert "| single-layer alarms (a% above the pause ratio) | <= 1 / 1000 | 0.67 / 1000" in text
-    assert "| part.gcode | 1 | 33 |" in text
+    assert "| single-layer alarms (a% above the pause ratio and the minimum area) | <= 1 / 1000 | 0.67 / 1000" in text
+    assert "| part.gcode | 1 | 33 | 0 | 1 |" in text and "5 with a% alone above the ratio" in text

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.pipeline.policy import PausePolicy, PolicySettings
+from layerwatch.pipeline.policy import PausePolicy, PolicySettings, layer_alarm
 
 PRINTED = 1000.0
 
@@ -156,6 +156,22 @@ def test_small_footprint_needs_min_area_before_the_ratio_rule_pauses():
     assert p.update(small(13, 5.76)).stops
     no_floor = PausePolicy(PolicySettings(pause_ratio=0.025, consecutive_layers=2, min_area_mm2=0.0))
     assert no_floor.update(small(2, 2.88)).action == "notify" and no_floor.update(small(3, 2.88)).stops
+
+
+def test_layer_alarm_is_the_ratio_rule_of_one_layer():
+    """The evaluation counts single-layer alarms with the policy's own test: a% above the limit and enough mm^2."""
+    s = PolicySettings(pause_ratio=0.025, min_area_mm2=5.0)
+    assert not layer_alarm(0.09, 1.44, s)  # one 1.2 mm block on a 16 mm^2 layer: 9 %, no evidence in mm^2
+    assert not layer_alarm(0.02, 50.0, s)  # much area, but a small share of a large layer
+    assert layer_alarm(0.03, 5.0, s) and not layer_alarm(0.025, 5.0, s)  # a% strictly above, area at least
+    assert not layer_alarm(0.03, 5.0, s, limit=0.05)  # the raised limit after a resume
+    assert layer_alarm(0.09, 1.44, PolicySettings(pause_ratio=0.025, min_area_mm2=0.0))
+    # the policy notifies exactly on the layers the test calls alarms
+    for ratio, area in ((0.09, 1.44), (0.03, 6.0), (0.01, 6.0)):
+        res = LayerResult(layer=3, z=0.6, anomaly_ratio=ratio, printed_area_mm2=area / ratio,
+                          anomalous_area_mm2=area, regions=[_region(area)])
+        p = PausePolicy(PolicySettings(pause_ratio=0.025, min_area_mm2=5.0, growth_min_area_mm2=1e9))
+        assert (p.update(res).action == "notify") == layer_alarm(ratio, area, p.settings)
 
 
 def _scene(layer, area, x=60.0, y=60.0, status="ok"):

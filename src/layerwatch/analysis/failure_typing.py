@@ -21,7 +21,8 @@ Evidence (per region, all scale-free or in mm)
   *layer shift* (the gantry skipped steps: a pure translation) or, when it
   also turned by :data:`ROTATION_MIN_DEG` or more, a *detachment* (a part
   knocked loose turns as it slides). Regions within the moved part's reach
-  take that kind, the displacement and the moved part's area
+  (:meth:`_Scene.near_moved`; for a shift also the reach of the print's
+  lower layers: a shift moves every object printed after it) take that kind, the displacement and the moved part's area
   (:attr:`~layerwatch.analysis.result.Region.outline_mm`: where the layer
   is and should not be, and where it should be and is not).
 * **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
@@ -150,6 +151,8 @@ LEDGE_TRIM_MM = 0.75
 ARRIVED_MIN = 0.25
 #: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
 OBJECT_MIN_SHARE = 0.5
+#: how far beyond a moved part (on top of its displacement) a region is still taken for the moved part, mm
+MOVED_REACH_MM = 3.0
 
 _WALL = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 _INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
@@ -265,6 +268,33 @@ class _Scene:
         self.k = max(3, int(round(2.0 * topview.px_per_mm)) | 1)
         self._moved: tuple[PartMotion, np.ndarray] | None = None
         self._ledge: tuple[PartMotion, float] | None = None
+
+    def near_moved(self, box: tuple[slice, slice], motion: PartMotion) -> bool:
+        """Whether ``box`` lies within the reach of the part that moved (``motion``'s magnitude + :data:`MOVED_REACH_MM`).
+
+        The reach is measured from the layer's footprint box; for a move that
+        did not turn (a layer shift) also from the print's lower layers
+        (:func:`part_below`, every object of the plate): a shift displaces
+        the gantry, so everything printed after it is off by the same amount,
+        the plate's other objects too (KISSlicer prints two objects in turns:
+        the layer registered is often the other object's), and the change
+        beside those objects is the shifted print, not strands. A part that
+        turned came off alone: only its own footprint counts.
+        """
+        if not motion.moved or self.fp_box is None:
+            return False
+        reach = int(round((motion.magnitude_mm + MOVED_REACH_MM) * self.topview.px_per_mm))
+        fp_box = pad_box(self.fp_box, reach, self.shape)
+        if (box[0].start < fp_box[0].stop and fp_box[0].start < box[0].stop
+                and box[1].start < fp_box[1].stop and fp_box[1].start < box[1].stop):
+            return True
+        if motion.turned or self._below is None:
+            return False
+        below = self._below()
+        if below is None:
+            return False
+        crop = pad_box((box[0].start, box[0].stop, box[1].start, box[1].stop), reach, self.shape)
+        return bool(below[crop].any())
 
     def seen(self, box: tuple[slice, slice]) -> np.ndarray:
         """Pixels of ``box`` the camera saw, bool."""
@@ -579,13 +609,7 @@ def region_evidence(r: Region, scene: _Scene, wall: float, motion: PartMotion, o
         if seen.any():
             foreign = _unlike_part(_lab(scene.lab_u8[box][seen]), scene) if scene.part_colour is not None else 0.0
             texture = scene.texture(box, seen)
-    near = False
-    if motion.moved and scene.fp_box is not None:
-        reach_mm = motion.magnitude_mm + 3.0
-        fp_box = pad_box(scene.fp_box, int(round(reach_mm * scene.topview.px_per_mm)), scene.shape)
-        if box is not None:
-            near = (box[0].start < fp_box[0].stop and fp_box[0].start < box[0].stop
-                    and box[1].start < fp_box[1].stop and fp_box[1].start < box[1].stop)
+    near = box is not None and scene.near_moved(box, motion)
     return RegionEvidence(outside=outside, foreign=foreign, texture=texture, wall=wall, near_moved_part=near)
 
 

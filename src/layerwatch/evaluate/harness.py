@@ -48,7 +48,7 @@ from layerwatch.evaluate.parallel import map_prints
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
-from layerwatch.pipeline.policy import PausePolicy
+from layerwatch.pipeline.policy import PausePolicy, layer_alarm
 from layerwatch.pipeline.step import LayerPipeline, judge_layers
 from layerwatch.simulate import FAILURE_TYPES, PrintSimulator, Scenario, random_scenarios
 from layerwatch.simulate.parts import window_part
@@ -402,7 +402,7 @@ def _scenario_records(toolpath: Toolpath, camera: CameraModel, config: JobConfig
 
 
 #: the counts of :func:`clean_false_alarms`, per part and in all
-_CLEAN_COUNTS = ("layers", "prints", "layer_alarms", "policy_alarms", "pauses", "outside_layers")
+_CLEAN_COUNTS = ("layers", "prints", "layer_alarms", "ratio_layers", "policy_alarms", "pauses", "outside_layers")
 
 
 def _clean_print(toolpath: Toolpath, config: JobConfig, camera: CameraModel, policy_settings, sim_seed: int,
@@ -425,7 +425,11 @@ def _clean_print(toolpath: Toolpath, config: JobConfig, camera: CameraModel, pol
         out["outside_layers"] += int(res.outside_anomalous_mm2 > 0)
         out["max_outside_mm2"] = max(out["max_outside_mm2"], float(res.outside_anomalous_mm2))
         if res.layer >= policy_settings.skip_first_layers:
-            out["layer_alarms"] += int(res.anomaly_ratio > policy_settings.pause_ratio)
+            # a single-layer alarm is the policy's own ratio test (a% and anomalous area, :func:`layer_alarm`);
+            # a% alone above the ratio is kept beside it (on a small footprint one block is several %)
+            out["layer_alarms"] += int(layer_alarm(float(res.anomaly_ratio), float(res.anomalous_area_mm2),
+                                                   policy_settings))
+            out["ratio_layers"] += int(res.anomaly_ratio > policy_settings.pause_ratio)
         if not paused:  # after a pause the policy waits for the operator: nothing more to count
             out["policy_alarms"] += int(decision.action != "none")
         if decision.stops and not paused:
@@ -458,7 +462,9 @@ def clean_false_alarms(
     """Simulate whole clean prints (about ``n_layers`` photos) and count false alarms.
 
     Uses ``config.analysis`` as is (measure, T_S, margin). A *layer* alarm is
-    a% > ``pause_ratio``; a *pause* is what the monitor's own
+    the policy's ratio test on one layer (:func:`~layerwatch.pipeline.policy.layer_alarm`:
+    a% > ``pause_ratio`` with at least ``config.policy.min_area_mm2`` of anomalous
+    area; ``ratio_layers`` counts a% > ``pause_ratio`` alone); a *pause* is what the monitor's own
     :class:`~layerwatch.pipeline.policy.PausePolicy` decides with
     ``config.policy`` and that pause ratio and ``consecutive`` layers (a%
     above the ratio on consecutive layers with overlapping regions, or a
@@ -475,7 +481,8 @@ def clean_false_alarms(
     Returns
     -------
     dict
-        ``layers``, ``prints``, ``layer_alarms`` (a% above the ratio), ``policy_alarms``
+        ``layers``, ``prints``, ``layer_alarms`` (the policy's ratio test), ``ratio_layers`` (a% above
+        the ratio, whatever the area), ``policy_alarms``
         (the policy's notify/pause decisions on analysed layers), ``pauses``, ``max_a``, ``a`` (list),
         ``outside_layers`` (layers with any scene-channel change beside the print), ``max_outside_mm2``,
         and ``parts``: the same counts per part (``{name: {...}}``, without ``a``).

@@ -190,8 +190,8 @@ def _targets(s: Summary, clean_run: dict | None) -> list[str]:
         setting = f" ({clean_run['setting']})" if clean_run.get("setting") else ""
         fa = clean_run["layer_alarms"]
         L.append(_rate_row(f"false alarms / 1000 clean layers, {prints} whole clean prints{setting}", fa, n,
-                           f"{fa} layers above the pause ratio in {n}; {clean_run['pauses']} pauses with the "
-                           "2-layer rule"))
+                           f"{fa} layers above the pause ratio with the minimum area in {n}{_ratio_only(clean_run)}; "
+                           f"{clean_run['pauses']} pauses with the 2-layer rule"))
         if "policy_alarms" in clean_run:  # what the monitor would actually raise (notify or pause)
             pa = clean_run["policy_alarms"]
             L.append(_rate_row("alerts raised by the monitor's policy / 1000 clean layers", pa, n,
@@ -250,9 +250,17 @@ def _mode_targets(m: dict, clean_run: dict | None) -> list[str]:
         L.append(f"| false pauses in >= 3000 clean layers (series mode) | 0 | {clean_run['pauses']} in {n} layers "
                  f"| {'yes' if clean_run['pauses'] == 0 and n >= 3000 else ('no' if clean_run['pauses'] else 'not shown: fewer than 3000 layers')} |")
         rate, up = false_alarm_rate(clean_run["layer_alarms"], n)
-        L.append(f"| single-layer alarms (a% above the pause ratio) | <= 1 / 1000 | {rate:.2f} / 1000 "
-                 f"({clean_run['layer_alarms']} in {n}; 95 % bound {up:.1f}) | {'yes' if rate <= 1 else 'no'} |")
+        L.append(f"| single-layer alarms (a% above the pause ratio and the minimum area) | <= 1 / 1000 | {rate:.2f} / 1000 "
+                 f"({clean_run['layer_alarms']} in {n}; 95 % bound {up:.1f}{_ratio_only(clean_run)}) "
+                 f"| {'yes' if rate <= 1 else 'no'} |")
     return L
+
+
+def _ratio_only(clean_run: dict) -> str:
+    """``"; N with a% alone above the ratio"`` for runs that counted it, else ``""``."""
+    if "ratio_layers" not in clean_run:
+        return ""
+    return f"; {clean_run['ratio_layers']} with a% alone above the ratio, whatever the area"
 
 
 def _modes(s: Summary, clean_run: dict | None) -> list[str]:
@@ -303,11 +311,12 @@ def _modes(s: Summary, clean_run: dict | None) -> list[str]:
         L.append("")
     if clean_run and clean_run.get("parts"):
         L += ["Whole clean prints by part (series mode, configured setting):", "",
-              "| part | prints | layers | single-layer alarms | policy alerts | pauses | layers with a change beside the print |",
-              "|---|---:|---:|---:|---:|---:|---:|"]
+              "| part | prints | layers | single-layer alarms | a% alone above the ratio | policy alerts | pauses "
+              "| layers with a change beside the print |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|"]
         for name, c in clean_run["parts"].items():
-            L.append(f"| {name} | {c['prints']} | {c['layers']} | {c['layer_alarms']} | {c['policy_alarms']} | "
-                     f"{c['pauses']} | {c['outside_layers']} |")
+            L.append(f"| {name} | {c['prints']} | {c['layers']} | {c['layer_alarms']} | {c.get('ratio_layers', '')} "
+                     f"| {c['policy_alarms']} | {c['pauses']} | {c['outside_layers']} |")
         L.append("")
     return L
 
