@@ -447,6 +447,36 @@ def _block_roi(usable: np.ndarray, b: int) -> tuple[slice, slice]:
     return (slice(rows[0] // b * b, (rows[-1] // b + 1) * b), slice(cols[0] // b * b, (cols[-1] // b + 1) * b))
 
 
+def _censored_absdiff(img: np.ndarray, pred: np.ndarray, clipped: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """``|img - pred|`` per channel, where a clipped value only bounds the true one from below.
+
+    A channel at :data:`SATURATED` or above says "this bright or brighter" (the camera clipped it), so
+    the residual is the distance between what each side allows: clipped in the photo, only a photo
+    brighter than the prediction counts (``max(img - pred, 0)``); clipped in ``E``, only a photo darker
+    than it (``max(pred - img, 0)``: a blue object on an orange floor whose red channel was clipped);
+    clipped in both, nothing.
+
+    Parameters
+    ----------
+    img, pred : ndarray, float32, shape (h, w, 3)
+        The photo and the prediction (``ratio * E``, clipped at 255), grey levels.
+    clipped : (ndarray, ndarray) or None
+        ``(photo, expected)`` clipped channels, bool (h, w, 3); ``None`` when no channel is.
+
+    Returns
+    -------
+    ndarray, float32, shape (h, w, 3)
+    """
+    d = cv2.subtract(img, pred)
+    res = np.abs(d)
+    if clipped is None:
+        return res
+    in_photo, in_expected = clipped
+    np.copyto(res, np.maximum(-d, 0.0), where=in_expected)
+    np.copyto(res, np.where(in_expected, 0.0, np.maximum(d, 0.0)).astype(np.float32), where=in_photo)
+    return res
+
+
 def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
                 b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`)."""
@@ -457,12 +487,19 @@ def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, rat
     img = np.ascontiguousarray(photo)
     okf = usable.astype(np.float32)
     frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
-    score = _block_mean(channel_mean(cv2.absdiff(img, pred)), okf, frac)
-    # the same residual after the best gain per block and channel: what a local shade explains
-    sxy = cv2.resize(img * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
-    syy = cv2.resize(pred * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
+    in_photo, in_expected = img >= SATURATED, expected >= SATURATED
+    in_photo &= usable[..., None]
+    in_expected &= usable[..., None]
+    clipped = (in_photo, in_expected) if in_photo.any() or in_expected.any() else None
+    score = _block_mean(channel_mean(_censored_absdiff(img, pred, clipped)), okf, frac)
+    # the same residual after the best gain per block and channel (clipped channels left out of the
+    # gain's fit): what a local shade explains
+    okc = np.repeat(okf[..., None], 3, axis=2) if clipped is None else (
+        okf[..., None] * ~(clipped[0] | clipped[1])).astype(np.float32)
+    sxy = cv2.resize(img * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
+    syy = cv2.resize(pred * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
     g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
-    shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
+    shade_free = _block_mean(channel_mean(_censored_absdiff(img, g * pred, clipped)), okf, frac)
     return score, frac >= 0.5, shade_free
 
 

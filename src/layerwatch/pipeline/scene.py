@@ -114,6 +114,12 @@ def _saturated(img: np.ndarray) -> np.ndarray:
     return cv2.inRange(img, lo, hi) == 0
 
 
+def _white(img: np.ndarray) -> np.ndarray:
+    """Pixels with every channel at or above :data:`SATURATED` (white glare), bool (h, w) (one ``cv2.inRange``)."""
+    lo, hi = (float(SATURATED),) * img.shape[2], (np.inf,) * img.shape[2]
+    return cv2.inRange(img, lo, hi) > 0
+
+
 def _box(mask: np.ndarray) -> tuple[slice, slice]:
     """Rows and columns of the bounding box of a bool (h, w) mask (empty slices when nothing is set)."""
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
@@ -467,9 +473,14 @@ class SceneModel:
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
-        usable = np.zeros(self.observed.shape, bool)  # (nothing outside the box is observed)
+        # (nothing outside the box is observed): the fit needs every channel; the change blocks judge a
+        # pixel with a clipped channel on what the clipping leaves known (a bright orange floor's red channel
+        # clips under a lamp, its green and blue still show an object), all but white glare
+        usable, scored = np.zeros(self.observed.shape, bool), np.zeros(self.observed.shape, bool)
         b = self.box
-        usable[b] = self.observed[b] & ~predicted[b] & ~walls[b] & ~_saturated(img[b]) & ~_saturated(E[b])
+        scored[b] = self.observed[b] & ~predicted[b] & ~walls[b]
+        usable[b] = scored[b] & ~_saturated(img[b]) & ~_saturated(E[b])
+        scored[b] &= ~_white(img[b]) & ~_white(E[b])
         if self.baseline == "bed photo" and not self._confirmed:
             shift = self._shift(img, E, usable)
             if shift is not None:
@@ -481,7 +492,7 @@ class SceneModel:
             obs.rejected = (f"the frame does not show the expected scene (photometric gain "
                             f"{', '.join(f'{g:.2f}' for g in obs.gain)}: dark, covered or overexposed?)")
             return
-        obs.change = change_blocks(img, E, usable, obs.ratio, st)
+        obs.change = change_blocks(img, E, scored, obs.ratio, st)
         share = obs.change.changed_share
         if share > st.max_changed_share:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "
