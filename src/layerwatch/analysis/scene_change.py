@@ -478,7 +478,7 @@ def _censored_absdiff(img: np.ndarray, pred: np.ndarray, clipped: tuple[np.ndarr
 
 
 def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
-                b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                b: int, expected_clipped: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`)."""
     h, w = usable.shape
     n, m = h // b, w // b
@@ -487,7 +487,8 @@ def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, rat
     img = np.ascontiguousarray(photo)
     okf = usable.astype(np.float32)
     frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
-    in_photo, in_expected = img >= SATURATED, expected >= SATURATED
+    in_photo = img >= SATURATED
+    in_expected = expected >= SATURATED if expected_clipped is None else expected_clipped.copy()
     in_photo &= usable[..., None]
     in_expected &= usable[..., None]
     clipped = (in_photo, in_expected) if in_photo.any() or in_expected.any() else None
@@ -498,13 +499,18 @@ def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, rat
         okf[..., None] * ~(clipped[0] | clipped[1])).astype(np.float32)
     sxy = cv2.resize(img * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
     syy = cv2.resize(pred * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
-    g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
+    gain = sxy / np.maximum(syy, 1e-6)
+    if clipped is not None:  # a channel clipped all over a block takes its other channels' gain (a shade is grey)
+        fitted = syy > 1e-6
+        other = (gain * fitted).sum(-1, keepdims=True) / np.maximum(fitted.sum(-1, keepdims=True), 1)
+        gain = np.where(fitted, gain, np.where(fitted.any(-1, keepdims=True), other, 1.0)).astype(np.float32)
+    g = cv2.resize(gain, (m * b, n * b), interpolation=cv2.INTER_NEAREST)
     shade_free = _block_mean(channel_mean(_censored_absdiff(img, g * pred, clipped)), okf, frac)
     return score, frac >= 0.5, shade_free
 
 
 def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
-                  settings: SceneSettings) -> ChangeMap:
+                  settings: SceneSettings, expected_clipped: np.ndarray | None = None) -> ChangeMap:
     """Score every block of the photo against the normalised expected appearance.
 
     Parameters
@@ -515,6 +521,10 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
         :func:`photometric_fit`.
     settings : SceneSettings
         ``block_px``, ``noise_k``, ``min_change``.
+    expected_clipped : ndarray, bool, shape (h, w, 3), optional
+        Channels of ``expected`` whose value is only a lower bound (the camera clipped them);
+        default: those at :data:`SATURATED` or above. A photo's channel at :data:`SATURATED` or
+        above is clipped. Residuals on clipped channels are one-sided (:func:`_censored_absdiff`).
 
     Returns
     -------
@@ -529,7 +539,8 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
     if rows.stop > rows.start and cols.stop > cols.start:  # only blocks with usable pixels can be scored
         blocks = (slice(rows.start // b, rows.stop // b), slice(cols.start // b, cols.stop // b))
         score[blocks], scored[blocks], shade_free[blocks] = _roi_scores(
-            photo[rows, cols], expected[rows, cols], usable[rows, cols], ratio[rows, cols], b)
+            photo[rows, cols], expected[rows, cols], usable[rows, cols], ratio[rows, cols], b,
+            None if expected_clipped is None else expected_clipped[rows, cols])
     threshold, noise = _noise_threshold(score[scored], settings.min_change, settings.noise_k)
     thr2, _ = _noise_threshold(shade_free[scored], settings.min_change, settings.noise_k)
     strong = score > SHADE_LIMIT * threshold
