@@ -32,6 +32,16 @@ photo:
    gain is above the same kind of threshold): a moving
    shade or the edge of a lamp's cone changes brightness, strands and
    objects change texture.
+4. **Clipped channels** (:func:`_censored_absdiff`): a channel the camera
+   clipped (at :data:`SATURATED` or above) only says "this bright or
+   brighter", so its residual is one-sided (a photo darker than a clipped
+   ``E``, or brighter than the prediction where the photo clipped) and
+   nothing where both clipped. A bright orange or yellow part under a lamp
+   clips its red channel over its whole lit top; its green and blue still
+   show an object lying there (issue 18's scenario ``s019``: a hex key on
+   the plate beside the ring was on pixels left out whole as "saturated",
+   so the series channel reported nothing). Only white glare (every channel
+   clipped) is left out, by the caller.
 
 Working image. The frame is reduced to ``working_px`` on its long side by
 area averaging (a 1080p frame 3 x 3) and smoothed (Gaussian, sigma 0.7 px):

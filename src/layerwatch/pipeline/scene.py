@@ -18,6 +18,13 @@ camera view (working resolution, :mod:`layerwatch.analysis.scene_change`):
   ratio (exposure, white balance, flicker, a light that moved) and noise:
   changed blocks there are the *outside anomaly* (strands, objects, a part
   that moved or detached), on the bed and on the part's lower floors.
+  The photometric fit takes the pixels with no clipped channel; the change
+  blocks judge a pixel with one or two clipped channels on what the clipping
+  leaves known (:func:`~layerwatch.analysis.scene_change.change_blocks`), so
+  a lit orange floor whose red channel clipped is still judged. ``E`` keeps
+  which of its channels were clipped (:attr:`SceneModel.clipped`: it is kept
+  in its own photometric frame, where a clipped 255 divided by a gain above 1
+  would read as a known value). White glare is not judged.
   Inside ``M_k`` the paper's HOG comparison with the rendered reference
   judges, as before. Walls are not scored: their faces change with every
   move of the light (on the simulator, also with the part's height, by more
