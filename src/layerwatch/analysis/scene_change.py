@@ -457,7 +457,8 @@ def _block_roi(usable: np.ndarray, b: int) -> tuple[slice, slice]:
     return (slice(rows[0] // b * b, (rows[-1] // b + 1) * b), slice(cols[0] // b * b, (cols[-1] // b + 1) * b))
 
 
-def _censored_absdiff(img: np.ndarray, pred: np.ndarray, clipped: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+def _censored_absdiff(img: np.ndarray, pred: np.ndarray,
+                      clipped: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> np.ndarray:
     """``|img - pred|`` per channel, where a clipped value only bounds the true one from below.
 
     A channel at :data:`SATURATED` or above says "this bright or brighter" (the camera clipped it), so
@@ -470,20 +471,23 @@ def _censored_absdiff(img: np.ndarray, pred: np.ndarray, clipped: tuple[np.ndarr
     ----------
     img, pred : ndarray, float32, shape (h, w, 3)
         The photo and the prediction (``ratio * E``, clipped at 255), grey levels.
-    clipped : (ndarray, ndarray) or None
-        ``(photo, expected)`` clipped channels, bool (h, w, 3); ``None`` when no channel is.
+    clipped : (ndarray, ndarray, ndarray) or None
+        ``(pixels, in_expected, in_photo)``: the flat indices (k,) of the pixels with a clipped channel
+        and their clipped channels in ``E`` and in the photo, bool (k, 3); ``None`` when no channel is.
+        Only those pixels are computed again (a lit orange top is a few per cent of the view).
 
     Returns
     -------
     ndarray, float32, shape (h, w, 3)
     """
-    d = cv2.subtract(img, pred)
-    res = np.abs(d)
+    res = cv2.absdiff(img, pred)
     if clipped is None:
         return res
-    in_photo, in_expected = clipped
-    np.copyto(res, np.maximum(-d, 0.0), where=in_expected)
-    np.copyto(res, np.where(in_expected, 0.0, np.maximum(d, 0.0)).astype(np.float32), where=in_photo)
+    px, in_expected, in_photo = clipped
+    d = img.reshape(-1, 3)[px] - pred.reshape(-1, 3)[px]
+    brighter = np.where(in_expected, 0.0, d)
+    np.maximum(brighter, np.where(in_photo, 0.0, -d), out=brighter)
+    res.reshape(-1, 3)[px] = np.maximum(brighter, 0.0)
     return res
 
 
@@ -498,15 +502,18 @@ def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, rat
     okf = usable.astype(np.float32)
     frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
     in_photo = img >= SATURATED
-    in_expected = expected >= SATURATED if expected_clipped is None else expected_clipped.copy()
-    in_photo &= usable[..., None]
-    in_expected &= usable[..., None]
-    clipped = (in_photo, in_expected) if in_photo.any() or in_expected.any() else None
+    in_expected = expected >= SATURATED if expected_clipped is None else expected_clipped
+    any_clip = channel_max(in_photo | in_expected) & usable  # (unusable pixels weigh 0 whatever their residual)
+    okc = okf[..., None]
+    clipped = None
+    if any_clip.any():
+        px = np.flatnonzero(any_clip)
+        clipped = (px, in_expected.reshape(-1, 3)[px], in_photo.reshape(-1, 3)[px])
+        okc = np.repeat(okc, 3, axis=2)
+        okc.reshape(-1, 3)[px] = ~(clipped[1] | clipped[2])
     score = _block_mean(channel_mean(_censored_absdiff(img, pred, clipped)), okf, frac)
     # the same residual after the best gain per block and channel (clipped channels left out of the
     # gain's fit): what a local shade explains
-    okc = np.repeat(okf[..., None], 3, axis=2) if clipped is None else (
-        okf[..., None] * ~(clipped[0] | clipped[1])).astype(np.float32)
     sxy = cv2.resize(img * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
     syy = cv2.resize(pred * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
     gain = sxy / np.maximum(syy, 1e-6)
