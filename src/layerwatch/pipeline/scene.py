@@ -502,8 +502,9 @@ class SceneModel:
         b = self.box
         assert self.clipped is not None
         scored[b] = self.observed[b] & ~predicted[b] & ~walls[b]
-        usable[b] = scored[b] & ~_saturated(img[b]) & ~self.clipped.any(axis=2)
-        scored[b] &= ~_white(img[b]) & ~self.clipped.all(axis=2)
+        c = self.clipped  # (element-wise: numpy's reduction over a 3-long axis is slow)
+        usable[b] = scored[b] & ~_saturated(img[b]) & ~(c[..., 0] | c[..., 1] | c[..., 2])
+        scored[b] &= ~_white(img[b]) & ~(c[..., 0] & c[..., 1] & c[..., 2])
         if self.baseline == "bed photo" and not self._confirmed:
             shift = self._shift(img, E, usable)
             if shift is not None:
