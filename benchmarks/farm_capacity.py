@@ -282,6 +282,21 @@ class Runner:
             self.pool.close()
 
 
+def inline_printer(scene: Scene, index: int) -> tuple[Runner, Printer, WorkerPool]:
+    """A printer whose pool runs each task inline on the caller's thread (one clock, one order).
+
+    Used by ``farm_steps.py`` (CPU per step) and ``farm_records.py`` (records to compare): the
+    job is attached, no frame is run yet.
+    """
+    pool = WorkerPool(1)
+    pool.run = lambda fn, *a, key=None: fn(*a)  # type: ignore[method-assign]  # inline
+    runner = Runner(scene, None)
+    runner.pool = pool
+    p = Printer(index, 60.0, 0.0)
+    runner.attach(p)
+    return runner, p, pool
+
+
 def window(printers: list[Printer], runner: Runner, t0: float, t1: float) -> list[float]:
     """Simulate [t0, t1) of farm time; returns the verdict latencies of its counted frames, s."""
     n = runner.scene.toolpath.n_layers

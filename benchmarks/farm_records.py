@@ -25,17 +25,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def records(printers: int) -> list:
     import farm_capacity as fc  # noqa: PLC0415 - sets the thread limits before NumPy/OpenCV load
 
-    from layerwatch.farm.pool import WorkerPool
-
     scene = fc.Scene(layers=33)
     out = []
     for k in range(printers):
-        pool = WorkerPool(1)
-        pool.run = lambda fn, *a, key=None: fn(*a)  # type: ignore[method-assign]  # inline: one thread
-        runner = fc.Runner(scene, None)
-        runner.pool = pool
-        p = fc.Printer(k, 60.0, 0.0)
-        runner.attach(p)
+        runner, p, pool = fc.inline_printer(scene, k)
         for i in range(scene.toolpath.n_layers):
             runner.frame(p, i, scene.jpeg(k, i))
             assert p.mon is not None

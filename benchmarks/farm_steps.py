@@ -60,8 +60,6 @@ def timed(printers: int, first: int) -> tuple[dict[str, float], int]:
     """CPU ms per counted frame of each step, and the frames counted."""
     import farm_capacity as fc  # noqa: PLC0415 - sets the thread limits before NumPy/OpenCV load
 
-    from layerwatch.farm.pool import WorkerPool
-
     spent: dict[str, float] = defaultdict(float)
     counting = [False]
     depth: dict[str, int] = defaultdict(int)
@@ -93,12 +91,7 @@ def timed(printers: int, first: int) -> tuple[dict[str, float], int]:
     jpegs = {(k, i): scene.jpeg(k, i) for k in range(printers) for i in range(n)}
     runs = []
     for k in range(printers):
-        pool = WorkerPool(1)
-        pool.run = lambda fn, *a, key=None: fn(*a)  # type: ignore[method-assign]  # inline: one clock
-        runner = fc.Runner(scene, None)
-        runner.pool = pool
-        p = fc.Printer(k, 60.0, 0.0)
-        runner.attach(p)
+        runner, p, pool = fc.inline_printer(scene, k)
         for i in range(first):
             runner.frame(p, i, jpegs[k, i])
         runs.append((runner, p, pool))
