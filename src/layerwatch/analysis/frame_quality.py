@@ -35,6 +35,7 @@ import numpy as np
 from pydantic import Field
 
 from layerwatch.analysis.histogram import middle_values, percentiles
+from layerwatch.percentile import lerp, linear_index
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
@@ -267,17 +268,10 @@ def _median_and_percentile(values: np.ndarray, q: float) -> tuple[float, float]:
     """
     n = values.size
     mid = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
-    virtual = (n - 1) * np.true_divide(q, 100)
-    lo = int(np.floor(virtual))
-    hi = lo + 1
-    if virtual >= n - 1:
-        lo = hi = n - 1
+    lo, hi, t = linear_index(n, q)
     values.partition(sorted({*mid, lo, hi}))
     med = float(np.mean(values[mid[0]:mid[-1] + 1]))
-    a, b = values[lo], values[hi]
-    t = float(virtual - np.floor(virtual)) if virtual < n - 1 else float(virtual - (n - 1))
-    diff = b - a
-    return med, float(b - diff * (1 - t) if t >= 0.5 else a + diff * t)
+    return med, lerp(values[lo], values[hi], t)
 
 
 def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:

@@ -24,6 +24,7 @@ import numpy as np
 
 from layerwatch.errors import MarkerError
 from layerwatch.geometry.warp import check_image
+from layerwatch.percentile import lerp, linear_index
 
 __all__ = ["Blob", "confirm_dots", "detect_dots", "detect_aruco", "photo_problem", "to_grey"]
 
@@ -82,20 +83,11 @@ def _median(values: np.ndarray) -> float:
 def _percentile(values: np.ndarray, q: float) -> float:
     """:func:`numpy.percentile` (linear) of a flat float32 array, bit for bit, for a Python-float ``q``.
 
-    numpy's steps on the two order statistics it needs: the virtual index ``(n - 1) q / 100`` in float64,
-    its floor and the next (both ``n - 1`` at the top), and ``_lerp`` with the weight as a Python float
-    (float32 arithmetic).
+    numpy's steps (:mod:`layerwatch.percentile`) on the two order statistics it needs, in float32.
     """
-    n = values.size
-    virtual = (n - 1) * np.true_divide(q, 100)
-    lo = int(np.floor(virtual))
-    hi = lo + 1
-    if virtual >= n - 1:
-        lo = hi = n - 1
+    lo, hi, t = linear_index(values.size, q)
     a, b = _order_stats(values, sorted({lo, hi}))[[0, -1]]
-    t = float(virtual - lo) if virtual < n - 1 else float(virtual - (n - 1))
-    diff = b - a
-    return float(b - diff * (1 - t) if t >= 0.5 else a + diff * t)
+    return lerp(a, b, t)
 
 
 def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, float, float] | None:

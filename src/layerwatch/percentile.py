@@ -1,0 +1,43 @@
+"""numpy's linear percentile, step by step, for code that selects its own order statistics.
+
+:func:`numpy.percentile` (``method="linear"``) sorts or partitions once per call. A caller that
+already partitions its values for other statistics (a median beside a percentile, a small box's
+background and peak) only needs the two order statistics a percentile reads and numpy's arithmetic
+on them; these two functions are that arithmetic, so the figures are numpy's bit for bit (tested by
+the callers against :func:`numpy.percentile`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def linear_index(n: int, q: float) -> tuple[int, int, float]:
+    """The order statistics ``(lo, hi)`` the ``q``-th percentile of ``n`` values reads, and its weight.
+
+    Parameters
+    ----------
+    n : int
+        Number of values (>= 1).
+    q : float
+        Percentile in [0, 100] (a Python float, as numpy receives it).
+
+    Returns
+    -------
+    lo, hi : int
+        Ranks (0-based, ascending) of the two values interpolated; both ``n - 1`` at the top.
+    t : float
+        numpy's weight: the virtual index ``(n - 1) q / 100`` (float64) less its floor, or less
+        ``n - 1`` at the top.
+    """
+    virtual = (n - 1) * np.true_divide(q, 100)
+    lo = int(np.floor(virtual))
+    if virtual >= n - 1:
+        return n - 1, n - 1, float(virtual - (n - 1))
+    return lo, lo + 1, float(virtual - np.floor(virtual))
+
+
+def lerp(a, b, t: float) -> float:
+    """numpy's ``_lerp`` of the two order statistics ``a <= b`` with weight ``t`` (in their dtype)."""
+    diff = b - a
+    return float(b - diff * (1 - t) if t >= 0.5 else a + diff * t)
