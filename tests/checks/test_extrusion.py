@@ -159,7 +159,7 @@ def test_the_checks_box_and_plane_maps_from_the_box_alone_are_the_whole_images(p
     takes the whole image as before."""
     from layerwatch.analysis.scene_change import image_rays, plane_maps
     from layerwatch.examples import PART_CONFIG, PART_GCODE
-    from layerwatch.pipeline.checks import JobChecks, _rays, print_reach_mm, print_top_z_mm
+    from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
     from layerwatch.pipeline.config import resolve_config
     from layerwatch.pipeline.step import LayerPipeline
     from layerwatch.simulate import default_camera
@@ -185,4 +185,4 @@ def test_the_checks_box_and_plane_maps_from_the_box_alone_are_the_whole_images(p
     h, w = checks.size[1], checks.size[0]
     whole = image_rays(camera, checks.size)
     for r, c in (((0, 7), (0, 9)), ((h - 5, h), (w - 3, w)), ((100, 300), (0, w)), ((3, 4), (500, 501))):
-        np.testing.assert_array_equal(_rays(camera, checks.size, np.arange(*r), np.arange(*c)), whole[slice(*r), slice(*c)])
+        np.testing.assert_array_equal(image_rays(camera, checks.size, np.arange(*r), np.arange(*c)), whole[slice(*r), slice(*c)])

@@ -158,8 +158,9 @@ def working_crop(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, sli
     return to_working(crop, (x1 - x0, y1 - y0)), (y0, x0)
 
 
-def image_rays(camera: CameraModel, size: tuple[int, int]) -> np.ndarray:
-    """Unit ray of every working-image pixel in bed coordinates.
+def image_rays(camera: CameraModel, size: tuple[int, int], rows: np.ndarray | None = None,
+               cols: np.ndarray | None = None) -> np.ndarray:
+    """Unit ray of every working-image pixel (or of a grid of them) in bed coordinates.
 
     Parameters
     ----------
@@ -167,17 +168,24 @@ def image_rays(camera: CameraModel, size: tuple[int, int]) -> np.ndarray:
         Posed camera (scaled to ``size``; the lens distortion is undone).
     size : (int, int)
         Working ``(width, height)`` px.
+    rows, cols : ndarray of int, optional
+        Pixel rows and columns of a grid to compute alone (default: the whole image). Each
+        pixel's ray is undistorted, turned and normalised on its own, so a grid's rays are the
+        whole image's ``[rows][:, cols]`` bit for bit (tested).
 
     Returns
     -------
-    ndarray, float32, shape (height, width, 3)
+    ndarray, float32, shape (len(rows), len(cols), 3); (height, width, 3) by default
         Directions ``d`` with the ray ``C + t d`` (``C``: ``camera.center_mm``).
     """
     cam = camera.scaled_to(size)
     w, h = size
-    uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
-    n = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist).reshape(h, w, 2)
-    d = np.concatenate([n, np.ones((h, w, 1))], -1) @ cam.R  # R^T applied to row vectors
+    rows = np.arange(h) if rows is None else rows
+    cols = np.arange(w) if cols is None else cols
+    uv = np.stack(np.meshgrid(np.asarray(cols, np.float64), np.asarray(rows, np.float64)), -1)
+    gh, gw = uv.shape[:2]
+    n = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist).reshape(gh, gw, 2)
+    d = np.concatenate([n, np.ones((gh, gw, 1))], -1) @ cam.R  # R^T applied to row vectors
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return d.astype(np.float32)
 

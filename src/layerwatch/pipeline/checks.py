@@ -98,22 +98,6 @@ def _append(res: LayerResult, text: str) -> None:
 BOX_SAMPLE_PX = 8
 
 
-def _rays(camera: CameraModel, size: tuple[int, int], rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``image_rays(camera, size)[rows][:, cols]`` computed on those pixels only, float32 (len(rows), len(cols), 3).
-
-    :func:`~layerwatch.analysis.scene_change.image_rays`'s steps on a grid of the working image's pixels: each
-    pixel's ray is undistorted, turned and normalised on its own, so the values are the whole image's, bit for
-    bit (tested).
-    """
-    cam = camera.scaled_to(size)
-    uv = np.stack(np.meshgrid(np.asarray(cols, np.float64), np.asarray(rows, np.float64)), -1)
-    h, w = uv.shape[:2]
-    n = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist).reshape(h, w, 2)
-    d = np.concatenate([n, np.ones((h, w, 1))], -1) @ cam.R  # R^T applied to row vectors
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return d.astype(np.float32)
-
-
 class JobChecks:
     """The per-job state of the checks (module notes).
 
@@ -239,7 +223,7 @@ class JobChecks:
 
     def _plane_maps(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`plane_maps` of the working-image pixels ``rows`` x ``cols`` (each pixel's own values)."""
-        return plane_maps(_rays(self.camera, self.size, rows, cols), self.camera.center_mm, self.topview)
+        return plane_maps(image_rays(self.camera, self.size, rows, cols), self.camera.center_mm, self.topview)
 
     def _prism_px(self) -> tuple[tuple[float, float, float, float], float] | None:
         """The print's reach (plus 2 mm) as a top-view rectangle ``(u0, v0, u1, v1)`` px and its top (plus 2 mm),
