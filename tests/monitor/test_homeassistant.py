@@ -140,7 +140,8 @@ def test_discovery_states_overlay_and_pause_switch(broker, ha, tmp_path):
         _until(lambda: printer.status().state == "printing", 3, "the switch to resume the printer")
         time.sleep(0.3)
         assert printer.pause_count == 1
-    assert ha.get("layerwatch/mk4_left/availability") == b"offline"
+    # close() waits for the broker to take "offline"; the Home Assistant side receives it from the broker after that
+    _until(lambda: ha.get("layerwatch/mk4_left/availability") == b"offline", 3, "offline after close")
     audit = hist.audit()[::-1]  # newest first
     assert [(a["action"], a["actor"], a["target"]) for a in audit] == [
         ("pause", "home assistant", "printer virtual"), ("resume", "home assistant", "printer virtual")]
