@@ -43,6 +43,7 @@ from layerwatch.analysis.layer_change import (
 )
 from layerwatch.analysis.result import LayerChangeStats, LayerResult
 from layerwatch.analysis.scene_change import predicted_change
+from layerwatch.analysis.seen_past import seen_past
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
@@ -126,6 +127,10 @@ class LayerChange:
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
+        blind = seen_past(surface, fp, z, z_before, maps, self.topview, previous[2], st.window_px)
+        if blind.any():  # the previous photo saw past the part there (a skirt behind the far wall): no verdict
+            change.judged &= ~blind
+            change.unchanged &= ~blind
         stats.judged, stats.noise = True, round(change.noise, 4)
         stats.px_judged, stats.px_unchanged = int(change.judged.sum()), int(change.unchanged.sum())
         if stats.px_unchanged > MAX_UNCHANGED_SHARE * stats.px_judged:
