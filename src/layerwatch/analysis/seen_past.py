@@ -52,7 +52,8 @@ def outline_of(footprint: np.ndarray, topview: TopView, close_mm: float = CLOSE_
 
 def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: float,
               maps: tuple[np.ndarray, np.ndarray], topview: TopView, previous: np.ndarray,
-              window_px: float = 3.0, share: float = 0.25) -> np.ndarray:
+              noise: float, min_snr: float = 1.0, window_px: float = 3.0,
+              share: float = BLIND_SHARE) -> np.ndarray:
     """Pixels of the new layer's top whose window, in the previous photo, held mostly what lay past the part.
 
     Parameters
@@ -68,6 +69,11 @@ def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: fl
     topview : TopView
     previous : ndarray, float32, shape (h, w)
         High-passed texture of the previous photo (working image).
+    noise : float
+        Noise variance of the pair, grey levels^2 (the texture test's calibration).
+    min_snr : float
+        The band must bring ``(1 + min_snr) noise`` of texture energy to a window, the texture
+        test's own floor (the sensor noise of a plain bed behind the part does not).
     window_px : float
         The comparison's window sigma, working px.
     share : float
@@ -96,4 +102,4 @@ def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: fl
     sig = float(window_px)
     hidden = cv2.GaussianBlur(np.where(band, e, 0).astype(np.float32), (0, 0), sig)
     total = cv2.GaussianBlur(e, (0, 0), sig)
-    return surface & (hidden >= share * (total + 1e-6))
+    return surface & (hidden >= share * (total + 1e-6)) & (hidden >= (1.0 + min_snr) * noise)

@@ -127,7 +127,8 @@ class LayerChange:
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
-        blind = seen_past(surface, fp, z, z_before, maps, self.topview, previous[2], st.window_px)
+        blind = seen_past(surface, fp, z, z_before, maps, self.topview, previous[2], change.noise,
+                          st.min_snr, st.window_px)
         if blind.any():  # the previous photo saw past the part there (a skirt behind the far wall): no verdict
             change.judged &= ~blind
             change.unchanged &= ~blind
