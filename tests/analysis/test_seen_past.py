@@ -76,16 +76,27 @@ def test_no_rise_no_band():
     assert 0 < BLIND_SHARE < 1
 
 
-def test_the_outline_closes_sparse_infill_but_not_a_hole():
+def test_the_outline_fills_infill_cells_and_holes_but_not_a_notch_open_to_the_outside():
     fp = np.zeros(TV.shape, bool)
     fp[40:160, 40:42] = fp[40:160, 158:160] = fp[40:42, 40:160] = fp[158:160, 40:160] = True  # the walls
-    fp[40:160, 40:160] |= (np.add.outer(np.arange(200), np.arange(200))[40:160, 40:160] % 30) < 6  # infill, 3 mm
-    hole = np.zeros(TV.shape, bool)
-    hole[80:120, 80:120] = True
-    fp &= ~hole
+    fp[40:160, 40:160] |= (np.add.outer(np.arange(200), np.arange(200))[40:160, 40:160] % 60) < 6  # infill, 6 mm
+    fp[80:120, 80:120] = False
+    fp[78:80, 78:122] = fp[120:122, 78:122] = fp[78:122, 78:80] = fp[78:122, 120:122] = True  # a hole's wall
+    fp[85:115, 150:160] = False  # a 3 mm notch through the right wall
     out = outline_of(fp, TV)
     assert out[60:70, 60:70].all()  # between infill lines: inside the part
-    assert not out[90:110, 90:110].any()  # a 4 mm hole stays open
+    assert out[90:110, 90:110].all()  # a hole: the part's own inner faces, not past the part
+    assert not out[92:108, 152:200].any()  # the notch and the bed beyond it: outside
+    assert not out[:30].any() and not out[170:].any()
+
+
+def test_the_part_s_own_edge_texture_beside_a_side_wall_is_not_past_it():
+    fp = _footprint()
+    surface = _surface(fp)
+    tex = np.random.default_rng(1).normal(0.0, 0.5, TV.shape).astype(np.float32)
+    tex[56:130, 38:40] += 20.0  # the high pass of the side wall's bright edge rings onto the bed beside it
+    tex[56:130, 40:42] -= 20.0
+    assert not seen_past(surface, fp, Z, Z_BEFORE, MAPS, TV, tex, NOISE).any()
 
 
 @pytest.mark.slow

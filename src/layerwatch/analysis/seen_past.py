@@ -30,24 +30,45 @@ import numpy as np
 from layerwatch.analysis.scene_change import top_coords
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["BLIND_SHARE", "CLOSE_MM", "outline_of", "seen_past"]
+__all__ = ["BLIND_SHARE", "CLOSE_MM", "EDGE_PX", "outline_of", "seen_past"]
 
-#: the footprint closed by this (mm) is the part's outline: sparse infill's gaps (3 mm at 20 % and
-#: 0.6 mm beads) are inside the part, a ray landing in one sees the part's own lower floor
-CLOSE_MM = 4.0
-#: a window with this share of its previous texture energy in the hidden band is not judged
+#: the footprint closed by this (mm), its enclosed areas filled, is the part's outer outline: a
+#: perimeter loop's raster gaps are sealed, sparse infill's cells and holes are inside the part
+#: (a ray landing in one sees the part's own floor or inner face, which the comparison allows for)
+CLOSE_MM = 2.0
+#: a window with this share of its previous texture energy in the band seen past the part is not judged
 BLIND_SHARE = 0.25
+#: the band keeps this far (working px) from the part's projection: the high pass spreads a bright
+#: edge's energy over the bed beside it (the texture test's own allowance, ``layer_change.OWN_GROW_PX``)
+EDGE_PX = 2
 
 
 def outline_of(footprint: np.ndarray, topview: TopView, close_mm: float = CLOSE_MM) -> np.ndarray:
-    """The part's outline on a layer: ``footprint`` closed by ``close_mm`` (bool, top-view shape)."""
+    """The part's outer outline on a layer: ``footprint`` closed by ``close_mm``, enclosed areas filled.
+
+    Parameters
+    ----------
+    footprint : ndarray, bool, shape (H, W)
+        Top-view footprint (``topview`` geometry).
+    topview : TopView
+    close_mm : float
+
+    Returns
+    -------
+    ndarray, bool, shape (H, W)
+        Everything not reachable from the view's border without crossing the closed footprint
+        (a notch open to the outside stays outside; each object of a plate has its own outline).
+    """
     k = int(round(close_mm * topview.px_per_mm)) | 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     fp = np.asarray(footprint, np.uint8)
-    pad = k  # closing near the border of the view: pad so that the dilation does not clip
+    pad = k + 1  # closing near the border of the view: pad so that the dilation does not clip
     big = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    closed = cv2.morphologyEx(big, cv2.MORPH_CLOSE, se)[pad:-pad, pad:-pad]
-    return closed.astype(bool)
+    closed = cv2.morphologyEx(big, cv2.MORPH_CLOSE, se)
+    flood = closed.copy()
+    mask = np.zeros((flood.shape[0] + 2, flood.shape[1] + 2), np.uint8)
+    cv2.floodFill(flood, mask, (0, 0), 2)  # the outside: reachable from the (padded) border
+    return (flood != 2)[pad:-pad, pad:-pad]
 
 
 def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: float,
@@ -78,7 +99,7 @@ def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: fl
         The comparison's window sigma, working px.
     share : float
         A pixel is blind when at least this share of its window's texture energy in the previous
-        photo lay in the band the rise hid (:data:`BLIND_SHARE`).
+        photo lay past the part (:data:`BLIND_SHARE`).
 
     Returns
     -------
@@ -90,13 +111,17 @@ def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: fl
         return out
     outline = outline_of(footprint, topview).astype(np.uint8)
 
+    grow = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
+
     def outside(zp: float) -> np.ndarray:
         mx, my = top_coords(maps, zp)
-        return cv2.remap(outline, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) == 0
+        seen = cv2.remap(outline, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return cv2.dilate(seen, grow) == 0
 
-    # past the part: the ray misses the outline at the previous top and on the bed (not a face of the part)
+    # past the part: the ray misses the outer outline at the previous top and on the bed (the
+    # part's own faces and holes are not past it), off the high-pass spread of the part's edges
     band = outside(float(z_before)) & outside(0.0)
-    if not (band & surface).any():
+    if not band.any():
         return out
     e = np.asarray(previous, np.float32) ** 2
     sig = float(window_px)
