@@ -1,25 +1,28 @@
 """What the previous photo saw past the part, where the new layer now stands.
 
 The camera looks down at the print from one side. Beyond the part's far
-silhouette (and beyond the near rim of a hole, seen into) a photo shows what
-lies behind: the bed, a skirt or brim line, another object, the hole's far
-wall. When the part rises by ``dz`` between two photos, its far silhouette
+silhouette a photo shows what lies behind: the bed, a skirt or brim line,
+another object. When the part rises by ``dz`` between two photos, its far silhouette
 climbs in the image and hides a band of what lay behind; at those pixels the
 previous photo showed something *not of this column of the part*, which
 neither stays in place (the "same" hypothesis of a gap) nor moves by the
 rise's parallax (the "printed twin" hypothesis) in any predictable way.
 
-Where that band held texture (a skirt line 2-4 mm behind the far wall, the
-default of most slicers), the new wall's silhouette lands on the pixels where
-the hidden line had been, with the same bright-over-dark profile, and a
-texture comparison of the two photos reads the printed wall as unchanged
-(Simplify3D 4.1.2 ``zlift``: skirt 2 mm outside the first layer, hidden by the
-far wall while it rises from 1.8 to 3.4 mm, 14-34 mm^2 of "thin-wall gap" on
-clean layers 9-14). This module finds that band: pixels of the new layer's
-top (plane ``z``) whose ray, one rise lower (plane ``z_before``), lands
-outside the part's closed outline, and keeps those where the previous photo
-had texture above the pair's noise. A test that compares the two photos
-should not judge pixels whose window reaches it.
+Where that band held texture (a skirt line a few mm behind the far wall:
+Simplify3D 4.1.2's ``skirtOffset,2``, Slic3r 1.3.1's ``skirt_distance = 6``),
+the new wall's silhouette lands on the pixels where the hidden line had been,
+with the same bright-over-dark profile, and a texture comparison of the two
+photos reads the printed wall as unchanged (Simplify3D ``zlift``: the disc's
+far wall hides its skirt while it rises from 1.8 to 3.4 mm, 14-34 mm^2 of
+"thin-wall gap" on clean layer 13 of three prints). This module finds what the
+previous photo saw past the part: pixels whose ray misses the part's outer
+outline (:func:`outline_of`: the footprint closed, its enclosed areas filled,
+so infill cells and holes are the part's own) both at the previous top and on
+the bed (the part's own faces are not past it), :data:`EDGE_PX` off the part's
+projection (the high pass spreads a bright edge onto the bed beside it). A
+footprint pixel whose comparison window took at least :data:`BLIND_SHARE` of
+its previous texture energy from there, and more than the texture test's
+noise floor, is not to be judged.
 """
 
 from __future__ import annotations
