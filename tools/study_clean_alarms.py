@@ -69,9 +69,13 @@ def _whole_tiles(res: LayerResult, tile_mm2: float) -> LayerResult:
     return r
 
 
-def run_print(part: str, seed: int, dump: Path | None = None) -> dict:
-    """One whole clean print of ``part`` (``"window"`` or ``"example"``) scored both ways; see the module notes."""
-    cfg = resolve_config(PART_CONFIG).config
+def run_print(part: str, seed: int, dump: Path | None = None, area: str | None = None) -> dict:
+    """One whole clean print of ``part`` (``"window"`` or ``"example"``) scored both ways; see the module notes.
+
+    ``area`` sets ``[analysis] anomalous_area`` (``None``: as the bundled job resolves it).
+    """
+    flags = {"analysis": {"anomalous_area": area}} if area else None
+    cfg = resolve_config(PART_CONFIG, flags=flags).config
     cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
     cfg = cfg.for_camera(cam)
     tv = cfg.topview.topview()
@@ -84,9 +88,12 @@ def run_print(part: str, seed: int, dump: Path | None = None) -> dict:
     pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
     modes = {"configured": PausePolicy(ps), "tiles": PausePolicy(ps)}
     out = {m: {"alarms": [], "alerts": [], "pauses": 0, "max_a": 0.0} for m in modes}
+    beside: list[list[float]] = []  # the scene channel's change beside the print: [layer, mm^2] where any
     stopped = dict.fromkeys(modes, False)
     for i in range(tp.n_layers):
         res = pipe.process(sim.frame(i).photo, i)
+        if res.status == "ok" and res.outside_anomalous_mm2 > 0:
+            beside.append([i, round(float(res.outside_anomalous_mm2), 1)])
         for mode, policy in modes.items():
             r = res if mode == "configured" else _whole_tiles(res, tile_mm2)
             decision = policy.update(r)
@@ -103,7 +110,7 @@ def run_print(part: str, seed: int, dump: Path | None = None) -> dict:
             if decision.stops and not stopped[mode]:
                 k["pauses"] += 1
                 stopped[mode] = True
-    return {"part": part, "seed": seed, "layers": tp.n_layers, **out}
+    return {"part": part, "seed": seed, "layers": tp.n_layers, "beside": beside, **out}
 
 
 def _dump(folder: Path, name: str, pipe: LayerPipeline, res: LayerResult, tv) -> None:
@@ -123,17 +130,22 @@ def main() -> None:
     ap.add_argument("--seeds", default="1100-1110", help="e.g. 1100-1110 or 100,111")
     ap.add_argument("--dump", type=Path, help="folder for the alarm layers' images and block maps")
     ap.add_argument("--out", type=Path, help="JSON of every print's counts")
+    ap.add_argument("--anomalous-area", choices=("tiles", "part", "printed"),
+                    help="[analysis] anomalous_area of the configured column (default: the job's)")
     args = ap.parse_args()
     runs = []
     for seed in _seeds(args.seeds):
-        run = run_print(args.part, seed, args.dump)
+        run = run_print(args.part, seed, args.dump, args.anomalous_area)
         runs.append(run)
         print(seed, " | ".join(f"{m}: alarms {run[m]['alarms']} alerts {run[m]['alerts']} pauses {run[m]['pauses']} "
-                               f"max a% {run[m]['max_a']:.2f}" for m in ("tiles", "configured")), flush=True)
+                               f"max a% {run[m]['max_a']:.2f}" for m in ("tiles", "configured")),
+              f"| beside the print (layer, mm^2): {run['beside']}", flush=True)
     for m in ("tiles", "configured"):
         print(f"{m}: {sum(len(r[m]['alarms']) for r in runs)} single-layer alarms, "
               f"{sum(len(r[m]['alerts']) for r in runs)} policy alerts, {sum(r[m]['pauses'] for r in runs)} pauses "
               f"in {sum(r['layers'] for r in runs)} layers of {len(runs)} prints")
+    print(f"layers with change beside the print: {sum(len(r['beside']) for r in runs)}, largest "
+          f"{max((b[1] for r in runs for b in r['beside']), default=0.0):.1f} mm^2")
     if args.out is not None:
         args.out.write_text(json.dumps(runs, indent=1))
 
