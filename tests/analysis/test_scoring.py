@@ -287,6 +287,10 @@ def test_printed_area_counts_what_lies_beside_a_wall_as_outside_not_as_a_percent
     assert b.anomaly_ratio > 0.5 * a.anomaly_ratio > 0.0
     assert b.anomalous_area_mm2 + b.outside_area_mm2 == pytest.approx(a.anomalous_area_mm2)
     assert b.anomaly_ratio == pytest.approx(b.anomalous_area_mm2 / b.printed_area_mm2)
+    # what S_A leaves out of the anomalous tiles is kept: S_A + uncounted is the tiles' area in both modes
+    assert a.uncounted_mm2 == 0.0 and b.uncounted_mm2 > 0.0
+    assert b.anomalous_area_mm2 + b.uncounted_mm2 == pytest.approx(a.anomalous_area_mm2) == pytest.approx(
+        a.n_anomalous * tile)
 
 
 def test_anomalous_area_is_a_job_setting_printed_recommended_and_the_papers_tiles_kept():
