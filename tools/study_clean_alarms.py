@@ -16,7 +16,9 @@ Every layer's result is scored twice, each with its own
 counting its whole tile (the paper, ``"tiles"``; what main did before
 ``"printed"``): the same photos, the same blocks, so the two columns differ
 only in what S_A counts. Printed per print: the alarm layers (a% above the
-pause ratio, from layer ``skip_first_layers``; those that also have the minimum area: the policy's and the report's test), the policy's notify/pause
+pause ratio, from layer ``skip_first_layers``), those of them that also have
+the minimum area (the policy's and the report's test,
+:func:`~layerwatch.pipeline.policy.layer_alarm`), the policy's notify/pause
 layers, the pauses and the highest a%. ``--dump`` writes, for every layer that
 alarms either way, the photo's top view, the reference and the overlay (PNG) and the
 block heatmap, considered mask and footprint (``.npz``).
