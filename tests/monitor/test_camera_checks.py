@@ -441,3 +441,15 @@ def test_marker_watch_refuses_a_bad_confirm_distance():
         MarkerWatch(CAMERA, confirm_px=-1.0)
     with pytest.raises(ValueError, match="confirm_px"):
         MarkerWatch(CAMERA, confirm_px=float("nan"))
+
+
+def test_a_layer_the_policy_can_alarm_on_reaches_the_lag_check_whatever_s_a_counts():
+    """With ``anomalous_area = "printed"`` S_A leaves the tiles' share beside the part out; the policy's
+    minimum-area test adds it back (``uncounted_mm2``), so the lag check must see the same sum."""
+    from layerwatch.monitor.camera_checks import counts_toward_pause
+    from layerwatch.pipeline.policy import PolicySettings
+
+    policy = PolicySettings(min_area_mm2=5.0, skip_first_layers=0)
+    printed_share = LayerResult(layer=4, z=1.0, status="ok", anomalous_area_mm2=3.0, uncounted_mm2=4.0)
+    assert counts_toward_pause(printed_share, policy)
+    assert not counts_toward_pause(dataclasses.replace(printed_share, uncounted_mm2=1.0), policy)
