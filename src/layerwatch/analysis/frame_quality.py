@@ -86,6 +86,13 @@ class FrameQualitySettings(Section):
         a new exposure of an unchanged scene differs in light, see :func:`change_from`).
     max_marker_shift_px : float
         Largest shift of a visible bed marker from its expected place, px (at the frame's size).
+    roi : bool
+        With a calibrated camera (a bed pose), the frame statistics (exposure, noise, blocking,
+        sharpness, the change from the previous frame) are measured on the photo box that the
+        observed square covers from the bed to the print's top, and the bed markers
+        (:func:`~layerwatch.geometry.roi.bed_roi`): what the analysis looks at, not the room
+        around the printer (a lamp, a window, a person walking by); about half of the frame and
+        of the gate's cost. Off: the whole frame.
     excuse_late_frames : bool
         A frame that shows the previous layer is judged against that layer, so a camera one
         layer late does not pause a clean print. The monitor tells a late camera from a layer
@@ -105,6 +112,7 @@ class FrameQualitySettings(Section):
     min_change: float = Field(2.0, ge=0, le=255)
     max_repeat_spread: float = Field(1.5, ge=0, le=255)
     max_marker_shift_px: float = Field(12.0, gt=0, le=10_000)
+    roi: bool = True
     excuse_late_frames: bool = True
 
 
@@ -145,11 +153,24 @@ def grey_of(image: np.ndarray) -> np.ndarray:
     return img[..., 0] if img.shape[2] == 1 else cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_BGR2GRAY)
 
 
-def _shrunk(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
-    """``grey`` area-averaged to ``width`` px wide (not enlarged), uint8 as given."""
-    h, w = grey.shape
-    if w > width:
-        grey = cv2.resize(grey, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+def _small_shape(shape: tuple[int, ...], full_width: int | None = None, width: int = WORK_WIDTH) -> tuple[int, int]:
+    """(h, w) of an image of ``shape`` reduced by the factor that brings ``full_width`` (default: its own width) to
+    ``width`` px (not enlarged): the whole frame's scale for a box of it."""
+    h, w = shape[:2]
+    fw = w if full_width is None else int(full_width)
+    if fw <= width:
+        return h, w
+    if fw == w:
+        return max(1, round(h * width / w)), width
+    return max(1, round(h * width / fw)), max(1, round(w * width / fw))
+
+
+def _shrunk(grey: np.ndarray, width: int = WORK_WIDTH, full_width: int | None = None) -> np.ndarray:
+    """``grey`` area-averaged to ``width`` px wide (not enlarged), uint8 as given; ``full_width``: ``grey`` is a box of
+    a frame that wide, reduced by the frame's factor."""
+    h, w = _small_shape(grey.shape, full_width, width)
+    if (h, w) != grey.shape[:2]:
+        grey = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA)
     return grey
 
 
@@ -158,22 +179,29 @@ def _reduced(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
     return _shrunk(grey, width).astype(np.float32)
 
 
-def _given_small(small: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+def _given_small(small: np.ndarray, shape: tuple[int, ...], full_width: int | None = None) -> np.ndarray:
     """A caller's reduced grey frame as :func:`_reduced` makes it (float32), checked for its size."""
-    h, w = shape[:2]
-    want = (max(1, round(h * WORK_WIDTH / w)), WORK_WIDTH) if w > WORK_WIDTH else (h, w)
+    want = _small_shape(shape, full_width)
     if np.shape(small) != want:
         raise ValueError(f"small has shape {np.shape(small)}, not {want}: pass compact_previous(frame)")
     return np.asarray(small, np.float32)
 
 
-def compact_previous(image_bgr: np.ndarray) -> np.ndarray:
+Box = tuple[slice, slice]
+
+
+def compact_previous(image_bgr: np.ndarray, box: Box | None = None) -> np.ndarray:
     """What :func:`assess_frame` needs of a frame passed later as ``previous``: its grey at ``WORK_WIDTH``.
 
     uint8 (h, w), 640 px wide: about 20x smaller than a 1080p BGR frame, and judged
     exactly as the frame itself (``assess_frame`` reduces ``previous`` the same way).
+    ``box``: the region of interest :func:`assess_frame` is given (rows, columns of the frame): its
+    box alone, reduced by the whole frame's factor.
     """
-    return _shrunk(grey_of(image_bgr))
+    grey = grey_of(image_bgr)
+    if box is None:
+        return _shrunk(grey)
+    return _shrunk(grey[box], full_width=grey.shape[1])
 
 
 def noise_sigma(grey: np.ndarray) -> float:
@@ -319,7 +347,8 @@ def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str,
 
 def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarray] | None = None,
                  settings: FrameQualitySettings | None = None, *, markers_px: np.ndarray | None = None,
-                 expected_markers_px: np.ndarray | None = None, small: np.ndarray | None = None) -> FrameQuality:
+                 expected_markers_px: np.ndarray | None = None, small: np.ndarray | None = None,
+                 box: Box | None = None) -> FrameQuality:
     """Check one camera frame before analysis.
 
     Parameters
@@ -336,8 +365,14 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
     expected_markers_px : ndarray, shape (M, 2), optional
         Where the markers are expected (the calibration's projection at this frame's size).
     small : ndarray, uint8, shape (h, WORK_WIDTH), optional
-        :func:`compact_previous` of this frame when the caller has it (it keeps it as the next
-        frame's ``previous``): not reduced again.
+        :func:`compact_previous` of this frame (with the same ``box``) when the caller has it (it keeps
+        it as the next frame's ``previous``): not reduced again.
+    box : (slice, slice), optional
+        Region of interest (rows, columns of the frame; :func:`~layerwatch.geometry.roi.bed_roi`: where
+        the bed and the print are): exposure, noise, blocking, sharpness and the change from
+        ``previous`` are measured there alone, at the whole frame's reduction (the box's start on the
+        8-px JPEG grid); the bed markers are the caller's, from the whole frame. ``previous`` is then
+        :func:`compact_previous` with the same box, or a whole frame.
 
     Returns
     -------
@@ -350,13 +385,16 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
         ``image_bgr`` is not an 8-bit image (the caller's camera check comes first).
     """
     s = settings or FrameQualitySettings()
-    grey = grey_of(image_bgr)
+    full = grey_of(image_bgr)
+    grey, full_width = (full, None) if box is None else (full[box], full.shape[1])
+    if grey.size == 0:
+        raise ValueError(f"the box {box} holds no pixel of the {full.shape[1]}x{full.shape[0]} frame")
     if small is None:
-        small_u8: np.ndarray | None = _shrunk(grey)
+        small_u8: np.ndarray | None = _shrunk(grey, full_width=full_width)
         small = np.asarray(small_u8).astype(np.float32)  # (_reduced)
     else:
         small_u8 = np.ascontiguousarray(small) if np.asarray(small).dtype == np.uint8 else None
-        small = _given_small(small, grey.shape)
+        small = _given_small(small, grey.shape, full_width)
     fig: dict[str, float] = {}
     reasons = _exposure_reasons(small, s, fig, small_u8)
     fig["noise"] = noise_sigma(grey)
@@ -371,12 +409,15 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
             reasons.append(f"JPEG blocking ({fig['blockiness']:.1f}x): raise the camera's JPEG quality")
     prev = previous[-1] if isinstance(previous, Sequence) and len(previous) else previous
     if isinstance(prev, np.ndarray) and not reasons:
-        fig["change"], fig["change_spread"] = change_from(small, _reduced(grey_of(prev)))
+        before = grey_of(prev)
+        if box is not None and before.shape == full.shape:  # a whole frame: its box, as this one's
+            before = _shrunk(before[box], full_width=full_width)
+        fig["change"], fig["change_spread"] = change_from(small, _shrunk(before).astype(np.float32))
         if fig["change"] < s.min_change and fig["change_spread"] < s.max_repeat_spread:
             reasons.append(f"{REPEATED_FRAME} (change {fig['change']:.1f} grey levels): "
                            "the stream is lagging or frozen")
     if markers_px is not None and expected_markers_px is not None:
-        shift = marker_shift_px(markers_px, expected_markers_px, 0.08 * float(np.hypot(*grey.shape)))
+        shift = marker_shift_px(markers_px, expected_markers_px, 0.08 * float(np.hypot(*full.shape)))
         if shift is not None:
             fig["marker_shift_px"] = shift
             if shift > s.max_marker_shift_px:
