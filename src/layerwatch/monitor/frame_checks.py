@@ -102,7 +102,7 @@ class FrameChecks:
         try:
             grey = grey_of(photo)  # converted once: the gate's checks, the markers and the next frame's "previous"
             box = self.roi(grey.shape)
-            small = compact_previous(grey, box)  # reduced once: the gate's and, if it passes, the next frame's previous
+            small = compact_previous(grey)  # reduced once: the gate's and, if it passes, the next frame's previous
             quality = assess_frame(grey, self.last_good, self.frame_quality, small=small, box=box,
                                    **self.marker_positions(grey))
         except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
