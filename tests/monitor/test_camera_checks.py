@@ -441,3 +441,17 @@ def test_marker_watch_refuses_a_bad_confirm_distance():
         MarkerWatch(CAMERA, confirm_px=-1.0)
     with pytest.raises(ValueError, match="confirm_px"):
         MarkerWatch(CAMERA, confirm_px=float("nan"))
+
+
+def test_the_progress_zone_dilated_on_the_footprints_box_is_the_whole_dilation():
+    from layerwatch.monitor import camera_checks as cc
+    tv = SimpleNamespace(px_per_mm=6.67)
+    r = max(1, round(cc.PROGRESS_MARGIN_MM * tv.px_per_mm))
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        fp = np.zeros((int(rng.integers(10, 120)), int(rng.integers(10, 120))), bool)
+        for _ in range(int(rng.integers(0, 4))):
+            y, x = rng.integers(0, fp.shape[0]), rng.integers(0, fp.shape[1])
+            fp[y:y + rng.integers(1, 30), x:x + rng.integers(1, 30)] = True  # at the edges too
+        want = cv2.dilate(fp.astype(np.uint8), cc._disk(r)).astype(bool)
+        assert np.array_equal(cc._zone(fp, tv), want)
