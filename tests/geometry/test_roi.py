@@ -16,10 +16,10 @@ from layerwatch.analysis.frame_quality import (
 )
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
-from layerwatch.geometry.roi import ROI_ALIGN, bed_roi
+from layerwatch.geometry.roi import REACH_PAD_MM, ROI_ALIGN, bed_roi
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.monitor.frame_checks import FrameChecks
-from layerwatch.pipeline.checks import print_top_z_mm
+from layerwatch.pipeline.checks import print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import resolve_config
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import PrintSimulator, default_camera
@@ -34,17 +34,23 @@ def job():
 
 @pytest.mark.parametrize("elevation", [30.0, 45.0, 60.0])
 @pytest.mark.parametrize("size", [(1920, 1080), (1280, 720)])
-def test_the_box_holds_the_square_from_the_bed_to_the_top_and_is_aligned(job, elevation, size):
+@pytest.mark.parametrize("top", [None, 50.0])  # the example part's top (9.9 mm), and a tall print over its reach
+def test_the_box_holds_the_square_on_the_bed_and_the_prints_prism_and_is_aligned(job, elevation, size, top):
     _, tp, tv = job
     cam = default_camera(tv, image_size=(1280, 720), elevation_deg=elevation)
-    top = print_top_z_mm(tp)
-    rows, cols = bed_roi(cam, tv, top, size)
+    top = print_top_z_mm(tp) if top is None else top
+    reach = print_reach_mm(tp)
+    rows, cols = bed_roi(cam, tv, top, size, reach_mm=reach)
     w, h = size
-    # points inside the observed square, at heights from the bed to the top, all fall inside the box
     rng = np.random.default_rng(0)
     (x0, y0), (x1, y1) = tv.corners_mm.min(axis=0), tv.corners_mm.max(axis=0)
-    pts = np.c_[rng.uniform(x0, x1, 500), rng.uniform(y0, y1, 500), rng.uniform(0, top, 500)]
-    uv = project_points(cam.scaled_to(size), pts)
+    bed = np.c_[rng.uniform(x0, x1, 500), rng.uniform(y0, y1, 500), np.zeros(500)]  # anything on the bed
+    p = REACH_PAD_MM
+    prism = np.c_[rng.uniform(reach[0] - p, reach[2] + p, 500), rng.uniform(reach[1] - p, reach[3] + p, 500),
+                  rng.uniform(0, top, 500)]  # anything of the print
+    uv = project_points(cam.scaled_to(size), np.vstack([bed, prism]))
+    uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)]  # what the camera sees of them
+    assert len(uv) > 500
     assert np.all((uv[:, 0] >= cols.start) & (uv[:, 0] < cols.stop) & (uv[:, 1] >= rows.start) & (uv[:, 1] < rows.stop))
     assert rows.start % ROI_ALIGN == 0 and cols.start % ROI_ALIGN == 0
     assert rows.stop % ROI_ALIGN == 0 or rows.stop == h

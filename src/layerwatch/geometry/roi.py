@@ -2,10 +2,11 @@
 
 A printer's camera sees more than the bed: the frame, the room, the ceiling. What the
 checks judge (the print, its layers, the bed markers) lies in the box that the observed
-square covers from the bed up to the print's top, which the camera's pose gives once per
-job. :func:`bed_roi` computes it; the camera-fault gate takes its frame statistics there
-(:class:`~layerwatch.monitor.frame_checks.FrameChecks`), about half of a 1080p frame with
-the simulator's 45-degree camera (0.45-0.51 for elevations of 30-60 degrees).
+square on the bed and the print's prism (its reach, from the bed to its top) cover, which
+the camera's pose gives once per job. :func:`bed_roi` computes it; the camera-fault gate
+measures its noise, blocking and repeat figures there
+(:class:`~layerwatch.monitor.frame_checks.FrameChecks`): 0.51-0.60 of the frame with the
+simulator's camera at 30-60 degrees and the example part, with the bed markers and the margin.
 
 The box is aligned to :data:`ROI_ALIGN` px: its start is on the 8-px JPEG block grid (the
 blocking figure reads steps at a block's edge) and on a whole number of the gate's reduction
@@ -21,7 +22,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.synthetic import project_points
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["ROI_ALIGN", "ROI_MARGIN", "bed_roi"]
+__all__ = ["REACH_PAD_MM", "ROI_ALIGN", "ROI_MARGIN", "bed_roi"]
 
 #: the box's start (and, inside the frame, its end) is a multiple of this, px (lcm of 8, 2, 3, 6 and 16)
 ROI_ALIGN = 48
@@ -30,11 +31,19 @@ ROI_ALIGN = 48
 ROI_MARGIN = 0.01
 #: points sampled along each edge of the observed square (the lens bends the edges)
 _EDGE_POINTS = 17
+#: the print's reach is grown by this on every side, mm (as the checks' prism, :mod:`layerwatch.pipeline.checks`)
+REACH_PAD_MM = 2.0
+
+
+def _edges(corners: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points along the closed polygon ``corners`` (K, 2), ``len(t)`` per edge, shape (K len(t), 2)."""
+    return np.vstack([a + t * (b - a) for a, b in zip(corners, np.roll(corners, -1, axis=0), strict=True)])
 
 
 def bed_roi(camera: CameraModel, topview: TopView, top_z_mm: float, size: tuple[int, int],
-            extra_px: np.ndarray | None = None) -> tuple[slice, slice]:
-    """The photo box (rows, columns) that the observed square covers from the bed to ``top_z_mm``.
+            extra_px: np.ndarray | None = None,
+            reach_mm: tuple[float, float, float, float] | None = None) -> tuple[slice, slice]:
+    """The photo box (rows, columns) that the observed square on the bed and the print up to ``top_z_mm`` cover.
 
     Parameters
     ----------
@@ -43,11 +52,16 @@ def bed_roi(camera: CameraModel, topview: TopView, top_z_mm: float, size: tuple[
     topview : TopView
         The observed square (``corners_mm``).
     top_z_mm : float
-        The print's highest point, mm (the square is projected at Z = 0 and at this height).
+        The print's highest point, mm.
     size : (int, int)
         ``(width, height)`` of the frames, px.
     extra_px : ndarray, shape (K, 2), optional
         Further points the box must hold, px at ``size`` (the bed markers' expected centres).
+    reach_mm : (float, float, float, float), optional
+        ``(xmin, ymin, xmax, ymax)`` bed mm the print covers (:func:`~layerwatch.pipeline.checks.print_reach_mm`):
+        its prism, grown by :data:`REACH_PAD_MM`, from the bed to ``top_z_mm`` (the square itself is taken at
+        Z = 0: what lies beside the print lies on the bed). Without it the whole square is taken up to
+        ``top_z_mm`` (a tall print's square at its top covers most of a 45-degree camera's frame).
 
     Returns
     -------
@@ -63,8 +77,14 @@ def bed_roi(camera: CameraModel, topview: TopView, top_z_mm: float, size: tuple[
     cam = camera.scaled_to((w, h))
     corners = np.asarray(topview.corners_mm, np.float64).reshape(-1, 2)
     t = np.linspace(0.0, 1.0, _EDGE_POINTS)[:, None]
-    edges = np.vstack([a + t * (b - a) for a, b in zip(corners, np.roll(corners, -1, axis=0), strict=True)])
-    pts = np.vstack([np.c_[edges, np.zeros(len(edges))], np.c_[edges, np.full(len(edges), float(top_z_mm))]])
+    edges = _edges(corners, t)
+    high = edges
+    if reach_mm is not None and np.all(np.isfinite(reach_mm)):
+        x0, y0, x1, y1 = (float(v) for v in reach_mm)
+        p = REACH_PAD_MM
+        high = _edges(np.array([[x0 - p, y0 - p], [x1 + p, y0 - p], [x1 + p, y1 + p], [x0 - p, y1 + p]]), t)
+    pts = np.vstack([np.c_[edges, np.zeros(len(edges))], np.c_[high, np.zeros(len(high))],
+                     np.c_[high, np.full(len(high), float(top_z_mm))]])
     # a point behind the camera projects to nonsense: only points in front count
     T = cam.camera_from_bed
     in_front = (T[:3, :3] @ pts.T + T[:3, 3:4])[2] > 0

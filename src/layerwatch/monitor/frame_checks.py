@@ -32,7 +32,7 @@ from layerwatch.geometry.roi import bed_roi
 from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.camera_checks import LateCheck, LateStream, MarkerWatch, lag_checkable
 from layerwatch.monitor.printers.replies import RateLimitedLog
-from layerwatch.pipeline.checks import print_top_z_mm
+from layerwatch.pipeline.checks import print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.policy import PolicySettings
 
 __all__ = ["CAMERA_FAULT", "FrameChecks"]
@@ -46,8 +46,9 @@ log = logging.getLogger("layerwatch.monitor")
 ROI_MOST = 0.9
 
 
-def _roi_source(pipeline: Any) -> tuple[CameraModel, TopView, float] | None:
-    """The posed camera, observed square and print's top (mm) of a job's pipeline, or None when one is missing.
+def _roi_source(pipeline: Any) -> tuple[CameraModel, TopView, float, tuple[float, float, float, float] | None] | None:
+    """The posed camera, observed square, print's top (mm) and reach (bed mm) of a job's pipeline, or None when one
+    of the first three is missing.
 
     ``pipeline``: a :class:`~layerwatch.pipeline.step.LayerPipeline`, or a farm's pool pipeline (its ``local`` one),
     possibly inside an image store's wrapper.
@@ -59,7 +60,7 @@ def _roi_source(pipeline: Any) -> tuple[CameraModel, TopView, float] | None:
     if not isinstance(cam, CameraModel) or not cam.has_pose or not isinstance(topview, TopView) or toolpath is None:
         return None
     top = print_top_z_mm(toolpath)
-    return (cam, topview, top) if top is not None and np.isfinite(top) else None
+    return (cam, topview, top, print_reach_mm(toolpath)) if top is not None and np.isfinite(top) else None
 
 
 class FrameChecks:
@@ -123,10 +124,10 @@ class FrameChecks:
             return None
         key = (int(shape[1]), int(shape[0]))
         if key not in self._roi:
-            camera, topview, top_z = self._roi_of
+            camera, topview, top_z, reach = self._roi_of
             try:
                 extra = self.markers.expected_px(key) if self.markers is not None else None
-                box = bed_roi(camera, topview, top_z, key, extra)
+                box = bed_roi(camera, topview, top_z, key, extra, reach)
             except Exception as exc:  # noqa: BLE001 - no region of interest rather than no gate
                 self.warn.warning("roi", "camera-fault gate on the whole frame: %s: %s", type(exc).__name__, exc)
                 box = None
