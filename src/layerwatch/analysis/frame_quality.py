@@ -88,12 +88,12 @@ class FrameQualitySettings(Section):
         Largest shift of a visible bed marker from its expected place, px (at the frame's size).
     roi : bool
         With a calibrated camera (a bed pose), sensor noise, JPEG blocking and the change from the
-        previous frame are measured on the photo box that the observed square covers from the bed to
-        the print's top, with the bed markers (:func:`~layerwatch.geometry.roi.bed_roi`): what the
-        analysis looks at, not the room around the printer (a person walking by behind it no longer
-        hides a repeated frame); about 60 % of the frame and 30 % of the gate's cost with the
-        simulator's 45-degree camera. Exposure and sharpness stay the whole frame's. Off: the whole
-        frame for every figure.
+        previous frame are measured on the photo box that the observed square on the bed and the
+        print's prism (its reach, from the bed to its top) cover, with the bed markers
+        (:func:`~layerwatch.geometry.roi.bed_roi`): what the analysis looks at, not the room around the
+        printer (a person walking by behind it no longer hides a repeated frame); about half of the
+        frame and a third of the gate's cost with the simulator's camera. Exposure and sharpness stay
+        the whole frame's. Off: the whole frame for every figure.
     excuse_late_frames : bool
         A frame that shows the previous layer is judged against that layer, so a camera one
         layer late does not pause a clean print. The monitor tells a late camera from a layer

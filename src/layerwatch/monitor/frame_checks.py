@@ -89,7 +89,8 @@ class FrameChecks:
                         if self.frame_quality is not None else None)
         self.late_stream = LateStream(after_n)
         self.lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
-        #: what the region of interest is computed from (camera, observed square, print's top), None: the whole frame
+        #: what the region of interest is computed from (camera, observed square, print's top and reach), None: the
+        #: whole frame
         self._roi_of = _roi_source(pipeline) if self.frame_quality is not None and self.frame_quality.roi else None
         self._roi: dict[tuple[int, int], tuple[slice, slice] | None] = {}
 
