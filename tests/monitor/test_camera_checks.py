@@ -453,3 +453,17 @@ def test_a_layer_the_policy_can_alarm_on_reaches_the_lag_check_whatever_s_a_coun
     printed_share = LayerResult(layer=4, z=1.0, status="ok", anomalous_area_mm2=3.0, uncounted_mm2=4.0)
     assert counts_toward_pause(printed_share, policy)
     assert not counts_toward_pause(dataclasses.replace(printed_share, uncounted_mm2=1.0), policy)
+
+
+def test_the_progress_zone_dilated_on_the_footprints_box_is_the_whole_dilation():
+    from layerwatch.monitor import camera_checks as cc
+    tv = SimpleNamespace(px_per_mm=6.67)
+    r = max(1, round(cc.PROGRESS_MARGIN_MM * tv.px_per_mm))
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        fp = np.zeros((int(rng.integers(10, 120)), int(rng.integers(10, 120))), bool)
+        for _ in range(int(rng.integers(0, 4))):
+            y, x = rng.integers(0, fp.shape[0]), rng.integers(0, fp.shape[1])
+            fp[y:y + rng.integers(1, 30), x:x + rng.integers(1, 30)] = True  # at the edges too
+        want = cv2.dilate(fp.astype(np.uint8), cc._disk(r)).astype(bool)
+        assert np.array_equal(cc._zone(fp, tv), want)

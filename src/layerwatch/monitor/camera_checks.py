@@ -510,7 +510,18 @@ def _top_of(pipeline: Any, photo: np.ndarray, res: LayerResult) -> np.ndarray:
 def _zone(footprint: np.ndarray, topview: Any) -> np.ndarray:
     """``footprint`` dilated by :data:`PROGRESS_MARGIN_MM` (bool, same shape)."""
     r = max(1, round(PROGRESS_MARGIN_MM * topview.px_per_mm))
-    return cv2.dilate(footprint.astype(np.uint8), _disk(r)).astype(bool)
+    fp = np.asarray(footprint, bool)
+    out = np.zeros(fp.shape, bool)
+    rows, cols = np.flatnonzero(fp.any(axis=1)), np.flatnonzero(fp.any(axis=0))
+    if rows.size == 0:
+        return out
+    # dilated on the footprint's box grown by r only: nothing farther from the footprint is reached, and the
+    # dilation's border (below every value) adds nothing where the whole image has zeros: the same mask
+    h, w = fp.shape
+    box = (slice(max(int(rows[0]) - r, 0), min(int(rows[-1]) + r + 1, h)),
+           slice(max(int(cols[0]) - r, 0), min(int(cols[-1]) + r + 1, w)))
+    out[box] = cv2.dilate(fp[box].view(np.uint8), _disk(r)) > 0
+    return out
 
 
 def _box(mask: np.ndarray, topview: Any) -> tuple[slice, slice] | None:
