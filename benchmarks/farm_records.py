@@ -36,6 +36,7 @@ def records(printers: int) -> list:
             for key in ("photo_ms", "trigger_to_pause_ms"):
                 rec.pop(key, None)
             thumb = p.mon.pipeline.last_thumb
+            thumb = thumb.png() if thumb is not None else None  # drawn here, as the dashboard draws it when asked
             out.append({"printer": k, "layer": i, "record": rec,
                         "thumb_sha1": hashlib.sha1(thumb).hexdigest() if thumb else None})
         runner.close([p])

@@ -63,6 +63,7 @@ from layerwatch.gcode.postprocess import insert_snapshots
 from layerwatch.geometry.pose import locate_bed
 from layerwatch.monitor.camera_checks import LateStream, MarkerWatch
 from layerwatch.monitor.cameras import SimCamera
+from layerwatch.monitor.frame_checks import FrameChecks
 from layerwatch.monitor.printers.virtual import VirtualPrinter
 from layerwatch.monitor.service import CAMERA_FAULT, Monitor
 from layerwatch.pipeline.config import recommended_config
@@ -235,8 +236,10 @@ def failure_pauses(cfg, tp, truth, pipe, gcode, bed, **quality) -> dict[str, tup
     return out
 
 
-def _gate_reasons(photo: np.ndarray, previous: np.ndarray | None, markers: MarkerWatch | None) -> list[str]:
-    return assess_frame(photo, previous, **(markers(photo) if markers is not None else {})).reasons
+def _gate_reasons(photo: np.ndarray, previous: np.ndarray | None, markers: MarkerWatch | None,
+                  box: tuple[slice, slice] | None = None) -> list[str]:
+    """The gate's reasons as the monitor's :class:`FrameChecks` gives them (``box``: its region of interest)."""
+    return assess_frame(photo, previous, box=box, **(markers(photo) if markers is not None else {})).reasons
 
 
 def failure_frames_passed(tp, truth, cfg, pipe, n_layers: int = 120, seed: int = 0) -> dict:
@@ -256,6 +259,7 @@ def failure_frames_passed(tp, truth, cfg, pipe, n_layers: int = 120, seed: int =
     """
     tv = cfg.topview.topview()
     markers = MarkerWatch.of_pipeline(pipe, FrameQualitySettings().max_marker_shift_px)  # as the monitor's
+    roi = FrameChecks(pipe, FrameQualitySettings(), 3)  # the monitor's region of interest ([frame_quality] roi)
     out = {"total": Counter(), "passed": Counter(), "passed_slipped": Counter(), "refused": [],
            "refused_slipped": [], "checked": 0}
     for k, (scen, layers) in enumerate(plan_frames(tp, n_layers, seed=seed)):
@@ -270,7 +274,7 @@ def failure_frames_passed(tp, truth, cfg, pipe, n_layers: int = 120, seed: int =
         for i in layers:
             frame = sim.frame(i)
             counted = bool(frame.meta.get("failed")) and i > 0
-            reasons = _gate_reasons(frame.photo, previous, markers)
+            reasons = _gate_reasons(frame.photo, previous, markers, roi.roi(frame.photo.shape))
             previous = frame.photo
             verdicts = dict.fromkeys(streams, reasons)
             if not reasons:

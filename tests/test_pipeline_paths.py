@@ -73,10 +73,14 @@ def test_evaluation_and_monitor_give_identical_records(job):
         assert res.status == "ok" and scores is not None
         assert _record(res) == _record(monitored[i])
         assert np.array_equal(res.heatmap, monitored[i].heatmap) and np.array_equal(res.mask, monitored[i].mask)
-        # the evaluation's sweep at the configured measure and T_S is the step's own HOG a% (eq. 5 over its
-        # anomalous blocks' tiles); the changed-as-predicted channel may only add its own area to the step's
-        hog_ratio = res.n_anomalous * (cfg.analysis.cell_px / cfg.topview.px_per_mm) ** 2 / res.printed_area_mm2
-        assert cfg.analysis.anomalous_area == "tiles"
+        # the evaluation's sweep at the configured measure and T_S is the step's own HOG a% (eq. 5 over what
+        # its anomalous blocks add to S_A: the printed share of their tiles, as recommended); the
+        # changed-as-predicted channel may only add its own area to the step's
+        assert cfg.analysis.anomalous_area == "printed"
+        added = float(res.layer_change.added_mm2) if res.layer_change is not None else 0.0
+        hog_ratio = (res.anomalous_area_mm2 - added) / res.printed_area_mm2
+        tiles = res.n_anomalous * (cfg.analysis.cell_px / cfg.topview.px_per_mm) ** 2 / res.printed_area_mm2
+        assert hog_ratio <= tiles + 1e-9  # a tile adds at most itself
         assert scores[0][k, j] == pytest.approx(hog_ratio, abs=1e-6)
         assert res.anomaly_ratio >= hog_ratio - 1e-9
     # the failure shows: records are not all zero (the evaluation's whole-view score: a% counts the printed

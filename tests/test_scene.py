@@ -22,7 +22,7 @@ from layerwatch.pipeline.config import load_config, recommended_config, resolve_
 from layerwatch.pipeline.policy import PausePolicy
 from layerwatch.pipeline.scene import SceneModel, load_bed_photo
 from layerwatch.pipeline.step import LayerPipeline, judge_layers
-from layerwatch.simulate import PrintSimulator, SimSettings, default_camera
+from layerwatch.simulate import Failure, PrintSimulator, SimSettings, default_camera
 
 pytestmark = pytest.mark.slow
 
@@ -225,3 +225,30 @@ def test_a_camera_nudged_by_two_pixels_since_the_bed_photo_sees_no_change_beside
     assert max(res.outside_anomalous_mm2 for res, _ in judged) == 0
     assert not any(d.stops for _, d in judged)
     assert "bed photo moved onto this camera view" in judged[0][0].message and pipe.scene.baseline == "bed photo"
+
+
+def test_an_object_on_a_lower_floor_beside_the_layer_is_seen_by_the_series_channel():
+    """A hex key dropped on the plate behind the ring and the box (the part's lower floor, layer 14's top,
+    beside layer 20's footprint): the series channel reports it from its onset on, the clean twin nothing.
+    The plate is bright orange, its red channel clipped under the lamp: judged on the channels left."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = recommended_config(PART_CONFIG)
+    tv = cfg.topview.topview()
+    cam = default_camera(tv)
+    key = Failure("foreign_body", onset=20, size_mm=8.0, center_mm=(110.0, 108.0), seed=7)
+    seen = {}
+    for name, failures in (("clean", ()), ("key", (key,))):
+        sim = PrintSimulator(tp, cam, tv, failures, seed=3)
+        pipe = LayerPipeline(tp, cam, cfg, bed_photo=sim.bed_photo())
+        seen[name] = []
+        for i in range(17, 23):
+            frame = sim.frame(i)
+            res = pipe.process(frame.photo, i)
+            assert res.status == "ok"
+            if frame.truth_area is not None:  # the key lies beside the layer, on the floor below it
+                fp = pipe.reference(i).footprint
+                assert np.count_nonzero(frame.truth_area & fp) < 0.05 * np.count_nonzero(frame.truth_area)
+            seen[name].append((res.outside_anomalous_mm2, [r.kind for r in res.outside_regions]))
+    assert all(area == 0 for area, _ in seen["clean"]), seen["clean"]
+    assert all(area == 0 for area, _ in seen["key"][:3]), seen["key"]
+    assert all(area >= 12.0 and "foreign_body" in kinds for area, kinds in seen["key"][3:]), seen["key"]

@@ -291,3 +291,28 @@ def test_saturated_pixels_are_those_with_a_channel_at_or_above_the_limit():
     want = np.zeros((4, 5), bool)
     want[0, 0] = want[1, 2] = True
     assert np.array_equal(_saturated(img), want)
+
+
+def test_a_clipped_channel_only_bounds_its_value_and_an_object_on_a_clipped_floor_still_counts():
+    """A bright orange floor whose red channel the camera clips: darker light must not look like change
+    (the clipped red says only "this bright or brighter"), a blue object on it must (green and blue see it)."""
+    h, w = 160, 320
+    tex = _texture(h, w, seed=4)
+    E = tex.copy()  # left: grey bed; right: orange floor, red clipped (its true value ~300)
+    E[:, 160:] = np.stack([0.6 * tex[:, 160:, 0], 1.6 * tex[:, 160:, 0], np.full((h, 160), 255.0, np.float32)], -1)
+    photo = _noisy(E * 0.9)  # the lamp dimmed by 10 %: the true red ~270 is still clipped
+    photo[:, 160:, 2] = 255.0
+    usable = np.ones((h, w), bool)
+    fit = usable & (E < SATURATED).all(-1) & (photo < SATURATED).all(-1)  # the fit on unclipped pixels (the bed)
+    ratio, gain = photometric_fit(photo, E, fit)
+    assert np.allclose(gain, 0.9, atol=0.02)
+    st = SceneSettings()
+    plain = np.abs(photo - np.minimum(E * ratio, 255.0)).mean(-1)[:, 170:].mean()
+    assert plain > st.min_change  # without the bound, the dimmed clipped floor would all read as change
+    assert not change_blocks(photo, E, usable, ratio, st).changed.any()
+    bad = photo.copy()
+    cv2.rectangle(bad, (230, 60), (250, 90), (200.0, 120.0, 60.0), -1)  # a blue hex key on the floor
+    ch = change_blocks(bad, E, usable, ratio, st)
+    b = st.block_px
+    assert ch.changed[75 // b, 240 // b]
+    assert not ch.changed[:, : 230 // b].any() and not ch.changed[:, 250 // b + 1 :].any()  # only where it lies

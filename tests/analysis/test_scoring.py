@@ -287,16 +287,22 @@ def test_printed_area_counts_what_lies_beside_a_wall_as_outside_not_as_a_percent
     assert b.anomaly_ratio > 0.5 * a.anomaly_ratio > 0.0
     assert b.anomalous_area_mm2 + b.outside_area_mm2 == pytest.approx(a.anomalous_area_mm2)
     assert b.anomaly_ratio == pytest.approx(b.anomalous_area_mm2 / b.printed_area_mm2)
+    # what S_A leaves out of the anomalous tiles is kept: S_A + uncounted is the tiles' area in both modes
+    assert a.uncounted_mm2 == 0.0 and b.uncounted_mm2 > 0.0
+    assert b.anomalous_area_mm2 + b.uncounted_mm2 == pytest.approx(a.anomalous_area_mm2) == pytest.approx(
+        a.n_anomalous * tile)
 
 
-def test_anomalous_area_is_a_job_setting_and_whole_tiles_stay_recommended():
-    """``printed`` halves the clean alarms but loses foreign bodies whose anomalous tiles lie beside the
-    footprint where the series scene channel sees no change (docs/evaluation/single_photo.md): opt-in."""
+def test_anomalous_area_is_a_job_setting_printed_recommended_and_the_papers_tiles_kept():
+    """``printed`` is recommended since the series scene channel judges the part's lower floors with a
+    clipped red channel (session 11, docs/evaluation/single_photo.md); the paper's whole tiles stay the
+    default of ``--paper-settings`` and a job may choose them."""
     from layerwatch.pipeline.config import resolve_config
 
-    assert resolve_config(None).config.analysis.anomalous_area == "tiles"
-    chosen = resolve_config(None, flags={"analysis": {"anomalous_area": "printed"}})
-    assert chosen.config.analysis.anomalous_area == "printed"
+    assert resolve_config(None).config.analysis.anomalous_area == "printed"
+    assert resolve_config(None, recommended=False).config.analysis.anomalous_area == "tiles"
+    chosen = resolve_config(None, flags={"analysis": {"anomalous_area": "tiles"}})
+    assert chosen.config.analysis.anomalous_area == "tiles"
     assert chosen.config.analysis.metric == "jaccard"  # the rest of the recommendation still applies
 
 

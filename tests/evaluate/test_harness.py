@@ -108,6 +108,17 @@ def test_run_evaluation_small(job, tmp_path):
         assert "## The configured setting on this sample" in text
         row = next(line for line in text.splitlines() if line.startswith("| false pauses"))
         assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
+        # one alarm in n layers: the rate is <= 1 per 1000, its 95 % bound (1.6 or 2.4) is not
+        row = next(line for line in text.splitlines() if line.startswith("| single-layer alarms"))
+        assert "(1 in " in row and row.endswith("| at the rate (not at 95 %) |"), row
+
+
+def test_rate_rows_share_one_rule():
+    """Every <= 1 per 1000 row is judged alike: shown at 95 %, met at the rate only, consistent, or not."""
+    from layerwatch.evaluate.report import _rate_met
+
+    assert _rate_met(0, 3014) == "yes" and _rate_met(0, 2000) == "consistent"
+    assert _rate_met(3, 3014) == "at the rate (not at 95 %)" and _rate_met(4, 3014) == "no"
 
 
 @pytest.mark.slow

@@ -42,7 +42,8 @@ def _run(pool: WorkerPool, sims, tp, cfg, layers) -> tuple[list[tuple[dict, byte
     for i in layers:  # two printers interleaved, as a farm sends them
         for k, sim in sims.items():
             res = pipes[k].process(sim.frame(i), i)
-            out.append((_record(res), pipes[k].last_thumb))
+            thumb = pipes[k].last_thumb
+            out.append((_record(res), thumb.png() if thumb is not None else None))
     return out, pipes
 
 

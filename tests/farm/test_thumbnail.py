@@ -27,7 +27,10 @@ def test_thumbnail_shows_regions_and_footprint(cell_px):
     for i in range(9):
         v = analyse_on(pipe, sim.frame(i), i)
     assert v.result.regions and v.thumb is not None
-    img = cv2.imdecode(np.frombuffer(v.thumb, np.uint8), cv2.IMREAD_COLOR)
+    assert v.thumb._png is None  # not drawn with the frame: only when asked for
+    png = v.thumb.png()
+    assert png is not None and v.thumb.png() is png  # drawn once
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert img.shape[1] == THUMB_WIDTH
     assert _share(img, (255, 0, 255)) > 0.001  # failing regions, magenta
     if cell_px % 2 == 0:  # drawn small: the footprint's one-pixel outline is not averaged away

@@ -441,3 +441,29 @@ def test_marker_watch_refuses_a_bad_confirm_distance():
         MarkerWatch(CAMERA, confirm_px=-1.0)
     with pytest.raises(ValueError, match="confirm_px"):
         MarkerWatch(CAMERA, confirm_px=float("nan"))
+
+
+def test_a_layer_the_policy_can_alarm_on_reaches_the_lag_check_whatever_s_a_counts():
+    """With ``anomalous_area = "printed"`` S_A leaves the tiles' share beside the part out; the policy's
+    minimum-area test adds it back (``uncounted_mm2``), so the lag check must see the same sum."""
+    from layerwatch.monitor.camera_checks import counts_toward_pause
+    from layerwatch.pipeline.policy import PolicySettings
+
+    policy = PolicySettings(min_area_mm2=5.0, skip_first_layers=0)
+    printed_share = LayerResult(layer=4, z=1.0, status="ok", anomalous_area_mm2=3.0, uncounted_mm2=4.0)
+    assert counts_toward_pause(printed_share, policy)
+    assert not counts_toward_pause(dataclasses.replace(printed_share, uncounted_mm2=1.0), policy)
+
+
+def test_the_progress_zone_dilated_on_the_footprints_box_is_the_whole_dilation():
+    from layerwatch.monitor import camera_checks as cc
+    tv = SimpleNamespace(px_per_mm=6.67)
+    r = max(1, round(cc.PROGRESS_MARGIN_MM * tv.px_per_mm))
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        fp = np.zeros((int(rng.integers(10, 120)), int(rng.integers(10, 120))), bool)
+        for _ in range(int(rng.integers(0, 4))):
+            y, x = rng.integers(0, fp.shape[0]), rng.integers(0, fp.shape[1])
+            fp[y:y + rng.integers(1, 30), x:x + rng.integers(1, 30)] = True  # at the edges too
+        want = cv2.dilate(fp.astype(np.uint8), cc._disk(r)).astype(bool)
+        assert np.array_equal(cc._zone(fp, tv), want)

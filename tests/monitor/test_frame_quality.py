@@ -185,8 +185,9 @@ def test_a_frame_reduced_by_the_caller_is_judged_as_the_frame_itself():
         assess_frame(frame, prev, small=prev[:, :-1])
 
 
-def test_change_from_figures_are_the_copying_statistics_bit_for_bit():
-    """change_from partitions its temporaries in place: the figures equal NumPy's median/percentile on copies."""
+def test_change_from_figures_are_the_copying_statistics_and_polyfits_line():
+    """change_from partitions its temporaries in place and fits the gain in closed form: the figures equal NumPy's
+    median/percentile on copies after ``np.polyfit``'s line, up to the fit's rounding (~1e-13)."""
     import cv2
 
     from layerwatch.analysis.frame_quality import change_from
@@ -200,7 +201,25 @@ def test_change_from_figures_are_the_copying_statistics_bit_for_bit():
         dev = np.abs(resid - float(np.median(resid)))
         spread = float(np.median(dev) / 0.6745)
         want = (float(max(np.percentile(dev, 99.9) - 3.0 * spread, 0.0)), spread)
-        assert change_from(small, prev) == want
+        assert change_from(small, prev) == pytest.approx(want, rel=1e-9, abs=1e-9)
+
+
+def test_the_closed_form_gain_fit_is_polyfits_line():
+    from layerwatch.analysis.frame_quality import gain_fit
+
+    rng = np.random.default_rng(3)
+    for k in range(20):
+        x = rng.integers(0, 256, 5000 + 37 * k).astype(np.float32)
+        y = np.clip(x * rng.uniform(0.5, 1.5) + rng.uniform(-40, 40) + rng.normal(0, 1 + k, x.shape), 0, 255)
+        y = y.astype(np.float32)
+        a, b = np.polyfit(x, y, 1)
+        got = gain_fit(x, y)
+        assert abs(got[0] - a) < 1e-12 and abs(got[1] - b) < 1e-9
+    flat = np.full(100, 7.0, np.float32)  # no line through a constant x: polyfit's answer
+    with pytest.warns(np.exceptions.RankWarning):
+        want = np.polyfit(flat, np.arange(100.0), 1)
+    with pytest.warns(np.exceptions.RankWarning):
+        assert gain_fit(flat, np.arange(100.0)) == (want[0], want[1])
 
 
 @pytest.mark.parametrize("kind", ["scene", "black", "white", "flat", "real"])

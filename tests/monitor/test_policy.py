@@ -174,6 +174,29 @@ def test_layer_alarm_is_the_ratio_rule_of_one_layer():
         assert (p.update(res).action == "notify") == layer_alarm(ratio, area, p.settings)
 
 
+def test_min_area_asks_the_anomalous_tiles_not_their_printed_share():
+    """With ``anomalous_area = "printed"`` a% counts a tile's printed share only; an object larger than a small
+    part's top shows mostly beside it (the 6 mm object on Cura's 4.6 mm cylinder of
+    ``tests/evaluate/test_object_cancel.py``: a% 3.6-4.5 %, 4.4-5.8 mm^2 of printed share, 10-11.5 mm^2 of
+    tiles). The minimum area is a count of evidence (more blocks than noise raises): it asks the whole tiles."""
+    def layer(i, printed_share, beside):
+        return LayerResult(layer=i, z=0.2 * i, anomaly_ratio=printed_share / 124.0, printed_area_mm2=124.0,
+                           anomalous_area_mm2=printed_share, uncounted_mm2=beside,
+                           regions=[_region(printed_share + beside)])
+
+    s = PolicySettings(pause_ratio=0.025, consecutive_layers=2, min_area_mm2=5.0, growth_min_area_mm2=1e9)
+    p = PausePolicy(s)
+    assert p.update(layer(8, 4.5, 5.6)).action == "notify"
+    assert p.update(layer(9, 4.4, 6.1)).stops
+    # the same printed share with nothing beside it: two or three blocks, no evidence
+    q = PausePolicy(s)
+    assert all(q.update(layer(i, 4.5, 0.0)).action == "none" for i in range(8, 14))
+    # and a% still decides: much evidence beside a large layer is no a% alarm
+    assert PausePolicy(s).update(LayerResult(layer=8, z=1.6, anomaly_ratio=0.01, printed_area_mm2=1000.0,
+                                             anomalous_area_mm2=10.0, uncounted_mm2=40.0,
+                                             regions=[_region(50.0)])).action == "none"
+
+
 def _scene(layer, area, x=60.0, y=60.0, status="ok"):
     """A layer whose HOG a% is 0 and whose scene channel saw ``area`` mm^2 change at (x, y) beside the print."""
     res = _res(layer, 0.0, status=status)

@@ -250,6 +250,13 @@ class LayerResult:
         Area of the anomalous blocks' tiles outside the layer's (undilated)
         footprint, i.e. beside the part or in the margin band around it, mm^2
         (part of ``anomalous_area_mm2`` only when whole tiles are counted).
+    uncounted_mm2 : float
+        Area of the anomalous blocks' tiles that ``anomalous_area_mm2`` leaves
+        out, mm^2: with ``anomalous_area = "printed"`` (or ``"part"``) their
+        share beside the part; 0 with whole tiles. ``anomalous_area_mm2 +
+        uncounted_mm2`` is the image area that shows the anomaly, whatever
+        S_A counts of it: the policy's minimum-area test
+        (:func:`~layerwatch.pipeline.policy.layer_alarm`) asks it, a% does not.
     n_blocks, n_anomalous : int
         Blocks considered and blocks below threshold.
     regions : list of Region
@@ -317,6 +324,7 @@ class LayerResult:
     anomaly_ratio: float = 0.0
     printed_area_mm2: float = 0.0
     anomalous_area_mm2: float = 0.0
+    uncounted_mm2: float = 0.0
     outside_area_mm2: float = 0.0
     n_blocks: int = 0
     n_anomalous: int = 0

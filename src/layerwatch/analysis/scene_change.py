@@ -32,6 +32,16 @@ photo:
    gain is above the same kind of threshold): a moving
    shade or the edge of a lamp's cone changes brightness, strands and
    objects change texture.
+4. **Clipped channels** (:func:`_censored_absdiff`): a channel the camera
+   clipped (at :data:`SATURATED` or above) only says "this bright or
+   brighter", so its residual is one-sided (a photo darker than a clipped
+   ``E``, or brighter than the prediction where the photo clipped) and
+   nothing where both clipped. A bright orange or yellow part under a lamp
+   clips its red channel over its whole lit top; its green and blue still
+   show an object lying there (issue 18's scenario ``s019``: a hex key on
+   the plate beside the ring was on pixels left out whole as "saturated",
+   so the series channel reported nothing). Only white glare (every channel
+   clipped) is left out, by the caller.
 
 Working image. The frame is reduced to ``working_px`` on its long side by
 area averaging (a 1080p frame 3 x 3) and smoothed (Gaussian, sigma 0.7 px):
@@ -455,8 +465,42 @@ def _block_roi(usable: np.ndarray, b: int) -> tuple[slice, slice]:
     return (slice(rows[0] // b * b, (rows[-1] // b + 1) * b), slice(cols[0] // b * b, (cols[-1] // b + 1) * b))
 
 
+def _censored_absdiff(img: np.ndarray, pred: np.ndarray,
+                      clipped: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """``|img - pred|`` per channel, where a clipped value only bounds the true one from below.
+
+    A channel at :data:`SATURATED` or above says "this bright or brighter" (the camera clipped it), so
+    the residual is the distance between what each side allows: clipped in the photo, only a photo
+    brighter than the prediction counts (``max(img - pred, 0)``); clipped in ``E``, only a photo darker
+    than it (``max(pred - img, 0)``: a blue object on an orange floor whose red channel was clipped);
+    clipped in both, nothing.
+
+    Parameters
+    ----------
+    img, pred : ndarray, float32, shape (h, w, 3)
+        The photo and the prediction (``ratio * E``, clipped at 255), grey levels.
+    clipped : (ndarray, ndarray, ndarray) or None
+        ``(pixels, in_expected, in_photo)``: the flat indices (k,) of the pixels with a clipped channel
+        and their clipped channels in ``E`` and in the photo, bool (k, 3); ``None`` when no channel is.
+        Only those pixels are computed again (a lit orange top is a few per cent of the view).
+
+    Returns
+    -------
+    ndarray, float32, shape (h, w, 3)
+    """
+    res = cv2.absdiff(img, pred)
+    if clipped is None:
+        return res
+    px, in_expected, in_photo = clipped
+    d = img.reshape(-1, 3)[px] - pred.reshape(-1, 3)[px]
+    brighter = np.where(in_expected, 0.0, d)
+    np.maximum(brighter, np.where(in_photo, 0.0, -d), out=brighter)
+    res.reshape(-1, 3)[px] = np.maximum(brighter, 0.0)
+    return res
+
+
 def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
-                b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                b: int, expected_clipped: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`)."""
     h, w = usable.shape
     n, m = h // b, w // b
@@ -465,17 +509,33 @@ def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, rat
     img = np.ascontiguousarray(photo)
     okf = usable.astype(np.float32)
     frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
-    score = _block_mean(channel_mean(cv2.absdiff(img, pred)), okf, frac)
-    # the same residual after the best gain per block and channel: what a local shade explains
-    sxy = cv2.resize(img * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
-    syy = cv2.resize(pred * pred * okf[..., None], (m, n), interpolation=cv2.INTER_AREA)
-    g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
-    shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
+    in_photo = img >= SATURATED
+    in_expected = expected >= SATURATED if expected_clipped is None else expected_clipped
+    any_clip = channel_max(in_photo | in_expected) & usable  # (unusable pixels weigh 0 whatever their residual)
+    okc = okf[..., None]
+    clipped = None
+    if any_clip.any():
+        px = np.flatnonzero(any_clip)
+        clipped = (px, in_expected.reshape(-1, 3)[px], in_photo.reshape(-1, 3)[px])
+        okc = np.repeat(okc, 3, axis=2)
+        okc.reshape(-1, 3)[px] = ~(clipped[1] | clipped[2])
+    score = _block_mean(channel_mean(_censored_absdiff(img, pred, clipped)), okf, frac)
+    # the same residual after the best gain per block and channel (clipped channels left out of the
+    # gain's fit): what a local shade explains
+    sxy = cv2.resize(img * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
+    syy = cv2.resize(pred * pred * okc, (m, n), interpolation=cv2.INTER_AREA)
+    gain = sxy / np.maximum(syy, 1e-6)
+    if clipped is not None:  # a channel clipped all over a block takes its other channels' gain (a shade is grey)
+        fitted = syy > 1e-6
+        other = (gain * fitted).sum(-1, keepdims=True) / np.maximum(fitted.sum(-1, keepdims=True), 1)
+        gain = np.where(fitted, gain, np.where(fitted.any(-1, keepdims=True), other, 1.0)).astype(np.float32)
+    g = cv2.resize(gain, (m * b, n * b), interpolation=cv2.INTER_NEAREST)
+    shade_free = _block_mean(channel_mean(_censored_absdiff(img, g * pred, clipped)), okf, frac)
     return score, frac >= 0.5, shade_free
 
 
 def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
-                  settings: SceneSettings) -> ChangeMap:
+                  settings: SceneSettings, expected_clipped: np.ndarray | None = None) -> ChangeMap:
     """Score every block of the photo against the normalised expected appearance.
 
     Parameters
@@ -486,6 +546,10 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
         :func:`photometric_fit`.
     settings : SceneSettings
         ``block_px``, ``noise_k``, ``min_change``.
+    expected_clipped : ndarray, bool, shape (h, w, 3), optional
+        Channels of ``expected`` whose value is only a lower bound (the camera clipped them);
+        default: those at :data:`SATURATED` or above. A photo's channel at :data:`SATURATED` or
+        above is clipped. Residuals on clipped channels are one-sided (:func:`_censored_absdiff`).
 
     Returns
     -------
@@ -500,7 +564,8 @@ def change_blocks(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, r
     if rows.stop > rows.start and cols.stop > cols.start:  # only blocks with usable pixels can be scored
         blocks = (slice(rows.start // b, rows.stop // b), slice(cols.start // b, cols.stop // b))
         score[blocks], scored[blocks], shade_free[blocks] = _roi_scores(
-            photo[rows, cols], expected[rows, cols], usable[rows, cols], ratio[rows, cols], b)
+            photo[rows, cols], expected[rows, cols], usable[rows, cols], ratio[rows, cols], b,
+            None if expected_clipped is None else expected_clipped[rows, cols])
     threshold, noise = _noise_threshold(score[scored], settings.min_change, settings.noise_k)
     thr2, _ = _noise_threshold(shade_free[scored], settings.min_change, settings.noise_k)
     strong = score > SHADE_LIMIT * threshold

@@ -606,12 +606,14 @@ def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, t
     printed = n_printed / topview.px_per_mm**2
     # what each anomalous block adds to S_A: its whole tile (the paper) or the part's share of it
     n_counted = float(area_weight(foot_frac, c / topview.px_per_mm, st.anomalous_area)[anom].sum())
+    n_anom = int(anom.sum())
     res = LayerResult(
         layer=0, z=0.0, metric=st.metric, threshold=float(st.threshold),
         anomaly_ratio=anomaly_ratio(n_counted, tile_mm2, printed),
         printed_area_mm2=printed, anomalous_area_mm2=n_counted * tile_mm2,
+        uncounted_mm2=max(n_anom - n_counted, 0.0) * tile_mm2,
         outside_area_mm2=float((1.0 - foot_frac[anom]).sum()) * tile_mm2,
-        n_blocks=int(considered.sum()), n_anomalous=int(anom.sum()), regions=regions,
+        n_blocks=int(considered.sum()), n_anomalous=n_anom, regions=regions,
         heatmap=heat, mask=considered,
         grid=BlockGrid(cell_px=c, block_cells=b, min_region_blocks=st.min_region_blocks,
                        **block_geometry(c, b, topview.px_per_mm)),

@@ -427,7 +427,8 @@ def _clean_print(toolpath: Toolpath, config: JobConfig, camera: CameraModel, pol
         if res.layer >= policy_settings.skip_first_layers:
             # a single-layer alarm is the policy's own ratio test (a% and anomalous area, :func:`layer_alarm`);
             # a% alone above the ratio is kept beside it (on a small footprint one block is several %)
-            out["layer_alarms"] += int(layer_alarm(float(res.anomaly_ratio), float(res.anomalous_area_mm2),
+            out["layer_alarms"] += int(layer_alarm(float(res.anomaly_ratio),
+                                                   float(res.anomalous_area_mm2) + float(res.uncounted_mm2),
                                                    policy_settings))
             out["ratio_layers"] += int(res.anomaly_ratio > policy_settings.pause_ratio)
         if not paused:  # after a pause the policy waits for the operator: nothing more to count

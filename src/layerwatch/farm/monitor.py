@@ -51,6 +51,7 @@ from layerwatch.farm.remote import (
     FrameRules,
     FrameVerdict,
     JobContext,
+    Thumbnail,
     Verdict,
     analyse_on,
     analyse_remote,
@@ -103,7 +104,7 @@ class PoolPipeline:
         #: the job's posed camera and settings (the monitor's marker and lag checks read them)
         self.camera, self.config = pipeline.camera, pipeline.config
         self.last_top: np.ndarray | None = None
-        self.last_thumb: bytes | None = None
+        self.last_thumb: Thumbnail | None = None
 
     def process(self, photo: np.ndarray, layer_index: int) -> LayerResult:
         """:meth:`LayerPipeline.process` on a pool worker (blocks this printer's lane, not the others)."""
@@ -181,11 +182,12 @@ class FarmMonitor(Monitor):
     queue_frames : int
         Photos that may wait for a worker.
     observe : callable, optional
-        ``observe(result, thumb)`` after each recorded layer (the farm's printer card).
+        ``observe(result, thumb)`` after each recorded layer (the farm's printer card; ``thumb`` a
+        :class:`~layerwatch.farm.remote.Thumbnail`, drawn when asked for).
     """
 
     def __init__(self, *args: Any, queue_frames: int = 2,
-                 observe: Callable[[LayerResult, bytes | None], None] | None = None, **kwargs: Any) -> None:
+                 observe: Callable[[LayerResult, Thumbnail | None], None] | None = None, **kwargs: Any) -> None:
         self._lane = FrameLane(queue_frames, on_drop=self._dropped, name="layerwatch-lane")
         super().__init__(*args, executor=self._lane, **kwargs)
         self.report = MonitorReport(results=deque(maxlen=RESULTS_KEPT),  # type: ignore[arg-type]

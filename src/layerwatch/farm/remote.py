@@ -55,7 +55,7 @@ from layerwatch.pipeline.policy import PolicySettings
 from layerwatch.pipeline.step import LayerPipeline, Reference
 
 __all__ = ["FrameRules", "FrameVerdict", "JobContext", "Verdict", "WorkerJob", "analyse_on", "analyse_remote",
-           "forget_pipeline", "judge_on", "judge_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH", "WARP_MAPS"]
+           "forget_pipeline", "judge_on", "judge_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH", "Thumbnail", "WARP_MAPS"]
 
 log = logging.getLogger("layerwatch.farm")
 
@@ -112,8 +112,8 @@ class Verdict:
         The pipeline's record.
     top : ndarray, shape (H, W), uint8, or None
         Grey top view of an analysed photo (for alert overlays).
-    thumb : bytes or None
-        PNG of the overlay (failing regions over the top view), :data:`THUMB_WIDTH` px wide.
+    thumb : Thumbnail or None
+        The overlay (failing regions over the top view), :data:`THUMB_WIDTH` px wide, drawn when asked for.
     reference : Reference or None
         The reference the photo was compared with, when asked for (the image store writes it;
         sent back rather than rendered again where the verdict is used).
@@ -121,12 +121,47 @@ class Verdict:
 
     result: LayerResult
     top: np.ndarray | None = None
-    thumb: bytes | None = None
+    thumb: Thumbnail | None = None
     reference: Reference | None = None
 
 
-def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes | None:
-    """PNG bytes of the overlay of ``res`` over ``top``, :data:`THUMB_WIDTH` px wide (``None`` if it cannot be drawn).
+class Thumbnail:
+    """The overlay thumbnail of one analysed layer (failing regions over the top view, :data:`THUMB_WIDTH` px wide),
+    drawn and PNG-encoded the first time it is asked for (:meth:`png`), not on every frame: a farm draws hundreds of
+    layers a minute, and a card's picture is looked at only while someone has the farm page open.
+
+    It holds the top view and footprint already reduced to the drawing scale (~45 kB at 600 x 600 px) and the
+    record as it was analysed (a shallow copy: the drawing reads its heatmap, grid and regions); the PNG is the
+    one the eager drawing made, byte for byte.
+    """
+
+    def __init__(self, top: np.ndarray, footprint: np.ndarray, drawn: LayerResult, topview: TopView) -> None:
+        self.top, self.footprint, self.drawn, self.topview = top, footprint, drawn, topview
+        self._png: bytes | None = None
+        self._failed = False
+
+    def png(self) -> bytes | None:
+        """PNG bytes (``None`` when the overlay cannot be drawn: logged once, the record is not changed)."""
+        if self._png is None and not self._failed:
+            try:
+                rgb = overlay_image(self.top, self.drawn, self.topview, self.footprint, caption=False)
+                h, w = rgb.shape[:2]
+                small = cv2.resize(rgb, (THUMB_WIDTH, max(1, round(h * THUMB_WIDTH / w))),
+                                   interpolation=cv2.INTER_AREA)
+                ok, png = cv2.imencode(".png", cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+            except (LayerwatchError, ValueError) as exc:  # the record counts, the picture is a nicety
+                log.warning("no overlay thumbnail for layer %d: %s", self.drawn.layer, exc)
+                ok, png = False, None
+            if ok and png is not None:
+                self._png = png.tobytes()
+            else:
+                self._failed = True
+        return self._png
+
+
+def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> Thumbnail | None:
+    """The overlay thumbnail of ``res`` over ``top`` (:class:`Thumbnail`: drawn when asked for; ``None`` if it cannot
+    be drawn).
 
     Drawn at the scale where a HOG cell is 2 px (a quarter of the default top view: the
     heatmap's blocks land on whole pixels, the outlines stay one pixel wide), not at full size
@@ -139,21 +174,17 @@ def _thumbnail(pipe: LayerPipeline, top: np.ndarray, res: LayerResult) -> bytes 
     h, w = tv.shape
     if small_tv.shape != (h // f, w // f) or h % f or w % f:
         f, small_tv = 1, tv
-    drawn = res
+    drawn = dataclasses.replace(res)  # the record as analysed (the monitor goes on to fill in its decision)
     try:
         footprint = pipe.reference(res.layer).footprint
         if f > 1:  # the top view and footprint area-averaged to the small scale, the grid's cells to 2 px
             top = cv2.resize(top, (w // f, h // f), interpolation=cv2.INTER_AREA)
             footprint = cv2.resize(footprint.astype(np.uint8), (w // f, h // f), interpolation=cv2.INTER_AREA) > 0
             drawn = dataclasses.replace(res, grid=dataclasses.replace(grid, cell_px=2))
-        rgb = overlay_image(top, drawn, small_tv, footprint, caption=False)
     except (LayerwatchError, ValueError) as exc:  # the record counts, the picture is a nicety
         res.message = res.message or f"no overlay: {exc}"
         return None
-    h, w = rgb.shape[:2]
-    small = cv2.resize(rgb, (THUMB_WIDTH, max(1, round(h * THUMB_WIDTH / w))), interpolation=cv2.INTER_AREA)
-    ok, png = cv2.imencode(".png", cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
-    return png.tobytes() if ok else None
+    return Thumbnail(top, footprint, drawn, small_tv)
 
 
 def analyse_on(pipe: LayerPipeline, photo: np.ndarray, layer: int, with_reference: bool = False,
@@ -251,7 +282,7 @@ class FrameVerdict:
     result: LayerResult
     gated: bool = False
     top: np.ndarray | None = None
-    thumb: bytes | None = None
+    thumb: Thumbnail | None = None
     reference: Reference | None = None
     late: LateCheck | None = None
     late_count: int = 0

@@ -29,7 +29,7 @@ from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.farm.config import PrinterSpec
 from layerwatch.farm.monitor import FarmMonitor, PoolPipeline
 from layerwatch.farm.pool import WorkerPool
-from layerwatch.farm.remote import JobContext
+from layerwatch.farm.remote import JobContext, Thumbnail
 from layerwatch.farm.simcam import SimFrames
 from layerwatch.farm.virtual import PacedVirtualPrinter
 from layerwatch.gcode import read_toolpath
@@ -146,7 +146,7 @@ class Station:
         self._card: dict[str, Any] = {"state": "starting", "message": None, "job": None, "job_id": None,
                                       "layer": None, "layers": None, "ratio": None, "alarm": None}
         self._ratios: deque[float] = deque(maxlen=SPARK)
-        self.thumb: bytes | None = None
+        self._thumb: Thumbnail | None = None  # the last analysed layer's (drawn when the card's picture is asked for)
         self._watcher: JobWatcher | None = None
         self._thread = threading.Thread(target=self._run, name=f"layerwatch-farm-{spec.name}", daemon=True)
 
@@ -173,7 +173,13 @@ class Station:
             if self._card["state"] == "error" and self._card["message"].startswith("printer unreachable"):
                 self._card.update(state="idle" if self.monitor is None else "printing", message=None)
 
-    def observe(self, res: LayerResult, thumb: bytes | None) -> None:
+    @property
+    def thumb(self) -> bytes | None:
+        """PNG of the overlay of the last analysed layer (drawn on the first request, then kept), or None."""
+        thumb = self._thumb
+        return thumb.png() if thumb is not None else None
+
+    def observe(self, res: LayerResult, thumb: Thumbnail | None) -> None:
         """A layer was recorded (called by the monitor's lane)."""
         with self._lock:
             self._card["layer"] = res.layer
@@ -190,7 +196,7 @@ class Station:
             if res.decision in ("pause", "cancel", "notify"):
                 self._card["alarm"] = {"action": res.decision, "layer": res.layer, "reason": res.decision_reason}
             if thumb is not None:
-                self.thumb = thumb
+                self._thumb = thumb
 
     def summary(self) -> dict[str, Any]:
         """The printer's card: name, state, message, job, job_id, layer, layers, ratio (last a%),
@@ -200,7 +206,7 @@ class Station:
             card["ratios"] = list(self._ratios)
         mon = self.monitor
         card.update(name=self.spec.name, printer=self.spec.safe_printer, camera=self.spec.camera.split("?", 1)[0],
-                    dropped=mon.dropped if mon else 0, late=mon.late if mon else 0, thumb=self.thumb is not None)
+                    dropped=mon.dropped if mon else 0, late=mon.late if mon else 0, thumb=self._thumb is not None)
         return card
 
     # ------------------------------------------------------------ set-up

@@ -80,14 +80,14 @@ def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
     """Whether an analysed layer's result could count toward a pause (the lag check runs only then).
 
     True for an ``ok`` result past ``skip_first_layers`` with at least ``min_area_mm2`` (and
-    one 1 mm^2) of anomalous area, with more anomalous area outside the footprint than
+    one 1 mm^2) of anomalous area (the anomalous blocks' whole tiles, as the policy asks), with more anomalous area outside the footprint than
     ``strong_outside_area_mm2``, or with at least ``outside_pause_mm2`` of change beside the
     print (the scene channel), each when its rule is on.
     """
     if res.status != "ok" or res.layer < max(1, policy.skip_first_layers):
         return False
     strong, beside = policy.strong_outside_area_mm2, policy.outside_pause_mm2
-    return (res.anomalous_area_mm2 >= _least_area(policy)
+    return (_tiles_mm2(res) >= _least_area(policy)
             or bool(strong) and res.outside_area_mm2 > strong
             or bool(beside) and res.outside_anomalous_mm2 >= beside)
 
@@ -95,6 +95,16 @@ def counts_toward_pause(res: LayerResult, policy: PolicySettings) -> bool:
 def lag_checkable(pipeline: Any) -> bool:
     """Whether the pipeline gives what the late-camera check needs (references, top views, analysis settings)."""
     return all(hasattr(pipeline, n) for n in ("reference", "top_view", "topview", "config"))
+
+
+def _tiles_mm2(res: LayerResult) -> float:
+    """Image area of the anomalous blocks' whole tiles, mm^2: what the policy's minimum-area test asks.
+
+    S_A (``anomalous_area_mm2``) plus the share of the tiles it leaves out (``uncounted_mm2``,
+    0 with ``anomalous_area = "tiles"``), as :func:`~layerwatch.pipeline.policy.layer_alarm`
+    is given it: a layer the policy can alarm on must reach the lag check.
+    """
+    return float(res.anomalous_area_mm2) + float(res.uncounted_mm2)
 
 
 def _least_area(policy: PolicySettings) -> float:
@@ -196,7 +206,7 @@ def previous_layer_explains(pipeline: Any, photo: np.ndarray, res: LayerResult, 
     top_prev, valid = top if top is not None else pipeline.top_view(photo, ref.z)
     before = analyze_layer(top_prev, ref.image, ref.footprint, pipeline.topview, pipeline.config.analysis,
                            valid=valid, layer=k - 1, z=ref.z)
-    here, prev = float(res.anomalous_area_mm2), float(before.anomalous_area_mm2)
+    here, prev = _tiles_mm2(res), _tiles_mm2(before)
     least = _least_area(policy)
     hog_explained = prev <= LAG_EXPLAINED_SHARE * here or (prev < least and here < least)
     here_ref = own if own is not None else pipeline.reference(k)
@@ -500,7 +510,18 @@ def _top_of(pipeline: Any, photo: np.ndarray, res: LayerResult) -> np.ndarray:
 def _zone(footprint: np.ndarray, topview: Any) -> np.ndarray:
     """``footprint`` dilated by :data:`PROGRESS_MARGIN_MM` (bool, same shape)."""
     r = max(1, round(PROGRESS_MARGIN_MM * topview.px_per_mm))
-    return cv2.dilate(footprint.astype(np.uint8), _disk(r)).astype(bool)
+    fp = np.asarray(footprint, bool)
+    out = np.zeros(fp.shape, bool)
+    rows, cols = np.flatnonzero(fp.any(axis=1)), np.flatnonzero(fp.any(axis=0))
+    if rows.size == 0:
+        return out
+    # dilated on the footprint's box grown by r only: nothing farther from the footprint is reached, and the
+    # dilation's border (below every value) adds nothing where the whole image has zeros: the same mask
+    h, w = fp.shape
+    box = (slice(max(int(rows[0]) - r, 0), min(int(rows[-1]) + r + 1, h)),
+           slice(max(int(cols[0]) - r, 0), min(int(cols[-1]) + r + 1, w)))
+    out[box] = cv2.dilate(fp[box].view(np.uint8), _disk(r)) > 0
+    return out
 
 
 def _box(mask: np.ndarray, topview: Any) -> tuple[slice, slice] | None:

@@ -27,8 +27,12 @@ from layerwatch.analysis.frame_quality import (
     grey_of,
 )
 from layerwatch.analysis.result import LayerResult
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.roi import bed_roi
+from layerwatch.geometry.topview import TopView
 from layerwatch.monitor.camera_checks import LateCheck, LateStream, MarkerWatch, lag_checkable
 from layerwatch.monitor.printers.replies import RateLimitedLog
+from layerwatch.pipeline.checks import print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.policy import PolicySettings
 
 __all__ = ["CAMERA_FAULT", "FrameChecks"]
@@ -37,6 +41,26 @@ __all__ = ["CAMERA_FAULT", "FrameChecks"]
 CAMERA_FAULT = "camera_fault"
 
 log = logging.getLogger("layerwatch.monitor")
+
+#: a region of interest that covers at least this share of the frame is not used (the whole frame is judged)
+ROI_MOST = 0.9
+
+
+def _roi_source(pipeline: Any) -> tuple[CameraModel, TopView, float, tuple[float, float, float, float] | None] | None:
+    """The posed camera, observed square, print's top (mm) and reach (bed mm) of a job's pipeline, or None when one
+    of the first three is missing.
+
+    ``pipeline``: a :class:`~layerwatch.pipeline.step.LayerPipeline`, or a farm's pool pipeline (its ``local`` one),
+    possibly inside an image store's wrapper.
+    """
+    cam, topview = getattr(pipeline, "camera", None), getattr(pipeline, "topview", None)
+    toolpath = getattr(pipeline, "toolpath", None)
+    if toolpath is None:
+        toolpath = getattr(getattr(pipeline, "local", None), "toolpath", None)
+    if not isinstance(cam, CameraModel) or not cam.has_pose or not isinstance(topview, TopView) or toolpath is None:
+        return None
+    top = print_top_z_mm(toolpath)
+    return (cam, topview, top, print_reach_mm(toolpath)) if top is not None and np.isfinite(top) else None
 
 
 class FrameChecks:
@@ -65,6 +89,10 @@ class FrameChecks:
                         if self.frame_quality is not None else None)
         self.late_stream = LateStream(after_n)
         self.lag_checks = self.frame_quality is not None and lag_checkable(pipeline)
+        #: what the region of interest is computed from (camera, observed square, print's top and reach), None: the
+        #: whole frame
+        self._roi_of = _roi_source(pipeline) if self.frame_quality is not None and self.frame_quality.roi else None
+        self._roi: dict[tuple[int, int], tuple[slice, slice] | None] = {}
 
     def gate(self, layer: int, z: float, photo: np.ndarray) -> LayerResult | None:
         """The camera-fault gate: a ``camera_fault`` record for a frame unfit for analysis, else None.
@@ -75,8 +103,9 @@ class FrameChecks:
             return None
         try:
             grey = grey_of(photo)  # converted once: the gate's checks, the markers and the next frame's "previous"
+            box = self.roi(grey.shape)
             small = compact_previous(grey)  # reduced once: the gate's and, if it passes, the next frame's previous
-            quality = assess_frame(grey, self.last_good, self.frame_quality, small=small,
+            quality = assess_frame(grey, self.last_good, self.frame_quality, small=small, box=box,
                                    **self.marker_positions(grey))
         except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
             log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", layer)
@@ -87,6 +116,27 @@ class FrameChecks:
         res = LayerResult(layer=layer, z=z, status=CAMERA_FAULT, message="unusable frame: " + "; ".join(quality.reasons))
         res.frame_quality = {k: round(float(v), 3) for k, v in quality.figures.items()}
         return res
+
+    def roi(self, shape: tuple[int, ...]) -> tuple[slice, slice] | None:
+        """The gate's region of interest in frames of ``shape`` (:func:`~layerwatch.geometry.roi.bed_roi`, computed once
+        per frame size), or None: the whole frame (``[frame_quality] roi`` off, no posed camera, or a box that is
+        most of the frame anyway)."""
+        if self._roi_of is None:
+            return None
+        key = (int(shape[1]), int(shape[0]))
+        if key not in self._roi:
+            camera, topview, top_z, reach = self._roi_of
+            try:
+                extra = self.markers.expected_px(key) if self.markers is not None else None
+                box = bed_roi(camera, topview, top_z, key, extra, reach)
+            except Exception as exc:  # noqa: BLE001 - no region of interest rather than no gate
+                self.warn.warning("roi", "camera-fault gate on the whole frame: %s: %s", type(exc).__name__, exc)
+                box = None
+            if box is not None:
+                area = (box[0].stop - box[0].start) * (box[1].stop - box[1].start)
+                box = box if area < ROI_MOST * key[0] * key[1] else None
+            self._roi[key] = box
+        return self._roi[key]
 
     def marker_positions(self, photo: np.ndarray) -> dict[str, np.ndarray]:
         """Detected and expected bed markers for the gate (empty without a marker calibration); ``photo`` BGR or grey."""

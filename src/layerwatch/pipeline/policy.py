@@ -185,8 +185,9 @@ class PolicySettings(Section):
     pause_ratio : float
         a% limit as a fraction in [0, 1] (default 0.10; recommended 0.025).
     min_area_mm2 : float
-        Fresh anomalous area the ratio rule also needs, mm^2 (a small footprint
-        crosses any ratio with two or three 1.44 mm^2 blocks).
+        Fresh anomalous area the ratio rule also needs, mm^2: the anomalous blocks' whole
+        tiles, whatever S_A counts of them (a small footprint crosses any ratio with two
+        or three 1.44 mm^2 blocks; :func:`layer_alarm`).
     consecutive_layers : int
         Alarmed layers in a row before ``action``.
     strong_outside_area_mm2 : float
@@ -312,6 +313,7 @@ class PausePolicy:
         self._last_ratio = 0.0
         self._acked_ratio = 0.0
         self._fresh_area = 0.0
+        self._fresh_evidence = 0.0
         self._out_streak = 0
         self._prev_outside: list[Region] = []
         self._last_outside: list[Region] = []
@@ -431,7 +433,7 @@ class PausePolicy:
         prev, self._prev_regions = self._prev_regions, regions
         # after a resume, anomaly the operator accepted must grow before it counts again
         limit = max(s.pause_ratio, self._acked_ratio * s.growth_ratio)
-        alarm = layer_alarm(ratio, self._fresh_area, s, limit)
+        alarm = layer_alarm(ratio, self._fresh_evidence, s, limit)
         self._streak = self._streak + 1 if alarm else 0
         outside_regions, outside_area = self._outside(result)
         kind_stop, kind_warn = self._kinds(regions, layer)
@@ -544,13 +546,16 @@ class PausePolicy:
     def _fresh_ratio(self, result: LayerResult, regions: list[Region]) -> tuple[float, float]:
         """a% and outside area of the anomaly the operator has not acknowledged (``regions`` are the fresh ones).
 
-        Also remembers the fresh anomalous area (``_fresh_area``, mm^2) and the diffuse
-        anomaly not explained by regions (``_last_ratio``, for :meth:`acknowledge`).
+        Also remembers the fresh anomalous area (``_fresh_area``, mm^2), the fresh image area
+        showing it (``_fresh_evidence``: S_A plus the tiles' share S_A leaves out, mm^2; what the
+        minimum-area test asks, :func:`layer_alarm`) and the diffuse anomaly not explained by
+        regions (``_last_ratio``, for :meth:`acknowledge`).
         """
         self._last_regions = [r for r in result.regions if not self._ignored(r)]
         acked_area = sum(r.area_mm2 for r in result.regions if r not in regions)
         printed = result.printed_area_mm2
         self._fresh_area = max(result.anomalous_area_mm2 - acked_area, 0.0)
+        self._fresh_evidence = max(result.anomalous_area_mm2 + result.uncounted_mm2 - acked_area, 0.0)
         if printed and printed > 0:
             ratio = self._fresh_area / printed
             self._last_ratio = max(result.anomalous_area_mm2 - sum(r.area_mm2 for r in result.regions), 0.0) / printed
@@ -590,6 +595,13 @@ def layer_alarm(ratio: float, area_mm2: float, settings: PolicySettings, limit: 
     failure the targets name is 5 mm across (about 20 mm^2), and the default
     5 mm^2 is a quarter of it, above the 1-3 blocks (up to 4.3 mm^2) that fire
     on a clean small footprint (docs/evaluation/parts/README.md, session 11).
+    That area is the anomalous blocks' whole tiles (S_A plus
+    :attr:`~layerwatch.analysis.result.LayerResult.uncounted_mm2`), whatever
+    ``[analysis] anomalous_area`` lets S_A count of them: the test asks for
+    more blocks than noise raises, and with ``"printed"`` an object larger
+    than a small part's top shows mostly beside it (a 6 mm object on a 4.6 mm
+    cylinder: a% 3-4.5 % on seven layers, its printed share 4.4-5.8 mm^2, its
+    tiles 10-11.5 mm^2; ``tests/evaluate/test_object_cancel.py``).
     The evaluation counts its single-layer alarms with this same test.
 
     Parameters
@@ -597,7 +609,7 @@ def layer_alarm(ratio: float, area_mm2: float, settings: PolicySettings, limit: 
     ratio : float
         a% of the layer, fraction of the printed area (0-1).
     area_mm2 : float
-        Anomalous area behind it, mm^2.
+        Anomalous image area behind it (the anomalous blocks' tiles), mm^2.
     settings : PolicySettings
     limit : float, optional
         The a% limit, fraction; ``settings.pause_ratio`` when None (the policy raises it after a resume).

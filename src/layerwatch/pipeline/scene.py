@@ -18,6 +18,13 @@ camera view (working resolution, :mod:`layerwatch.analysis.scene_change`):
   ratio (exposure, white balance, flicker, a light that moved) and noise:
   changed blocks there are the *outside anomaly* (strands, objects, a part
   that moved or detached), on the bed and on the part's lower floors.
+  The photometric fit takes the pixels with no clipped channel; the change
+  blocks judge a pixel with one or two clipped channels on what the clipping
+  leaves known (:func:`~layerwatch.analysis.scene_change.change_blocks`), so
+  a lit orange floor whose red channel clipped is still judged. ``E`` keeps
+  which of its channels were clipped (:attr:`SceneModel.clipped`: it is kept
+  in its own photometric frame, where a clipped 255 divided by a gain above 1
+  would read as a known value). White glare is not judged.
   Inside ``M_k`` the paper's HOG comparison with the rendered reference
   judges, as before. Walls are not scored: their faces change with every
   move of the light (on the simulator, also with the part's height, by more
@@ -112,6 +119,12 @@ def _saturated(img: np.ndarray) -> np.ndarray:
     """Pixels with a channel at or above :data:`SATURATED`, bool (h, w) (one ``cv2.inRange`` pass)."""
     lo, hi = (-np.inf,) * img.shape[2], (_BELOW_SATURATED,) * img.shape[2]
     return cv2.inRange(img, lo, hi) == 0
+
+
+def _white(img: np.ndarray) -> np.ndarray:
+    """Pixels with every channel at or above :data:`SATURATED` (white glare), bool (h, w) (one ``cv2.inRange``)."""
+    lo, hi = (float(SATURATED),) * img.shape[2], (np.inf,) * img.shape[2]
+    return cv2.inRange(img, lo, hi) > 0
 
 
 def _box(mask: np.ndarray) -> tuple[slice, slice]:
@@ -277,12 +290,15 @@ class _AckPatch:
         The pixels in it.
     values : ndarray, float32, shape (k, 3)
         The accepted photo in ``E``'s photometric frame at those pixels.
+    clipped : ndarray, bool, shape (k, 3)
+        Its channels the camera clipped there (:attr:`SceneModel.clipped`).
     """
 
     rows: slice
     cols: slice
     where: np.ndarray
     values: np.ndarray
+    clipped: np.ndarray
 
 
 class SceneModel:
@@ -348,6 +364,10 @@ class SceneModel:
     def reset(self, bed_photo: np.ndarray | None = None) -> None:
         """Start a new print: ``E`` is the bed photo when given, else the next accepted photo."""
         self.expected: np.ndarray | None = None
+        #: the channels of ``E`` that the camera clipped in the photo they came from (bool, shape of ``E``):
+        #: their value is only a lower bound (``E`` is kept in its own photometric frame, so a clipped
+        #: 255 divided by a gain above 1 no longer reads as clipped)
+        self.clipped: np.ndarray | None = None
         self.baseline = ""
         self.last_layer = -1
         #: the printed body seen so far (``P``) and its ledges, on :attr:`reach_box` (nowhere else), and the
@@ -360,6 +380,7 @@ class SceneModel:
         self._ack: _AckPatch | None = None
         if bed_photo is not None:
             self.expected = self._crop(to_working(check_bed_photo(bed_photo, self.camera), self.size))
+            self.clipped = self.expected >= SATURATED
             self.baseline = "bed photo"
 
     def _crop(self, image: np.ndarray) -> np.ndarray:
@@ -375,6 +396,13 @@ class SceneModel:
         assert self.expected is not None
         full = np.zeros((self.size[1], self.size[0], 3), np.float32)
         full[self.box] = self.expected
+        return full
+
+    def _clipped_full(self) -> np.ndarray:
+        """:attr:`clipped` as a working-size bool mask (h, w, 3), False outside :attr:`box`."""
+        assert self.clipped is not None
+        full = np.zeros((self.size[1], self.size[0], 3), bool)
+        full[self.box] = self.clipped
         return full
 
     def _full(self, mask: np.ndarray) -> np.ndarray:
@@ -409,7 +437,7 @@ class SceneModel:
             if obs.rejected and self.baseline == "bed photo" and not self._confirmed:
                 obs.note = (f"the bed photo does not match this camera view ({obs.rejected}); "
                             "the first photo is the baseline instead")
-                self.expected, self.baseline = None, ""
+                self.expected, self.clipped, self.baseline = None, None, ""
                 obs.predicted = obs.change = None
                 obs.image = to_working(photo, self.size)
                 obs.baseline, obs.rejected = "", self._unusable_baseline(obs.image)
@@ -418,7 +446,7 @@ class SceneModel:
                 if self._rejections >= REBASE_AFTER:
                     obs.note = (f"{self._rejections} frames in a row did not match the scene: the current view "
                                 "is the new baseline (camera moved?)")
-                    self.expected, self.baseline, obs.baseline = None, "", ""
+                    self.expected, self.clipped, self.baseline, obs.baseline = None, None, "", ""
                     obs.predicted = obs.change = None
                     obs.image = to_working(photo, self.size)
                     obs.rejected = self._unusable_baseline(obs.image)
@@ -467,9 +495,16 @@ class SceneModel:
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
-        usable = np.zeros(self.observed.shape, bool)  # (nothing outside the box is observed)
+        # (nothing outside the box is observed): the fit needs every channel; the change blocks judge a
+        # pixel with a clipped channel on what the clipping leaves known (a bright orange floor's red channel
+        # clips under a lamp, its green and blue still show an object), all but white glare
+        usable, scored = np.zeros(self.observed.shape, bool), np.zeros(self.observed.shape, bool)
         b = self.box
-        usable[b] = self.observed[b] & ~predicted[b] & ~walls[b] & ~_saturated(img[b]) & ~_saturated(E[b])
+        assert self.clipped is not None
+        scored[b] = self.observed[b] & ~predicted[b] & ~walls[b]
+        c = self.clipped  # (element-wise: numpy's reduction over a 3-long axis is slow)
+        usable[b] = scored[b] & ~_saturated(img[b]) & ~(c[..., 0] | c[..., 1] | c[..., 2])
+        scored[b] &= ~_white(img[b]) & ~(c[..., 0] & c[..., 1] & c[..., 2])
         if self.baseline == "bed photo" and not self._confirmed:
             shift = self._shift(img, E, usable)
             if shift is not None:
@@ -481,7 +516,7 @@ class SceneModel:
             obs.rejected = (f"the frame does not show the expected scene (photometric gain "
                             f"{', '.join(f'{g:.2f}' for g in obs.gain)}: dark, covered or overexposed?)")
             return
-        obs.change = change_blocks(img, E, usable, obs.ratio, st)
+        obs.change = change_blocks(img, E, scored, obs.ratio, st, expected_clipped=self._clipped_full())
         share = obs.change.changed_share
         if share > st.max_changed_share:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "
@@ -519,6 +554,7 @@ class SceneModel:
             total += d
             self.expected = cv2.warpAffine(base, np.array([[1, 0, total[0]], [0, 1, total[1]]], np.float32),
                                            base.shape[1::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            self.clipped = self.expected >= SATURATED
             E = self._expected_full()
         if total.any():
             obs.note = f"bed photo moved onto this camera view by ({total[0]:.2f}, {total[1]:.2f}) working px"
@@ -535,6 +571,7 @@ class SceneModel:
         self._ack = None
         if self.expected is None:
             self.expected, self.baseline = self._crop(obs.image), "first photo"
+            self.clipped = self.expected >= SATURATED
         elif obs.body is not None:
             assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
             take = (obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs))[self.box]
@@ -543,6 +580,8 @@ class SceneModel:
             img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
             np.copyto(self.expected[rows, cols], self._in_expected_frame(obs, img_box),
                       where=take[rows, cols][..., None])
+            assert self.clipped is not None
+            np.copyto(self.clipped[rows, cols], obs.image[img_box] >= SATURATED, where=take[rows, cols][..., None])
             self._ack = self._ack_patch(obs)
             self._confirmed = True
             self.body, self.ledges = obs.body[self.reach_box].copy(), obs.ledges[self.reach_box].copy()
@@ -583,7 +622,8 @@ class SceneModel:
         r0, c0 = self.box[0].start, self.box[1].start
         img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
         where = px[rows, cols]
-        return _AckPatch(rows, cols, where, self._in_expected_frame(obs, img_box)[where])
+        return _AckPatch(rows, cols, where, self._in_expected_frame(obs, img_box)[where],
+                         obs.image[img_box][where] >= SATURATED)
 
     def acknowledge(self) -> int:
         """The operator accepted what changed: ``E`` takes the last accepted photo on its changed blocks.
@@ -597,6 +637,8 @@ class SceneModel:
         if patch is None or self.expected is None:
             return 0
         self.expected[patch.rows, patch.cols][patch.where] = patch.values
+        if self.clipped is not None:
+            self.clipped[patch.rows, patch.cols][patch.where] = patch.clipped
         return int(patch.where.sum())
 
     # ------------------------------------------------------------ reporting
