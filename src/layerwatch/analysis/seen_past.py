@@ -30,6 +30,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from layerwatch.analysis.failure_typing import fill_holes
 from layerwatch.analysis.scene_change import top_coords
 from layerwatch.geometry.topview import TopView
 
@@ -67,11 +68,7 @@ def outline_of(footprint: np.ndarray, topview: TopView, close_mm: float = CLOSE_
     fp = np.asarray(footprint, np.uint8)
     pad = k + 1  # closing near the border of the view: pad so that the dilation does not clip
     big = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    closed = cv2.morphologyEx(big, cv2.MORPH_CLOSE, se)
-    flood = closed.copy()
-    mask = np.zeros((flood.shape[0] + 2, flood.shape[1] + 2), np.uint8)
-    cv2.floodFill(flood, mask, (0, 0), 2)  # the outside: reachable from the (padded) border
-    return (flood != 2)[pad:-pad, pad:-pad]
+    return fill_holes(cv2.morphologyEx(big, cv2.MORPH_CLOSE, se))[pad:-pad, pad:-pad]
 
 
 def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: float,
