@@ -252,3 +252,12 @@ def test_median_and_percentile_from_one_partition_are_numpys():
         for v in (rng.normal(0, 2, n), np.abs(rng.standard_cauchy(n)), rng.integers(0, 4, n).astype(np.float64)):
             for q in (99.9, 50.0, 0.0, 100.0):
                 assert _median_and_percentile(v.copy(), q) == (float(np.median(v)), float(np.percentile(v, q)))
+
+
+def test_a_region_of_interest_without_pixels_is_refused_in_one_line():
+    """The box is the caller's (``FrameChecks.roi`` from :func:`~layerwatch.geometry.roi.bed_roi`): an empty one is a
+    bug there, refused with the frame's size named, never a gate verdict on no pixels."""
+    grey = _scene().astype(np.uint8)
+    with pytest.raises(ValueError, match=r"holds no pixel of the 480x360 frame"):
+        assess_frame(grey, box=(slice(0, 0), slice(0, 100)))
+    assert assess_frame(grey, box=(slice(48, 336), slice(48, 432))).figures["noise"] > 0
