@@ -215,6 +215,10 @@ class LayerPipeline:
                              if self.config.layer_change.enabled else None)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
+        #: the references of the layer :meth:`process` analysed last and of the one before it, kept past the
+        #: memo (:meth:`reference`): ``(layer, image, footprint bits, z)``
+        self._own: tuple[int, np.ndarray, np.ndarray, float] | None = None
+        self._kept: tuple[int, np.ndarray, np.ndarray, float] | None = None
         self._cache = None
         self._hash = None
         if cache_dir is not None:
@@ -240,6 +244,15 @@ class LayerPipeline:
     def reference(self, index: int) -> Reference:
         """The (memoised) reference of layer ``index``.
 
+        Besides the memo, the pipeline keeps the image and footprint (as bits, ~0.4 MB at 600 x 600 px) of
+        the layer :meth:`process` analysed last and of the one before it (:meth:`forget_references` drops
+        the older): the monitor's lag check asks for layer ``k - 1`` right after the photo of layer ``k``,
+        and a farm pipeline (one reference memoised, forgotten once the layer is recorded) rendered it
+        again, from the first layer, as the renderer only moves up (a lower layer resets its stack): a
+        cost that grows with the print's height (~33 ms at layer 20 of the example part). A kept layer
+        is the image its render gave, with its HOG computed again (the same function of the same image):
+        the same :class:`Reference`, array for array (``tests/render/test_kept_reference.py``).
+
         Raises
         ------
         RenderError
@@ -252,12 +265,18 @@ class LayerPipeline:
         if hit is not None:
             self._memo.move_to_end(index)
             return hit
-        r = self._render(index)
-        z = self.toolpath.layers[index].z
-        image = r.image
-        if self.match_camera:
-            image = camera_matched(image, self.camera, self.topview, z)
-        ref = Reference(image, r.mask, z, reference_hog(image, self.config.analysis))
+        kept = next((k for k in (self._own, self._kept) if k is not None and k[0] == index), None)
+        if kept is not None:  # a layer analysed on this or the previous photo, past the memo (docstring)
+            _, image, bits, z = kept
+            footprint = np.unpackbits(bits, count=image.size).view(bool).reshape(image.shape)
+            ref = Reference(image.copy(), footprint, z, reference_hog(image, self.config.analysis))
+        else:
+            r = self._render(index)
+            z = self.toolpath.layers[index].z
+            image = r.image
+            if self.match_camera:
+                image = camera_matched(image, self.camera, self.topview, z)
+            ref = Reference(image, r.mask, z, reference_hog(image, self.config.analysis))
         self._memo[index] = ref
         while len(self._memo) > self._memo_size:
             self._memo.popitem(last=False)
@@ -283,6 +302,7 @@ class LayerPipeline:
         if self.layer_change is not None:
             self.layer_change.toolpath = toolpath
         self._memo.clear()
+        self._own = self._kept = None
         if self._cache is not None:
             self._hash = toolpath_hash(toolpath)
 
@@ -290,9 +310,19 @@ class LayerPipeline:
         """Drop the memoised references (the renderer keeps its layer stack: the next layer stays incremental).
 
         A farm printer calls it once a layer is recorded: the next photo is of another layer, so
-        the reference would only be held (about 1.1 MB at 600 x 600 px), never used.
+        the reference would only be held (about 1.1 MB at 600 x 600 px), never used. The image and
+        footprint bits of the layer analysed last stay (~0.4 MB, :meth:`reference`): the next photo's
+        lag check may ask for that layer.
         """
         self._memo.clear()
+        self._kept = None
+
+    def _keep(self, index: int, ref: Reference) -> None:
+        """Keep the reference of the layer analysed now past the memo; the one analysed before moves down."""
+        if self._own is not None and self._own[0] == index:
+            return
+        self._kept = self._own
+        self._own = (index, ref.image.copy(), np.packbits(np.asarray(ref.footprint, bool), axis=None), ref.z)
 
     def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
         """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
@@ -403,6 +433,7 @@ class LayerPipeline:
             if reason is not None:
                 return self._error(base, f"frame rejected: {reason}", timings, t0)
             ref = self.reference(int(layer_index))
+            self._keep(index, ref)
             obs = None
             if self.scene is not None:
                 obs = self.scene.observe(photo, index, self.footprint)
