@@ -209,3 +209,35 @@ def test_a_lookup_rebuilt_after_clear_is_the_fresh_one_with_its_kept_fold_back_m
         assert np.array_equal(again, fresh) and np.array_equal(first, fresh)
         far = (fresh[..., 0] == -1.0e4).sum()
         assert far < fresh.shape[0] * fresh.shape[1] and (far > 0) == (dist[0] == -0.5)  # the strong lens folds
+
+
+@pytest.mark.parametrize("dist", [(-0.08, 0.02, 0.0, 0.0, 0.0), (-0.5, 0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0, 0.0)])
+def test_tables_from_the_lookup_crop_kept_past_clear_are_the_whole_lookups(topview, dist):
+    """A farm printer's warper drops its lookup after every layer (clear(lookups=True)) but keeps the crop that the
+    planes' warps read: every table it makes from that crop (layers rising, a plane above the crop's reach, a
+    restart at the bed, the lag check's lower plane, a box) is a fresh warper's, bit for bit, and the lookup is
+    built whole only when a plane reads beyond the crop."""
+    cam = posed_camera(dist=dist)
+    size = tuple(cam.image_size)
+    warper = TopViewWarper(cam, topview)
+    built = []
+    real = warper._lookup
+    warper._lookup = lambda s: (built.append(s) if s not in warper._lookups else None, real(s))[1]  # type: ignore[method-assign]
+    heights = [*np.arange(0.2, 12.0, 0.3), 30.0, 30.3, 0.2, 0.5]
+    for z in heights:
+        for zz in (z, max(z - 0.3, 0.0)):  # the layer's plane, then the lag check's plane of the layer below
+            got, want = warper.maps(zz, size), TopViewWarper(cam, topview).maps(zz, size)
+            for a, b in zip(got, want, strict=True):
+                assert np.array_equal(a, b), (z, zz)
+        box = (slice(200, 320), slice(150, 420))
+        photo = np.random.default_rng(int(z * 10)).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+        warper.clear()
+        got, want = warper.warp(photo, z, box), TopViewWarper(cam, topview).warp(photo, z, box)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        warper.clear(lookups=True)
+        assert size not in warper._lookups and size in warper._crops
+    # whole at the first plane and again every ~5 mm of rise, at 30 mm and at the restart
+    assert 2 <= len(built) <= 6, built
+    rows, cols, crop, _, _ = warper._crops[size]
+    whole = TopViewWarper(cam, topview)._lookup(size)[2]
+    assert crop.nbytes < 0.6 * whole.nbytes  # the crop is what a printer holds, not the whole lookup
