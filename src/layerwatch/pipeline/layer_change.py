@@ -42,7 +42,8 @@ from layerwatch.analysis.layer_change import (
     window_change,
 )
 from layerwatch.analysis.result import LayerChangeStats, LayerResult
-from layerwatch.analysis.scene_change import predicted_change
+from layerwatch.analysis.scene_change import predicted_change, top_coords
+from layerwatch.analysis.wall_runs import wall_top, wall_verdict
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
@@ -126,6 +127,11 @@ class LayerChange:
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
+        if st.wall_run_mm > 0:  # a perimeter pixel counts only in a run along the wall
+            walls = predicted_change(wall_top(self.toolpath, index, self.topview), np.array([z]), maps, self.topview, 0.0)
+            tx, ty = top_coords(maps, z)
+            ppm = self.topview.px_per_mm
+            change.unchanged = wall_verdict(change, surface, walls, shift, (tx / ppm, ty / ppm), st)
         stats.judged, stats.noise = True, round(change.noise, 4)
         stats.px_judged, stats.px_unchanged = int(change.judged.sum()), int(change.unchanged.sum())
         if stats.px_unchanged > MAX_UNCHANGED_SHARE * stats.px_judged:
