@@ -19,7 +19,7 @@ pixels at its onset are often seen a fraction of a pixel off and correlate
 at 0.7-0.8 only), and a perimeter pixel is unchanged only when its connected
 run of such pixels (bridged over ``WALL_BRIDGE_PX``) is at least
 ``wall_run_mm`` long on the layer's plane (:func:`wall_runs`: the run's
-length from the spread of its pixels' bed coordinates). Off the perimeters
+length: the extent of its pixels' bed coordinates along their principal axis). Off the perimeters
 (infill) the channel's own verdict stands. The silhouette rule
 (:func:`~layerwatch.analysis.layer_change.drop_edge_slivers`) applies to the
 candidates as to the channel's own verdict (with the footprint going on for
@@ -36,7 +36,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from layerwatch.analysis.layer_change import EDGE_DEPTH, LayerChangeSettings, WindowChange, drop_edge_slivers
+from layerwatch.analysis.layer_change import (
+    EDGE_DEPTH,
+    LayerChangeSettings,
+    WindowChange,
+    drop_edge_slivers,
+)
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 
