@@ -62,29 +62,29 @@ def _verdict(stays: slice | None, black_before: bool = False, **kw: float) -> tu
 
 def test_a_gap_along_the_wall_is_seen_over_its_length():
     gap = slice(120, 170)  # 50 px: 7 mm, the simulator's gaps are 5-10 mm
-    _, runs = _verdict(gap)
-    assert runs is not None
+    own, runs = _verdict(gap)
+    assert own is not None and runs is not None
     inside = np.zeros((H, W), bool)
     inside[WALL[0], gap.start + 6:gap.stop - 6] = True
     outside = np.zeros((H, W), bool)
     outside[WALL] = True
     outside[:, gap.start - 8:gap.stop + 8] = False
     assert runs[inside].mean() > 0.5  # most of the gap's core
-    assert not runs[outside].any()  # the printed wall is not
+    assert not (runs & ~own)[outside].any()  # on the printed wall the runs add nothing to the channel's verdict
 
 
-def test_a_printed_wall_with_no_gap_has_no_run():
+def test_a_printed_wall_with_no_gap_gets_no_run():
     own, runs = _verdict(None)
     assert own is not None and runs is not None
-    assert not runs.any()
+    assert np.array_equal(runs, own)  # nothing added (the channel's own verdict stands)
 
 
 def test_a_short_piece_of_wall_that_stayed_in_place_is_not_a_run():
     # a bead's wobble leaves its silhouette in place here and there (on the example part's clean layers in
     # pieces of about 1.5 mm of unchanged pixels); a gap is 5-10 mm long
     short = slice(200, 204)  # 4 px (0.56 mm) in place: its unchanged pixels, spread by the window, span ~1 mm
-    _, runs = _verdict(short)
-    assert runs is not None and not runs[:, 180:230].any()
+    own, runs = _verdict(short)
+    assert own is not None and runs is not None and not runs[:, 180:230].any()
     _, any_run = _verdict(short, wall_run_mm=0.01)
     assert any_run is not None and any_run[:, 180:230].any()  # the same pixels in a run of any length: the length drops them
 
@@ -139,3 +139,28 @@ def test_wall_top_draws_only_the_perimeters_at_their_widths():
     (u0, v0), (u1, v1) = np.round(tv.to_px(np.array([[30.0, 20.0], [30.0, 40.0]]))).astype(int)
     assert top[v0, u0] and not top[v1, u1]
     assert 3 <= int(top[:, u0].sum()) <= 5  # 0.5 mm at 8 px/mm
+
+
+def test_a_gap_seen_a_fraction_of_a_pixel_off_is_found_by_its_run_not_by_the_pixel_test_alone():
+    # the surface below a missing bead can be seen a fraction of a pixel off its place (session 11's
+    # reading of the held-out misses): the per-pixel threshold (NCC 0.8, margin 0.1) misses it,
+    # the looser one in a run along the wall finds it, and adds nothing on the printed wall
+    gap = slice(120, 170)
+    rng = np.random.default_rng(100)
+    before = _scene(0)
+    after = before.copy()
+    after[WALL] = _shift(before, SHIFT)[WALL]
+    after[WALL[0], gap] = _shift(before, (0.0, 0.7))[WALL[0], gap]
+    b, a = (highpass(np.clip(p + rng.normal(0, 5.0, p.shape), 0, 255).astype(np.uint8)) for p in (before, after))
+    surface, walls, near = _masks()
+    st = LayerChangeSettings(enabled=True)
+    change = window_change(a, b, surface, near, SHIFT, st)
+    assert change is not None
+    own = change.unchanged.copy()
+    runs = wall_verdict(change, surface, walls, SHIFT, COORDS, st)
+    core = (WALL[0], slice(gap.start + 6, gap.stop - 6))
+    assert own[core].mean() < 0.1
+    assert runs[core].mean() > 0.4
+    added = runs & ~own
+    added[:, gap.start - 8:gap.stop + 8] = False
+    assert not added.any()

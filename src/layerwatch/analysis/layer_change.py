@@ -135,9 +135,9 @@ class LayerChangeSettings(Section):
         The twin is also tried shifted by ``1 - twin_tolerance`` of the parallax (an edge
         bead a little wider or displaced toward the camera); the better NCC counts.
     wall_run_mm : float
-        On the G-code's perimeters a pixel is unchanged only in a run along the wall at least
-        this long, mm on the layer's plane (:mod:`layerwatch.analysis.wall_runs`); 0: the
-        perimeters are judged like the rest of the footprint.
+        On the G-code's perimeters a pixel that passes the looser ``wall_min_ncc`` /
+        ``wall_min_gain`` is unchanged too when it lies in a run along the wall at least this
+        long, mm on the layer's plane (:mod:`layerwatch.analysis.wall_runs`); 0: off.
     wall_min_ncc, wall_min_gain : float
         ``min_ncc`` and ``min_gain`` for the perimeter pixels of such runs.
     min_parallax_change : float

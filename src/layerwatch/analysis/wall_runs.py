@@ -14,13 +14,15 @@ layer 16).
 
 So on the G-code's perimeters (:func:`wall_top`, at their bead widths) the
 per-pixel test of :func:`~layerwatch.analysis.layer_change.window_change` is
-read with a looser threshold (``wall_min_ncc``, ``wall_min_gain``: a gap's
-pixels at its onset are often seen a fraction of a pixel off and correlate
-at 0.7-0.8 only), and a perimeter pixel is unchanged only when its connected
-run of such pixels (bridged over ``WALL_BRIDGE_PX``) is at least
-``wall_run_mm`` long on the layer's plane (:func:`wall_runs`: the run's
-length: the extent of its pixels' bed coordinates along their principal axis). Off the perimeters
-(infill) the channel's own verdict stands. The silhouette rule
+also read with a looser threshold (``wall_min_ncc``, ``wall_min_gain``: a
+gap's pixels are often seen a fraction of a pixel off and correlate at 0.7-0.8
+only), and such a perimeter pixel is unchanged too when its connected run of
+such pixels (bridged over ``WALL_BRIDGE_PX``) is at least ``wall_run_mm`` long
+on the layer's plane (:func:`wall_runs`: the run's
+length: the extent of its pixels' bed coordinates along their principal axis). The
+channel's own verdict stands everywhere: the runs only add (requiring the run of the
+channel's own perimeter pixels too dropped print 140 layer 16's clean pieces, but also
+short true detections: held-out seeds 40-45 thin-wall AUROC 0.854 -> 0.832). The silhouette rule
 (:func:`~layerwatch.analysis.layer_change.drop_edge_slivers`) applies to the
 candidates as to the channel's own verdict (with the footprint going on for
 a whole band beyond the band instead, the window part's 1.8 mm walls gave
@@ -149,12 +151,12 @@ def wall_runs(candidates: np.ndarray, walls: np.ndarray, coords_mm: tuple[np.nda
 
 def wall_verdict(change: WindowChange, surface: np.ndarray, walls: np.ndarray, parallax: tuple[float, float],
                  coords_mm: tuple[np.ndarray, np.ndarray], settings: LayerChangeSettings) -> np.ndarray:
-    """The channel's unchanged pixels with the perimeters judged by their runs along the wall (module notes).
+    """The channel's unchanged pixels plus the long runs of looser candidates along the perimeters (module notes).
 
-    Off the perimeters ``change.unchanged`` stands. On them a judged pixel is a
+    ``change.unchanged`` stands. On the perimeters a judged pixel is a
     candidate when ``same >= wall_min_ncc`` and ``same - twin >= wall_min_gain``
     and it is not in a silhouette band (:func:`~layerwatch.analysis.layer_change.drop_edge_slivers`);
-    the candidates in runs of at least ``wall_run_mm`` (:func:`wall_runs`) are unchanged.
+    the candidates in runs of at least ``wall_run_mm`` (:func:`wall_runs`) are added.
 
     Parameters
     ----------
@@ -181,4 +183,4 @@ def wall_verdict(change: WindowChange, surface: np.ndarray, walls: np.ndarray, p
     cand = on & change.judged & (same >= settings.wall_min_ncc) & (same - twin >= settings.wall_min_gain)
     sig = float(settings.window_px)
     cand = drop_edge_slivers(cand, surface, parallax, int(round(2 * sig)), max(1, int(round(EDGE_DEPTH * sig))))
-    return (change.unchanged & ~on) | wall_runs(cand, on, coords_mm, settings.wall_run_mm)
+    return change.unchanged | wall_runs(cand, on, coords_mm, settings.wall_run_mm)
