@@ -7,7 +7,15 @@ import numpy as np
 
 from layerwatch.analysis.extrusion import highpass
 from layerwatch.analysis.layer_change import LayerChangeSettings, window_change
-from layerwatch.analysis.wall_runs import run_lengths, wall_runs, wall_top, wall_verdict
+from layerwatch.analysis.wall_runs import (
+    MIN_RAY_ANGLE_DEG,
+    ray_angles,
+    run_axes,
+    run_lengths,
+    wall_runs,
+    wall_top,
+    wall_verdict,
+)
 from layerwatch.gcode.toolpath import FEATURES
 
 H, W = 200, 320
@@ -15,6 +23,14 @@ MM_PER_PX = 0.14  # the simulator's working image: about 0.14 mm a px on the bed
 SHIFT = (0.0, 1.5)  # one layer's parallax, across the wall (the wall runs along x)
 WALL = (slice(96, 102), slice(40, 280))  # a 6 px (0.84 mm) wall, 240 px (34 mm) long
 COORDS = tuple(np.float64(c) * MM_PER_PX for c in np.mgrid[0:H, 0:W][::-1])  # bed (x, y) mm of each px
+
+
+def _ray(dx: float, dy: float) -> np.ndarray:
+    """Every pixel's ray moving by ``(dx, dy)`` on the bed per mm of height (the camera's line of sight)."""
+    return np.stack([np.full((H, W), dx, np.float32), np.full((H, W), dy, np.float32)])
+
+
+RAY = _ray(0.0, -1.0)  # the parallax (SHIFT) runs along y: the line of sight crosses the wall at 90 deg
 
 
 def _scene(seed: int) -> np.ndarray:
@@ -164,3 +180,52 @@ def test_a_gap_seen_a_fraction_of_a_pixel_off_is_found_by_its_run_not_by_the_pix
     added = runs & ~own
     added[:, gap.start - 8:gap.stop + 8] = False
     assert not added.any()
+
+
+def test_ray_angles_measure_each_run_against_the_line_of_sight():
+    lab = np.zeros((H, W), np.int32)
+    lab[50, 10:61] = 1  # along x
+    lab[60:111, 200] = 2  # along y
+    for k in range(36):
+        lab[100 + k, 100 + k] = 3  # the diagonal
+    length, theta = run_axes(lab, 4, COORDS)
+    assert np.allclose(length[1:3], 50 * MM_PER_PX)
+    along_y = ray_angles(lab, 4, theta, _ray(0.0, 2.0))
+    assert abs(along_y[1] - 90) < 1e-6 and along_y[2] < 1e-6 and abs(along_y[3] - 45) < 1e-3
+    assert np.allclose(ray_angles(lab, 4, theta, _ray(0.0, -2.0))[1:], along_y[1:])  # a direction, not a sense
+    assert np.all(ray_angles(lab, 4, theta, _ray(0.0, 0.0))[1:] == 90)  # straight above: no line of sight to lie along
+
+
+def test_a_run_along_the_line_of_sight_is_not_kept():
+    # along the rays the rise moves a wall's texture along itself: its printed twin looks like the
+    # wall in place (Simplify3D's disc where its outer wall turns along the line of sight)
+    walls = np.zeros((H, W), bool)
+    walls[WALL] = True
+    cand = np.zeros((H, W), bool)
+    cand[97:101, 100:130] = True  # 4.2 mm along x
+    assert wall_runs(cand, walls, COORDS, 2.5, ray=RAY)[cand].all()  # the rays cross it
+    assert not wall_runs(cand, walls, COORDS, 2.5, ray=_ray(1.0, 0.0)).any()  # the rays run along it
+    tilted = _ray(np.cos(np.radians(MIN_RAY_ANGLE_DEG + 2)), np.sin(np.radians(MIN_RAY_ANGLE_DEG + 2)))
+    assert wall_runs(cand, walls, COORDS, 2.5, ray=tilted)[cand].all()  # just across the limit: kept
+    assert not wall_runs(cand, walls, COORDS, 2.5, ray=_ray(np.cos(np.radians(MIN_RAY_ANGLE_DEG - 2)),
+                                                            np.sin(np.radians(MIN_RAY_ANGLE_DEG - 2)))).any()
+    assert wall_runs(cand, walls, COORDS, 2.5, ray=_ray(1.0, 0.0), min_angle_deg=0.0)[cand].all()
+
+
+def test_a_gap_across_the_line_of_sight_is_found_with_the_rays_given():
+    gap = slice(120, 170)
+    surface, walls, near = _masks()
+    rng = np.random.default_rng(100)
+    before = _scene(0)
+    after = before.copy()
+    after[WALL] = _shift(before, SHIFT)[WALL]
+    after[WALL[0], gap] = _shift(before, (0.0, 0.7))[WALL[0], gap]
+    b, a = (highpass(np.clip(p + rng.normal(0, 5.0, p.shape), 0, 255).astype(np.uint8)) for p in (before, after))
+    st = LayerChangeSettings(enabled=True)
+    change = window_change(a, b, surface, near, SHIFT, st)
+    assert change is not None
+    core = (WALL[0], slice(gap.start + 6, gap.stop - 6))
+    assert wall_verdict(change, surface, walls, SHIFT, COORDS, st, RAY)[core].mean() > 0.4
+    # the same pixels, were the camera to look along the wall: only the channel's own verdict
+    along = wall_verdict(change, surface, walls, SHIFT, COORDS, st, _ray(1.0, 0.0))
+    assert np.array_equal(along, change.unchanged)

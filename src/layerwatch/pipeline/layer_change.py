@@ -137,7 +137,7 @@ class LayerChange:
             walls = predicted_change(wall_top(self.toolpath, index, self.topview), np.array([z]), maps, self.topview, 0.0)
             tx, ty = top_coords(maps, z)
             ppm = self.topview.px_per_mm
-            change.unchanged = wall_verdict(change, surface, walls, shift, (tx / ppm, ty / ppm), st)
+            change.unchanged = wall_verdict(change, surface, walls, shift, (tx / ppm, ty / ppm), st, maps[1])
         stats.judged, stats.noise = True, round(change.noise, 4)
         stats.px_judged, stats.px_unchanged = int(change.judged.sum()), int(change.unchanged.sum())
         if stats.px_unchanged > MAX_UNCHANGED_SHARE * stats.px_judged:
