@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.extrusion import highpass
-from layerwatch.analysis.layer_change import LayerChangeSettings, window_change
+from layerwatch.analysis.layer_change import LayerChangeSettings, WindowChange, window_change
 from layerwatch.analysis.wall_runs import (
     MIN_RAY_ANGLE_DEG,
     ray_angles,
@@ -157,21 +157,30 @@ def test_wall_top_draws_only_the_perimeters_at_their_widths():
     assert 3 <= int(top[:, u0].sum()) <= 5  # 0.5 mm at 8 px/mm
 
 
-def test_a_gap_seen_a_fraction_of_a_pixel_off_is_found_by_its_run_not_by_the_pixel_test_alone():
-    # the surface below a missing bead can be seen a fraction of a pixel off its place (session 11's
-    # reading of the held-out misses): the per-pixel threshold (NCC 0.8, margin 0.1) misses it,
-    # the looser one in a run along the wall finds it, and adds nothing on the printed wall
-    gap = slice(120, 170)
+GAP = slice(120, 170)  # 50 px: 7 mm along the wall
+
+
+def _gap_seen_off() -> tuple[WindowChange, np.ndarray, np.ndarray, LayerChangeSettings]:
+    """The channel's comparison of a wall printed on its twin but for :data:`GAP`, whose floor is seen 0.7 px off."""
     rng = np.random.default_rng(100)
     before = _scene(0)
     after = before.copy()
     after[WALL] = _shift(before, SHIFT)[WALL]
-    after[WALL[0], gap] = _shift(before, (0.0, 0.7))[WALL[0], gap]
+    after[WALL[0], GAP] = _shift(before, (0.0, 0.7))[WALL[0], GAP]
     b, a = (highpass(np.clip(p + rng.normal(0, 5.0, p.shape), 0, 255).astype(np.uint8)) for p in (before, after))
     surface, walls, near = _masks()
     st = LayerChangeSettings(enabled=True)
     change = window_change(a, b, surface, near, SHIFT, st)
     assert change is not None
+    return change, surface, walls, st
+
+
+def test_a_gap_seen_a_fraction_of_a_pixel_off_is_found_by_its_run_not_by_the_pixel_test_alone():
+    # the surface below a missing bead can be seen a fraction of a pixel off its place (session 11's
+    # reading of the held-out misses): the per-pixel threshold (NCC 0.8, margin 0.1) misses it,
+    # the looser one in a run along the wall finds it, and adds nothing on the printed wall
+    gap = GAP
+    change, surface, walls, st = _gap_seen_off()
     own = change.unchanged.copy()
     runs = wall_verdict(change, surface, walls, SHIFT, COORDS, st)
     core = (WALL[0], slice(gap.start + 6, gap.stop - 6))
@@ -213,18 +222,8 @@ def test_a_run_along_the_line_of_sight_is_not_kept():
 
 
 def test_a_gap_across_the_line_of_sight_is_found_with_the_rays_given():
-    gap = slice(120, 170)
-    surface, walls, near = _masks()
-    rng = np.random.default_rng(100)
-    before = _scene(0)
-    after = before.copy()
-    after[WALL] = _shift(before, SHIFT)[WALL]
-    after[WALL[0], gap] = _shift(before, (0.0, 0.7))[WALL[0], gap]
-    b, a = (highpass(np.clip(p + rng.normal(0, 5.0, p.shape), 0, 255).astype(np.uint8)) for p in (before, after))
-    st = LayerChangeSettings(enabled=True)
-    change = window_change(a, b, surface, near, SHIFT, st)
-    assert change is not None
-    core = (WALL[0], slice(gap.start + 6, gap.stop - 6))
+    change, surface, walls, st = _gap_seen_off()
+    core = (WALL[0], slice(GAP.start + 6, GAP.stop - 6))
     assert wall_verdict(change, surface, walls, SHIFT, COORDS, st, RAY)[core].mean() > 0.4
     # the same pixels, were the camera to look along the wall: only the channel's own verdict
     along = wall_verdict(change, surface, walls, SHIFT, COORDS, st, _ray(1.0, 0.0))
