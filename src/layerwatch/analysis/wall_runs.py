@@ -43,9 +43,16 @@ lay within 18 deg of the line of sight, 2 of the 67 runs over true gaps did
 (16 and 18 deg). The channel's own verdict stands there as everywhere.
 
 Pixels without a verdict (a black or missing previous photo, flat texture,
-or a window that took its texture from what the previous photo saw past the
-part: :mod:`layerwatch.analysis.seen_past`, removed from ``change.judged``
-before the runs) are never candidates: no run, no region.
+or a window that took a quarter of its texture from what the previous photo
+saw past the part: :mod:`layerwatch.analysis.seen_past`, removed from
+``change.judged`` before the runs) are never candidates: no run, no region.
+Nor, for the looser test, is a pixel whose window took even
+:data:`WALL_BLIND_SHARE` (5 %) of its previous texture from there: the far
+wall rising over a skirt close behind it lands its silhouette where the
+skirt's line was, and at NCC 0.7 a small share of that line is enough
+(Simplify3D 4.1.2's clean layer 13, consecutive photos, prints 101, 103, 104:
+runs of 13-18 mm along the far wall, 21-23 mm^2 where main has 3-8; at a
+share of 0.1 338 of the 454 added pixels are out, at 0.05 435).
 """
 
 from __future__ import annotations
@@ -62,13 +69,16 @@ from layerwatch.analysis.layer_change import (
 from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["MIN_RAY_ANGLE_DEG", "WALL_BRIDGE_PX", "ray_angles", "run_axes", "run_lengths", "wall_runs", "wall_top", "wall_verdict"]
+__all__ = ["MIN_RAY_ANGLE_DEG", "WALL_BLIND_SHARE", "WALL_BRIDGE_PX", "ray_angles", "run_axes", "run_lengths", "wall_runs", "wall_top", "wall_verdict"]
 
 #: candidate pixels this close (working px, square neighbourhood) along a perimeter belong to one run
 WALL_BRIDGE_PX = 1
 #: a run whose axis lies closer than this (degrees) to the horizontal direction of the camera's rays is
 #: not counted: along the line of sight a printed wall's twin looks like the wall in place (module notes)
 MIN_RAY_ANGLE_DEG = 15.0
+#: a perimeter pixel whose window took this share of its previous texture from what the previous photo
+#: saw past the part (:func:`~layerwatch.analysis.seen_past.past_share`) is no candidate (module notes)
+WALL_BLIND_SHARE = 0.05
 _WALLS = tuple(FEATURES.index(n) for n in ("perimeter", "external_perimeter"))
 
 
@@ -213,7 +223,7 @@ def wall_runs(candidates: np.ndarray, walls: np.ndarray, coords_mm: tuple[np.nda
 
 def wall_verdict(change: WindowChange, surface: np.ndarray, walls: np.ndarray, parallax: tuple[float, float],
                  coords_mm: tuple[np.ndarray, np.ndarray], settings: LayerChangeSettings,
-                 ray: np.ndarray | None = None) -> np.ndarray:
+                 ray: np.ndarray | None = None, exclude: np.ndarray | None = None) -> np.ndarray:
     """The channel's unchanged pixels plus the long runs of looser candidates along the perimeters (module notes).
 
     ``change.unchanged`` stands. On the perimeters a judged pixel is a
@@ -240,6 +250,9 @@ def wall_verdict(change: WindowChange, surface: np.ndarray, walls: np.ndarray, p
         Horizontal direction of each pixel's ray (``B`` of
         :func:`~layerwatch.analysis.scene_change.plane_maps`); ``None``: runs along the line of
         sight count too.
+    exclude : ndarray, bool, shape (h, w), optional
+        Pixels that are no candidates (the pipeline: :data:`WALL_BLIND_SHARE` of the window's
+        previous texture seen past the part).
 
     Returns
     -------
@@ -250,6 +263,8 @@ def wall_verdict(change: WindowChange, surface: np.ndarray, walls: np.ndarray, p
         return change.unchanged
     same, twin = change.same, change.twin
     cand = on & change.judged & (same >= settings.wall_min_ncc) & (same - twin >= settings.wall_min_gain)
+    if exclude is not None:
+        cand &= ~exclude
     sig = float(settings.window_px)
     cand = drop_edge_slivers(cand, surface, parallax, int(round(2 * sig)), max(1, int(round(EDGE_DEPTH * sig))))
     return change.unchanged | wall_runs(cand, on, coords_mm, settings.wall_run_mm, ray=ray)
