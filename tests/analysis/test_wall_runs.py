@@ -228,3 +228,17 @@ def test_a_gap_across_the_line_of_sight_is_found_with_the_rays_given():
     # the same pixels, were the camera to look along the wall: only the channel's own verdict
     along = wall_verdict(change, surface, walls, SHIFT, COORDS, st, _ray(1.0, 0.0))
     assert np.array_equal(along, change.unchanged)
+
+
+def test_excluded_pixels_are_no_candidates():
+    # the pipeline excludes the pixels whose window took some of its previous texture from what the
+    # previous photo saw past the part (wall_runs.WALL_BLIND_SHARE)
+    change, surface, walls, st = _gap_seen_off()
+    exclude = np.zeros((H, W), bool)
+    exclude[:, GAP] = True
+    out = wall_verdict(change, surface, walls, SHIFT, COORDS, st, RAY, exclude)
+    assert np.array_equal(out, change.unchanged)
+    half = np.zeros((H, W), bool)
+    half[:, GAP.start:GAP.start + 25] = True  # half the gap out: the other half's run (3.5 mm) stays
+    kept = wall_verdict(change, surface, walls, SHIFT, COORDS, st, RAY, half) & ~change.unchanged
+    assert kept.any() and not kept[half].any()
