@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from layerwatch.analysis.scene_change import predicted_change
-from layerwatch.analysis.seen_past import BLIND_SHARE, outline_of, seen_past
+from layerwatch.analysis.seen_past import BLIND_SHARE, outline_of, past_share, seen_past
 from layerwatch.geometry.topview import TopView
 
 TV = TopView(10.0, 20.0, 20.0, (0.0, 0.0))  # 200 x 200 px, 10 px/mm
@@ -50,6 +50,20 @@ def test_a_skirt_behind_the_far_wall_blinds_the_far_edge_only():
     assert rows.size and rows[0] >= far and rows[-1] <= far + 12  # the far edge, within 4 window sigmas
     assert not blind[far + 20:].any()  # the middle and the camera-facing edge are judged
     assert not (blind & ~surface).any()
+
+
+def test_the_share_seen_past_is_what_the_blind_test_thresholds():
+    fp = _footprint()
+    surface = _surface(fp)
+    far = int(np.flatnonzero(surface.any(axis=1))[0])
+    tex = _texture(slice(far - 4, far + 3))
+    share = past_share(surface, fp, Z, Z_BEFORE, MAPS, TV, tex, NOISE)
+    assert np.array_equal(share >= BLIND_SHARE, seen_past(surface, fp, Z, Z_BEFORE, MAPS, TV, tex, NOISE))
+    valid = share >= 0
+    assert valid.any() and not (valid & ~surface).any() and share.max() <= 1.0
+    # a lower share reaches further into the top than the blind band: what the wall runs keep out
+    assert (share >= 0.05).sum() > (share >= BLIND_SHARE).sum()
+    assert (past_share(surface, fp, Z, Z, MAPS, TV, tex, NOISE) == -1).all()  # no rise: nothing seen past
 
 
 def test_a_plain_bed_behind_the_far_wall_blinds_nothing():

@@ -134,6 +134,12 @@ class LayerChangeSettings(Section):
     twin_tolerance : float
         The twin is also tried shifted by ``1 - twin_tolerance`` of the parallax (an edge
         bead a little wider or displaced toward the camera); the better NCC counts.
+    wall_run_mm : float
+        On the G-code's perimeters a pixel that passes the looser ``wall_min_ncc`` /
+        ``wall_min_gain`` is unchanged too when it lies in a run along the wall at least this
+        long, mm on the layer's plane (:mod:`layerwatch.analysis.wall_runs`); 0: off.
+    wall_min_ncc, wall_min_gain : float
+        ``min_ncc`` and ``min_gain`` for the perimeter pixels of such runs.
     min_parallax_change : float
         ``1 - NCC`` of the previous texture with itself shifted by the parallax that a
         pixel's window needs to be judged (below it the twin test cannot decide).
@@ -150,6 +156,9 @@ class LayerChangeSettings(Section):
     min_ncc: float = Field(0.8, ge=0, le=1)
     min_gain: float = Field(0.1, ge=0, le=2)
     twin_tolerance: float = Field(0.3, ge=0, lt=1)
+    wall_run_mm: float = Field(2.5, ge=0, le=100)
+    wall_min_ncc: float = Field(0.7, ge=0, le=1)
+    wall_min_gain: float = Field(0.05, ge=0, le=2)
     min_parallax_change: float = Field(0.2, ge=0, le=2)
     min_snr: float = Field(1.0, ge=0, le=100)
     window_px: float = Field(3.0, ge=0.5, le=16)

@@ -34,7 +34,7 @@ from layerwatch.analysis.failure_typing import fill_holes
 from layerwatch.analysis.scene_change import top_coords
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["BLIND_SHARE", "CLOSE_MM", "EDGE_PX", "outline_of", "seen_past"]
+__all__ = ["BLIND_SHARE", "CLOSE_MM", "EDGE_PX", "outline_of", "past_share", "seen_past"]
 
 #: the footprint closed by this (mm), its enclosed areas filled, is the part's outer outline: a
 #: perimeter loop's raster gaps are sealed, sparse infill's cells and holes are inside the part
@@ -69,6 +69,46 @@ def outline_of(footprint: np.ndarray, topview: TopView, close_mm: float = CLOSE_
     pad = k + 1  # closing near the border of the view: pad so that the dilation does not clip
     big = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
     return fill_holes(cv2.morphologyEx(big, cv2.MORPH_CLOSE, se))[pad:-pad, pad:-pad]
+
+
+def past_share(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: float,
+               maps: tuple[np.ndarray, np.ndarray], topview: TopView, previous: np.ndarray,
+               noise: float, min_snr: float = 1.0, window_px: float = 3.0) -> np.ndarray:
+    """Per pixel of the new layer's top, the share of its window's previous texture energy that lay past the part.
+
+    Parameters are those of :func:`seen_past`.
+
+    Returns
+    -------
+    ndarray, float32, shape (h, w)
+        The share (0-1) where the band past the part brings the window more than ``(1 + min_snr)
+        noise`` of texture energy; -1 elsewhere (off ``surface``, too little energy, the part did not
+        rise or nothing lay past it).
+    """
+    out = np.full(surface.shape, -1.0, np.float32)
+    if z_before >= z or not surface.any():
+        return out
+    outline = outline_of(footprint, topview).astype(np.uint8)
+
+    grow = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
+
+    def outside(zp: float) -> np.ndarray:
+        mx, my = top_coords(maps, zp)
+        seen = cv2.remap(outline, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return cv2.dilate(seen, grow) == 0
+
+    # past the part: the ray misses the outer outline at the previous top and on the bed (the
+    # part's own faces and holes are not past it), off the high-pass spread of the part's edges
+    band = outside(float(z_before)) & outside(0.0)
+    if not band.any():
+        return out
+    e = np.asarray(previous, np.float32) ** 2
+    sig = float(window_px)
+    hidden = cv2.GaussianBlur(np.where(band, e, 0).astype(np.float32), (0, 0), sig)
+    total = cv2.GaussianBlur(e, (0, 0), sig)
+    valid = surface & (hidden >= (1.0 + min_snr) * noise)
+    out[valid] = hidden[valid] / (total[valid] + 1e-6)
+    return out
 
 
 def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: float,
@@ -106,25 +146,4 @@ def seen_past(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: fl
     ndarray, bool, shape (h, w)
         Pixels of ``surface`` not to judge; empty when the part did not rise or nothing was hidden.
     """
-    out = np.zeros(surface.shape, bool)
-    if z_before >= z or not surface.any():
-        return out
-    outline = outline_of(footprint, topview).astype(np.uint8)
-
-    grow = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
-
-    def outside(zp: float) -> np.ndarray:
-        mx, my = top_coords(maps, zp)
-        seen = cv2.remap(outline, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return cv2.dilate(seen, grow) == 0
-
-    # past the part: the ray misses the outer outline at the previous top and on the bed (the
-    # part's own faces and holes are not past it), off the high-pass spread of the part's edges
-    band = outside(float(z_before)) & outside(0.0)
-    if not band.any():
-        return out
-    e = np.asarray(previous, np.float32) ** 2
-    sig = float(window_px)
-    hidden = cv2.GaussianBlur(np.where(band, e, 0).astype(np.float32), (0, 0), sig)
-    total = cv2.GaussianBlur(e, (0, 0), sig)
-    return surface & (hidden >= share * (total + 1e-6)) & (hidden >= (1.0 + min_snr) * noise)
+    return past_share(surface, footprint, z, z_before, maps, topview, previous, noise, min_snr, window_px) >= share

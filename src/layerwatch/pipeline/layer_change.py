@@ -42,8 +42,9 @@ from layerwatch.analysis.layer_change import (
     window_change,
 )
 from layerwatch.analysis.result import LayerChangeStats, LayerResult
-from layerwatch.analysis.scene_change import predicted_change
-from layerwatch.analysis.seen_past import seen_past
+from layerwatch.analysis.scene_change import predicted_change, top_coords
+from layerwatch.analysis.seen_past import BLIND_SHARE, past_share
+from layerwatch.analysis.wall_runs import WALL_BLIND_SHARE, wall_top, wall_verdict
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
@@ -127,11 +128,18 @@ class LayerChange:
         if change is None:
             stats.note = "too little texture beside the print to calibrate the noise (dark or blank photo?)"
             return
-        blind = seen_past(surface, fp, z, z_before, maps, self.topview, previous[2], change.noise,
+        past = past_share(surface, fp, z, z_before, maps, self.topview, previous[2], change.noise,
                           st.min_snr, st.window_px)
+        blind = past >= BLIND_SHARE
         if blind.any():  # the previous photo saw past the part there (a skirt behind the far wall): no verdict
             change.judged &= ~blind
             change.unchanged &= ~blind
+        if st.wall_run_mm > 0:  # a perimeter pixel counts only in a run along the wall
+            walls = predicted_change(wall_top(self.toolpath, index, self.topview), np.array([z]), maps, self.topview, 0.0)
+            tx, ty = top_coords(maps, z)
+            ppm = self.topview.px_per_mm
+            change.unchanged = wall_verdict(change, surface, walls, shift, (tx / ppm, ty / ppm), st, maps[1],
+                                            past >= WALL_BLIND_SHARE)
         stats.judged, stats.noise = True, round(change.noise, 4)
         stats.px_judged, stats.px_unchanged = int(change.judged.sum()), int(change.unchanged.sum())
         if stats.px_unchanged > MAX_UNCHANGED_SHARE * stats.px_judged:

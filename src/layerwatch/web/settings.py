@@ -88,7 +88,8 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "extrusion.still_share": (0.0, 1.0, ""),
     "layer_change.min_area_mm2": (0.0, 2500.0, "mm^2"), "layer_change.min_ncc": (0.0, 1.0, "(NCC)"),
     "layer_change.min_gain": (0.0, 2.0, "(NCC)"), "layer_change.min_parallax_change": (0.0, 2.0, "(1 - NCC)"),
-    "layer_change.twin_tolerance": (0.0, 0.99, ""),
+    "layer_change.twin_tolerance": (0.0, 0.99, ""), "layer_change.wall_run_mm": (0.0, 100.0, "mm"),
+    "layer_change.wall_min_ncc": (0.0, 1.0, "(NCC)"), "layer_change.wall_min_gain": (0.0, 2.0, "(NCC)"),
     "layer_change.min_snr": (0.0, 100.0, ""), "layer_change.window_px": (0.5, 16.0, "px"),
     "layer_change.block_px": (2, 64, "px"),
 }
