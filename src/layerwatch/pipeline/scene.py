@@ -36,7 +36,12 @@ camera view (working resolution, :mod:`layerwatch.analysis.scene_change`):
   keep their old appearance, so a clump that appeared at layer 12 is still
   a change at 13, 14, ... ("a failure that stays, counts") until
   :meth:`SceneModel.acknowledge` (the operator accepted it: ``E`` takes the
-  current photo on the changed blocks). Elsewhere ``E`` is the last
+  current photo on the changed blocks). On a layer whose HOG comparison
+  alarmed, its failing blocks keep ``E``'s old view too although the layer
+  printed there (:meth:`SceneModel.hold_failing`): an object on a small part
+  stays a change on the next layer, when another object of the plate prints
+  and the new footprint does not cover it; those *held* pixels are judged
+  even on the body's walls while they stay changed. Elsewhere ``E`` is the last
   accepted photo (the issue's "photo k must match photo k-1"), which
   follows slow drift (shadows lengthening beside a growing part, a lamp
   warming up); refreshing only blocks far below the threshold left a
@@ -148,11 +153,11 @@ def failing_blocks(res: LayerResult, shape: tuple[int, int]) -> np.ndarray:
     """
     assert res.heatmap is not None and res.grid is not None
     c, b = int(res.grid.cell_px), int(res.grid.block_cells)
-    tiles = block_tiles(anomalous_blocks(res), (int(shape[0]), int(shape[1])), c, b, fill=False).astype(np.uint8)
+    tiles = np.asarray(block_tiles(anomalous_blocks(res), (int(shape[0]), int(shape[1])), c, b, fill=False), np.uint8)
     off = (b - 1) * c // 2
     if off > 0 and tiles.any():
-        tiles = cv2.dilate(tiles, np.ones((2 * off + 1, 2 * off + 1), np.uint8))
-    return tiles.astype(bool)
+        return cv2.dilate(tiles, np.ones((2 * off + 1, 2 * off + 1), np.uint8)) > 0
+    return tiles > 0
 
 
 def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "bed photo") -> np.ndarray:
