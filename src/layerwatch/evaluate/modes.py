@@ -82,12 +82,6 @@ def _box(r: Region, topview: TopView, shape: tuple[int, int]) -> tuple[slice, sl
     return slice(max(vs[0], 0), min(vs[1] + 1, shape[0])), slice(max(us[0], 0), min(us[1] + 1, shape[1]))
 
 
-def _box_mask(r: Region, topview: TopView, shape: tuple[int, int]) -> np.ndarray:
-    out = np.zeros(shape, bool)
-    out[_box(r, topview, shape)] = True
-    return out
-
-
 def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:
     """Top-view pixels the result marks, bool (H, W).
 
@@ -97,9 +91,7 @@ def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:
     instead of its box and of the tiles inside its box. A moved part's outline
     (layer shift, detachment) also stands for the tiles connected to its
     regions' boxes (8-connected): the hysteresis growth of its blocks, which
-    follows the moved part's walls and lower layers beyond the boxes, and for
-    the boxes of the regions beside the print that overlap its regions' boxes
-    (the scene channel's change where the part was: the outline marks it).
+    follows the moved part's walls and lower layers beyond the boxes.
     """
     shape = (int(topview.shape[0]), int(topview.shape[1]))
     out = np.zeros(shape, bool)
@@ -117,7 +109,7 @@ def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:
     for r in outlined:
         out[_box(r, topview, shape)] = False
     for r in res.outside_regions:
-        if not r.outline_mm and not (moved & _box_mask(r, topview, shape)).any():
+        if not r.outline_mm:
             out[_box(r, topview, shape)] = True
     for outline in dict.fromkeys(r.outline_mm for r in outlined):
         out |= outline_mask(outline, topview)
