@@ -19,15 +19,20 @@ from layerwatch.simulate import PrintSimulator, default_camera
 LAYERS = range(6, 13)
 
 
+@pytest.fixture(scope="module")
+def plate(shared_data):
+    """KISSlicer 2.0.6's plate, skipped when the shared data lacks it."""
+    path = shared_data / "gcode" / "kisslicer-2.0.6.gcode"
+    if not path.is_file():
+        pytest.skip("kisslicer-2.0.6.gcode not in the shared data")
+    return read_toolpath(path)
+
+
 def _boxes_overlap(a, b) -> bool:
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 
-def _run(shared_data, failures, seed=20):
-    path = shared_data / "gcode" / "kisslicer-2.0.6.gcode"
-    if not path.is_file():
-        pytest.skip("kisslicer-2.0.6.gcode not in the shared data")
-    tp = read_toolpath(path)
+def _run(tp, failures, seed=20):
     cfg = resolve_config(None, recommended=True, gcode=observed_square(tp.bounds)).config
     cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
     cfg = cfg.for_camera(cam)
@@ -40,7 +45,7 @@ def _run(shared_data, failures, seed=20):
         assert res.status == "ok", res.message
         held = pipe.scene.held is not None if pipe.scene is not None else False
         out.append((res, policy.update(res), held))
-    return tp, cfg, out
+    return cfg, out
 
 
 def _cube_object(tp):
@@ -53,12 +58,10 @@ def _cube_object(tp):
 
 
 @pytest.mark.slow
-def test_an_object_on_a_small_part_still_counts_when_the_next_layer_prints_another_object(shared_data):
-    tp = read_toolpath(shared_data / "gcode" / "kisslicer-2.0.6.gcode") if (
-        shared_data / "gcode" / "kisslicer-2.0.6.gcode").is_file() else pytest.skip("no kisslicer-2.0.6.gcode")
-    obj = _cube_object(tp)
+def test_an_object_on_a_small_part_still_counts_when_the_next_layer_prints_another_object(plate):
+    tp = plate
     assert not _boxes_overlap(tp.layers[9].bounds, tp.layers[8].bounds)  # layer 9 does not cover the cube
-    _, cfg, out = _run(shared_data, (obj,))
+    cfg, out = _run(tp, (_cube_object(tp),))
     by_layer = dict(zip(LAYERS, out, strict=True))
     res8, _, held8 = by_layer[8]
     assert layer_alarm(res8.anomaly_ratio, res8.anomalous_area_mm2 + res8.uncounted_mm2, cfg.policy) and held8
@@ -73,21 +76,17 @@ def test_an_object_on_a_small_part_still_counts_when_the_next_layer_prints_anoth
 
 
 @pytest.mark.slow
-def test_without_keeping_the_old_view_the_object_is_lost_on_the_next_layer(shared_data, monkeypatch):
+def test_without_keeping_the_old_view_the_object_is_lost_on_the_next_layer(plate, monkeypatch):
     """The rule's own effect: the same photos, the scene model taking the cube's failing blocks as expected."""
-    path = shared_data / "gcode" / "kisslicer-2.0.6.gcode"
-    if not path.is_file():
-        pytest.skip("kisslicer-2.0.6.gcode not in the shared data")
     monkeypatch.setattr(SceneModel, "hold_failing", lambda self, obs, failing, z: 0)
-    tp = read_toolpath(path)
-    _, _, out = _run(shared_data, (_cube_object(tp),))
+    _, out = _run(plate, (_cube_object(plate),))
     res9 = dict(zip(LAYERS, out, strict=True))[9][0]
     assert res9.anomaly_ratio == 0.0 and res9.outside_anomalous_mm2 == 0.0
 
 
 @pytest.mark.slow
-def test_a_clean_interleaved_print_holds_nothing_and_never_pauses(shared_data):
-    _, _, out = _run(shared_data, ())
+def test_a_clean_interleaved_print_holds_nothing_and_never_pauses(plate):
+    _, out = _run(plate, ())
     assert not any(held for _, _, held in out)
     assert all(res.outside_anomalous_mm2 == 0.0 for res, _, _ in out), [r.outside_anomalous_mm2 for r, _, _ in out]
     assert not any(d.stops or d.action == "notify" for _, d, _ in out), [d.reason for _, d, _ in out]
