@@ -231,3 +231,34 @@ def test_outside_rule_errors_never_pause_and_acknowledged_change_counts_only_whe
     assert [p.update(_scene(i, 21)).action for i in (6, 7, 8)] == ["none", "none", "none"]
     assert p.update(_scene(9, 40)).action == "notify"
     assert p.update(_scene(10, 41)).stops
+
+
+def test_joint_streak_a_failure_seen_by_the_comparison_then_beside_the_print_in_the_same_place_pauses():
+    """Rule 4b: a% alarms on layer k (the object on a small part that printed), the scene channel's change
+    beside the print on layer k+1 (another object printed): each rule alone has one layer, together two."""
+    s = PolicySettings(pause_ratio=0.025, min_area_mm2=5.0, outside_pause_mm2=12.0, consecutive_layers=2)
+    p = PausePolicy(s)
+    assert p.update(_res(7, 0.0)).action == "none"
+    assert p.update(_res(8, 0.6, [_region(24, 66, 72)])).action == "notify"
+    d = p.update(_scene(9, 99, 67, 71))
+    assert d.stops and "same place for 2 layers" in d.reason and d.regions[0].area_mm2 == 99
+    # the same two layers in different places, or one of them below its own limit, do not
+    q = PausePolicy(s)
+    q.update(_res(8, 0.6, [_region(24, 66, 72)]))
+    assert q.update(_scene(9, 99, 140, 140)).action == "notify"
+    r = PausePolicy(s)
+    r.update(_res(8, 0.02, [_region(24, 66, 72)]))  # a% under pause_ratio: no alarm
+    assert not r.update(_scene(9, 99, 67, 71)).stops
+
+
+def test_joint_streak_is_not_kept_across_a_quiet_layer_nor_after_a_resume():
+    s = PolicySettings(pause_ratio=0.025, outside_pause_mm2=12.0, consecutive_layers=2)
+    p = PausePolicy(s)
+    assert p.update(_res(8, 0.6, [_region(24, 66, 72)])).action == "notify"
+    assert p.update(_res(9, 0.0)).action == "none"
+    assert not p.update(_scene(10, 99, 67, 71)).stops
+    q = PausePolicy(s)
+    q.update(_res(8, 0.6, [_region(24, 66, 72)]))
+    assert q.update(_scene(9, 99, 67, 71)).stops
+    q.acknowledge()
+    assert [q.update(_scene(i, 99, 67, 71)).stops for i in (10, 11, 12)] == [False, False, False]

@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from layerwatch.analysis.failure_kinds import MOVED_KINDS
 from layerwatch.analysis.hog import block_energy, hog_blocks, hog_cell_histograms, normalize_blocks
 from layerwatch.analysis.metrics import similarity, similarity_all
 from layerwatch.analysis.result import BlockGrid, LayerResult, MetricScore, Region
@@ -59,7 +60,7 @@ from layerwatch.geometry.topview import TopView
 
 __all__ = ["analyze_layer", "anomaly_ratio", "block_geometry", "block_hogs", "grey_u8", "grow_regions", "growth_reach",
            "near_footprint", "area_weight", "printed_weight", "reference_hog", "tile_share",
-           "to_grey255", "PART_GAP_MM"]
+           "to_grey255", "moved_uncounted_mm2", "whole_view_score", "PART_GAP_MM"]
 
 #: ``cv2.transform`` row giving ``floor((B + G + R) / 3)`` of uint8 pixels: cv2 rounds
 #: ``s / 3 - 1/3`` to nearest, whose fraction is never near .5 (checked on all 2**24 colours)
@@ -154,6 +155,55 @@ def anomaly_ratio(n_anomalous, tile_mm2: float, printed_mm2: float):
     n = np.asarray(n_anomalous, np.float64)
     out = np.minimum(1.0, n * tile_mm2 / printed_mm2) if printed_mm2 > 0 else np.zeros_like(n)
     return float(out) if out.ndim == 0 else out
+
+
+def moved_uncounted_mm2(res: LayerResult) -> float:
+    """The image area of a moved part's failing blocks that S_A leaves out, mm^2.
+
+    With ``anomalous_area = "printed"`` a block beside the layer's part adds
+    nothing to S_A (:func:`printed_weight`): right for an object or a strand
+    beside a small layer, which the scene channel reports as its own figure,
+    but a part that moved (a layer shift, a detached part: regions typed one of
+    :data:`~layerwatch.analysis.failure_kinds.MOVED_KINDS`) shows *by being
+    beside its footprint*: a 2 mm shift of a 13 mm^2 cube leaves one block
+    beside the footprint and none on it. For those regions the blocks' share
+    beside the part counts: ``area_mm2 * outside_fraction`` of each, at most
+    the layer's :attr:`~layerwatch.analysis.result.LayerResult.uncounted_mm2`
+    (a tile inside the part's closed outline already counts whole).
+
+    Parameters
+    ----------
+    res : LayerResult
+        A typed result (the pipeline's; untyped regions add nothing).
+
+    Returns
+    -------
+    float
+        mm^2, ``0 <= value <= res.uncounted_mm2``.
+    """
+    moved = sum(float(r.area_mm2) * float(r.outside_fraction) for r in res.regions if r.kind in MOVED_KINDS)
+    return float(min(max(moved, 0.0), max(float(res.uncounted_mm2), 0.0)))
+
+
+def whole_view_score(res: LayerResult) -> float:
+    """The layer's whole-view score: a% (eq. 5) plus what it shows beside the printed layer, over ``S_P``.
+
+    ``a% + (outside_anomalous_mm2 + moved_uncounted_mm2) / max(S_P, 1 mm^2)``: the
+    scene channel's change beside the print (issue 18's own figure beside
+    eq. 5) and a moved part's blocks beside its footprint
+    (:func:`moved_uncounted_mm2`); the paper's a% when neither is there. A
+    fraction (may exceed 1); the evaluation ranks layers by it (AUROC).
+
+    Parameters
+    ----------
+    res : LayerResult
+
+    Returns
+    -------
+    float
+    """
+    beside = float(res.outside_anomalous_mm2) + moved_uncounted_mm2(res)
+    return float(res.anomaly_ratio) + beside / max(float(res.printed_area_mm2), 1.0)
 
 
 def _presmoothed(grey: np.ndarray, settings: AnalysisSettings) -> np.ndarray:

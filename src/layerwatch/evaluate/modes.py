@@ -12,8 +12,9 @@ goes through two pipelines when the scene channel is on:
   the empty bed only.
 
 For each mode and photo :func:`mode_score` keeps the *whole-view score*
-(a% of eq. 5 plus the area changed beside the printed layer over the
-printed area), the IoU of what the layer's result marks (HOG blocks below
+(:func:`~layerwatch.analysis.scoring.whole_view_score`: a% of eq. 5 plus the
+area changed beside the printed layer and a moved part's blocks beside its
+footprint, over the printed area), the IoU of what the layer's result marks (HOG blocks below
 T_S and the scene channel's region boxes; a moved part's outline and a
 foreign body's own pixels instead of their regions' blocks) with the simulator's failed
 region, the kind of the region that covers the failure best (the confusion
@@ -32,6 +33,7 @@ from layerwatch.analysis.failure_kinds import FAILURE_KINDS, MOVED_KINDS
 from layerwatch.analysis.overlay import anomalous_blocks, block_tiles
 from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
+from layerwatch.analysis.scoring import whole_view_score
 from layerwatch.evaluate.stats import iou, roc_auc
 from layerwatch.geometry.topview import TopView
 
@@ -50,7 +52,8 @@ class ModeScore:
     Attributes
     ----------
     score : float
-        Whole-view score: a% plus the scene channel's change beside the print over ``S_P``.
+        Whole-view score (:func:`~layerwatch.analysis.scoring.whole_view_score`): a% plus the scene
+        channel's change beside the print and a moved part's blocks beside its footprint, over ``S_P``.
     iou : float or None
         IoU of the marked area with the failed region (failed photos only).
     kind : str
@@ -129,7 +132,7 @@ def mode_score(res: LayerResult, truth: np.ndarray | None, topview: TopView,
     """
     if res.status != "ok":
         return ModeScore(float("nan"), status=res.status)
-    score = float(res.anomaly_ratio) + float(res.outside_anomalous_mm2) / max(float(res.printed_area_mm2), 1.0)
+    score = whole_view_score(res)
     if truth is None:
         return ModeScore(score)
     shape = (int(topview.shape[0]), int(topview.shape[1]))

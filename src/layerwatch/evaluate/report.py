@@ -287,8 +287,9 @@ def _modes(s: Summary, clean_run: dict | None) -> list[str]:
          "print, fed its photos in order, as the monitor runs: the scene channel compares each photo with the "
          "print's own history, the failure typer sees the previous photo's regions) and in **single-photo mode** "
          "(the pipeline forgets the print before every photo: rendered reference and empty-bed photo only). "
-         "The layer score is the whole-view score: a% (eq. 5) plus the area changed beside the printed layer "
-         "over the printed area.", ""]
+         "The layer score is the whole-view score: a% (eq. 5) plus, over the printed area, the area changed "
+         "beside the printed layer and the failing blocks beside the footprint of a region typed as a moved "
+         "part (layer shift, detachment).", ""]
     L += _mode_targets(m, clean_run) + [""]
     for mode in ("single", "series"):
         if mode not in m:

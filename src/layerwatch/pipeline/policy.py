@@ -20,6 +20,15 @@ Rules (all thresholds in :class:`PolicySettings`):
    ``outside_pause_mm2`` not acknowledged on ``consecutive_layers`` analysed
    layers in a row, in overlapping places -> ``settings.action``; one such
    layer -> ``notify``.
+4b. **A failure that stays, counts** (the joint streak): a layer on which
+   rule 1 or rule 4 alarms, ``consecutive_layers`` in a row with their
+   regions (rule 1's failing regions, rule 4's outside regions) overlapping
+   those of the previous such layer -> ``settings.action``. A failure on a
+   small part seen by the comparison when that part prints a layer, and
+   beside the print by the scene channel on the next layer when another
+   object of the plate prints (the scene model keeps its old view there:
+   :meth:`~layerwatch.pipeline.scene.SceneModel.hold_failing`), alternates
+   between the two rules, each of which counts only its own layers in a row.
 
 5. A failed check (:attr:`LayerResult.failed_check`: the bed is not empty at
    job start, the first layer failed, nothing extruded on two layers in a
@@ -323,6 +332,8 @@ class PausePolicy:
         self._live: list[tuple[float, ...]] = []  # boxes of the objects still printed (ignore_zone's ``others``)
         self._kind_streak: dict[str, int] = {}
         self._kind_prev: dict[str, list[Region]] = {}
+        self._joint_streak = 0  # layers in a row on which rule 1 or rule 4 alarmed, in overlapping places
+        self._prev_joint: list[Region] = []
 
     @property
     def halted(self) -> bool:
@@ -346,15 +357,16 @@ class PausePolicy:
         for r in self._last_outside:
             self._acked_outside.append((tuple(r.bbox_mm), float(r.area_mm2)))
         self._acked_ratio = max(self._acked_ratio, self._last_ratio)
-        self._streak = self._out_streak = 0
+        self._streak = self._out_streak = self._joint_streak = 0
+        self._prev_joint = []
         self._kind_streak.clear()
         self._grace = self.settings.resume_grace_layers
         self._halted = False
 
     def forget_streaks(self) -> None:
         """Start counting layers in a row afresh (after a quiet period: what came before is another scene)."""
-        self._streak = self._out_streak = 0
-        self._prev_regions, self._prev_outside = [], []
+        self._streak = self._out_streak = self._joint_streak = 0
+        self._prev_regions, self._prev_outside, self._prev_joint = [], [], []
         self._kind_streak.clear()
         self._kind_prev.clear()
 
@@ -374,8 +386,8 @@ class PausePolicy:
         self._zones.append((tuple(float(v) for v in bbox_mm), label))
         if others is not None:
             self._live = [tuple(float(v) for v in b) for b in others]
-        self._streak = self._out_streak = 0
-        self._prev_regions, self._prev_outside = [], []
+        self._streak = self._out_streak = self._joint_streak = 0
+        self._prev_regions, self._prev_outside, self._prev_joint = [], [], []
         self._kind_streak.clear()
         self._kind_prev.clear()
         self._halted = False
@@ -436,6 +448,7 @@ class PausePolicy:
         alarm = layer_alarm(ratio, self._fresh_evidence, s, limit)
         self._streak = self._streak + 1 if alarm else 0
         outside_regions, outside_area = self._outside(result)
+        joint = self._joint(alarm, regions, self._out_streak > 0, outside_regions)
         kind_stop, kind_warn = self._kinds(regions, layer)
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
@@ -464,6 +477,10 @@ class PausePolicy:
         if self._streak >= s.consecutive_layers and persistent:
             return self._act(s.action, f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
                                        f"for {self._streak} layers", layer, regions)
+        if self._joint_streak >= s.consecutive_layers:
+            return self._act(s.action, f"layer {layer}: a failure in the same place for {self._joint_streak} "
+                                       f"layers (anomaly ratio {ratio:.1%}, {outside_area:.0f} mm^2 changed "
+                                       f"beside the print)", layer, joint)
         grown = self._growth(regions, prev, layer)
         if grown is not None:
             return grown
@@ -475,6 +492,24 @@ class PausePolicy:
         if kind_warn is not None:
             return kind_warn
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
+
+    def _joint(self, alarm: bool, regions: list[Region], out_alarm: bool, outside: list[Region]) -> list[Region]:
+        """The joint streak after one layer (rule 4b); returns the regions behind its alarm (largest first).
+
+        ``alarm``: the ratio rule alarmed on the layer (its fresh failing ``regions``); ``out_alarm``: the
+        outside rule did (its fresh ``outside`` regions). A layer on which either alarmed continues the
+        streak when its regions overlap those of the previous alarmed layer (or either has none: a% without
+        regions is trusted, as rule 1 does), else starts a new one; a layer on which neither did ends it.
+        """
+        if not (alarm or out_alarm):
+            self._joint_streak, self._prev_joint = 0, []
+            return []
+        seen = sorted([*(regions if alarm else []), *(outside if out_alarm else [])], key=lambda r: -r.area_mm2)
+        prev = self._prev_joint
+        same = not seen or not prev or any(_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in seen for p in prev)
+        self._joint_streak = self._joint_streak + 1 if (same and self._joint_streak) else 1
+        self._prev_joint = seen
+        return seen
 
     def _kinds(self, regions: list[Region], layer: int) -> tuple[tuple | None, Decision | None]:
         """The per-kind thresholds (``act_mm2``, ``warn_mm2``) after one layer.

@@ -36,7 +36,12 @@ camera view (working resolution, :mod:`layerwatch.analysis.scene_change`):
   keep their old appearance, so a clump that appeared at layer 12 is still
   a change at 13, 14, ... ("a failure that stays, counts") until
   :meth:`SceneModel.acknowledge` (the operator accepted it: ``E`` takes the
-  current photo on the changed blocks). Elsewhere ``E`` is the last
+  current photo on the changed blocks). On a layer whose HOG comparison
+  alarmed, its failing blocks keep ``E``'s old view too although the layer
+  printed there (:meth:`SceneModel.hold_failing`): an object on a small part
+  stays a change on the next layer, when another object of the plate prints
+  and the new footprint does not cover it; those *held* pixels are judged
+  even on the body's walls while they stay changed. Elsewhere ``E`` is the last
   accepted photo (the issue's "photo k must match photo k-1"), which
   follows slow drift (shadows lengthening beside a growing part, a lamp
   warming up); refreshing only blocks far below the threshold left a
@@ -68,6 +73,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from layerwatch.analysis.overlay import anomalous_blocks, block_tiles
 from layerwatch.analysis.result import LayerResult, SceneStats
 from layerwatch.analysis.scene_change import (
     SATURATED,
@@ -95,7 +101,7 @@ from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 
 __all__ = ["GAIN_RANGE", "REBASE_AFTER", "SceneModel", "SceneObservation", "bed_photo_pose_problem", "check_bed_photo",
-           "load_bed_photo"]
+           "failing_blocks", "load_bed_photo"]
 
 #: photometric gains outside this range mean a frame that does not show the scene (dark, overexposed)
 GAIN_RANGE = (0.4, 2.5)
@@ -133,6 +139,25 @@ def _box(mask: np.ndarray) -> tuple[slice, slice]:
     if rows.size == 0:
         return slice(0, 0), slice(0, 0)
     return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
+def failing_blocks(res: LayerResult, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels of a result's failing HOG blocks, whole blocks (not only their tiles), bool (H, W).
+
+    Parameters
+    ----------
+    res : LayerResult
+        With ``heatmap`` and ``grid`` (:func:`~layerwatch.analysis.overlay.anomalous_blocks`).
+    shape : (H, W)
+        The top view's shape, px.
+    """
+    assert res.heatmap is not None and res.grid is not None
+    c, b = int(res.grid.cell_px), int(res.grid.block_cells)
+    tiles = np.asarray(block_tiles(anomalous_blocks(res), (int(shape[0]), int(shape[1])), c, b, fill=False), np.uint8)
+    off = (b - 1) * c // 2
+    if off > 0 and tiles.any():
+        return cv2.dilate(tiles, np.ones((2 * off + 1, 2 * off + 1), np.uint8)) > 0
+    return tiles > 0
 
 
 def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "bed photo") -> np.ndarray:
@@ -250,6 +275,9 @@ class SceneObservation:
         ``"bed photo"``, ``"first photo"`` or ``""`` (this photo will be the baseline).
     note : str
         A warning for the result's message (bed photo dropped, re-based).
+    held : ndarray, bool, shape (h, w) or None
+        Pixels where ``E`` keeps its old view although the layer printed there: the failing blocks of a
+        layer whose comparison alarmed (:meth:`SceneModel.hold_failing`); ``None``: none.
     ms : float
     """
 
@@ -265,6 +293,7 @@ class SceneObservation:
     rejected: str | None = None
     baseline: str = ""
     note: str = ""
+    held: np.ndarray | None = None
     ms: float = 0.0
 
     def stats(self) -> SceneStats:
@@ -378,6 +407,9 @@ class SceneModel:
         self._confirmed = False
         self._rejections = 0
         self._ack: _AckPatch | None = None
+        #: working-image pixels (bool, full working size) of a failure that stays: ``E`` keeps its old view
+        #: there and they are judged even on the body's walls (:meth:`hold_failing`); ``None``: none
+        self.held: np.ndarray | None = None
         if bed_photo is not None:
             self.expected = self._crop(to_working(check_bed_photo(bed_photo, self.camera), self.size))
             self.clipped = self.expected >= SATURATED
@@ -495,6 +527,8 @@ class SceneModel:
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
+        if self.held is not None:  # a failure that stays is judged where it is, walls included
+            walls &= ~self.held
         # (nothing outside the box is observed): the fit needs every channel; the change blocks judge a
         # pixel with a clipped channel on what the clipping leaves known (a bright orange floor's red channel
         # clips under a lamp, its green and blue still show an object), all but white glare
@@ -504,6 +538,8 @@ class SceneModel:
         scored[b] = self.observed[b] & ~predicted[b] & ~walls[b]
         c = self.clipped  # (element-wise: numpy's reduction over a 3-long axis is slow)
         usable[b] = scored[b] & ~_saturated(img[b]) & ~(c[..., 0] | c[..., 1] | c[..., 2])
+        if self.held is not None:  # not a light reference: it was a failure at the last photo
+            usable[b] &= ~self.held[b]
         scored[b] &= ~_white(img[b]) & ~(c[..., 0] & c[..., 1] & c[..., 2])
         if self.baseline == "bed photo" and not self._confirmed:
             shift = self._shift(img, E, usable)
@@ -574,7 +610,12 @@ class SceneModel:
             self.clipped = self.expected >= SATURATED
         elif obs.body is not None:
             assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
-            take = (obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs))[self.box]
+            take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)
+            held = self._still_held(obs)
+            if held is not None:  # a failure the comparison found where the layer printed stays a change
+                take &= ~held
+            self.held = held
+            take = take[self.box]
             rows, cols = _box(take)  # the division only where E takes the photo (E's own coordinates)
             r0, c0 = self.box[0].start, self.box[1].start
             img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
@@ -589,6 +630,16 @@ class SceneModel:
         self.last_layer = max(self.last_layer, obs.layer) if obs.body is not None else obs.layer
         if obs.body is None:  # this photo is the baseline: what it shows is the scene (the body included)
             self.body_layer = obs.layer
+
+    def _still_held(self, obs: SceneObservation) -> np.ndarray | None:
+        """The held pixels after ``obs`` (:attr:`held`): those :meth:`hold_failing` added for this layer, and
+        the earlier ones that this photo shows changed and that the layers since did not print over (there
+        the comparison judges again); ``None`` when none is left."""
+        held = obs.held.copy() if obs.held is not None else None
+        if self.held is not None and obs.predicted is not None and obs.change is not None:
+            stays = self.held & ~obs.predicted & obs.change.pixels(obs.image.shape[:2])
+            held = stays if held is None else (held | stays)
+        return held if held is not None and held.any() else None
 
     def _quiet(self, obs: SceneObservation) -> np.ndarray:
         """Working-image pixels outside ``P`` of scored blocks that did not change and do not touch a change."""
@@ -608,16 +659,23 @@ class SceneModel:
 
     def _ack_patch(self, obs: SceneObservation) -> _AckPatch | None:
         """What :meth:`acknowledge` writes into ``E`` for the accepted ``obs``: its changed blocks (grown by a
-        block) on the observed pixels, in ``E``'s photometric frame; ``None`` when nothing changed.
+        block) and its held pixels (:meth:`hold_failing`) on the observed pixels, in ``E``'s photometric
+        frame; ``None`` when nothing changed or was held.
 
         Kept instead of the observation itself: a few changed blocks, not two working-size images.
         """
         c = obs.change
-        if c is None or not c.changed.any():
+        held = self.held  # set by update() just before
+        if (c is None or not c.changed.any()) and held is None:
             return None
-        blocks = c.pixels(obs.image.shape[:2]).astype(np.uint8)
-        b = c.block_px
-        px = (cv2.dilate(blocks, np.ones((2 * b + 1, 2 * b + 1), np.uint8)).astype(bool) & self.observed)[self.box]
+        px = np.zeros(obs.image.shape[:2], bool)
+        if c is not None and c.changed.any():
+            blocks = c.pixels(obs.image.shape[:2]).astype(np.uint8)
+            b = c.block_px
+            px = cv2.dilate(blocks, np.ones((2 * b + 1, 2 * b + 1), np.uint8)).astype(bool)
+        if held is not None:
+            px |= held
+        px = (px & self.observed)[self.box]
         rows, cols = _box(px)
         r0, c0 = self.box[0].start, self.box[1].start
         img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
@@ -634,12 +692,48 @@ class SceneModel:
             Working-image pixels updated (0 when nothing was changed).
         """
         patch, self._ack = self._ack, None
+        self.held = None
         if patch is None or self.expected is None:
             return 0
         self.expected[patch.rows, patch.cols][patch.where] = patch.values
         if self.clipped is not None:
             self.clipped[patch.rows, patch.cols][patch.where] = patch.clipped
         return int(patch.where.sum())
+
+    def hold_failing(self, obs: SceneObservation, failing_top: np.ndarray, z: float) -> int:
+        """Keep ``E``'s old view on a failure the HOG comparison found where the layer printed.
+
+        ``E`` takes the photo on ``M`` (the layers printed since the last photo, module notes): an
+        object lying on a small part's top when that part printed a layer would become expected, and
+        on the next layer, when that part does not print (a plate of objects at interleaved heights),
+        nothing would see it. Called for a layer whose comparison alarmed (the pipeline's test,
+        :func:`~layerwatch.pipeline.policy.layer_alarm`), the failing blocks' pixels keep their old
+        appearance when :meth:`update` takes the photo, so the scene channel still sees the failure as a
+        change beside the print while it stays, until a later layer prints over it (``M`` covers it and
+        the comparison judges it again) or the operator acknowledges it (:meth:`acknowledge`).
+
+        Parameters
+        ----------
+        obs : SceneObservation
+            The layer's observation, before :meth:`update`.
+        failing_top : ndarray, bool, shape of the top view
+            The failing blocks (their tiles grown to the whole block) on the layer's plane.
+        z : float
+            Height of that plane, mm.
+
+        Returns
+        -------
+        int
+            Working-image pixels held (0 without a baseline or failing blocks in view).
+        """
+        if obs.predicted is None or self.maps[0].size == 0 or not np.any(failing_top):
+            return 0
+        mx, my = top_coords(self.maps, float(z))
+        on = cv2.remap(np.asarray(failing_top, np.uint8), mx, my, cv2.INTER_NEAREST,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        held = self._full(on) & self.observed
+        obs.held = held if obs.held is None else (obs.held | held)
+        return int(held.sum())
 
     # ------------------------------------------------------------ reporting
     def fill_result(self, res: LayerResult, obs: SceneObservation, warper: TopViewWarper, z: float,

@@ -89,8 +89,8 @@ from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.layer_change import LayerChange
-from layerwatch.pipeline.policy import Decision, PausePolicy
-from layerwatch.pipeline.scene import SceneModel, SceneObservation
+from layerwatch.pipeline.policy import Decision, PausePolicy, layer_alarm
+from layerwatch.pipeline.scene import SceneModel, SceneObservation, failing_blocks
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
 from layerwatch.render.camera_match import match_camera as camera_matched
 from layerwatch.render.fast import StackRenderer
@@ -481,6 +481,9 @@ class LayerPipeline:
         h, w = np.asarray(photo).shape[:2]
         self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)
         self._hidden_ledges(res, obs, z, (w, h), valid, top_bgr, footprint)
+        if res.heatmap is not None and res.grid is not None and layer_alarm(
+                float(res.anomaly_ratio), float(res.anomalous_area_mm2 + res.uncounted_mm2), self.config.policy):
+            self.scene.hold_failing(obs, failing_blocks(res, self.topview.shape), z)  # "a failure that stays, counts"
         self.scene.update(obs)
         ms = obs.ms + (time.perf_counter() - t) * 1e3
         res.timings_ms["scene"] = ms
