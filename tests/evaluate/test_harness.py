@@ -211,3 +211,24 @@ def test_a_failure_type_the_part_cannot_take_is_reported_not_a_crash():
     data = run_evaluation(tp, cfg, cam, n_layers=14, seed=0)
     assert any(e.startswith("thin_wall: not injected") for e in data.errors)
     assert "thin_wall" not in {r.kind for r in data.records} and data.records
+
+
+def test_a_patch_failure_is_photographed_on_the_layers_it_removes_beads_on():
+    """Sparse infill every other layer (Cura): the layers between print nothing in the patch and are not photographed."""
+    from layerwatch.evaluate.harness import plan_frames
+    from layerwatch.gcode.toolpath import FEATURES
+    from layerwatch.simulate.failures import patch_layers, resolve
+
+    tp = box_part(size_mm=24.0, height_mm=4.8, layer_h=0.3, fin=False)
+    infill = FEATURES.index("infill")
+    for i in range(1, tp.n_layers, 2):  # odd layers: walls only
+        sl = tp.layer_slice(i)
+        tp.feature[sl][tp.feature[sl] == infill] = FEATURES.index("other")
+    plan = plan_frames(tp, 60, seed=3)
+    patches = [(sc.failures[0], layers) for sc, layers in plan if sc.failures and sc.failures[0].type == "infill_defect"]
+    assert patches
+    for f, layers in patches:
+        after = [i for i in layers if i >= f.onset]
+        assert after == patch_layers(resolve(f, tp), tp)[:3]
+        assert after and all(i % 2 == 0 for i in after)  # the infill layers only
+    assert any(len([i for i in layers if i >= f.onset]) == 3 for f, layers in patches)
