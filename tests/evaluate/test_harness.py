@@ -71,6 +71,10 @@ def test_run_evaluation_small(job, tmp_path):
     assert all(r.since_onset == -1 for r in data.records if r.kind == "clean")
     for t, rows in s.auc_since.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
+    # the prints behind each type's layers: what an AUROC rests on (a print's layers share one failure)
+    for t in s.types:
+        assert s.n_prints[t] == len({r.scenario for r in data.records if r.kind == t})
+        assert 1 <= s.n_prints[t] <= s.n_failed[t]
     # every failed layer is classed by what the plan prints under it (box_part: sparse infill and walls)
     assert {r.surface for r in data.records if r.kind != "clean"} <= {"sparse", "walls", "none"}
     for t, rows in s.auc_surface.items():
@@ -106,6 +110,9 @@ def test_run_evaluation_small(job, tmp_path):
         text = write_report(s, tmp_path / f"r{n}", data.setup, data.seconds, clean_run=run,
                             configured=fixed).read_text()
         assert "## The configured setting on this sample" in text
+        counts = next(line for line in text.splitlines() if line.startswith("Layers: "))
+        assert all(f"{t} {s.n_failed[t]} ({s.n_prints[t]} prints)" in counts for t in s.types)
+        assert ("no AUROC to speak of" in counts) == any(v < 5 for v in s.n_prints.values())
         row = next(line for line in text.splitlines() if line.startswith("| false pauses"))
         assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
         # one alarm in n layers: the rate is <= 1 per 1000, its 95 % bound (1.6 or 2.4) is not
