@@ -111,7 +111,7 @@ def test_run_evaluation_small(job, tmp_path):
                             configured=fixed).read_text()
         assert "## The configured setting on this sample" in text
         counts = next(line for line in text.splitlines() if line.startswith("Layers: "))
-        assert all(f"{t} {s.n_failed[t]} ({s.n_prints[t]} prints)" in counts for t in s.types)
+        assert all(f"{t} {s.n_failed[t]} ({s.n_prints[t]} print" in counts for t in s.types)
         assert ("no AUROC to speak of" in counts) == any(v < 5 for v in s.n_prints.values())
         row = next(line for line in text.splitlines() if line.startswith("| false pauses"))
         assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
