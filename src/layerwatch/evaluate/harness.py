@@ -199,7 +199,8 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
             continue
         f = s.failures[0]
         last = tp.n_layers - 1
-        after = patch_layers(resolve(f, tp), tp)[:frames_after] or [min(f.onset + k, last) for k in range(frames_after)]
+        patch = patch_layers(resolve(f, tp), tp) if f.type in ("infill_defect", "thin_wall") else []
+        after = patch[:frames_after] or [min(f.onset + k, last) for k in range(frames_after)]
         layers = sorted({max(f.onset - 1, 0), *after})
         plan.append((s, layers))
     rng = np.random.default_rng(seed + 1)
