@@ -71,6 +71,10 @@ def test_run_evaluation_small(job, tmp_path):
     assert all(r.since_onset == -1 for r in data.records if r.kind == "clean")
     for t, rows in s.auc_since.items():
         assert sum(n for _, n, _ in rows) == s.n_failed[t]
+    # the prints behind each type's layers: what an AUROC rests on (a print's layers share one failure)
+    for t in s.types:
+        assert s.n_prints[t] == len({r.scenario for r in data.records if r.kind == t})
+        assert 1 <= s.n_prints[t] <= s.n_failed[t]
     # every failed layer is classed by what the plan prints under it (box_part: sparse infill and walls)
     assert {r.surface for r in data.records if r.kind != "clean"} <= {"sparse", "walls", "none"}
     for t, rows in s.auc_surface.items():
@@ -106,6 +110,9 @@ def test_run_evaluation_small(job, tmp_path):
         text = write_report(s, tmp_path / f"r{n}", data.setup, data.seconds, clean_run=run,
                             configured=fixed).read_text()
         assert "## The configured setting on this sample" in text
+        counts = next(line for line in text.splitlines() if line.startswith("Layers: "))
+        assert all(f"{t} {s.n_failed[t]} ({s.n_prints[t]} print" in counts for t in s.types)
+        assert ("no AUROC to speak of" in counts) == any(v < 5 for v in s.n_prints.values())
         row = next(line for line in text.splitlines() if line.startswith("| false pauses"))
         assert f"0 pauses in {n} layers" in row and row.endswith(f"| {met} |")
         # one alarm in n layers: the rate is <= 1 per 1000, its 95 % bound (1.6 or 2.4) is not
@@ -211,3 +218,24 @@ def test_a_failure_type_the_part_cannot_take_is_reported_not_a_crash():
     data = run_evaluation(tp, cfg, cam, n_layers=14, seed=0)
     assert any(e.startswith("thin_wall: not injected") for e in data.errors)
     assert "thin_wall" not in {r.kind for r in data.records} and data.records
+
+
+def test_a_patch_failure_is_photographed_on_the_layers_it_removes_beads_on():
+    """Sparse infill every other layer (Cura): the layers between print nothing in the patch and are not photographed."""
+    from layerwatch.evaluate.harness import plan_frames
+    from layerwatch.gcode.toolpath import FEATURES
+    from layerwatch.simulate.failures import patch_layers, resolve
+
+    tp = box_part(size_mm=24.0, height_mm=4.8, layer_h=0.3, fin=False)
+    infill = FEATURES.index("infill")
+    for i in range(1, tp.n_layers, 2):  # odd layers: walls only
+        sl = tp.layer_slice(i)
+        tp.feature[sl][tp.feature[sl] == infill] = FEATURES.index("other")
+    plan = plan_frames(tp, 60, seed=3)
+    patches = [(sc.failures[0], layers) for sc, layers in plan if sc.failures and sc.failures[0].type == "infill_defect"]
+    assert patches
+    for f, layers in patches:
+        after = [i for i in layers if i >= f.onset]
+        assert after == patch_layers(resolve(f, tp), tp)[:3]
+        assert after and all(i % 2 == 0 for i in after)  # the infill layers only
+    assert any(len([i for i in layers if i >= f.onset]) == 3 for f, layers in patches)

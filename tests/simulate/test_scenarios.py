@@ -100,3 +100,64 @@ def test_one_object_detaching_leaves_the_others_as_printed_before_the_onset(shar
     assert (diff > 30).sum() == 0, int((diff > 30).sum())
     moved = np.abs(one.frame(20).photo.astype(int) - clean.frame(20).photo.astype(int)).sum(-1)
     assert (moved > 30).sum() > 50  # ... and the object moves from the onset
+
+
+def _fine_block(tagged: bool = True):
+    """A 10 mm square block whose perimeters are written as 0.5 mm pieces (KISSlicer, arc-welded
+    files), with a 0.9 mm thick, 10 mm long fin 6 mm beside it; rectilinear infill on layers 0 and 2,
+    none on layer 1 (infill printed every other layer, as Cura does). ``tagged=False``: no feature tags."""
+    from layerwatch.gcode.toolpath import FEATURES, Toolpath
+
+    ext, per, inf = (FEATURES.index(n) for n in ("external_perimeter", "perimeter", "infill"))
+
+    def loop(x0, y0, x1, y1, step=0.5):
+        pts = []
+        for a, b in (((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))):
+            n = max(int(round(np.hypot(b[0] - a[0], b[1] - a[1]) / step)), 1)
+            t = np.linspace(0.0, 1.0, n + 1)
+            pts.append(np.c_[a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])])
+        p = np.concatenate([q[:-1] for q in pts])
+        return p, np.roll(p, -1, axis=0)
+
+    starts, ends, feats, zs = [], [], [], []
+    for k in range(3):
+        z = 0.3 * (k + 1)
+        for off, code in ((0.0, ext), (0.45, per)):
+            a, b = loop(off, off, 10.0 - off, 10.0 - off)
+            starts.append(a), ends.append(b), feats.append(np.full(len(a), code))
+        a, b = loop(16.0, 0.0, 16.9, 10.0)  # the fin: two beads thick, 6 mm off the block
+        starts.append(a), ends.append(b), feats.append(np.full(len(a), ext))
+        if k != 1:
+            ys = np.arange(1.2, 9.0, 0.9)
+            starts.append(np.c_[np.full(len(ys), 1.0), ys]), ends.append(np.c_[np.full(len(ys), 9.0), ys])
+            feats.append(np.full(len(ys), inf))
+        zs.append(np.full(sum(len(s) for s in starts) - sum(len(q) for q in zs), z))
+    feature = np.concatenate(feats).astype(np.uint8)
+    return Toolpath.from_segments(np.concatenate(starts), np.concatenate(ends), np.concatenate(zs), width=0.45,
+                                  feature=feature if tagged else np.zeros_like(feature), layer_height=0.3)
+
+
+def test_thin_walls_leave_out_a_thick_part_s_corners():
+    tp = _fine_block()
+    sl = tp.layer_slice(0)
+    thin = thin_wall_segments(tp, 0)
+    mid = 0.5 * (tp.start[sl] + tp.end[sl])
+    # the fin's beads are a thin wall; none of the block's (its corner tips are thin too, but not walls)
+    assert thin[mid[:, 0] > 12.0].mean() > 0.8
+    assert not thin[mid[:, 0] < 11.0].any()
+
+
+def test_infill_defect_removes_infill_only_where_the_file_marks_it():
+    from layerwatch.simulate.failures import patch_layers, resolve
+
+    tp, bare = _fine_block(), _fine_block(tagged=False)
+    f = Failure("infill_defect", onset=0, size_mm=4.0, center_mm=(5.0, 1.0), duration=3)  # infill and a wall
+    rf = resolve(f, tp)
+    for i, infill in ((0, True), (1, False), (2, True)):
+        assert rf.select[tp.layer_slice(i)].any() == infill  # a layer without infill loses nothing (its walls stay)
+    assert patch_layers(rf, tp) == [0, 2]
+    untagged = resolve(f, bare)  # no tags at all: any bead may be the infill
+    assert untagged.select.all()
+    assert patch_layers(untagged, bare) == [0, 1, 2]
+    far = resolve(Failure("thin_wall", onset=0, size_mm=1.0, center_mm=(30.0, 30.0)), tp)
+    assert patch_layers(far, tp) == []  # nothing selectable within the patch

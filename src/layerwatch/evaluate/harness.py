@@ -50,7 +50,14 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PausePolicy, layer_alarm
 from layerwatch.pipeline.step import LayerPipeline, judge_layers
-from layerwatch.simulate import FAILURE_TYPES, PrintSimulator, Scenario, random_scenarios
+from layerwatch.simulate import (
+    FAILURE_TYPES,
+    PrintSimulator,
+    Scenario,
+    patch_layers,
+    random_scenarios,
+)
+from layerwatch.simulate.failures import resolve
 from layerwatch.simulate.parts import window_part
 
 __all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "score_layer", "surface_under",
@@ -83,7 +90,9 @@ class LayerRecord:
         Area of the largest 8-connected group of anomalous blocks, mm^2 (a layer
         score that small local defects on large layers do not dilute).
     since_onset : int
-        Layers printed since the failure's onset (0 = the onset layer); -1 for clean layers.
+        Layers printed since the failure's onset (0 = the onset layer); for a patch failure, its
+        layers that removed beads since the onset (:func:`~layerwatch.simulate.failures.patch_layers`);
+        -1 for clean layers.
     surface : str
         What the layer's plan prints where the failure is (:func:`surface_under`):
         ``"solid"``, ``"sparse"``, ``"walls"`` or ``"none"``; ``""`` for clean layers.
@@ -171,6 +180,12 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
 
     ``beside_share`` of the foreign bodies and spaghetti lie on the bed beside the part.
 
+    A patch failure (``infill_defect``, ``thin_wall``) is photographed on the first
+    ``frames_after`` layers on which it removes beads (:func:`~layerwatch.simulate.failures.patch_layers`):
+    a layer that prints nothing inside the patch (another object's layer of a plate printed in
+    turns, a layer between two of sparse infill printed every other layer) differs from its plan
+    nowhere, so it is neither a failed photo nor a clean one.
+
     Returns
     -------
     list of (Scenario, list of int)
@@ -184,7 +199,9 @@ def plan_frames(tp: Toolpath, n_layers: int, seed: int = 0, frames_after: int = 
             continue
         f = s.failures[0]
         last = tp.n_layers - 1
-        layers = sorted({max(f.onset - 1, 0), *(min(f.onset + k, last) for k in range(frames_after))})
+        patch = patch_layers(resolve(f, tp), tp) if f.type in ("infill_defect", "thin_wall") else []
+        after = patch[:frames_after] or [min(f.onset + k, last) for k in range(frames_after)]
+        layers = sorted({max(f.onset - 1, 0), *after})
         plan.append((s, layers))
     rng = np.random.default_rng(seed + 1)
     per_clean = max(4, min(12, tp.n_layers // 2))
@@ -380,6 +397,7 @@ def _scenario_records(toolpath: Toolpath, camera: CameraModel, config: JobConfig
     moved = sim.failures[0].offset if scen.failures and scen.failures[0].type in ("layer_shift", "detachment") else None
     records: list[LayerRecord] = []
     errors: list[str] = []
+    patch = patch_layers(sim.failures[0], toolpath) if sim.failures else []
     for i in layers:
         frame = sim.frame(i)
         res, scores = score_layer(pipe, frame, i)
@@ -394,6 +412,8 @@ def _scenario_records(toolpath: Toolpath, camera: CameraModel, config: JobConfig
         a, iou, clean_high, region = scores
         kind = frame.meta["failures"][0] if frame.meta.get("failures") else "clean"
         since = int(i) - scen.failures[0].onset if kind != "clean" else -1
+        if i in patch:  # a patch's layers: those it removed beads on since its onset
+            since = patch.index(i)
         surface = surface_under(toolpath, i, frame.truth_area, tv) if frame.truth_area is not None else ""
         records.append(LayerRecord(scen.name, kind, int(i), float(size if kind != "clean" else 0.0),
                                    a, iou, clean_high, region, since, surface,

@@ -62,6 +62,9 @@ class Summary:
     auc_since: dict            # recommended setting: {type: [(layers since onset, n layers, AUROC), ...]}
     auc_surface: dict = field(default_factory=dict)  # recommended setting: {type: [(surface under the failure, n layers, AUROC), ...]}
     modes: dict = field(default_factory=dict)  # configured setting per mode (:func:`~layerwatch.evaluate.modes.summarize_modes`)
+    #: simulated prints (scenarios) behind each type's failed layers: the layers of one print share one failure,
+    #: so this, not ``n_failed``, is the sample an AUROC rests on
+    n_prints: dict = field(default_factory=dict)
 
 
 def _auc_region(recs: list, kinds: np.ndarray, types: tuple[str, ...], best_t: np.ndarray) -> np.ndarray:
@@ -167,6 +170,7 @@ def summarize(data: EvalData) -> Summary:
     return Summary(
         metrics=tuple(metrics), types=types, thresholds=T, n_clean=n_clean,
         n_failed={t: int((kinds == t).sum()) for t in types}, auc=auc, best_t=best_t,
+        n_prints={t: len({r.scenario for r in recs if r.kind == t}) for t in types},
         a_failed=a_failed, a_clean=a_clean, dp=dp, dprime=dprime, iou=iou, iou_all=iou_all, iou_best=iou_best, fa_rate=fa,
         pause_ratio=pause, tpr=tpr, rec_metric=rec, rec_t=int(jr), fa_upper=fa_upper,
         clean_block_share=hi / tot if tot else float("nan"), scores=scores,

@@ -17,6 +17,7 @@ from layerwatch.simulate.failures import (
     SIMULATED_TYPES,
     Failure,
     Scenario,
+    patch_layers,
     random_scenarios,
     thin_wall_segments,
 )
@@ -34,6 +35,7 @@ __all__ = [
     "SimSettings",
     "default_camera",
     "default_markers",
+    "patch_layers",
     "random_scenarios",
     "save_frame",
     "simulate_layer",
