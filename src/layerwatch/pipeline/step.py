@@ -267,16 +267,16 @@ class LayerPipeline:
             return hit
         kept = next((k for k in (self._own, self._kept) if k is not None and k[0] == index), None)
         if kept is not None:  # a layer analysed on this or the previous photo, past the memo (docstring)
-            _, image, bits, z = kept
+            _, kept_image, bits, z = kept
+            image = kept_image.copy()
             footprint = np.unpackbits(bits, count=image.size).view(bool).reshape(image.shape)
-            ref = Reference(image.copy(), footprint, z, reference_hog(image, self.config.analysis))
         else:
             r = self._render(index)
             z = self.toolpath.layers[index].z
-            image = r.image
+            image, footprint = r.image, r.mask
             if self.match_camera:
                 image = camera_matched(image, self.camera, self.topview, z)
-            ref = Reference(image, r.mask, z, reference_hog(image, self.config.analysis))
+        ref = Reference(image, footprint, z, reference_hog(image, self.config.analysis))
         self._memo[index] = ref
         while len(self._memo) > self._memo_size:
             self._memo.popitem(last=False)
