@@ -62,198 +62,22 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal
-
-from pydantic import Field, field_validator, model_validator
 
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS, UNKNOWN
 from layerwatch.analysis.result import LayerResult, Region
-from layerwatch.settings_base import Section
+from layerwatch.pipeline.policy_settings import (
+    DEFAULT_KIND_ACTIONS,
+    STOPPING,
+    Action,
+    KindAction,
+    KindActions,
+    NotifySettings,
+    PolicySettings,
+)
+from layerwatch.pipeline.streak import PlaceStreak, boxes_overlap
 
 __all__ = ["DEFAULT_KIND_ACTIONS", "Decision", "KindAction", "KindActions", "NotifySettings", "PausePolicy", "STOPPING",
            "PolicySettings", "REMAINS_REACH_MM", "first_stop", "layer_alarm"]
-
-Action = Literal["none", "notify", "pause", "cancel", "cancel_object", "host_command"]
-#: what a failure kind may do; ``"rule"``: what the rule that fired says (``action`` / ``strong_action``)
-KindActionName = Literal["rule", "notify", "pause", "cancel", "cancel_object", "host_command"]
-#: actions that stop (or take over) the job; the policy then waits for the operator
-STOPPING = frozenset({"pause", "cancel", "cancel_object", "host_command"})
-#: the documented per-kind defaults: a detached part of a multi-object plate is cancelled alone (a pause
-#: when the G-code does not label its objects or the failure spans several); every other kind does what
-#: the rule says (pause by default): a wrongly typed region must still stop the print
-DEFAULT_KIND_ACTIONS: dict[str, dict[str, object]] = {k: {"action": "rule"} for k in FAILURE_KINDS}
-DEFAULT_KIND_ACTIONS["detachment"] = {"action": "cancel_object"}
-_MAX_COMMAND = 200
-
-
-class KindAction(Section):
-    """What one failure kind does (config table ``[policy.kinds.<kind>]``).
-
-    Attributes
-    ----------
-    action : {"rule", "notify", "pause", "cancel", "cancel_object", "host_command"}
-        ``"rule"``: the firing rule's ``action``/``strong_action``; ``"cancel_object"``: cancel only the
-        object the failing region lies on (:mod:`layerwatch.pipeline.actions`; a pause when it cannot);
-        ``"host_command"``: send ``command`` to the host (e.g. a Klipper macro that cools down), then wait
-        for the operator like after a pause.
-    warn_mm2 : float
-        Fresh area of this kind on one layer that sends a notification, mm^2 (0: the rules' notification).
-    act_mm2 : float
-        Fresh area of this kind on ``consecutive_layers`` layers in a row, in overlapping places, that takes
-        ``action``, mm^2. 0: the general rules decide; above 0 it replaces them for regions of this kind
-        (larger: less sensitive, smaller: more).
-    command : str
-        The host command of ``"host_command"``: one G-code line or macro call, printable ASCII.
-    """
-
-    action: KindActionName = "rule"
-    warn_mm2: float = Field(0.0, ge=0)
-    act_mm2: float = Field(0.0, ge=0)
-    command: str = ""
-
-    @field_validator("command")
-    @classmethod
-    def _one_line(cls, v: str) -> str:
-        v = v.strip()
-        if len(v) > _MAX_COMMAND or any(not (32 <= ord(c) < 127) for c in v):
-            raise ValueError(f"command must be one line of printable ASCII, at most {_MAX_COMMAND} characters")
-        return v
-
-    @model_validator(mode="after")
-    def _command_given(self) -> KindAction:
-        if self.action == "host_command" and not self.command:
-            raise ValueError('action "host_command" needs a command, e.g. command = "COOL_DOWN"')
-        return self
-
-
-def _kind_field(kind: str):
-    return Field(default_factory=lambda: KindAction(**DEFAULT_KIND_ACTIONS[kind]))
-
-
-class KindActions(Section):
-    """Per failure kind, its :class:`KindAction` (``[policy.kinds.<kind>]``); defaults in :data:`DEFAULT_KIND_ACTIONS`.
-
-    A table that sets some keys of a kind keeps that kind's defaults for the others.
-    """
-
-    spaghetti: KindAction = _kind_field("spaghetti")
-    foreign_body: KindAction = _kind_field("foreign_body")
-    detachment: KindAction = _kind_field("detachment")
-    layer_shift: KindAction = _kind_field("layer_shift")
-    infill_defect: KindAction = _kind_field("infill_defect")
-    thin_wall: KindAction = _kind_field("thin_wall")
-    nothing_extruded: KindAction = _kind_field("nothing_extruded")
-    unknown: KindAction = _kind_field("unknown")
-
-    @model_validator(mode="before")
-    @classmethod
-    def _over_defaults(cls, data: object) -> object:
-        if not isinstance(data, dict):
-            return data
-        return {k: ({**DEFAULT_KIND_ACTIONS[k], **v} if k in DEFAULT_KIND_ACTIONS and isinstance(v, dict) else v)
-                for k, v in data.items()}
-
-    def of(self, kind: str) -> KindAction:
-        """The settings of ``kind`` (an untyped ``""`` or unknown name: ``"unknown"``'s)."""
-        return getattr(self, kind if kind in FAILURE_KINDS else UNKNOWN)
-
-
-class PolicySettings(Section):
-    """When the stream of layer results pauses the print (config section ``[policy]``).
-
-    The built-in values below are the paper-era defaults; the product runs the
-    evaluation's recommended values over them (``pause_ratio = 0.025``,
-    :data:`layerwatch.pipeline.config.RECOMMENDED`, shown with their source by
-    ``layerwatch config show``). :meth:`PausePolicy.update` applies them as
-    follows (errors and skipped layers never pause; the first
-    ``skip_first_layers`` layers are never judged):
-
-    * **ratio rule**: a layer *alarms* when the anomalous area the operator has
-      not acknowledged is above ``pause_ratio`` of the printed area (eq. 5)
-      *and* at least ``min_area_mm2``; ``consecutive_layers`` alarms in a row
-      whose failing regions overlap those of the previous layer -> ``action``;
-      a single alarm -> ``"notify"`` when ``notify_single_layer``;
-    * **growth rule**: a region of at least ``growth_min_area_mm2`` that
-      overlaps one of the previous layer and is ``growth_ratio`` times its area
-      (or outgrew its acknowledged area that much) -> ``action``;
-    * **strong event**: more than ``strong_outside_area_mm2`` of anomalous area
-      outside the footprint -> ``strong_action`` (0 disables it);
-    * **outside rule** (the scene channel, :mod:`layerwatch.pipeline.scene`):
-      at least ``outside_pause_mm2`` of change beside the print that the
-      operator has not acknowledged, on ``consecutive_layers`` layers in a
-      row with overlapping outside regions -> ``action``; a single such layer
-      -> ``"notify"`` (when ``notify_single_layer``). 0 disables it (the
-      paper's settings); the recommended 12 mm^2 is three 2 x 2 mm blocks
-      and above every clean layer of the evaluation (``docs/architecture.md``).
-
-    ``wait_for_verdict`` is read by the monitor: hold the printer until the
-    layer is judged.
-
-    Attributes
-    ----------
-    pause_ratio : float
-        a% limit as a fraction in [0, 1] (default 0.10; recommended 0.025).
-    min_area_mm2 : float
-        Fresh anomalous area the ratio rule also needs, mm^2: the anomalous blocks' whole
-        tiles, whatever S_A counts of them (a small footprint crosses any ratio with two
-        or three 1.44 mm^2 blocks; :func:`layer_alarm`).
-    consecutive_layers : int
-        Alarmed layers in a row before ``action``.
-    strong_outside_area_mm2 : float
-        Anomalous area outside the footprint for the strong event, mm^2.
-    growth_ratio : float
-        Area factor of the growth rule (also how much acknowledged anomaly must grow).
-    growth_min_area_mm2 : float
-        Smallest region the growth rule looks at, mm^2.
-    action, strong_action : {"notify", "pause", "cancel"}
-    skip_first_layers : int
-    outside_pause_mm2 : float
-        Change beside the print for the outside rule, mm^2 (0 = off).
-    notify_single_layer : bool
-    wait_for_verdict : bool
-    resume_grace_layers : int
-        Analysed layers after a resume in which only an acknowledged region that grew by
-        ``growth_ratio``, or a failing region in a new place, stops the print again: anomaly
-        without a region (a%) and change beside the print do not (the operator just touched
-        the printer). Acknowledged regions stay accepted after it, unless they grow.
-    kinds : KindActions
-        Action and thresholds per failure kind (``[policy.kinds.<kind>]``).
-    """
-
-    pause_ratio: float = Field(0.10, ge=0, le=1)
-    min_area_mm2: float = Field(5.0, ge=0)
-    consecutive_layers: int = Field(2, ge=1)
-    strong_outside_area_mm2: float = Field(150.0, ge=0)
-    growth_ratio: float = Field(1.5, ge=1)
-    action: Literal["notify", "pause", "cancel"] = "pause"
-    wait_for_verdict: bool = False
-    skip_first_layers: int = Field(1, ge=0)
-    growth_min_area_mm2: float = Field(25.0, ge=0)
-    strong_action: Literal["notify", "pause", "cancel"] = "pause"
-    notify_single_layer: bool = True
-    outside_pause_mm2: float = Field(0.0, ge=0)
-    resume_grace_layers: int = Field(3, ge=0)
-    kinds: KindActions = Field(default_factory=KindActions)
-
-
-class NotifySettings(Section):
-    """Where the policy's alerts go (config section ``[notify]``): Apprise URLs and/or a JSON webhook, rate-limited.
-
-    It sits beside :class:`PolicySettings` because it completes the policy's
-    ``"notify"`` action; the monitor's :mod:`~layerwatch.monitor.notify` sends.
-
-    Attributes
-    ----------
-    apprise_urls : list of str
-    webhook_url : str or None
-    min_interval_s : float
-        Smallest interval between two non-critical alerts, s.
-    """
-
-    apprise_urls: list[str] = Field(default_factory=list)
-    webhook_url: str | None = None
-    min_interval_s: float = Field(60.0, ge=0)
-
 
 @dataclass(frozen=True)
 class Decision:
@@ -288,11 +112,6 @@ class Decision:
         return self.action in STOPPING
 
 
-def _overlap(a: Sequence[float], b: Sequence[float]) -> bool:
-    """Bounding boxes ``(x0, y0, x1, y1)`` overlap (touching counts)."""
-    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
-
-
 def _gap(a: Sequence[float], b: Sequence[float]) -> float:
     """Distance between bounding boxes ``(x0, y0, x1, y1)``, mm (0 when they overlap)."""
     return math.hypot(max(a[0] - b[2], b[0] - a[2], 0.0), max(a[1] - b[3], b[1] - a[3], 0.0))
@@ -323,17 +142,14 @@ class PausePolicy:
         self._acked_ratio = 0.0
         self._fresh_area = 0.0
         self._fresh_evidence = 0.0
-        self._out_streak = 0
-        self._prev_outside: list[Region] = []
+        self._outside_streak = PlaceStreak()  # rule 4
         self._last_outside: list[Region] = []
         self._acked_outside: list[tuple[tuple[float, ...], float]] = []
         self._grace = 0  # analysed layers left in the resume grace period
         self._zones: list[tuple[tuple[float, ...], str]] = []  # (bbox_mm, label) judged no more
         self._live: list[tuple[float, ...]] = []  # boxes of the objects still printed (ignore_zone's ``others``)
-        self._kind_streak: dict[str, int] = {}
-        self._kind_prev: dict[str, list[Region]] = {}
-        self._joint_streak = 0  # layers in a row on which rule 1 or rule 4 alarmed, in overlapping places
-        self._prev_joint: list[Region] = []
+        self._kind_streaks = {kind: PlaceStreak() for kind in FAILURE_KINDS}  # each kind's own act_mm2
+        self._joint_streak = PlaceStreak()  # rule 4b: layers on which rule 1 or rule 4 alarmed
 
     @property
     def halted(self) -> bool:
@@ -357,18 +173,15 @@ class PausePolicy:
         for r in self._last_outside:
             self._acked_outside.append((tuple(r.bbox_mm), float(r.area_mm2)))
         self._acked_ratio = max(self._acked_ratio, self._last_ratio)
-        self._streak = self._out_streak = self._joint_streak = 0
-        self._prev_joint = []
-        self._kind_streak.clear()
+        self._streak = 0
+        self._reset_place_streaks()
         self._grace = self.settings.resume_grace_layers
         self._halted = False
 
     def forget_streaks(self) -> None:
         """Start counting layers in a row afresh (after a quiet period: what came before is another scene)."""
-        self._streak = self._out_streak = self._joint_streak = 0
-        self._prev_regions, self._prev_outside, self._prev_joint = [], [], []
-        self._kind_streak.clear()
-        self._kind_prev.clear()
+        self._streak, self._prev_regions = 0, []
+        self._reset_place_streaks()
 
     def ignore_zone(self, bbox_mm: Sequence[float], label: str = "",
                     others: Sequence[Sequence[float]] | None = None) -> None:
@@ -386,15 +199,17 @@ class PausePolicy:
         self._zones.append((tuple(float(v) for v in bbox_mm), label))
         if others is not None:
             self._live = [tuple(float(v) for v in b) for b in others]
-        self._streak = self._out_streak = self._joint_streak = 0
-        self._prev_regions, self._prev_outside, self._prev_joint = [], [], []
-        self._kind_streak.clear()
-        self._kind_prev.clear()
+        self._streak, self._prev_regions = 0, []
+        self._reset_place_streaks()
         self._halted = False
+
+    def _reset_place_streaks(self) -> None:
+        for streak in (self._outside_streak, self._joint_streak, *self._kind_streaks.values()):
+            streak.reset()
 
     def _ignored(self, r: Region) -> bool:
         box = tuple(r.bbox_mm)
-        if any(_overlap(b, box) for b in self._live):
+        if any(boxes_overlap(b, box) for b in self._live):
             return False  # it reaches an object still printed: it counts, whosever it is
         x, y = r.centroid_mm
         if any(b[0] <= x <= b[2] and b[1] <= y <= b[3] for b, _ in self._zones):
@@ -406,7 +221,7 @@ class PausePolicy:
 
     def _acked_area(self, r: Region) -> float | None:
         """Acknowledged area of the region ``r`` overlaps, or None."""
-        areas = [a for box, a in self._acked if _overlap(box, tuple(r.bbox_mm))]
+        areas = [a for box, a in self._acked if boxes_overlap(box, tuple(r.bbox_mm))]
         return max(areas) if areas else None
 
     def _fresh(self, regions: list[Region]) -> list[Region]:
@@ -448,7 +263,10 @@ class PausePolicy:
         alarm = layer_alarm(ratio, self._fresh_evidence, s, limit)
         self._streak = self._streak + 1 if alarm else 0
         outside_regions, outside_area = self._outside(result)
-        joint = self._joint(alarm, regions, self._out_streak > 0, outside_regions)
+        out_alarm = self._outside_streak.count > 0
+        joint = [*(regions if alarm else []), *(outside_regions if out_alarm else [])]
+        joint.sort(key=lambda r: -r.area_mm2)
+        self._joint_streak.step(alarm or out_alarm, joint)
         kind_stop, kind_warn = self._kinds(regions, layer)
         if self._halted:
             return Decision("none", f"layer {layer}: already stopped, waiting for the operator", layer)
@@ -462,29 +280,29 @@ class PausePolicy:
             return self._act(s.strong_action, f"layer {layer}: {outside:.0f} mm^2 of material outside the part "
                                               f"(> {s.strong_outside_area_mm2:.0f}; spaghetti or detachment?)",
                              layer, regions)
-        if self._out_streak >= s.consecutive_layers:
+        if self._outside_streak.count >= s.consecutive_layers:
             big = outside_regions[0]
             return self._act(s.action, f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print "
                                        f"(largest at ({big.centroid_mm[0]:.0f}, {big.centroid_mm[1]:.0f}) mm) "
-                                       f"for {self._out_streak} layers", layer, outside_regions)
+                                       f"for {self._outside_streak.count} layers", layer, outside_regions)
         if kind_stop is not None:
             return self._act(s.action, kind_stop[1], layer, kind_stop[2], own=True)
         # a real failure stays in place: consecutive alarms must share a region
         # (isolated noise spikes land at random places); without regions, trust a%.
         persistent = not regions or not prev or any(
-            _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in regions for p in prev
+            boxes_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in regions for p in prev
         )
         if self._streak >= s.consecutive_layers and persistent:
             return self._act(s.action, f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%} "
                                        f"for {self._streak} layers", layer, regions)
-        if self._joint_streak >= s.consecutive_layers:
-            return self._act(s.action, f"layer {layer}: a failure in the same place for {self._joint_streak} "
+        if self._joint_streak.count >= s.consecutive_layers:
+            return self._act(s.action, f"layer {layer}: a failure in the same place for {self._joint_streak.count} "
                                        f"layers (anomaly ratio {ratio:.1%}, {outside_area:.0f} mm^2 changed "
                                        f"beside the print)", layer, joint)
         grown = self._growth(regions, prev, layer)
         if grown is not None:
             return grown
-        if self._out_streak and s.notify_single_layer and not alarm:
+        if out_alarm and s.notify_single_layer and not alarm:
             return Decision("notify", f"layer {layer}: {outside_area:.0f} mm^2 changed beside the print", layer)
         if alarm and s.notify_single_layer:
             return Decision("notify", f"layer {layer}: anomaly ratio {ratio:.1%} above {limit:.1%}", layer,
@@ -492,24 +310,6 @@ class PausePolicy:
         if kind_warn is not None:
             return kind_warn
         return Decision("none", f"layer {layer}: anomaly ratio {ratio:.1%}", layer)
-
-    def _joint(self, alarm: bool, regions: list[Region], out_alarm: bool, outside: list[Region]) -> list[Region]:
-        """The joint streak after one layer (rule 4b); returns the regions behind its alarm (largest first).
-
-        ``alarm``: the ratio rule alarmed on the layer (its fresh failing ``regions``); ``out_alarm``: the
-        outside rule did (its fresh ``outside`` regions). A layer on which either alarmed continues the
-        streak when its regions overlap those of the previous alarmed layer (or either has none: a% without
-        regions is trusted, as rule 1 does), else starts a new one; a layer on which neither did ends it.
-        """
-        if not (alarm or out_alarm):
-            self._joint_streak, self._prev_joint = 0, []
-            return []
-        seen = sorted([*(regions if alarm else []), *(outside if out_alarm else [])], key=lambda r: -r.area_mm2)
-        prev = self._prev_joint
-        same = not seen or not prev or any(_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in seen for p in prev)
-        self._joint_streak = self._joint_streak + 1 if (same and self._joint_streak) else 1
-        self._prev_joint = seen
-        return seen
 
     def _kinds(self, regions: list[Region], layer: int) -> tuple[tuple | None, Decision | None]:
         """The per-kind thresholds (``act_mm2``, ``warn_mm2``) after one layer.
@@ -523,14 +323,7 @@ class PausePolicy:
             ka = s.kinds.of(kind)
             mine = [r for r in regions if (r.kind or UNKNOWN) == kind]
             area = float(sum(r.area_mm2 for r in mine))
-            if ka.act_mm2 > 0 and area >= ka.act_mm2:
-                prev = self._kind_prev.get(kind, [])
-                same = not prev or any(_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in mine for p in prev)
-                self._kind_streak[kind] = self._kind_streak.get(kind, 0) + 1 if same else 1
-                self._kind_prev[kind] = mine
-            else:
-                self._kind_streak[kind], self._kind_prev[kind] = 0, []
-            n = self._kind_streak[kind]
+            n = self._kind_streaks[kind].step(ka.act_mm2 > 0 and area >= ka.act_mm2, mine)
             if stop is None and n >= s.consecutive_layers:
                 stop = (kind, f"layer {layer}: {area:.0f} mm^2 of {kind} (act at {ka.act_mm2:g}) for {n} layers", mine)
             if warn is None and ka.warn_mm2 > 0 and area >= ka.warn_mm2:
@@ -568,14 +361,12 @@ class PausePolicy:
         self._last_outside = list(result.outside_regions)
         fresh = []
         for r in result.outside_regions:
-            acked = [a for box, a in self._acked_outside if _overlap(box, tuple(r.bbox_mm))]
+            acked = [a for box, a in self._acked_outside if boxes_overlap(box, tuple(r.bbox_mm))]
             if (not acked or r.area_mm2 > s.growth_ratio * max(acked)) and not self._ignored(r):
                 fresh.append(r)
         area = float(sum(r.area_mm2 for r in fresh))
         alarm = s.outside_pause_mm2 > 0 and area >= s.outside_pause_mm2
-        prev, self._prev_outside = self._prev_outside, (fresh if alarm else [])
-        same_place = not prev or any(_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) for r in fresh for p in prev)
-        self._out_streak = (self._out_streak + 1 if same_place else 1) if alarm else 0
+        self._outside_streak.step(alarm, fresh)
         return fresh, area
 
     def _fresh_ratio(self, result: LayerResult, regions: list[Region]) -> tuple[float, float]:
@@ -614,7 +405,7 @@ class PausePolicy:
                 return self._act(s.action, f"layer {layer}: acknowledged region at {where} "
                                            f"grew from {acked:.0f} to {r.area_mm2:.0f} mm^2", layer, [r])
             for p in prev:
-                if _overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) and r.area_mm2 >= s.growth_ratio * max(p.area_mm2, 1e-9):
+                if boxes_overlap(tuple(r.bbox_mm), tuple(p.bbox_mm)) and r.area_mm2 >= s.growth_ratio * max(p.area_mm2, 1e-9):
                     return self._act(s.action, f"layer {layer}: failing region at {where} "
                                                f"grew from {p.area_mm2:.0f} to {r.area_mm2:.0f} mm^2", layer, [r])
         return None
