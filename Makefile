@@ -18,11 +18,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/layerwatch demo --out $(OUT)
 
-# Tests run in one process by default: on pytest-xdist workers (`make test PYTEST_WORKERS=2`, `--dist
-# loadgroup`; every real-server test is in xdist_group "servers") the suite takes ~10 instead of ~16 min,
-# but test_jobs_real's OctoPrint park-spot test timed out in 3 of 4 fresh-clone CI runs under xdist
-# (not reproduced in one process; see README), so CI stays serial until that is understood.
-PYTEST_WORKERS ?= 0
+# Tests run on two pytest-xdist workers (`--dist loadgroup`; every real-server test is in xdist_group
+# "servers", tests on wall-clock time are `exclusive`): ~10-12 instead of ~17 min on the 2-core machine.
+# `make test PYTEST_WORKERS=0` runs them in one process (e.g. with --pdb). See README.
+PYTEST_WORKERS ?= 2
 XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadgroup)
 
 test: $(STAMP)
