@@ -1,7 +1,13 @@
-"""Truth masks checked against independent rasterisations (KD-tree samples, analytic squares)."""
+"""Truth masks checked against independent rasterisations (KD-tree samples, analytic squares).
+
+The truth is what the camera sees of a failure (``simulate/truth.py``): a hole's near rim hides a
+strip of it, a shifted block's walls facing the camera add to its bands; so the masks are compared
+with the nominal footprints within those margins.
+"""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -38,8 +44,10 @@ def test_infill_patch_mask_is_removed_footprint(part, camera, topview):
     d, _ = tree.query(_pixel_centres_mm(topview).reshape(-1, 2))
     expected = (d <= float(w[0]) / 2).reshape(topview.shape)
     assert fr.truth is not None and fr.meta["failed"]
-    diff = fr.truth ^ expected
-    assert diff.sum() <= 0.03 * expected.sum(), (diff.sum(), expected.sum())
+    # seen: inside the removed beads (one pixel of rounding), most of them (the near rim hides a strip)
+    near = cv2.dilate(expected.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert (fr.truth & ~near).sum() <= 0.01 * expected.sum()
+    assert (fr.truth & expected).sum() >= 0.5 * expected.sum(), (fr.truth.sum(), expected.sum())
     # the region version covers the whole patch disc
     disc = np.linalg.norm(_pixel_centres_mm(topview) - centre, axis=-1) <= size / 2 - 0.5
     assert (fr.truth_area & disc).sum() >= 0.97 * disc.sum()
@@ -75,10 +83,13 @@ def test_layer_shift_mask_is_shifted_area_xor(part, camera, topview):
         return block | fin
 
     expected = area(dx, dy) ^ area(0, 0)
-    assert _iou(fr.truth, expected) > 0.9
+    assert _iou(fr.truth, expected) > 0.7  # plus the shifted layers' walls facing the camera
+    k = int(round(1.5 * topview.px_per_mm)) | 1  # at most 1.5 mm off: the walls are 1.2 mm tall
+    near = cv2.dilate(expected.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    assert (fr.truth & ~near).sum() <= 0.05 * fr.truth.sum()
+    assert (fr.truth & expected).sum() >= 0.8 * expected.sum()
     # the failed region is the same two bands: the 3 mm closing of patch failures would join them across
     # the block (where the layer is where it should be)
-    assert _iou(fr.truth_area, expected) > 0.9
     assert (fr.truth_area == fr.truth).all()
     before = simulate_layer(part, 2, camera, topview, [f])
     assert before.truth is None and not before.meta["failed"]

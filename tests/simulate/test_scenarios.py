@@ -61,7 +61,10 @@ def test_under_extrusion_keeps_thin_beads(part, camera, topview):
     miss = PrintSimulator(part, camera, topview, [Failure("infill_defect", mode="missing", **kw)])
     under = PrintSimulator(part, camera, topview, [Failure("infill_defect", mode="under", **kw)])
     f_miss, f_under = miss.frame(4), under.frame(4)
-    assert np.array_equal(f_miss.truth, f_under.truth)
+    # the thin beads lie over half a layer below the plan: seen as the same hole, within a pixel
+    near = cv2.dilate(f_miss.truth.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert (f_under.truth & ~near).sum() <= 0.01 * f_miss.truth.sum()
+    assert (f_under.truth & f_miss.truth).sum() >= 0.5 * f_miss.truth.sum()
     v, u = np.round(miss.grid.to_px(np.array([0.0, 0.0]))).astype(int)[::-1]
     z3 = part.layers[3].z
     assert miss.h[v - 8 : v + 9, u - 8 : u + 9].max() <= z3 + 0.05

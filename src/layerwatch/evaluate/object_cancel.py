@@ -39,14 +39,14 @@ from layerwatch.gcode.objects import (
     read_objects,
     without_objects,
 )
-from layerwatch.gcode.toolpath import FEATURES, Toolpath
+from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.pose import locate_bed
 from layerwatch.pipeline.actions import ActionExecutor
 from layerwatch.pipeline.config import observed_square, resolve_config
 from layerwatch.pipeline.policy import Decision, PausePolicy
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
-from layerwatch.simulate.failures import thin_wall_segments
+from layerwatch.simulate.failures import selectable
 
 __all__ = ["CANCEL_KINDS", "CancelCase", "CaseResult", "find_plates", "iter_cases", "plate_cases", "run_case", "run_cases",
            "summary_table", "tally"]
@@ -61,8 +61,6 @@ CANCEL_KINDS: dict[str, tuple[float, float]] = {
 }
 #: onsets as fractions of the object's printed layers
 ONSET_FRACTIONS = (0.3, 0.6)
-_INFILL = tuple(FEATURES.index(n) for n in ("infill", "solid_infill", "top_solid_infill", "bridge"))
-_EXTERNAL = FEATURES.index("external_perimeter")
 
 
 @dataclass(frozen=True)
@@ -171,17 +169,12 @@ def _object_layers(tp: Toolpath, om: ObjectMap, index: int) -> list[int]:
 def _point(tp: Toolpath, om: ObjectMap, obj: int, layer: int, kind: str, rng: np.random.Generator):
     """A midpoint of one of ``obj``'s segments on ``layer`` that ``kind`` can remove (None: none there).
 
-    As the simulator selects them: infill (every segment on a layer without infill tags), thin walls
-    (else the external perimeter) of the layer.
+    As the simulator selects them (:func:`~layerwatch.simulate.failures.selectable`).
     """
     sl = tp.layer_slice(layer)
     mine = om.segment_object[sl] == obj
-    if kind == "infill_defect":
-        infill = np.isin(tp.feature[sl], _INFILL)
-        mine &= infill if infill.any() else True
-    elif kind == "thin_wall":
-        walls = thin_wall_segments(tp, layer)
-        mine &= walls if walls.any() else tp.feature[sl] == _EXTERNAL
+    if kind in ("infill_defect", "thin_wall"):
+        mine &= selectable(tp, layer, kind)
     idx = np.flatnonzero(mine)
     if not len(idx):
         return None

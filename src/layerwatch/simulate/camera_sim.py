@@ -33,13 +33,14 @@ none of that code path:
    noise, gamma and 8-bit quantisation.
 
 Frames are BGR ``uint8`` (as ``cv2.imread`` returns). Ground-truth masks are
-in the *top view of the top layer's plane*: footprints of removed segments
-(``infill_defect``, ``thin_wall``), footprint XOR displaced footprint
-(``layer_shift``, ``detachment``), and for raised things (``foreign_body``,
-``spaghetti``) the region where the object appears in the warped photo: its
-footprint and its top projected through the camera centre onto the plane;
-for ``nothing_extruded`` the footprint of the layer that was not printed
-(no material is deposited on the layers where it is active).
+in the *top view of the top layer's plane* and hold what the camera sees of the
+failure in the whole scene after the layer (:mod:`layerwatch.simulate.truth`):
+the holes of a patch (``infill_defect``, ``thin_wall``) still open, the moved
+part or shifted layers as seen plus the places they left (``detachment``,
+``layer_shift``), the object or strands where no part hides them
+(``foreign_body``, ``spaghetti``); for ``nothing_extruded`` the footprint of
+the layer that was not printed (no material is deposited on the layers where
+it is active).
 """
 
 from __future__ import annotations
@@ -55,9 +56,10 @@ from layerwatch.gcode.toolpath import Toolpath, part_mask
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.simulate import failures as fl
+from layerwatch.simulate import truth as tr
 from layerwatch.simulate.frame import SimFrame, save_frame
 from layerwatch.simulate.photo import Photographer
-from layerwatch.simulate.raster import capsule_mask, grid_params, solid_area, stamp_capsules
+from layerwatch.simulate.raster import grid_params, solid_area, stamp_capsules
 from layerwatch.simulate.settings import SimSettings
 
 __all__ = ["SimFrame", "PrintSimulator", "save_frame", "simulate_layer", "simulate_print"]
@@ -135,6 +137,8 @@ class PrintSimulator:
         self.hf, self.matf = self.h.copy(), self.mat.copy()  # skirt: never detaches
         self.has_fixed = False
         self.next_layer = 0
+        #: per layer-shift failure (index in ``failures``) the part's height field before its onset
+        self.before_shift: dict[int, np.ndarray] = {}
 
     # -------------------------------------------------------------- geometry
     def layer_segments(self, i: int):
@@ -182,6 +186,9 @@ class PrintSimulator:
         return not any(rf.type == "nothing_extruded" and rf.failure.active(i) for rf in self.failures)
 
     def _deposit(self, i: int) -> None:
+        for k, rf in enumerate(self.failures):
+            if rf.type == "layer_shift" and rf.failure.onset == i:
+                self.before_shift[k] = self.h.copy()
         if not self.extruded(i):
             return
         st = self.settings
@@ -253,38 +260,6 @@ class PrintSimulator:
         gs = np.where((gs[..., 1:] > 0) & (hs[..., None] > 0), gs + lift[..., None], 0).astype(np.float32)
         return hs, ms, gs
 
-    def _seen_detached(self, rf, p: np.ndarray, z: float) -> np.ndarray:
-        """Where points ``p`` (N, 2) of plane ``z`` appear on that plane after detachment.
-
-        The part is moved by the rigid affine and lifted by the tilt; the lift
-        shifts the points' images along the camera rays (parallax).
-        """
-        q = _apply_affine(rf, p)
-        nrm = rf.offset / max(np.linalg.norm(rf.offset), 1e-9)
-        lift = rf.tilt * np.maximum((q - rf.center) @ nrm + _TILT_ARM_MM, 0)
-        C = self.C
-        k = (C[2] - z) / np.maximum(C[2] - z - lift, 1e-3)
-        return C[:2] + (q - C[:2]) * k[:, None]
-
-    def _apparent(self, before, after, zl) -> np.ndarray:
-        """Top-view mask of raised/draped things seen through the camera on plane ``zl``."""
-        ch = after > before + 1e-4
-        v, u = np.nonzero(ch)
-        out = np.zeros(self.topview.shape, np.uint8)
-        if len(u) == 0:
-            return out.astype(bool)
-        xy = self.grid.to_mm(np.stack([u, v], -1).astype(float))
-        C = self.C
-        pts = []
-        for z in (before[v, u], 0.5 * (before[v, u] + after[v, u]), after[v, u]):
-            k = (C[2] - zl) / np.maximum(C[2] - z, 1e-3)
-            pts.append(C[:2] + (xy - C[:2]) * k[:, None])
-        uv = np.round(self.topview.to_px(np.concatenate(pts))).astype(int)
-        H, W = out.shape
-        ok = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        out[uv[ok, 1], uv[ok, 0]] = 1
-        return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(bool)
-
     def _rest_height(self, h: np.ndarray, rows: np.ndarray) -> float:
         """Highest surface point under the capsules' bounding box, mm."""
         r = rows[:, 4].max()
@@ -294,6 +269,23 @@ class PrintSimulator:
         H, W = h.shape
         win = h[max(v0, 0) : min(v1 + 1, H), max(u0, 0) : min(u1 + 1, W)]
         return float(win.max()) if win.size else 0.0
+
+    def _refilled(self, h: np.ndarray, rf, index: int) -> np.ndarray:
+        """``h`` with the beads a patch failure removed on its layers up to ``index`` printed (the plan)."""
+        k = self.failures.index(rf)
+        plan = h.copy()
+        for j in range(rf.failure.onset, index + 1):
+            a0, a1, w = self.layer_segments(j)[4].get(k, (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)))
+            if not len(a0) or not self.extruded(j):
+                continue
+            lay = self.tp.layers[j]
+            lh = lay.height if lay.height > 0 else 0.2
+            rows = np.zeros((len(a0), 10))
+            rows[:, 0:2], rows[:, 2:4], rows[:, 4] = a0, a1, w / 2
+            rows[:, 5], rows[:, 7] = lay.z - lh / 2, lh / 2
+            stamp_capsules(plan, np.zeros(plan.shape, np.uint8), plan, rows, np.full(len(rows), fl.MAT_PART, np.uint8),
+                           *self.gp)
+        return plan
 
     def bed_photo(self) -> np.ndarray:
         """The empty bed as the same camera sees it before the print (no part, no failure).
@@ -319,59 +311,65 @@ class PrintSimulator:
         tp, tv = self.tp, self.topview
         lay = tp.layers[index]
         h, mat, gap = self.h.copy(), self.mat.copy(), self.gap
-        truth = np.zeros(tv.shape, bool)
-        moved_truth = np.zeros(tv.shape, bool)  # already an area: solid_area closed each outline
-        active = []
-        for rf in self.failures:
-            f = rf.failure
-            if not f.active(index):
-                continue
-            active.append(f.type)
-            if f.type in ("layer_shift", "detachment"):
-                sl = tp.layer_slice(index)
-                mine = fl.in_box(tp.start[sl], tp.end[sl], f.within_mm)  # what moves (all but a plate's other objects)
-                nominal = (tp.start[sl][mine], tp.end[sl][mine], tp.width[sl][mine] / 2.0)
-                fp = solid_area(*nominal, tv)
-                if f.type == "layer_shift":
-                    moved = solid_area(nominal[0] + rf.offset, nominal[1] + rf.offset, nominal[2], tv)
-                else:
-                    h, mat, gap = self._detach(rf, h, mat, gap)
-                    start, end = (self._seen_detached(rf, p, lay.z) for p in nominal[:2])
-                    moved = solid_area(start, end, nominal[2], tv)
-                moved_truth |= fp ^ moved
+        lh = lay.height if lay.height > 0 else 0.2
+        sight = tr.Sight(self.C, tv, self.grid, lay.z)
+        tol = tr.DEPTH_LAYERS * lh
+        active = [rf for rf in self.failures if rf.failure.active(index)]
+        plan = plan_gap = moved = None
+        for rf in active:
+            if rf.type == "detachment":
+                plan, plan_gap = h.copy(), gap
+                h, mat, gap = self._detach(rf, h, mat, gap)
+                moved = h > 0
         if self.has_fixed:  # the skirt stays on the bed whatever the part does
             top = self.hf > h
             h[top], mat[top] = self.hf[top], self.matf[top]
-        for k, rf in enumerate(self.failures):
-            f = rf.failure
-            if not f.active(index):
-                continue
-            if f.type in ("infill_defect", "thin_wall"):
-                a0, a1, w = self.layer_segments(index)[4][k]
-                truth |= capsule_mask(a0, a1, w / 2.0, tv)
-            elif f.type == "nothing_extruded":
-                sl = tp.layer_slice(index)
-                truth |= solid_area(tp.start[sl], tp.end[sl], tp.width[sl] / 2.0, tv)
-            elif f.type in ("foreign_body", "spaghetti"):
+            if moved is not None and plan is not None:
+                moved &= ~top
+                plan = np.maximum(plan, self.hf)
+        raised = []  # (type, scene before the object) of foreign bodies and strands
+        for rf in active:
+            if rf.type in ("foreign_body", "spaghetti"):
                 # resolve() builds the capsules and their materials for these types
                 assert rf.capsules is not None and rf.capsule_mat is not None
                 rows = rf.capsules.copy()
-                if f.type == "foreign_body":  # rests on the highest point under it
+                if rf.type == "foreign_body":  # rests on the highest point under it
                     rows[:, 5] = self._rest_height(h, rows)
                 else:
-                    rows = rows[: rf.per_layer * (index - f.onset + 3)]
+                    rows = rows[: rf.per_layer * (index - rf.failure.onset + 3)]
                 before = h.copy()
                 stamp_capsules(h, mat, before, rows, rf.capsule_mat[: len(rows)], *self.gp)
-                truth |= self._apparent(before, h, lay.z)
-        # a patch's beads closed into its region; not the two bands of a moved layer, which the closing
-        # would join across the part where it is where it should be
+                raised.append(before)
+        # the truth is what the camera sees of the failures in the final scene (simulate/truth.py)
+        truth = np.zeros(tv.shape, bool)  # patches and objects: closed into their region below
+        moved_truth = np.zeros(tv.shape, bool)  # already regions
+        for rf in active:
+            f = rf.failure
+            if f.type == "detachment":
+                assert moved is not None and plan is not None
+                moved_truth |= tr.detachment(sight, h, gap, moved, plan, plan_gap, tol)
+            elif f.type == "layer_shift":
+                z_below = tp.layers[f.onset - 1].z if f.onset > 0 else 0.0
+                below = self.before_shift[self.failures.index(rf)]
+                if self.has_fixed:
+                    below = np.maximum(below, self.hf)
+                moved_truth |= tr.layer_shift(sight, h, gap, below, z_below, rf.offset, tol)
+            elif f.type in ("infill_defect", "thin_wall"):
+                truth |= tr.patch(sight, h, gap, self._refilled(h, rf, index), tol)
+            elif f.type == "nothing_extruded":
+                sl = tp.layer_slice(index)
+                truth |= tr.nothing_extruded(solid_area(tp.start[sl], tp.end[sl], tp.width[sl] / 2.0, tv))
+        for before in raised:
+            truth |= tr.raised_object(sight, h, gap, before)
+        # a patch's beads closed into its region; not the moved part's, which the closing would join
+        # across the part where it is where it should be
         area = (_close(truth, tv, 3.0) | moved_truth) if active else None
         truth |= moved_truth
         photo, info = self.cam.shoot(h, mat, index, lay.height, gap)
         meta = {
             "layer": index,
             "z": lay.z,
-            "failures": active,
+            "failures": [rf.type for rf in active],
             "failed": bool(truth.any()),
             **info,
             "seconds": time.perf_counter() - t0,

@@ -34,6 +34,8 @@ __all__ = [
     "ResolvedFailure",
     "resolve",
     "thin_wall_segments",
+    "selectable",
+    "has_thin_walls",
     "patch_layers",
     "random_scenarios",
     "beside_point",
@@ -233,29 +235,54 @@ def thin_wall_segments(tp: Toolpath, index: int, max_wall_mm: float = 2.2) -> np
     return walls & wall[labels[uv[:, 1], uv[:, 0]]]
 
 
-def _selection(tp: Toolpath, f: Failure) -> np.ndarray:
-    """Per-segment bool: which segments a patch defect may remove.
+def selectable(tp: Toolpath, layer: int, kind: str) -> np.ndarray:
+    """Per segment of ``layer``: which ones a patch defect of ``kind`` may remove.
 
     ``thin_wall``: the layer's thin walls (:func:`thin_wall_segments`), else its
-    outer perimeter. ``infill_defect``: the layer's infill (sparse, solid, top,
-    bridge); every bead only when the G-code marks no infill anywhere (no feature
-    tags: Slic3r 1.3.1). A layer that prints no infill in a file that marks it
-    loses nothing (before, it lost every bead in the patch, walls included: on
-    Cura 4.10, which prints sparse infill every other layer, an "infill defect"
-    cut the walls on the layers between).
+    outer perimeter (a *wall gap*: the part has no thin wall there).
+    ``infill_defect``: the layer's infill (sparse, solid, top, bridge); every
+    bead only when the G-code marks no infill anywhere (no feature tags: Slic3r
+    1.3.1). A layer that prints no infill in a file that marks it loses nothing
+    (before, it lost every bead in the patch, walls included: on Cura 4.10,
+    which prints sparse infill every other layer, an "infill defect" cut the
+    walls on the layers between).
+
+    Returns
+    -------
+    ndarray, bool, shape (n_segments_of_layer,)
+
+    Raises
+    ------
+    ConfigError
+        If ``kind`` is not a patch defect.
     """
+    sl = tp.layer_slice(layer)
+    if kind == "thin_wall":
+        sel = thin_wall_segments(tp, layer)
+        return sel if sel.any() else tp.feature[sl] == FEATURES.index("external_perimeter")
+    if kind == "infill_defect":
+        sel = np.isin(tp.feature[sl], _INFILL)
+        return sel if sel.any() or _has_infill_tags(tp) else np.ones(len(sel), bool)
+    raise ConfigError(f"only infill_defect and thin_wall remove segments, not {kind}.")
+
+
+def has_thin_walls(tp: Toolpath, layers: range | None = None, min_segments: int = 3) -> bool:
+    """Whether the part prints a thin wall (at least ``min_segments`` segments of one layer).
+
+    Without one a ``thin_wall`` defect cuts the outer perimeter (:func:`selectable`): reports call it a
+    *wall gap*. ``layers``: the layers to look at, default all (each costs a small rasterisation).
+    """
+    for i in layers if layers is not None else range(tp.n_layers):
+        if int(thin_wall_segments(tp, i).sum()) >= min_segments:
+            return True
+    return False
+
+
+def _selection(tp: Toolpath, f: Failure) -> np.ndarray:
+    """Per-segment bool over the toolpath: :func:`selectable` on the layers of ``f``."""
     sel = np.zeros(tp.n_segments, bool)
-    tagged = f.type == "infill_defect" and _has_infill_tags(tp)
     for i in range(f.onset, min(f.onset + f.layers, tp.n_layers)):
-        sl = tp.layer_slice(i)
-        if f.type == "thin_wall":
-            sel[sl] = thin_wall_segments(tp, i)
-            if not sel[sl].any():  # no thin walls: gaps in the outer perimeters
-                sel[sl] = tp.feature[sl] == FEATURES.index("external_perimeter")
-        else:
-            sel[sl] = np.isin(tp.feature[sl], _INFILL)
-            if not sel[sl].any() and not tagged:
-                sel[sl] = True
+        sel[tp.layer_slice(i)] = selectable(tp, i, f.type)
     return sel
 
 
