@@ -215,14 +215,16 @@ def _true_moved_area(foot: np.ndarray, shift_mm, turn_deg: float = 0.0) -> np.nd
 
 @pytest.mark.parametrize(("shift", "turn"), [((2.5, -1.0), 0.0), ((-1.5, 0.0), 0.0), ((2.5, 1.0), 6.0)])
 def test_a_moved_parts_regions_mark_where_it_is_and_where_it_should_be(shift, turn):
-    """Each moved-kind region carries the moved area (the registered outline XOR the planned one), not its blocks."""
+    """Each moved-kind region carries the moved area, not its blocks: a shift's registered outline XOR the
+    planned one, a detached (turned) part's whole outline where it is and where it should be."""
     top, ref, foot = _part(5, shift_mm=shift, turn_deg=turn)
     res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108), _region(118, 95, 123, 105)])
     motion = FailureTyper(None, TOPVIEW).type_result(res, _colour(top), top, ref, foot)
     assert motion is not None and motion.moved and motion.turned == (turn != 0.0)
-    truth = _true_moved_area(foot, shift, turn)
+    bands = _true_moved_area(foot, shift, turn)
     for r in res.regions:
         assert r.kind in ("layer_shift", "detachment") and r.outline_mm
+        truth = bands | foot if r.kind == "detachment" else bands  # the uncovered bed reads as a detachment
         marked = outline_mask(r.outline_mm, TOPVIEW)
         assert (marked & truth).sum() / (marked | truth).sum() > 0.7
     # the blocks alone cover little of it
@@ -491,6 +493,38 @@ def test_a_turned_part_on_a_wider_base_is_a_detachment_not_a_layer_shift(monkeyp
     motion = FailureTyper(box_part(center=tuple(CENTRE)), TOPVIEW).type_result(res, _colour(top), top, ref, foot)
     assert motion is not None and motion.moved and motion.turned
     assert res.regions[0].kind == kind
+
+
+def test_part_seen_is_the_part_with_its_lower_layers_nearer_the_camera():
+    """Layers projected through the camera centre onto the top layer's plane: the lower ones slide toward the
+    camera's foot (here -y), so the silhouette grows on the camera's side (the walls it sees) and not beyond."""
+    tp = box_part(size_mm=20.0, height_mm=6.0, layer_h=0.3, center=tuple(CENTRE), fin=False)
+    top = tp.n_layers - 1
+    camera = np.array([CENTRE[0], CENTRE[1] - 60.0, 60.0 + tp.layers[top].z])
+    seen = failure_typing.part_seen(tp, top, TOPVIEW, camera)
+    plain = failure_typing.part_seen(tp, top, TOPVIEW, np.array([*CENTRE, 1e6]))  # from far above: the footprint
+    assert seen is not None and plain is not None
+    ys = TOPVIEW.to_mm(np.stack(np.nonzero(seen)[::-1], -1).astype(float))[:, 1]
+    ys_plain = TOPVIEW.to_mm(np.stack(np.nonzero(plain)[::-1], -1).astype(float))[:, 1]
+    # the bed-level outline at y = 90, 6 mm under the top, lands 50 * 6 / 66 = 4.5 mm nearer the camera
+    assert ys_plain.min() - 4.8 < ys.min() < ys_plain.min() - 4.0
+    assert abs(ys.max() - ys_plain.max()) < 0.5  # the far side's lower layers are hidden under the top
+    assert (plain & ~seen).sum() < 0.01 * plain.sum()
+
+
+def test_a_detached_part_marks_its_lower_layers_but_not_the_plates_other_object(monkeypatch):
+    """A detached part's area: its layer and the lower layers touching it, here and carried; not another object."""
+    top, ref, foot = _part(5, shift_mm=(2.5, 1.0), turn_deg=6.0)
+    base = _below_footprint(foot, 3.0)  # a wider base of the part
+    other = outline_mask((((60.0, 60.0), (66.0, 60.0), (66.0, 65.0), (60.0, 65.0)),), TOPVIEW)
+    monkeypatch.setattr(failure_typing, "part_below", lambda tp, index, topview: base | other)
+    res = LayerResult(layer=2, z=0.9, regions=[_region(100, 92, 104, 108), _region(118, 95, 123, 105)])
+    FailureTyper(box_part(size_mm=20.0, center=tuple(CENTRE)), TOPVIEW).type_result(res, _colour(top), top, ref, foot)
+    kinds = {r.kind for r in res.regions}
+    assert kinds == {"detachment"}
+    marked = outline_mask(res.regions[0].outline_mm, TOPVIEW)
+    assert marked[base].mean() > 0.97  # the base, where the plan has it
+    assert not (marked & other).any()
 
 
 def test_part_below_is_the_parts_lower_layers_seen_from_above():

@@ -23,8 +23,13 @@ Evidence (per region, all scale-free or in mm)
   knocked loose turns as it slides). Regions within the moved part's reach
   (:meth:`_Scene.near_moved`; for a shift also the reach of the print's
   lower layers: a shift moves every object printed after it) take that kind, the displacement and the moved part's area
-  (:attr:`~layerwatch.analysis.result.Region.outline_mm`: where the layer
-  is and should not be, and where it should be and is not).
+  (:attr:`~layerwatch.analysis.result.Region.outline_mm`): for a layer
+  shift where the layer is and should not be, and where it should be and is
+  not (the layers below stay put and the shifted top looks like the planned
+  one where the two overlap); for a detachment the whole part, every
+  visible top of it (the layer and the lower layers beyond it), where the
+  photo shows it and where the plan has it (:meth:`_Scene.detached_area`):
+  all of a part that came off is out of place.
 * **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
   below where they were (the part's colour: a layer shift) or the bare bed
   (a detached part took its first layers with it). Only where the part's
@@ -126,7 +131,7 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath, part_mask
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTATION_MIN_DEG", "SECOND_PEAK",
-           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_below", "part_motion", "region_evidence"]
+           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_below", "part_motion", "part_seen", "region_evidence"]
 
 #: CIELAB distance (lightness half weighted) above which a pixel is unlike a reference colour
 COLOUR_DELTA = 22.0
@@ -257,9 +262,11 @@ class _Scene:
     def __init__(self, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
                  topview: TopView, valid: np.ndarray | None,
                  footprint_box: tuple[int, int, int, int] | None = None,
-                 below: Callable[[], np.ndarray | None] | None = None) -> None:
+                 below: Callable[[], np.ndarray | None] | None = None,
+                 seen: Callable[[], np.ndarray | None] | None = None) -> None:
         self.topview = topview
         self._below = below
+        self._part_seen = seen
         self.top_bgr, self.top, self.reference = top_bgr, top, reference
         self.fp = np.asarray(footprint, bool)
         self.shape = self.fp.shape
@@ -368,6 +375,40 @@ class _Scene:
         if self._closed is None or not motion.moved:
             return ()
         return outline_mm(self.moved_area(motion), self.topview)
+
+    def detached_area(self, motion: PartMotion) -> np.ndarray:
+        """A detached part's area: all of the part as seen, where the plan has it and where the photo shows it, bool (H, W).
+
+        The part is :func:`part_seen` (every layer projected through the camera
+        centre: its tops and the walls facing the camera) where the typer knows
+        the camera, else the part's lower layers (:func:`part_below`) where the
+        plan puts them; in both cases only what touches the layer's closed
+        outline (a plate's other objects stay on the bed), with the layer's
+        outline (holes filled) added. It is carried to where the photo shows
+        it by :func:`top_from_plan` (the tilt of a part that came off is not
+        modelled). Empty when the part did not move.
+        """
+        if self._solid is None or not motion.moved:
+            return np.zeros(self.shape, bool)
+        crop, solid = self._solid
+        part = np.zeros(self.shape, bool)
+        part[crop] = solid
+        rest = self._part_seen() if self._part_seen is not None else None
+        if rest is None and self._below is not None:
+            rest = self._below()
+        if rest is not None and rest.any():
+            _, labels = cv2.connectedComponents((rest | part).view(np.uint8), connectivity=8)
+            ids = np.unique(labels[part])
+            part |= rest & np.isin(labels, ids[ids > 0])
+        carried = cv2.warpAffine(part.view(np.uint8), top_from_plan(motion, self.topview), self.shape[::-1],
+                                 flags=cv2.INTER_NEAREST).astype(bool)
+        return part | carried
+
+    def detached_outline(self, motion: PartMotion) -> Outline:
+        """:meth:`detached_area` in bed mm."""
+        if not motion.moved:
+            return ()
+        return outline_mm(self.detached_area(motion), self.topview)
 
     def object_outline(self, r: Region) -> Outline:
         """A foreign body's own pixels in the region's box, as bed-mm polygons; ``()`` where none stand out.
@@ -542,12 +583,41 @@ def part_below(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray |
     keep = part_mask(toolpath.feature[sl])
     if not keep.any():
         return None
+    return _closed_beads(toolpath.start[sl][keep], toolpath.end[sl][keep], toolpath.width[sl][keep], topview)
+
+
+def part_seen(toolpath: Toolpath, index: int, topview: TopView, camera_mm: np.ndarray) -> np.ndarray | None:
+    """The part up to layer ``index`` as the camera sees it in the top view of that layer's plane, bool (H, W).
+
+    Every layer ``0 .. index`` (the part's own features) projected through the
+    camera centre ``camera_mm`` (bed mm, (3,)) onto the plane of layer
+    ``index``: a lower layer lands nearer the camera's foot (parallax), so the
+    union is the part's silhouette, its tops and the walls that face the
+    camera, with the gaps of sparse infill (up to 3 mm) closed. None when the
+    layers print nothing of the part.
+    """
+    if toolpath is None or not 0 <= index < toolpath.n_layers:
+        return None
+    sl = slice(0, toolpath.layers[index].seg_stop)
+    keep = part_mask(toolpath.feature[sl])
+    if not keep.any():
+        return None
+    z = np.repeat([lay.z for lay in toolpath.layers[: index + 1]],
+                  [lay.seg_stop - lay.seg_start for lay in toolpath.layers[: index + 1]])[keep]
+    C = np.asarray(camera_mm, np.float64)
+    k = ((C[2] - toolpath.layers[index].z) / np.maximum(C[2] - z, 1e-3))[:, None]
+    start, end = toolpath.start[sl][keep], toolpath.end[sl][keep]
+    return _closed_beads(C[:2] + (start - C[:2]) * k, C[:2] + (end - C[:2]) * k, toolpath.width[sl][keep], topview)
+
+
+def _closed_beads(start: np.ndarray, end: np.ndarray, width: np.ndarray, topview: TopView) -> np.ndarray:
+    """Beads ``start -> end`` (N, 2) bed mm drawn at their median width, the gaps up to 3 mm closed, bool (H, W)."""
     s = topview.px_per_mm
-    p0 = np.round(topview.to_px(toolpath.start[sl][keep]) * 4).astype(np.int32)  # 2 fractional bits
-    p1 = np.round(topview.to_px(toolpath.end[sl][keep]) * 4).astype(np.int32)
-    width = max(1, int(round(float(np.median(toolpath.width[sl][keep])) * s)))
+    p0 = np.round(topview.to_px(start) * 4).astype(np.int32)  # 2 fractional bits
+    p1 = np.round(topview.to_px(end) * 4).astype(np.int32)
+    w = max(1, int(round(float(np.median(width)) * s)))
     out = np.zeros(topview.shape, np.uint8)
-    cv2.polylines(out, list(np.stack([p0, p1], axis=1)), False, 1, thickness=width, lineType=cv2.LINE_8, shift=2)
+    cv2.polylines(out, list(np.stack([p0, p1], axis=1)), False, 1, thickness=w, lineType=cv2.LINE_8, shift=2)
     k2 = max(3, int(round(3.0 * s)) | 1)
     return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8)).astype(bool)
 
@@ -675,9 +745,11 @@ class FailureTyper:
         Geometry of the top views.
     """
 
-    def __init__(self, toolpath: Toolpath | None, topview: TopView) -> None:
+    def __init__(self, toolpath: Toolpath | None, topview: TopView, camera_mm: np.ndarray | None = None) -> None:
         self.toolpath = toolpath
         self.topview = topview
+        self.camera_mm = None if camera_mm is None else np.asarray(camera_mm, np.float64)
+        self._seen: tuple[int, np.ndarray | None] | None = None
         self.previous: list[Region] = []
         self._below: tuple[int, np.ndarray | None] | None = None
 
@@ -688,6 +760,14 @@ class FailureTyper:
         if self._below is None or self._below[0] != index:
             self._below = (index, part_below(self.toolpath, index, self.topview))
         return self._below[1]
+
+    def _part_seen(self, index: int) -> np.ndarray | None:
+        """:func:`part_seen` of layer ``index`` (None without a camera centre), kept for the last layer asked."""
+        if self.toolpath is None or self.camera_mm is None:
+            return None
+        if self._seen is None or self._seen[0] != index:
+            self._seen = (index, part_seen(self.toolpath, index, self.topview, self.camera_mm))
+        return self._seen[1]
 
     def reset(self) -> None:
         """A new print: forget the previous photo's regions."""
@@ -723,16 +803,18 @@ class FailureTyper:
             fp_box = mask_box(footprint)
             motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box)
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
-                           below=lambda: self._part_below(res.layer))
+                           below=lambda: self._part_below(res.layer), seen=lambda: self._part_seen(res.layer))
             if motion.moved and scene.arrived(motion) < ARRIVED_MIN:  # bare bed where the layer would now be
                 motion = PartMotion(peak=motion.peak)
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
-            if moved:  # the moved part's area, the same for each of its regions
-                outline = scene.moved_outline(motion)
-                for r in moved:
-                    r.outline_mm = outline
+            outlines: dict[str, Outline] = {}  # the moved part's area per kind, the same for each of its regions
+            for r in moved:
+                if r.kind not in outlines:
+                    outlines[r.kind] = (scene.detached_outline(motion) if r.kind == "detachment"
+                                        else scene.moved_outline(motion))
+                r.outline_mm = outlines[r.kind]
             for r in regions:  # a foreign body as its own pixels, not the blocks' tiles around it
                 if r.kind == "foreign_body":
                     r.outline_mm = scene.object_outline(r)

@@ -206,7 +206,7 @@ class LayerPipeline:
         #: the residual camera shift undone before the comparison (``[analysis] register_mm``)
         self.view_shift = ViewShift(self.config.analysis.register_mm * self.topview.px_per_mm)
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
-        self.typer = FailureTyper(toolpath, self.topview)
+        self.typer = FailureTyper(toolpath, self.topview, camera.center_mm if camera.has_pose else None)
         #: the empty-bed, first-layer and nothing-extruded checks
         self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo,
                                 reach_mm=reach, top_z_mm=top_z)
