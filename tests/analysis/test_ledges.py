@@ -6,13 +6,7 @@ import numpy as np
 import pytest
 
 import layerwatch.pipeline.step as step_module
-from layerwatch.analysis.ledges import (
-    LEDGE_SHARE,
-    ledge_blocks,
-    ledge_regions,
-    off_colour,
-    part_chroma,
-)
+from layerwatch.analysis.ledges import LEDGE_SHARE, ledge_blocks, ledge_regions
 from layerwatch.errors import AnalysisError
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
@@ -89,59 +83,6 @@ def test_single_photo_sees_an_object_on_the_plate_beside_the_top_layer():
     found = outside["object"].outside_regions
     assert found and outside["object"].outside_anomalous_mm2 >= 4.0
     assert any(abs(r.centroid_mm[0] - 110.0) < 6 and abs(r.centroid_mm[1] - 112.5) < 6 for r in found)
-
-
-def _bgr(rgb: tuple[float, float, float]) -> np.ndarray:
-    return np.array(rgb[::-1], np.float32)
-
-
-def _floor(shape=(96, 96), part=(0.85, 0.5, 0.16), rng_seed=0) -> np.ndarray:
-    """A top view (BGR, uint8) of an orange floor with infill-line texture, shading and sensor noise."""
-    rng = np.random.default_rng(rng_seed)
-    h, w = shape
-    lines = 0.8 + 0.2 * (np.sin(np.arange(w) * 2 * np.pi / 3.0)[None, :] > 0)
-    shade = np.linspace(0.55, 1.0, h)[:, None] * lines
-    img = shade[..., None] * _bgr(part) * 255.0 + rng.normal(0.0, 3.0, (h, w, 3))
-    return np.clip(img, 0, 255).astype(np.uint8)
-
-
-def test_off_colour_ignores_shading_glare_exposure_and_white_balance_but_sees_another_hue():
-    fp = np.zeros((96, 96), bool)
-    fp[:, :30] = True  # the printed layer: the part's colour
-    ledges = np.zeros_like(fp)
-    ledges[:, 30:] = True
-    ledges[40:56, :30] = True  # a deep shadow lies on a ledge too
-
-    def photo(gains=(1.0, 1.0, 1.0), key=False):
-        """The floor as the sensor sees it: exposure and white-balance gains act before the sensor clips."""
-        img = _floor().astype(np.float32)
-        img[40:56, 10:26] *= 0.25  # a deep shadow
-        img[75:90, 40:70] = img[75:90, 40:70] * 0.5 + 120  # a highlight: the light's white added
-        img[60:70, 60:80] += 150  # a highlight strong enough to clip
-        if key:
-            img[20:26, 50:80] = _bgr((0.1, 0.25, 0.75)) * 200  # a blue hex key on the floor
-        return np.clip(img * np.array(gains, np.float32), 0, 255).astype(np.uint8)
-
-    assert not off_colour(photo(), fp, ledges, 8).any()
-    got = off_colour(photo(key=True), fp, ledges, 8)
-    assert got[21:25, 52:78].mean() > 0.9 and got.sum() < 1.2 * 6 * 30
-    for gains in ((0.6, 0.6, 0.6), (1.25, 1.0, 0.8), (0.8, 1.0, 1.2)):  # exposure, warm and cool white balance
-        assert not off_colour(photo(gains), fp, ledges, 8).any(), gains
-        got = off_colour(photo(gains, key=True), fp, ledges, 8)
-        assert got[21:25, 52:78].mean() > 0.9 and not got[30:].any() and not got[:19].any(), gains
-
-
-def test_the_colour_test_judges_no_dark_grey_white_or_mixed_part():
-    fp = np.ones((96, 96), bool)
-    for rgb in ((0.05, 0.05, 0.055), (0.5, 0.5, 0.5), (0.85, 0.85, 0.82)):
-        assert part_chroma(_floor(part=rgb), fp) is None, rgb
-        assert off_colour(_floor(part=rgb), fp, ~fp, 8) is None
-    mixed = _floor()
-    mixed[:, 48:] = _floor(part=(0.1, 0.6, 0.2))[:, 48:]  # half orange, half green: two filaments
-    assert part_chroma(mixed, fp) is None
-    assert part_chroma(_floor()[..., 0], fp) is None  # a grey photo has no colour to judge
-    assert part_chroma(_floor(), np.zeros((96, 96), bool)) is None  # nothing printed seen
-    assert part_chroma(_floor(), fp) is not None
 
 
 def test_ledge_regions_join_off_colour_pixels_to_the_failing_tiles():

@@ -564,6 +564,7 @@ def analyze_layer(
     z: float = 0.0,
     all_metrics: bool = False,
     ref_hog: tuple[np.ndarray, np.ndarray] | None = None,
+    off_colour: np.ndarray | None = None,
 ) -> LayerResult:
     """Compare the photo's top view with the reference of one layer.
 
@@ -590,6 +591,12 @@ def analyze_layer(
     ref_hog : (ndarray, ndarray), optional
         :func:`reference_hog` of ``reference`` with the same ``settings``
         (computed ahead with the reference); computed here when omitted.
+    off_colour : ndarray, bool, shape (N, M), optional
+        Blocks whose tile is another material than the part's filament
+        (:func:`~layerwatch.analysis.part_colour.off_colour_blocks`): their
+        similarity is taken as at most ``threshold / 2`` and they are considered
+        (they lie on the part, in its footprint or its own gaps), so they are
+        anomalous blocks of eq. (5) and of the regions like those the HOG test found.
 
     Returns
     -------
@@ -604,7 +611,8 @@ def analyze_layer(
     Raises
     ------
     AnalysisError
-        Size/dtype mismatch, NaN pixels, mask shape mismatch, image too small.
+        Size/dtype mismatch, NaN pixels, mask shape mismatch, image too small, ``off_colour`` not of the
+        block grid's shape.
 
     References
     ----------
@@ -618,8 +626,12 @@ def analyze_layer(
     h_top, h_ref = block_hogs(top_a, ref_a, st, ref_hog)
     t1 = time.perf_counter()
     heat = similarity(h_top, h_ref, st.metric)
+    if off_colour is not None:
+        if np.shape(off_colour) != heat.shape:
+            raise AnalysisError(f"off-colour blocks {np.shape(off_colour)} do not fit the {heat.shape} block grid.")
+        heat = np.where(off_colour, np.minimum(heat, np.float32(0.5 * st.threshold)), heat).astype(heat.dtype)
     t2 = time.perf_counter()
-    res = _layer_result(heat, foot, seen, topview, st)
+    res = _layer_result(heat, foot, seen, topview, st, off_colour)
     res.layer, res.z = int(layer), float(z)
     t3 = time.perf_counter()
     if all_metrics:
@@ -634,16 +646,19 @@ def analyze_layer(
 
 
 def _layer_result(heat: np.ndarray, foot: np.ndarray, seen: np.ndarray | None, topview: TopView,
-                  st: AnalysisSettings) -> LayerResult:
+                  st: AnalysisSettings, also_considered: np.ndarray | None = None) -> LayerResult:
     """Considered blocks, anomalous blocks and regions, areas and a% (eq. 5) of one similarity map.
 
     ``heat`` (N, M) similarities, ``foot`` (H, W) footprint, ``seen`` (H, W) pixels the camera saw
-    (``None``: all). The record's ``layer``/``z`` are left for the caller.
+    (``None``: all), ``also_considered`` (N, M) blocks considered besides those near the footprint
+    (the off-colour blocks). The record's ``layer``/``z`` are left for the caller.
     """
     c, b = st.cell_px, st.block_cells
     n, m = heat.shape
     foot_int = _integral(foot)
     considered = near_footprint(foot, heat.shape, topview, st, st.footprint_margin_mm, seen, foot_int)
+    if also_considered is not None:
+        considered = considered | also_considered
     foot_frac = tile_share(foot, heat.shape, c, b, foot_int)
     grid = {"cell_px": c, "block_cells": b, "min_region_blocks": st.min_region_blocks}
     anom, regions = _regions(considered & (heat < st.threshold), heat, foot_frac, grid, topview)

@@ -34,7 +34,7 @@ class AnalysisSettings(Section):
     the evaluation's recommended values over them unless ``--paper-settings``
     is given: jaccard, T_S 0.20, margin 0 mm, ``presmooth_px`` 1.25,
     ``flat_tolerance`` 1.5, ``grow_threshold`` 0.2, ``grow_margin_mm`` 5,
-    ``register_mm`` 0.6 (:data:`layerwatch.pipeline.config.RECOMMENDED`; ``layerwatch config show``
+    ``register_mm`` 0.6, ``off_colour`` on (:data:`layerwatch.pipeline.config.RECOMMENDED`; ``layerwatch config show``
     prints the values in force and their sources).
 
     Attributes
@@ -50,7 +50,7 @@ class AnalysisSettings(Section):
         Blocks within this distance of the layer's footprint count, mm; default 5.
     min_region_blocks : int
         Smallest group of anomalous blocks kept.
-    min_gradient, flat_tolerance, votes, presmooth_px, grow_threshold, grow_margin_mm, register_mm
+    min_gradient, flat_tolerance, votes, presmooth_px, grow_threshold, grow_margin_mm, register_mm, off_colour
         See the comments at each field below.
 
     References
@@ -119,6 +119,13 @@ class AnalysisSettings(Section):
     # (:mod:`layerwatch.analysis.view_shift`); a larger one is left alone (a
     # real displacement). mm on the layer plane; 0 = off (the paper).
     register_mm: float = Field(0.0, ge=0, le=5)
+    # The off-colour test on the printed layer (:mod:`layerwatch.analysis.part_colour`):
+    # blocks whose tile is mostly another material than the part's filament
+    # (its colour measured on the footprint in the same photo, so exposure and
+    # white balance cancel) count as anomalous, whatever their gradients. An
+    # object with the part's texture scale but another colour (a blue hex key
+    # across infill lines) passes the HOG test. False = the paper's method.
+    off_colour: bool = False
 
 
 class SceneSettings(Section):

@@ -68,7 +68,8 @@ SOURCES = ("default", "recommended", "dashboard", "gcode", "file", "flag")
 RECOMMENDED: dict[str, dict] = {
     "analysis": {"metric": "jaccard", "threshold": 0.20, "footprint_margin_mm": 0.0,
                  "presmooth_px": 1.25, "flat_tolerance": 1.5, "grow_threshold": 0.2, "grow_margin_mm": 5.0,
-                 "register_mm": 0.6, "votes": "split_ties", "anomalous_area": "printed"},
+                 "register_mm": 0.6, "votes": "split_ties", "anomalous_area": "printed",
+                 "off_colour": True},
     "policy": {"pause_ratio": 0.025, "consecutive_layers": 2, "skip_first_layers": 1, "outside_pause_mm2": 12.0},
     "scene": {"enabled": True},
     "bed_check": {"enabled": True},

@@ -76,7 +76,8 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.failure_typing import FailureTyper
-from layerwatch.analysis.ledges import ledge_regions, off_colour
+from layerwatch.analysis.ledges import ledge_regions
+from layerwatch.analysis.part_colour import off_colour, off_colour_blocks
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scene_change import working_to_top
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
@@ -450,8 +451,14 @@ class LayerPipeline:
             top, valid, top_bgr = moved_back(shift, top, valid, top_bgr)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
+            coloured = None
+            if st.off_colour:  # the printed layer's blocks of another material than the part's filament
+                t_col = time.perf_counter()
+                coloured = off_colour_blocks(top_bgr, ref.footprint, valid, st.cell_px, st.block_cells,
+                                             self.topview.px_per_mm)
+                timings["colour"] = (time.perf_counter() - t_col) * 1e3
             res = analyze_layer(top, ref.image, ref.footprint, self.topview, st, valid=valid, layer=index,
-                                z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog)
+                                z=ref.z, all_metrics=self.all_metrics, ref_hog=ref.hog, off_colour=coloured)
             res.view_shift_px = shift
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid, top_bgr, ref.footprint)

@@ -1,0 +1,279 @@
+"""The part's colour: material on the part that is not its filament.
+
+The HOG comparison (eqs. 4-5) judges the *shape* of the gradients, so an
+object lying on the part whose edges and texture have the part's scale (a
+thin hex key across infill lines, a screw along a perimeter) can pass it;
+its colour does not. Everything the camera sees of the part is the part's
+own filament, so in the same photo its CIELAB chroma ``(a*, b*)`` lies on
+the part's *shading line*: the segment from grey (shadow, glare, a dark or
+overexposed pixel lose chroma, not hue) through the part's median chroma,
+measured on the printed layer's footprint, to 1.5 times it (a saturated, lit
+face). Pixels far from that line are another material.
+
+The test is normalised by the photo itself: exposure and white balance
+shift the part and the object on it alike (the part's median chroma moves
+with them), so neither counts, and a highlight adds the light's white, which
+keeps the hue. Pixels with a channel at :data:`CLIPPED` or above (and their
+neighbours) are not judged: a clipped highlight turns orange into pale
+yellow. A part whose colour cannot be told from grey (dark, grey, white
+filament: footprint chroma under :data:`MIN_PART_CHROMA`) or that is not
+one colour (less than :data:`ON_LINE_SHARE` of its footprint on its own
+line: a multi-colour print, a translucent part showing the bed through it)
+is not judged at all; an object of another hue on it is left to the HOG
+test. So is a grey or black object on a coloured part (a dark lump, a
+steel screw lie on the shading line): those differ in brightness, which
+the HOG test sees.
+
+Two places use it:
+
+* :func:`off_colour`, the pixels of a mask (the *hidden ledges*,
+  :mod:`layerwatch.analysis.ledges`: the lower floors no earlier photo
+  showed) that are another material;
+* :func:`off_colour_blocks`, the HOG blocks of the *printed layer* (its
+  footprint and the part's own gaps, a sparse infill's cells) whose tile is
+  at least :data:`OFF_TILE_SHARE` another material (``[analysis] off_colour``, on in the
+  recommended settings, off in the paper's): the pipeline counts them as
+  anomalous blocks of eq. (5) (:func:`~layerwatch.analysis.scoring.analyze_layer`).
+  It works at half the top view's resolution on the footprint's bounding
+  box (a 1 mm hex key is still 3 px wide at 6.67 px/mm): 0.8 ms median per
+  layer of the example part at 1080p (600 x 600 px top view; CPU time on one
+  thread of a loaded machine, ``benchmarks/bench_part_colour.py``).
+
+References
+----------
+Petsiuk & Pearce (2022), Section 2.4 (the HOG comparison this complements); issue 18.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from layerwatch.analysis.scoring import printed_weight
+from layerwatch.errors import AnalysisError
+
+__all__ = ["CLIPPED", "MIN_PART_CHROMA", "OFF_CELL_SHARE", "OFF_LINE_MIN", "OFF_LINE_SHARE", "OFF_TILE_SHARE",
+           "ON_LINE_SHARE", "off_colour", "off_colour_blocks", "part_chroma"]
+
+#: the colour test judges a part whose median chroma |(a*, b*)| is at least this (CIELAB units)
+MIN_PART_CHROMA = 12.0
+#: a pixel is off-colour when its (a*, b*) lies farther from the part's shading line than
+#: ``max(OFF_LINE_MIN, OFF_LINE_SHARE * chroma)`` (CIELAB units)
+OFF_LINE_MIN, OFF_LINE_SHARE = 10.0, 0.3
+#: share of a cell's pixels (cell_px x cell_px window) that must be off-colour for them to count
+OFF_CELL_SHARE = 0.3
+#: share of a block's tile (the cell at its centre) that must be off-colour for the block to count
+OFF_TILE_SHARE = 0.25
+#: share of the footprint's pixels that must lie on the part's shading line for the part to be judged
+ON_LINE_SHARE = 0.8
+#: a pixel with a channel at this value or above is clipped: its colour is not judged
+CLIPPED = 245
+
+
+def _lab(top_bgr: np.ndarray) -> np.ndarray:
+    """OpenCV's 8-bit CIELAB of a BGR image, uint8 (H, W, 3) (``a*``, ``b*`` offset by 128)."""
+    return cv2.cvtColor(np.ascontiguousarray(top_bgr, np.uint8), cv2.COLOR_BGR2LAB)
+
+
+def _median_u8(values: np.ndarray) -> float:
+    """The lower median of uint8 values (k,), by their histogram (linear time; k > 0)."""
+    cum = np.cumsum(np.bincount(values, minlength=256))
+    return float(np.searchsorted(cum, (int(cum[-1]) + 1) // 2))
+
+
+def _off_line(ab: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """Distance of chroma ``ab`` (..., 2) from the segment ``[0, 1.5 part]`` of the (a*, b*) plane, float32 (...)."""
+    c = float(np.hypot(*part))
+    u = np.asarray(part, np.float32) / c
+    along = ab[..., 0] * u[0] + ab[..., 1] * u[1]
+    across = np.abs(ab[..., 0] * u[1] - ab[..., 1] * u[0])
+    beyond = np.where(along < 0, along, np.maximum(along - 1.5 * c, 0.0))
+    return np.hypot(beyond, across).astype(np.float32)
+
+
+def _line_tolerance(part: np.ndarray) -> float:
+    return max(OFF_LINE_MIN, OFF_LINE_SHARE * float(np.hypot(*part)))
+
+
+def _part(lab: np.ndarray, footprint: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The part's median chroma over ``footprint`` of ``lab`` (uint8 (h, w, 3)) and each pixel's distance from
+    its shading line, float32 (h, w); None when the part cannot be judged (:func:`part_chroma`)."""
+    if np.count_nonzero(footprint) < 100:
+        return None
+    part = np.array([_median_u8(lab[..., 1][footprint]), _median_u8(lab[..., 2][footprint])], np.float32) - 128.0
+    if float(np.hypot(*part)) < MIN_PART_CHROMA:
+        return None
+    dist = _off_line(lab[..., 1:].astype(np.float32) - 128.0, part)
+    if np.count_nonzero(dist[footprint] <= _line_tolerance(part)) < ON_LINE_SHARE * np.count_nonzero(footprint):
+        return None
+    return part, dist
+
+
+def part_chroma(top_bgr: np.ndarray, footprint: np.ndarray) -> np.ndarray | None:
+    """The printed part's median chroma in this photo, or None when the colour test cannot judge it.
+
+    Parameters
+    ----------
+    top_bgr : ndarray, uint8, shape (H, W, 3)
+        Colour top view of the layer plane (BGR).
+    footprint : ndarray, bool, shape (H, W)
+        The printed layer's footprint, limited to what the camera saw.
+
+    Returns
+    -------
+    ndarray, float32, shape (2,) or None
+        Median ``(a*, b*)`` over the footprint; None for a grey top view, fewer than
+        100 footprint pixels, a median chroma under :data:`MIN_PART_CHROMA` (dark,
+        grey, white filament) or less than :data:`ON_LINE_SHARE` of the footprint on
+        its own shading line (a multi-colour or patterned part).
+    """
+    img = np.asarray(top_bgr)
+    fp = np.asarray(footprint, bool)
+    if img.ndim != 3 or img.shape[2] != 3 or fp.shape != img.shape[:2]:
+        return None
+    got = _part(_lab(img), fp)
+    return None if got is None else got[0]
+
+
+def _off_pixels(img: np.ndarray, off_line: np.ndarray, judged: np.ndarray, cell_px: int) -> np.ndarray:
+    """Judged pixels off the part's shading line, not clipped, in cells at least :data:`OFF_CELL_SHARE` off.
+
+    ``img`` (h, w, 3) uint8 BGR; ``off_line`` (h, w) bool: off the part's line; ``judged`` (h, w) bool;
+    ``cell_px``: the window of the cell share, px of ``img``.
+    """
+    below = cv2.inRange(img, (0, 0, 0), (CLIPPED - 1,) * 3)  # 255 where no channel is clipped
+    unclipped = cv2.erode(below, np.ones((3, 3), np.uint8)) > 0
+    off = off_line & judged & unclipped
+    c = max(int(cell_px), 1)
+    share = cv2.blur(off.view(np.uint8).astype(np.float32), (c, c), borderType=cv2.BORDER_CONSTANT)
+    return off & (share >= OFF_CELL_SHARE)
+
+
+def off_colour(top_bgr: np.ndarray, footprint: np.ndarray, judged: np.ndarray, cell_px: int) -> np.ndarray | None:
+    """Pixels of ``judged`` whose material is not the part's filament (see module notes).
+
+    Parameters
+    ----------
+    top_bgr : ndarray, uint8, shape (H, W, 3)
+        Colour top view of the layer plane (BGR).
+    footprint : ndarray, bool, shape (H, W)
+        The printed layer's footprint, limited to what the camera saw (the part's colour).
+    judged : ndarray, bool, shape (H, W)
+        Where to look (the hidden ledges), limited to what the camera saw.
+    cell_px : int
+        HOG cell size, px: pixels count when at least :data:`OFF_CELL_SHARE` of the
+        ``cell_px`` x ``cell_px`` window round them is off-colour.
+
+    Returns
+    -------
+    ndarray, bool, shape (H, W) or None
+        Off-colour pixels of ``judged`` eroded by half a cell (its borders show walls and
+        the bed beside them); None when :func:`part_chroma` cannot judge the part.
+    """
+    part = part_chroma(top_bgr, footprint)
+    if part is None:
+        return None
+    tol = _line_tolerance(part)
+    c = max(int(cell_px), 1)
+    inner = cv2.erode(np.asarray(judged, np.uint8), np.ones((c // 2 * 2 + 1,) * 2, np.uint8)) > 0
+    if not inner.any():
+        return np.zeros(inner.shape, bool)
+    ys, xs = np.nonzero(inner)
+    box = (slice(max(ys.min() - c, 0), ys.max() + c + 1), slice(max(xs.min() - c, 0), xs.max() + c + 1))
+    img = np.asarray(top_bgr)[box]
+    out = np.zeros(inner.shape, bool)
+    ab = _lab(img)[..., 1:].astype(np.float32) - 128.0
+    out[box] = _off_pixels(img, _off_line(ab, part) > tol, inner[box], c)
+    return out
+
+
+def off_colour_blocks(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray | None,
+                      cell_px: int, block_cells: int, px_per_mm: float) -> np.ndarray | None:
+    """HOG blocks of the printed layer whose tile is at least :data:`OFF_TILE_SHARE` another material.
+
+    The footprint (what the camera saw of it) gives the part's colour. Judged are the footprint eroded
+    by half a cell (its edge shows the wall and what lies beside it) and the tiles inside the part: the
+    footprint's own gaps up to :data:`~layerwatch.analysis.scoring.PART_GAP_MM` closed, as eq. (5)'s
+    ``anomalous_area = "printed"`` takes them (:func:`~layerwatch.analysis.scoring.printed_weight`: a
+    sparse-infill layer's cells show the layers below, the same filament). The test runs at half the top
+    view's resolution (cells of ``cell_px / 2``) on the footprint's bounding box when the cell and the
+    blocks' offset are even, else at full resolution.
+
+    Parameters
+    ----------
+    top_bgr : ndarray, uint8, shape (H, W, 3)
+        Colour top view of the layer plane (BGR), as warped.
+    footprint : ndarray, bool, shape (H, W)
+        The layer's printed pixels.
+    valid : ndarray, bool, shape (H, W) or None
+        Pixels the camera saw (None: all).
+    cell_px, block_cells : int
+        The HOG cell side (px) and block side (cells).
+    px_per_mm : float
+        The top view's scale (the gaps closed are up to ``PART_GAP_MM`` wide).
+
+    Returns
+    -------
+    ndarray, bool, shape (N, M) or None
+        The block grid of the HOG (``N = H // cell_px - block_cells + 1``, likewise ``M``);
+        None when the part cannot be judged (:func:`part_chroma`: grey photo, dark, grey,
+        white or multi-colour part, too little of it seen).
+
+    Raises
+    ------
+    AnalysisError
+        The footprint or valid mask is not the top view's shape.
+    """
+    img = np.asarray(top_bgr)
+    if img.ndim != 3 or img.shape[2] != 3:
+        return None
+    shape = img.shape[:2]
+    fp = np.asarray(footprint, bool)
+    seen_mask = None if valid is None else np.asarray(valid, bool)
+    if fp.shape != shape or (seen_mask is not None and seen_mask.shape != shape):
+        raise AnalysisError(f"footprint {fp.shape} and valid mask {None if seen_mask is None else seen_mask.shape} "
+                            f"must be the top view's shape {shape}.")
+    seen = fp if seen_mask is None else fp & seen_mask
+    c, b = int(cell_px), int(block_cells)
+    n, m = shape[0] // c - b + 1, shape[1] // c - b + 1
+    x, y, w, h = cv2.boundingRect(seen.view(np.uint8))
+    if w == 0 or n <= 0 or m <= 0:
+        return None
+    f = 2 if c % 2 == 0 and ((b - 1) * c // 2) % 2 == 0 else 1
+    # the box grown by a cell, its corners on the decimation's grid
+    y0, x0 = max(y - c, 0) // f * f, max(x - c, 0) // f * f
+    y1, x1 = min(y + h + c, shape[0]) // f * f, min(x + w + c, shape[1]) // f * f
+    crop, seen_c = img[y0:y1, x0:x1], seen[y0:y1:f, x0:x1:f]
+    if f > 1:
+        crop = cv2.resize(crop, (seen_c.shape[1], seen_c.shape[0]), interpolation=cv2.INTER_AREA)
+    got = _part(_lab(crop), seen_c)
+    if got is None:
+        return None
+    part, dist = got
+    cf = max(c // f, 1)
+    inner = cv2.erode(seen_c.view(np.uint8), np.ones((cf // 2 * 2 + 1,) * 2, np.uint8)) > 0
+    # the tiles inside the part (gaps of the footprint closed), on the decimated top view
+    canvas = np.zeros((shape[0] // f, shape[1] // f), bool)
+    canvas[y0 // f: y0 // f + seen_c.shape[0], x0 // f: x0 // f + seen_c.shape[1]] = seen_c
+    lo = (b - 1) * c // 2 // f  # where the first block's tile starts
+    inside = printed_weight(_tile_shares(canvas, lo, (n, m), cf), c / float(px_per_mm)) >= 1.0
+    canvas[:] = False
+    canvas[lo: lo + n * cf, lo: lo + m * cf] = cv2.resize(inside.view(np.uint8), (m * cf, n * cf),
+                                                          interpolation=cv2.INTER_NEAREST) > 0
+    judged = inner | canvas[y0 // f: y0 // f + inner.shape[0], x0 // f: x0 // f + inner.shape[1]]
+    if seen_mask is not None:
+        judged &= seen_mask[y0:y1:f, x0:x1:f]
+    off = np.zeros((shape[0] // f, shape[1] // f), bool)
+    off[y0 // f: y0 // f + inner.shape[0], x0 // f: x0 // f + inner.shape[1]] = _off_pixels(
+        crop, dist > _line_tolerance(part), judged, cf)
+    if not off.any():
+        return np.zeros((n, m), bool)
+    return _tile_shares(off, lo, (n, m), cf) >= OFF_TILE_SHARE
+
+
+def _tile_shares(mask: np.ndarray, lo: int, grid_shape: tuple[int, int], cell: int) -> np.ndarray:
+    """Share of each block's tile (``cell`` px squares from ``lo``, px) that ``mask`` (bool) covers, float32
+    ``grid_shape``: :func:`~layerwatch.analysis.scoring.tile_share` by one area resize."""
+    n, m = grid_shape
+    tiles = np.ascontiguousarray(mask[lo: lo + n * cell, lo: lo + m * cell]).view(np.uint8).astype(np.float32)
+    return cv2.resize(tiles, (m, n), interpolation=cv2.INTER_AREA)
