@@ -512,6 +512,36 @@ def test_part_seen_is_the_part_with_its_lower_layers_nearer_the_camera():
     assert (plain & ~seen).sum() < 0.01 * plain.sum()
 
 
+def test_a_shift_marks_the_bands_and_the_shifted_walls_not_the_overlap():
+    """Six 0.3 mm layers shifted 3 mm away from the camera (+y), seen from 60 mm in front (-y) and 60 mm up:
+    the area is the overhang (y > 110), the place left with the near wall where it stood (y < 93) and
+    where it stands now; not the overlap of the two tops."""
+    tp = box_part(size_mm=20.0, height_mm=6.0, layer_h=0.3, center=tuple(CENTRE), fin=False)
+    top = tp.n_layers - 1
+    camera = np.array([CENTRE[0], CENTRE[1] - 60.0, 60.0 + tp.layers[top].z])
+    block = failure_typing.seen_heights(tp, top, TOPVIEW, camera, first=top - 5)
+    assert block is not None
+    inner = outline_mask((((102.0, 92.0), (118.0, 92.0), (118.0, 108.0), (102.0, 108.0)),), TOPVIEW)
+    assert np.allclose(block[inner], tp.layers[top].z)  # the top, at its own height
+    ys = TOPVIEW.to_mm(np.stack(np.nonzero(block > 0)[::-1], -1).astype(float))[:, 1]
+    # the bottom layer's near edge (y = 90, 1.5 mm under the top) lands 50 * 1.5 / 61.5 = 1.2 mm nearer the camera
+    assert 88.5 < ys.min() < 89.2
+    foot = block == np.float32(tp.layers[top].z)
+    scene = _Scene(np.zeros((*TOPVIEW.shape, 3), np.uint8), np.zeros(TOPVIEW.shape, np.uint8),
+                   np.zeros(TOPVIEW.shape, np.uint8), foot, TOPVIEW, None)
+    marked = outline_mask(scene.shifted_outline(PartMotion(0.0, 3.0, peak=1.0), block, 0.15), TOPVIEW)
+    xy = TOPVIEW.to_mm(np.stack(np.nonzero(marked)[::-1], -1).astype(float))
+    mid = np.abs(xy[:, 0] - 110) < 8
+    assert (mid & (xy[:, 1] > 94.5) & (xy[:, 1] < 109.5)).sum() == 0  # the overlap
+    mm2 = TOPVIEW.px_per_mm ** -2
+    assert (mid & (xy[:, 1] > 110.5)).sum() * mm2 > 0.9 * 2.5 * 16  # the overhang
+    assert (mid & (xy[:, 1] < 90.0)).sum() * mm2 > 0.7 * 1.0 * 16  # the near wall where it stood
+    assert (mid & (xy[:, 1] > 92.0) & (xy[:, 1] < 93.0)).sum() * mm2 > 0.5 * 1.0 * 16  # and where it stands (its top
+    # layers within half a layer of the top they stand on are not counted)
+    assert PartMotion(0.0, 3.0).moved is False  # no correlation peak: no move, the outline falls back
+    assert scene.shifted_outline(PartMotion(0.0, 3.0), block, 0.15) == ()
+
+
 def test_a_detached_part_marks_its_lower_layers_but_not_the_plates_other_object(monkeypatch):
     """A detached part's area: its layer and the lower layers touching it, here and carried; not another object."""
     top, ref, foot = _part(5, shift_mm=(2.5, 1.0), turn_deg=6.0)

@@ -131,7 +131,7 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath, part_mask
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATIONS_DEG", "ROTATION_GAIN", "ROTATION_MIN_DEG", "SECOND_PEAK",
-           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_below", "part_motion", "part_seen", "region_evidence"]
+           "FailureTyper", "PartMotion", "RegionEvidence", "kind_scores", "part_below", "part_motion", "part_seen", "seen_heights", "region_evidence"]
 
 #: CIELAB distance (lightness half weighted) above which a pixel is unlike a reference colour
 COLOUR_DELTA = 22.0
@@ -376,6 +376,24 @@ class _Scene:
             return ()
         return outline_mm(self.moved_area(motion), self.topview)
 
+    def shifted_outline(self, motion: PartMotion, block: np.ndarray | None, tol_mm: float) -> Outline:
+        """A layer shift's area in bed mm: where the shifted layers make the view other than planned.
+
+        ``block``: the heights of the shifted layers as the camera sees them
+        where the plan puts them (:func:`seen_heights` from the first layer the
+        shift was seen on), float32 (H, W) mm; None: the layer's closed
+        outline alone (:meth:`moved_outline`). The area is where ``block`` and
+        ``block`` carried by :func:`top_from_plan` differ by more than
+        ``tol_mm``: the overhang, the place left, and the walls facing the
+        camera here and there; where the shifted top covers the planned one
+        the camera sees the same surface at the same height.
+        """
+        if block is None or not motion.moved:
+            return self.moved_outline(motion)
+        carried = cv2.warpAffine(np.ascontiguousarray(block, np.float32), top_from_plan(motion, self.topview),
+                                 self.shape[::-1], flags=cv2.INTER_NEAREST)
+        return outline_mm(np.abs(block - carried) > tol_mm, self.topview)
+
     def detached_area(self, motion: PartMotion) -> np.ndarray:
         """A detached part's area: all of the part as seen, where the plan has it and where the photo shows it, bool (H, W).
 
@@ -589,25 +607,49 @@ def part_below(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray |
 def part_seen(toolpath: Toolpath, index: int, topview: TopView, camera_mm: np.ndarray) -> np.ndarray | None:
     """The part up to layer ``index`` as the camera sees it in the top view of that layer's plane, bool (H, W).
 
-    Every layer ``0 .. index`` (the part's own features) projected through the
-    camera centre ``camera_mm`` (bed mm, (3,)) onto the plane of layer
-    ``index``: a lower layer lands nearer the camera's foot (parallax), so the
-    union is the part's silhouette, its tops and the walls that face the
-    camera, with the gaps of sparse infill (up to 3 mm) closed. None when the
+    Where :func:`seen_heights` of layers ``0 .. index`` shows the part: its
+    silhouette, the tops and the walls that face the camera. None when the
     layers print nothing of the part.
+    """
+    z = seen_heights(toolpath, index, topview, camera_mm)
+    return None if z is None else z > 0
+
+
+def seen_heights(toolpath: Toolpath, index: int, topview: TopView, camera_mm: np.ndarray,
+                 first: int = 0) -> np.ndarray | None:
+    """Height of the part's layer the camera sees at each pixel of the top view of layer ``index``'s plane, float32 (H, W).
+
+    Every layer ``first .. index`` (the part's own features) projected through
+    the camera centre ``camera_mm`` (bed mm, (3,)) onto the plane of layer
+    ``index`` and drawn at its height ``z`` (mm), lower layers first: a lower
+    layer lands nearer the camera's foot (parallax) and a higher one hides
+    it, so the map holds the tops and the walls that face the camera. The
+    gaps of sparse infill (up to 3 mm) are closed (grey closing). 0 where no
+    layer of the range is seen; None when the range prints nothing of the part.
     """
     if toolpath is None or not 0 <= index < toolpath.n_layers:
         return None
-    sl = slice(0, toolpath.layers[index].seg_stop)
-    keep = part_mask(toolpath.feature[sl])
-    if not keep.any():
-        return None
-    z = np.repeat([lay.z for lay in toolpath.layers[: index + 1]],
-                  [lay.seg_stop - lay.seg_start for lay in toolpath.layers[: index + 1]])[keep]
     C = np.asarray(camera_mm, np.float64)
-    k = ((C[2] - toolpath.layers[index].z) / np.maximum(C[2] - z, 1e-3))[:, None]
-    start, end = toolpath.start[sl][keep], toolpath.end[sl][keep]
-    return _closed_beads(C[:2] + (start - C[:2]) * k, C[:2] + (end - C[:2]) * k, toolpath.width[sl][keep], topview)
+    z_top = toolpath.layers[index].z
+    s = topview.px_per_mm
+    out = np.zeros(topview.shape, np.float32)
+    drawn = False
+    for lay in toolpath.layers[min(max(int(first), 0), index): index + 1]:
+        sl = slice(lay.seg_start, lay.seg_stop)
+        keep = part_mask(toolpath.feature[sl])
+        if not keep.any():
+            continue
+        k = (C[2] - z_top) / max(C[2] - lay.z, 1e-3)
+        p0 = np.round(topview.to_px(C[:2] + (toolpath.start[sl][keep] - C[:2]) * k) * 4).astype(np.int32)
+        p1 = np.round(topview.to_px(C[:2] + (toolpath.end[sl][keep] - C[:2]) * k) * 4).astype(np.int32)
+        w = max(1, int(round(float(np.median(toolpath.width[sl][keep])) * s)))
+        cv2.polylines(out, list(np.stack([p0, p1], axis=1)), False, float(lay.z), thickness=w, lineType=cv2.LINE_8,
+                      shift=2)
+        drawn = True
+    if not drawn:
+        return None
+    k2 = max(3, int(round(3.0 * s)) | 1)
+    return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8))
 
 
 def _closed_beads(start: np.ndarray, end: np.ndarray, width: np.ndarray, topview: TopView) -> np.ndarray:
@@ -750,6 +792,9 @@ class FailureTyper:
         self.topview = topview
         self.camera_mm = None if camera_mm is None else np.asarray(camera_mm, np.float64)
         self._seen: tuple[int, np.ndarray | None] | None = None
+        #: first layer of the run of photos with a region typed as a moved part (series mode; a photo read as a
+        #: detachment in a shifted print's run does not restart it), None: no moved part now
+        self.shift_since: int | None = None
         self.previous: list[Region] = []
         self._below: tuple[int, np.ndarray | None] | None = None
 
@@ -769,9 +814,22 @@ class FailureTyper:
             self._seen = (index, part_seen(self.toolpath, index, self.topview, self.camera_mm))
         return self._seen[1]
 
+    def _shifted_block(self, index: int) -> np.ndarray | None:
+        """:func:`seen_heights` of the layers since :attr:`shift_since` (None without a camera centre)."""
+        if self.toolpath is None or self.camera_mm is None or self.shift_since is None:
+            return None
+        return seen_heights(self.toolpath, index, self.topview, self.camera_mm, first=self.shift_since)
+
+    def _half_layer(self, index: int) -> float:
+        """Half the height of layer ``index``, mm (0.1 when unknown): a seen height this much off is another layer."""
+        if self.toolpath is None or not 0 <= index < self.toolpath.n_layers or self.toolpath.layers[index].height <= 0:
+            return 0.1
+        return 0.5 * float(self.toolpath.layers[index].height)
+
     def reset(self) -> None:
         """A new print: forget the previous photo's regions."""
         self.previous = []
+        self.shift_since = None
 
     def type_result(self, res: LayerResult, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray,
                     footprint: np.ndarray, valid: np.ndarray | None = None) -> PartMotion | None:
@@ -809,11 +867,16 @@ class FailureTyper:
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
+            if not moved:
+                self.shift_since = None
+            elif self.shift_since is None or self.shift_since > res.layer:
+                self.shift_since = res.layer
             outlines: dict[str, Outline] = {}  # the moved part's area per kind, the same for each of its regions
             for r in moved:
                 if r.kind not in outlines:
                     outlines[r.kind] = (scene.detached_outline(motion) if r.kind == "detachment"
-                                        else scene.moved_outline(motion))
+                                        else scene.shifted_outline(motion, self._shifted_block(res.layer),
+                                                                   self._half_layer(res.layer)))
                 r.outline_mm = outlines[r.kind]
             for r in regions:  # a foreign body as its own pixels, not the blocks' tiles around it
                 if r.kind == "foreign_body":
