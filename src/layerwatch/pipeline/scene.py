@@ -38,7 +38,7 @@ camera view (working resolution, :mod:`layerwatch.analysis.scene_change`):
   :meth:`SceneModel.acknowledge` (the operator accepted it: ``E`` takes the
   current photo on the changed blocks). On a layer whose HOG comparison
   alarmed, its failing blocks keep ``E``'s old view too although the layer
-  printed there (:meth:`SceneModel.hold_failing`): an object on a small part
+  printed there (:meth:`SceneModel.hold_failing`, :mod:`layerwatch.pipeline.scene_hold`): an object on a small part
   stays a change on the next layer, when another object of the plate prints
   and the new footprint does not cover it; those *held* pixels are judged
   even on the body's walls while they stay changed. Elsewhere ``E`` is the last
@@ -73,7 +73,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from layerwatch.analysis.overlay import anomalous_blocks, block_tiles
 from layerwatch.analysis.result import LayerResult, SceneStats
 from layerwatch.analysis.scene_change import (
     SATURATED,
@@ -99,9 +98,10 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.markers import detect_dots
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
+from layerwatch.pipeline.scene_hold import held_pixels, still_held
 
 __all__ = ["GAIN_RANGE", "REBASE_AFTER", "SceneModel", "SceneObservation", "bed_photo_pose_problem", "check_bed_photo",
-           "failing_blocks", "load_bed_photo"]
+           "load_bed_photo"]
 
 #: photometric gains outside this range mean a frame that does not show the scene (dark, overexposed)
 GAIN_RANGE = (0.4, 2.5)
@@ -139,25 +139,6 @@ def _box(mask: np.ndarray) -> tuple[slice, slice]:
     if rows.size == 0:
         return slice(0, 0), slice(0, 0)
     return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
-
-
-def failing_blocks(res: LayerResult, shape: tuple[int, int]) -> np.ndarray:
-    """The pixels of a result's failing HOG blocks, whole blocks (not only their tiles), bool (H, W).
-
-    Parameters
-    ----------
-    res : LayerResult
-        With ``heatmap`` and ``grid`` (:func:`~layerwatch.analysis.overlay.anomalous_blocks`).
-    shape : (H, W)
-        The top view's shape, px.
-    """
-    assert res.heatmap is not None and res.grid is not None
-    c, b = int(res.grid.cell_px), int(res.grid.block_cells)
-    tiles = np.asarray(block_tiles(anomalous_blocks(res), (int(shape[0]), int(shape[1])), c, b, fill=False), np.uint8)
-    off = (b - 1) * c // 2
-    if off > 0 and tiles.any():
-        return cv2.dilate(tiles, np.ones((2 * off + 1, 2 * off + 1), np.uint8)) > 0
-    return tiles > 0
 
 
 def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "bed photo") -> np.ndarray:
@@ -611,7 +592,8 @@ class SceneModel:
         elif obs.body is not None:
             assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
             take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)
-            held = self._still_held(obs)
+            changed = obs.change.pixels(obs.image.shape[:2]) if obs.change is not None and self.held is not None else None
+            held = still_held(self.held, obs.held, obs.predicted, changed)
             if held is not None:  # a failure the comparison found where the layer printed stays a change
                 take &= ~held
             self.held = held
@@ -630,16 +612,6 @@ class SceneModel:
         self.last_layer = max(self.last_layer, obs.layer) if obs.body is not None else obs.layer
         if obs.body is None:  # this photo is the baseline: what it shows is the scene (the body included)
             self.body_layer = obs.layer
-
-    def _still_held(self, obs: SceneObservation) -> np.ndarray | None:
-        """The held pixels after ``obs`` (:attr:`held`): those :meth:`hold_failing` added for this layer, and
-        the earlier ones that this photo shows changed and that the layers since did not print over (there
-        the comparison judges again); ``None`` when none is left."""
-        held = obs.held.copy() if obs.held is not None else None
-        if self.held is not None and obs.predicted is not None and obs.change is not None:
-            stays = self.held & ~obs.predicted & obs.change.pixels(obs.image.shape[:2])
-            held = stays if held is None else (held | stays)
-        return held if held is not None and held.any() else None
 
     def _quiet(self, obs: SceneObservation) -> np.ndarray:
         """Working-image pixels outside ``P`` of scored blocks that did not change and do not touch a change."""
@@ -701,23 +673,17 @@ class SceneModel:
         return int(patch.where.sum())
 
     def hold_failing(self, obs: SceneObservation, failing_top: np.ndarray, z: float) -> int:
-        """Keep ``E``'s old view on a failure the HOG comparison found where the layer printed.
-
-        ``E`` takes the photo on ``M`` (the layers printed since the last photo, module notes): an
-        object lying on a small part's top when that part printed a layer would become expected, and
-        on the next layer, when that part does not print (a plate of objects at interleaved heights),
-        nothing would see it. Called for a layer whose comparison alarmed (the pipeline's test,
-        :func:`~layerwatch.pipeline.policy.layer_alarm`), the failing blocks' pixels keep their old
-        appearance when :meth:`update` takes the photo, so the scene channel still sees the failure as a
-        change beside the print while it stays, until a later layer prints over it (``M`` covers it and
-        the comparison judges it again) or the operator acknowledges it (:meth:`acknowledge`).
+        """Keep ``E``'s old view on a failure the HOG comparison found where the layer printed
+        (:mod:`layerwatch.pipeline.scene_hold`): its pixels keep their old appearance when :meth:`update`
+        takes the photo, so the scene channel still sees the failure as a change beside the print while it
+        stays, until a later layer prints over it or the operator acknowledges it (:meth:`acknowledge`).
 
         Parameters
         ----------
         obs : SceneObservation
             The layer's observation, before :meth:`update`.
         failing_top : ndarray, bool, shape of the top view
-            The failing blocks (their tiles grown to the whole block) on the layer's plane.
+            The failing blocks (:func:`~layerwatch.pipeline.scene_hold.failing_blocks`) on the layer's plane.
         z : float
             Height of that plane, mm.
 
@@ -728,10 +694,7 @@ class SceneModel:
         """
         if obs.predicted is None or self.maps[0].size == 0 or not np.any(failing_top):
             return 0
-        mx, my = top_coords(self.maps, float(z))
-        on = cv2.remap(np.asarray(failing_top, np.uint8), mx, my, cv2.INTER_NEAREST,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        held = self._full(on) & self.observed
+        held = held_pixels(failing_top, z, self.maps, self._full, self.observed)
         obs.held = held if obs.held is None else (obs.held | held)
         return int(held.sum())
 

@@ -91,7 +91,8 @@ from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.layer_change import LayerChange
 from layerwatch.pipeline.policy import Decision, PausePolicy, layer_alarm
-from layerwatch.pipeline.scene import SceneModel, SceneObservation, failing_blocks
+from layerwatch.pipeline.scene import SceneModel, SceneObservation
+from layerwatch.pipeline.scene_hold import failing_blocks
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
 from layerwatch.render.camera_match import match_camera as camera_matched
 from layerwatch.render.fast import StackRenderer
