@@ -8,7 +8,7 @@ import pytest
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.evaluate.harness import LayerRecord
 from layerwatch.evaluate.modes import MISSED, ModeScore, marked_area, mode_score, summarize_modes
-from layerwatch.evaluate.report import _modes
+from layerwatch.evaluate.report import _modes, type_label
 from layerwatch.geometry.topview import TopView
 
 TV = TopView(px_per_mm=4.0, width_mm=40.0, height_mm=40.0, center_mm=(0.0, 0.0))
@@ -129,9 +129,16 @@ def test_report_section_shows_both_modes_and_the_targets():
     run = {"layers": 3000, "pauses": 0, "layer_alarms": 2, "ratio_layers": 5, "parts": {"part.gcode": {
            "prints": 1, "layers": 33, "layer_alarms": 0, "ratio_layers": 1, "policy_alarms": 0, "pauses": 0,
            "outside_layers": 0}}}
-    text = "\n".join(_modes(S, run))
+    text = "\n".join(_modes(S, run, {}))
     assert "### single mode" in text and "### series mode" in text
     assert "| AUROC single mode: foreign body, spaghetti, detachment, layer shift | >= 0.97 | layer_shift 1.000 | yes |" in text
     assert "| false pauses in >= 3000 clean layers (series mode) | 0 | 0 in 3000 layers | yes |" in text
     assert "| single-layer alarms (a% above the pause ratio and the minimum area) | <= 1 / 1000 | 0.67 / 1000" in text
     assert "| part.gcode | 1 | 33 | 0 | 1 |" in text and "5 with a% alone above the ratio" in text
+
+
+def test_a_thin_wall_defect_on_a_part_without_thin_walls_is_labelled_a_wall_gap():
+    assert type_label("thin_wall", {"thin_walls": False}) == "thin_wall (wall gap: no thin wall in this part)"
+    assert type_label("thin_wall", {"thin_walls": True}) == "thin_wall"
+    assert type_label("thin_wall", {}) == "thin_wall"  # a report from an older run says nothing of it
+    assert type_label("detachment", {"thin_walls": False}) == "detachment"

@@ -57,7 +57,7 @@ from layerwatch.simulate import (
     patch_layers,
     random_scenarios,
 )
-from layerwatch.simulate.failures import resolve
+from layerwatch.simulate.failures import has_thin_walls, resolve
 from layerwatch.simulate.parts import window_part
 
 __all__ = ["THRESHOLDS", "LayerRecord", "EvalData", "plan_frames", "run_evaluation", "score_layer", "surface_under",
@@ -361,6 +361,7 @@ def run_evaluation(
         "n_frames": total, "n_scenarios": len(plan), "image_size": list(camera.image_size),
         "analysis": config.analysis.model_dump(), "match_camera": match_camera, "scene": config.scene.enabled, "beside_share": beside_share,
         "toolpath": Path(str(toolpath.source)).name, "toolpath_layers": toolpath.n_layers, "seed": seed,
+        "thin_walls": has_thin_walls(toolpath),  # else a thin-wall defect is a wall gap (report row label)
     })
     planned = {sc.failures[0].type for sc, _ in plan if sc.failures}
     for t in FAILURE_TYPES:

@@ -140,10 +140,17 @@ _DEFINITIONS_AND_LIMITS = ["", "## Definitions", "",
       "- **Discriminative power (DP)**, our reading of the paper's Fig. 14: mean a% on failed layers minus "
       "mean a% on clean layers, percentage points (higher = better separated).",
       "- **IoU**: pixels of the anomalous blocks' tiles vs the simulator's failed region (`truth_area`), "
-      "on failed layers with a failure of size >= 5 mm, averaged per type. In the modes section a region "
-      "typed as a moved part (layer shift, detachment) marks its outline instead (where the layer is and "
-      "should not be, and where it should be and is not), also in place of the tiles grown from its blocks "
-      "(the moved part's walls and lower layers); the truth of those failures is the same two bands. "
+      "on failed layers with a failure of size >= 5 mm, averaged per type. The truth is what the camera sees "
+      "of the failure (`simulate/truth.py`: each top-view pixel's ray marched through the simulated scene and "
+      "through the scene with the failure undone): the holes of a patch still open (closed by 3 mm into a "
+      "region), the object or strands where the part does not hide them, for a layer shift where the view "
+      "differs by more than half a layer in height (the overhang, the place left, the shifted walls facing the "
+      "camera; not where the shifted top covers the planned one), for a detachment all of the moved part as "
+      "seen and the place it left. A thin-wall defect on a part without thin walls cuts the outer perimeter: "
+      "a *wall gap*. In the modes section a region typed as a layer shift marks where the layers since the "
+      "shift was first seen, projected through the camera centre and carried by the registered move, differ "
+      "in height from the plan; one typed as a detachment the whole part as the camera sees it, where the "
+      "plan has it and carried; both also in place of the tiles grown from their blocks. "
       "A region typed as a foreign body marks its pixels unlike both the bed and the part instead, where "
       "they cover at least half of the region's own area.",
       "- **False alarms**: clean layers whose a% exceeds the pause ratio, per 1000 clean layers "
@@ -166,6 +173,13 @@ _DEFINITIONS_AND_LIMITS = ["", "## Definitions", "",
       "- **Layer shifts** are drawn 1.5-5 mm, so few reach the 5 mm IoU class (n/a = none in the sample).",
       "- The simulator is ours, so these are figures on simulated photos only; no labelled real photos exist.",
       ""]
+
+
+def type_label(t: str, setup: dict) -> str:
+    """A failure type's row label: a thin-wall defect on a part without thin walls is a wall gap (``setup["thin_walls"]``)."""
+    if t == "thin_wall" and setup.get("thin_walls") is False:
+        return "thin_wall (wall gap: no thin wall in this part)"
+    return t
 
 
 def _header(s: Summary, setup: dict, seconds: float) -> list[str]:
@@ -280,7 +294,7 @@ def _ratio_only(clean_run: dict) -> str:
     return f"; {clean_run['ratio_layers']} with a% alone above the ratio, whatever the area"
 
 
-def _modes(s: Summary, clean_run: dict | None) -> list[str]:
+def _modes(s: Summary, clean_run: dict | None, setup: dict) -> list[str]:
     """The section on single-photo and series modes: targets, AUROC by onset, IoU, confusion matrix, displacement."""
     m = s.modes
     if not m:
@@ -308,7 +322,7 @@ def _modes(s: Summary, clean_run: dict | None) -> list[str]:
         for t in types:
             by = {d: (n, a) for d, n, a in f["since"][t]}
             v, n = f["iou"][t]
-            L.append(f"| {t} | {_fmt(f['auroc'][t], nd=3)} | "
+            L.append(f"| {type_label(t, setup)} | {_fmt(f['auroc'][t], nd=3)} | "
                      + " | ".join(f"{_fmt(by[d][1])} ({by[d][0]})" if d in by else "" for d in depths)
                      + f" | {_fmt(v)} ({n}) |")
         cols = f["kinds"]
@@ -319,7 +333,7 @@ def _modes(s: Summary, clean_run: dict | None) -> list[str]:
             row = f["confusion"][t]
             tot = sum(row.values())
             found = tot - row.get("missed", 0)
-            L.append(f"| {t} | " + " | ".join(str(row[c]) for c in cols)
+            L.append(f"| {type_label(t, setup)} | " + " | ".join(str(row[c]) for c in cols)
                      + f" | {_fmt(row.get(t, 0) / found if found else float('nan'), True)} % of {found} found |")
         for t, err in f["displacement"].items():
             e = np.asarray(err, float)
@@ -339,7 +353,7 @@ def _modes(s: Summary, clean_run: dict | None) -> list[str]:
     return L
 
 
-def _configured(configured: dict | None) -> list[str]:
+def _configured(configured: dict | None, setup: dict) -> list[str]:
     """The configured setting's own section (empty without it)."""
     L: list[str] = []
     if configured:
@@ -351,7 +365,7 @@ def _configured(configured: dict | None) -> list[str]:
               f"{c['n_clean']} (highest clean a% {_fmt(100 * c['max_clean'], nd=1)} %).", "",
               "| type | layers | AUROC | above the pause ratio | IoU (>= 5 mm) |", "|---|---:|---:|---:|---:|"]
         for t, (n, auc_t, det_t, iou_t) in c["types"].items():
-            L.append(f"| {t} | {n} | {_fmt(auc_t)} | {100 * det_t:.0f} % | {_fmt(iou_t)} |")
+            L.append(f"| {type_label(t, setup)} | {n} | {_fmt(auc_t)} | {100 * det_t:.0f} % | {_fmt(iou_t)} |")
         L.append("")
         if "whole_view" in c:
             L += ["With the scene channel (the change beside the printed layer added to S_A, over S_P): AUROC "
@@ -425,7 +439,7 @@ def write_report(s: Summary, out: str | Path, setup: dict, seconds: float, notes
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = _charts(s, out)
-    L = _header(s, setup, seconds) + _targets(s, clean_run) + _modes(s, clean_run) + _configured(configured) + _per_measure(s)
+    L = _header(s, setup, seconds) + _targets(s, clean_run) + _modes(s, clean_run, setup) + _configured(configured, setup) + _per_measure(s)
     L += _DEFINITIONS_AND_LIMITS
     L += ["## Charts", ""] + [f"![{f}]({f})" for f in files] + [""]
     L += ["## Set-up", "", "```", *(f"{k}: {v}" for k, v in setup.items()), "```", ""]
