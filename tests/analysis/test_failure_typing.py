@@ -24,7 +24,6 @@ from layerwatch.analysis.failure_typing import (
     _lab_u8,
     _plan_wall_share,
     _Scene,
-    fill_holes,
     kind_scores,
     part_motion,
     region_evidence,
@@ -377,13 +376,6 @@ def test_typer_marks_regions_unknown_when_the_images_cannot_be_read():
 
 
 # --- the cropped, lazy evaluation gives the whole view's values (issue 18 speed) ---------------------------
-
-
-def test_fill_holes_is_scipys_binary_fill_holes():
-    rng = np.random.default_rng(0)
-    for _ in range(100):
-        m = rng.random((int(rng.integers(1, 40)), int(rng.integers(1, 40)))) < rng.uniform(0.2, 0.8)
-        assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
 
 
 @pytest.mark.parametrize("n_px", [1, 2, 51, 400])

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from analysis_scenes import TOPVIEW, part_scene
 
-from layerwatch.analysis.overlay import block_tiles, heatmap_image, overlay_image, write_overlay
+from layerwatch.analysis.block_masks import block_tiles
+from layerwatch.analysis.overlay import heatmap_image, overlay_image, write_overlay
 from layerwatch.analysis.scoring import analyze_layer
 from layerwatch.cli import main
 from layerwatch.errors import AnalysisError

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from layerwatch.analysis.overlay import block_tiles
+from layerwatch.analysis.block_masks import block_tiles
 from layerwatch.evaluate.harness import THRESHOLDS, _score, run_evaluation, tile_fraction
 from layerwatch.evaluate.stats import iou
 from layerwatch.evaluate.summary import summarize

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import blocks_to_pixels
 from layerwatch.analysis.check_settings import BedCheckSettings
 from layerwatch.analysis.result import Region
 from layerwatch.analysis.scene_change import (
@@ -133,9 +134,7 @@ def check_empty_bed(top: np.ndarray, bed_top: np.ndarray, topview: TopView, sett
             "covered, or the light changed); take a new bed photo with `layerwatch calibrate --markers`"))
     changed = ch.pixels(topview.shape) & usable
     sim = np.where(ch.changed, np.minimum(1.0, ch.threshold / np.maximum(ch.score, 1e-6)), 1.0)
-    sim_px = np.ones(topview.shape, np.float32)
-    up = np.repeat(np.repeat(sim, ch.block_px, 0), ch.block_px, 1).astype(np.float32)
-    sim_px[: up.shape[0], : up.shape[1]] = up[: topview.shape[0], : topview.shape[1]]
+    sim_px = blocks_to_pixels(np.asarray(sim, np.float32), ch.block_px, topview.shape, fill=1.0)
     regions = change_regions(changed, sim_px, topview, 0.0)
     for r in regions:
         r.kind, r.kind_confidence = "foreign_body", round(1.0 - r.mean_similarity, 3)

@@ -107,6 +107,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import close_gaps, fill_holes
 from layerwatch.analysis.failure_kinds import MOVED_KINDS, UNKNOWN
 from layerwatch.analysis.histogram import middle_values
 from layerwatch.analysis.part_registration import (
@@ -226,19 +227,6 @@ def _hist_median(hist: np.ndarray) -> np.ndarray:
     return (lo * scale + hi * scale) / np.float32(2.0)
 
 
-def fill_holes(mask: np.ndarray) -> np.ndarray:
-    """``mask`` with its holes filled, bool (H, W): the background not 4-connected to the image border becomes set.
-
-    The same as :func:`scipy.ndimage.binary_fill_holes` with its default
-    structure, by one flood fill of the background from a one-pixel frame
-    around the image.
-    """
-    m = (np.asarray(mask) != 0).astype(np.uint8)
-    framed = cv2.copyMakeBorder(m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
-    cv2.floodFill(framed, None, (0, 0), 2, flags=4)
-    return framed[1:-1, 1:-1] != 2
-
-
 def _lab_distance(lab: np.ndarray, colour: np.ndarray, lightness_weight: float = 0.5) -> np.ndarray:
     """CIELAB distance of colours ``lab`` (..., 3) from ``colour`` (3,), lightness weighted (half: shading)."""
     d = lab - colour
@@ -344,8 +332,7 @@ class _Scene:
             return None
         k2 = max(3, int(round(3.0 * self.topview.px_per_mm)) | 1)
         crop = pad_box(self.fp_box, k2 + 1, self.shape)
-        closed = cv2.morphologyEx(self.fp[crop].astype(np.uint8), cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8))
-        return crop, closed.astype(bool)
+        return crop, close_gaps(self.fp[crop], k2)
 
     @cached_property
     def _solid(self) -> tuple[tuple[slice, slice], np.ndarray] | None:
@@ -468,7 +455,7 @@ class _Scene:
             thr = max(thr, med + NOISE_SIGMAS * 1.4826 * float(np.median(np.abs(around - med))))
         k = max(3, int(round(OBJECT_CLOSE_MM * self.topview.px_per_mm)) | 1)
         obj = ((dist > thr) & seen).view(np.uint8)  # up to 2 ring widths out: an object reaches beyond its blocks
-        obj = fill_holes(cv2.morphologyEx(obj, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8)))
+        obj = fill_holes(close_gaps(obj, k))
         _, labels = cv2.connectedComponents(obj.view(np.uint8), connectivity=8)
         obj = np.isin(labels, np.unique(labels[inner & obj]))  # the parts that reach into the region's box
         if obj.sum() < max(OBJECT_MIN_MM2, OBJECT_MIN_SHARE * r.area_mm2) * self.topview.px_per_mm ** 2:
@@ -661,7 +648,7 @@ def _closed_beads(start: np.ndarray, end: np.ndarray, width: np.ndarray, topview
     out = np.zeros(topview.shape, np.uint8)
     cv2.polylines(out, list(np.stack([p0, p1], axis=1)), False, 1, thickness=w, lineType=cv2.LINE_8, shift=2)
     k2 = max(3, int(round(3.0 * s)) | 1)
-    return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((k2, k2), np.uint8)).astype(bool)
+    return close_gaps(out, k2)
 
 
 def _plan_wall_share(toolpath: Toolpath | None, index: int, bbox_mm: tuple[float, float, float, float]) -> float:

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import blocks_to_pixels, close_gaps
 from layerwatch.analysis.check_settings import FirstLayerSettings
 from layerwatch.analysis.result import Region
 from layerwatch.analysis.scene_change import (
@@ -150,11 +151,7 @@ def inspect_first_layer(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndar
     coverage = float(covered.sum()) / n
     contrast = float(np.percentile(layer.score[layer.scored], 90)) / max(bed.threshold, 1e-6)
     bare = layer.scored & ~covered
-    full = np.repeat(np.repeat(bare, block_px, 0), block_px, 1)
-    missing = np.zeros(topview.shape, bool)
-    missing[: full.shape[0], : full.shape[1]] = full[: topview.shape[0], : topview.shape[1]]
-    missing = cv2.morphologyEx(missing.astype(np.uint8), cv2.MORPH_CLOSE,
-                               np.ones((2 * block_px + 1, 2 * block_px + 1), np.uint8)).astype(bool) & inside
+    missing = close_gaps(blocks_to_pixels(bare, block_px, topview.shape, fill=False), 2 * block_px + 1) & inside
     regions = [r for r in change_regions(missing, np.where(missing, 0.0, 1.0).astype(np.float32), topview, 0.0)
                if r.area_mm2 >= settings.max_missing_mm2]
     _type_regions(regions, fp.astype(bool), topview, coverage)

@@ -82,7 +82,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from layerwatch.analysis.overlay import block_tiles
+from layerwatch.analysis.block_masks import block_tiles
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import change_regions, top_coords
 from layerwatch.analysis.scoring import anomaly_ratio

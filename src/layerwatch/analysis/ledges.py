@@ -37,6 +37,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import block_tiles
 from layerwatch.analysis.result import Region
 from layerwatch.analysis.scene_change import change_regions
 from layerwatch.errors import AnalysisError
@@ -117,12 +118,9 @@ def ledge_regions(heat: np.ndarray, considered: np.ndarray, ledges_top: np.ndarr
     if not low.any() and not coloured:
         return []
     c = int(cell_px)
-    off = (int(block_cells) - 1) * c // 2
     H, W = topview.shape
     sim = np.where(low, h, 1.0).astype(np.float32)
-    tiles = np.ones((H, W), np.float32)
-    up = np.repeat(np.repeat(sim, c, 0), c, 1)[: H - off, : W - off]
-    tiles[off : off + up.shape[0], off : off + up.shape[1]] = up
+    tiles = block_tiles(sim, (H, W), c, int(block_cells), fill=1.0)
     if coloured:
         tiles = np.where(np.asarray(off_colour_top, bool), np.minimum(tiles, 0.5 * threshold), tiles)
     return change_regions(tiles < threshold, tiles, topview, min_area_mm2)

@@ -23,12 +23,13 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from layerwatch.analysis.block_masks import block_tiles
 from layerwatch.analysis.result import BlockGrid, LayerResult
 from layerwatch.analysis.scoring import grey_u8
 from layerwatch.errors import AnalysisError
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "block_tiles", "anomalous_blocks", "region_label"]
+__all__ = ["overlay_image", "heatmap_image", "write_overlay", "write_png", "anomalous_blocks", "region_label"]
 
 _CMAP = "RdYlGn"
 _FOOTPRINT_RGB = (0, 220, 255)
@@ -79,32 +80,6 @@ def anomalous_blocks(result: LayerResult) -> np.ndarray:
         labels, _ = ndimage.label(anom, structure=np.ones((3, 3), dtype=bool))
         anom = (np.bincount(labels.ravel()) >= min_blocks)[labels] & anom
     return anom
-
-
-def block_tiles(values: np.ndarray, shape: tuple[int, ...], cell_px: int, block_cells: int, fill=0) -> np.ndarray:
-    """Paint per-block values onto their tiles in an (H, W) image.
-
-    Block ``(i, j)`` owns the ``cell_px`` square centred on the block (see
-    :mod:`layerwatch.analysis.scoring`); pixels outside every tile get ``fill``.
-
-    Parameters
-    ----------
-    values : ndarray, shape (N, M)
-    shape : (H, W)
-    cell_px, block_cells : int
-
-    Returns
-    -------
-    ndarray, shape (H, W), dtype of ``values``
-    """
-    n, m = values.shape
-    off = (block_cells - 1) * cell_px // 2
-    out = np.full(shape, fill, dtype=values.dtype)
-    tiles = np.repeat(np.repeat(values, cell_px, axis=0), cell_px, axis=1)
-    h = min(shape[0] - off, tiles.shape[0])
-    w = min(shape[1] - off, tiles.shape[1])
-    out[off : off + h, off : off + w] = tiles[:h, :w]
-    return out
 
 
 def _to_rgb(top: np.ndarray) -> np.ndarray:

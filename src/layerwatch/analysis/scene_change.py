@@ -58,6 +58,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from layerwatch.analysis.block_masks import blocks_to_pixels
 from layerwatch.analysis.result import Region
 from layerwatch.analysis.settings import SceneSettings
 from layerwatch.errors import AnalysisError
@@ -423,12 +424,7 @@ class ChangeMap:
 
     def pixels(self, shape: tuple[int, int]) -> np.ndarray:
         """Changed blocks as a working-image mask of ``shape`` (h, w), bool."""
-        b = self.block_px
-        full = np.repeat(np.repeat(self.changed, b, 0), b, 1)
-        out = np.zeros(shape, bool)
-        h, w = min(shape[0], full.shape[0]), min(shape[1], full.shape[1])
-        out[:h, :w] = full[:h, :w]
-        return out
+        return blocks_to_pixels(self.changed, self.block_px, shape, fill=False)
 
 
 def channel_mean(img: np.ndarray) -> np.ndarray:
@@ -664,8 +660,5 @@ def changed_beside(top: np.ndarray, bed_top: np.ndarray, footprint: np.ndarray, 
     ratio, _ = photometric_fit(a, b, usable)
     ch = change_blocks(a, b, usable, ratio, settings)
     sim = np.where(ch.changed, np.minimum(1.0, ch.threshold / np.maximum(ch.score, 1e-6)), 1.0)
-    b_px = ch.block_px
-    sim_px = np.ones(topview.shape, np.float32)
-    up = np.repeat(np.repeat(sim, b_px, 0), b_px, 1).astype(np.float32)
-    sim_px[: up.shape[0], : up.shape[1]] = up
+    sim_px = blocks_to_pixels(np.asarray(sim, np.float32), ch.block_px, topview.shape, fill=1.0)
     return change_regions(ch.pixels(topview.shape) & usable, sim_px, topview, settings.min_region_mm2)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from layerwatch.analysis.failure_typing import fill_holes
+from layerwatch.analysis.block_masks import fill_holes
 from layerwatch.analysis.scene_change import top_coords
 from layerwatch.geometry.topview import TopView
 

@@ -29,8 +29,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import block_tiles
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS, MOVED_KINDS
-from layerwatch.analysis.overlay import anomalous_blocks, block_tiles
+from layerwatch.analysis.overlay import anomalous_blocks
 from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scoring import whole_view_score

@@ -73,6 +73,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import blocks_to_pixels
 from layerwatch.analysis.result import LayerResult, SceneStats
 from layerwatch.analysis.scene_change import (
     SATURATED,
@@ -716,10 +717,7 @@ class SceneModel:
         h, w = obs.image.shape[:2]
         sim = np.where(c.changed, np.minimum(1.0, c.threshold / np.maximum(c.score, 1e-6)), 1.0)
         code = np.where(c.changed, 1 + np.round(sim * 250), 0).astype(np.uint8)
-        code = np.repeat(np.repeat(code, c.block_px, 0), c.block_px, 1)
-        work = np.zeros((h, w), np.uint8)
-        work[: code.shape[0], : code.shape[1]] = code[:h, :w]
-        top = working_to_top(work, warper, z, photo_size)
+        top = working_to_top(blocks_to_pixels(code, c.block_px, (h, w)), warper, z, photo_size)
         changed = top > 0
         if valid is not None:
             changed &= valid

@@ -24,7 +24,8 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from layerwatch.analysis.overlay import anomalous_blocks, block_tiles
+from layerwatch.analysis.block_masks import whole_blocks
+from layerwatch.analysis.overlay import anomalous_blocks
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scene_change import top_coords
 
@@ -43,11 +44,7 @@ def failing_blocks(res: LayerResult, shape: tuple[int, int]) -> np.ndarray:
     """
     assert res.heatmap is not None and res.grid is not None
     c, b = int(res.grid.cell_px), int(res.grid.block_cells)
-    tiles = np.asarray(block_tiles(anomalous_blocks(res), (int(shape[0]), int(shape[1])), c, b, fill=False), np.uint8)
-    off = (b - 1) * c // 2
-    if off > 0 and tiles.any():
-        return cv2.dilate(tiles, np.ones((2 * off + 1, 2 * off + 1), np.uint8)) > 0
-    return tiles > 0
+    return whole_blocks(anomalous_blocks(res), shape, c, b)
 
 
 def held_pixels(failing_top: np.ndarray, z: float, maps: tuple[np.ndarray, np.ndarray],

@@ -1,0 +1,116 @@
+"""Blocks and pixels: per-block values painted onto an image, and the two fixes masks of blocks need.
+
+Several checks decide per block (HOG blocks of :mod:`layerwatch.analysis.scoring`,
+the change blocks of :mod:`layerwatch.analysis.scene_change`) and report per
+pixel. Two layouts occur:
+
+* square blocks of ``block_px`` from the image's corner
+  (:func:`blocks_to_pixels`: the scene channel, the bed check, the first layer);
+* the HOG grid, where block ``(i, j)`` spans ``block_cells`` cells of
+  ``cell_px`` and *owns* the one-cell tile at its centre
+  (:func:`block_tiles`; :func:`whole_blocks` paints the whole block instead).
+
+:func:`close_gaps` and :func:`fill_holes` are the morphology such masks (and
+footprints) get: gaps of sparse infill closed, the inside of an outline filled.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["block_tiles", "blocks_to_pixels", "close_gaps", "fill_holes", "whole_blocks"]
+
+
+def blocks_to_pixels(values: np.ndarray, block_px: int, shape: tuple[int, int], fill=0) -> np.ndarray:
+    """Per-block values on the pixels of square blocks laid from the image's corner, (H, W).
+
+    Parameters
+    ----------
+    values : ndarray, shape (n, m)
+        One value per block; block ``(i, j)`` covers rows ``[i * block_px, (i + 1) * block_px)``
+        and the same columns.
+    block_px : int
+        Block side, px.
+    shape : (H, W)
+        The image's shape, px: blocks beyond it are cut off.
+    fill : scalar
+        Value of the pixels no block covers (right and bottom of the last blocks).
+
+    Returns
+    -------
+    ndarray, shape (H, W), dtype of ``values``
+    """
+    v = np.asarray(values)
+    b = int(block_px)
+    h, w = int(shape[0]), int(shape[1])
+    out = np.full((h, w), fill, dtype=v.dtype)
+    hh, ww = min(h, v.shape[0] * b), min(w, v.shape[1] * b)
+    out[:hh, :ww] = np.repeat(np.repeat(v[: -(-hh // b), : -(-ww // b)], b, 0), b, 1)[:hh, :ww]
+    return out
+
+
+def block_tiles(values: np.ndarray, shape: tuple[int, ...], cell_px: int, block_cells: int, fill=0) -> np.ndarray:
+    """Paint per-block values of the HOG grid onto their tiles in an (H, W) image.
+
+    Block ``(i, j)`` owns the ``cell_px`` square centred on the block (see
+    :mod:`layerwatch.analysis.scoring`); pixels outside every tile get ``fill``.
+
+    Parameters
+    ----------
+    values : ndarray, shape (N, M)
+    shape : (H, W)
+    cell_px, block_cells : int
+
+    Returns
+    -------
+    ndarray, shape (H, W), dtype of ``values``
+    """
+    off = (block_cells - 1) * cell_px // 2
+    out = np.full(shape, fill, dtype=values.dtype)
+    tiles = np.repeat(np.repeat(values, cell_px, axis=0), cell_px, axis=1)
+    h = min(shape[0] - off, tiles.shape[0])
+    w = min(shape[1] - off, tiles.shape[1])
+    out[off : off + h, off : off + w] = tiles[:h, :w]
+    return out
+
+
+def whole_blocks(blocks: np.ndarray, shape: tuple[int, int], cell_px: int, block_cells: int) -> np.ndarray:
+    """The pixels of the True HOG blocks, each whole (``block_cells`` cells a side), not only its tile; bool (H, W).
+
+    Parameters
+    ----------
+    blocks : ndarray, bool, shape (N, M)
+    shape : (H, W)
+    cell_px, block_cells : int
+        The grid (:class:`~layerwatch.analysis.result.BlockGrid`).
+    """
+    tiles = np.asarray(block_tiles(np.asarray(blocks, bool), (int(shape[0]), int(shape[1])), cell_px, block_cells,
+                                   fill=False), np.uint8)
+    off = (block_cells - 1) * cell_px // 2
+    if off > 0 and tiles.any():
+        return cv2.dilate(tiles, np.ones((2 * off + 1, 2 * off + 1), np.uint8)) > 0
+    return tiles > 0
+
+
+def close_gaps(mask: np.ndarray, side_px: int) -> np.ndarray:
+    """``mask`` closed (dilated, then eroded) by a ``side_px`` square: gaps narrower than it are filled; bool (H, W).
+
+    The image's border does not erode (OpenCV's default border for the closing).
+    """
+    k = max(1, int(side_px))
+    m = np.ascontiguousarray(mask).astype(np.uint8)
+    return cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8)) > 0
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with its holes filled, bool (H, W): the background not 4-connected to the image border becomes set.
+
+    The same as :func:`scipy.ndimage.binary_fill_holes` with its default
+    structure, by one flood fill of the background from a one-pixel frame
+    around the image.
+    """
+    m = (np.asarray(mask) != 0).astype(np.uint8)
+    framed = cv2.copyMakeBorder(m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    cv2.floodFill(framed, None, (0, 0), 2, flags=4)
+    return framed[1:-1, 1:-1] != 2

@@ -1,0 +1,65 @@
+"""Blocks and pixels (analysis/block_masks.py) against plain loops and SciPy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from layerwatch.analysis.block_masks import (
+    block_tiles,
+    blocks_to_pixels,
+    close_gaps,
+    fill_holes,
+    whole_blocks,
+)
+
+
+@pytest.mark.parametrize(("shape", "block_px"), [((40, 56), 8), ((37, 50), 8), ((20, 20), 6), ((9, 70), 4)])
+def test_blocks_to_pixels_paints_each_block_from_the_corner_and_fills_the_rest(shape, block_px):
+    rng = np.random.default_rng(block_px)
+    n, m = -(-shape[0] // block_px) - 1, -(-shape[1] // block_px) + 1  # fewer rows, more columns than fit
+    values = rng.random((n, m)).astype(np.float32)
+    out = blocks_to_pixels(values, block_px, shape, fill=1.5)
+    want = np.full(shape, 1.5, np.float32)
+    for i in range(n):
+        for j in range(m):
+            want[i * block_px: (i + 1) * block_px, j * block_px: (j + 1) * block_px] = values[i, j]
+    assert out.shape == shape and out.dtype == np.float32
+    assert np.array_equal(out, want)
+    assert np.array_equal(blocks_to_pixels(values > 0.5, block_px, shape, fill=False), (want > 0.5) & (want != 1.5))
+
+
+@pytest.mark.parametrize(("cell_px", "block_cells"), [(8, 2), (6, 3), (5, 1)])
+def test_whole_blocks_paints_each_true_block_whole_and_block_tiles_only_its_centre_tile(cell_px, block_cells):
+    rng = np.random.default_rng(cell_px)
+    shape = (70, 90)
+    n = (shape[0] - (block_cells - 1) * cell_px) // cell_px
+    m = (shape[1] - (block_cells - 1) * cell_px) // cell_px
+    blocks = rng.random((n, m)) < 0.15
+    side = block_cells * cell_px
+    off = (block_cells - 1) * cell_px // 2
+    whole, tiles = np.zeros(shape, bool), np.zeros(shape, bool)
+    for i, j in zip(*np.nonzero(blocks), strict=True):
+        whole[i * cell_px: i * cell_px + side, j * cell_px: j * cell_px + side] = True
+        tiles[off + i * cell_px: off + (i + 1) * cell_px, off + j * cell_px: off + (j + 1) * cell_px] = True
+    assert np.array_equal(whole_blocks(blocks, shape, cell_px, block_cells), whole)
+    assert np.array_equal(block_tiles(blocks, shape, cell_px, block_cells, fill=False), tiles)
+    assert not whole_blocks(np.zeros_like(blocks), shape, cell_px, block_cells).any()
+
+
+def test_close_gaps_fills_gaps_narrower_than_its_square_only():
+    m = np.zeros((40, 60), bool)
+    m[10:30, 5:20] = m[10:30, 24:40] = True  # a 4 px gap
+    m[10:30, 50:54] = True  # 10 px from the second bar, 6 px from the border
+    closed = close_gaps(m, 5)
+    assert closed[10:30, 20:24].all() and not closed[10:30, 40:50].any()
+    assert np.array_equal(closed & ~m, np.pad(np.ones((20, 4), bool), ((10, 10), (20, 36))))
+    assert np.array_equal(close_gaps(m, 1), m)
+
+
+def test_fill_holes_is_scipys_binary_fill_holes():
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        m = rng.random((int(rng.integers(1, 40)), int(rng.integers(1, 40)))) < rng.uniform(0.2, 0.8)
+        assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
