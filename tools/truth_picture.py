@@ -1,10 +1,10 @@
 """Picture of a failure's truth against what the monitor marks, on one simulated photo of the example part.
 
-Run: ``PYTHONPATH=<src> python tools/truth_picture.py [--kind detachment] [--onset 12] [--layer 16]
-[--size 4] [--seed 3] [--out docs/evaluation/parts/truth_detachment.jpg]``
+Run: ``PYTHONPATH=<src> python tools/truth_picture.py [--gcode FILE] [--kind detachment] [--onset 12]
+[--layer 16] [--size 4] [--seed 3] [--out docs/evaluation/parts/truth_detachment.jpg]``
 
-The bundled example part with the recommended settings and a 1280 x 720 camera
-(as ``layerwatch evaluate``); one print with the failure, fed to the pipeline in
+The bundled example part (or ``--gcode``, its settings as ``layerwatch evaluate --gcode`` derives
+them) with the recommended settings and a 1280 x 720 camera; one print with the failure, fed to the pipeline in
 series mode up to ``--layer``. Left: the photo's top view. Right: the same with
 the truth (``SimFrame.truth_area``, :mod:`layerwatch.simulate.truth`) in green,
 what the result marks (:func:`~layerwatch.evaluate.modes.marked_area`) in
@@ -22,13 +22,14 @@ import numpy as np
 from layerwatch.evaluate.modes import marked_area, mode_score
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
-from layerwatch.pipeline.config import resolve_config
+from layerwatch.pipeline.config import observed_square, resolve_config
 from layerwatch.pipeline.step import LayerPipeline
 from layerwatch.simulate import Failure, PrintSimulator, default_camera
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--gcode", type=Path, default=None)
     ap.add_argument("--kind", default="detachment")
     ap.add_argument("--onset", type=int, default=12)
     ap.add_argument("--layer", type=int, default=16)
@@ -36,8 +37,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--out", type=Path, default=Path("docs/evaluation/parts/truth_detachment.jpg"))
     a = ap.parse_args()
-    tp = read_toolpath(PART_GCODE)
-    cfg = resolve_config(PART_CONFIG, recommended=True).config
+    tp = read_toolpath(a.gcode or PART_GCODE)
+    cfg = (resolve_config(PART_CONFIG, recommended=True) if a.gcode is None
+           else resolve_config(None, recommended=True, gcode=observed_square(tp.bounds))).config
     cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
     cfg = cfg.for_camera(cam)
     tv = cfg.topview.topview()
