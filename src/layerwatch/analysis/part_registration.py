@@ -35,7 +35,8 @@ import scipy.fft as sfft
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["EDGE_PAD_PX", "MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATION_GAIN", "ROTATION_MIN_DEG", "ROTATIONS_DEG",
-           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "moved_area", "pad_box", "part_motion", "top_from_plan"]
+           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "moved_area", "pad_box", "part_motion", "self_similarity",
+           "top_from_plan"]
 
 #: smallest displacement of the part's top layer reported as a move, mm (registration noise is ~0.2 mm)
 MOVE_MIN_MM = 0.75
@@ -233,6 +234,40 @@ def _new_edges_match(a: np.ndarray, b: np.ndarray, planned: np.ndarray, du: int,
     return float((moved * b).sum()) / energy if energy > 0 else 0.0
 
 
+def self_similarity(a: np.ndarray, du: float, dv: float) -> float:
+    """How much the layer's edges look like themselves shifted by ``(du, dv)`` px, 0-1 (1 at no shift).
+
+    Parameters
+    ----------
+    a : ndarray, float32, shape (h, w)
+        The registered layer's edges (the reference's :func:`edges` on the top layer, seen),
+        Hanning windowed here as the phase correlation windows them.
+    du, dv : float
+        The shift, px (x right, y down).
+
+    Returns
+    -------
+    float
+        The autocorrelation of the windowed ``a`` at ``(du, dv)`` over its value at no
+        shift (0 for an empty ``a``). High at a multiple of a regular infill's period and
+        for a layer of dense, blurred lines that overlap themselves; low for a sparse layer
+        (walls, open infill) shifted off its own lines.
+    """
+    h, w = a.shape
+    aw = np.asarray(a, np.float32) * cv2.createHanningWindow((w, h), cv2.CV_32F)
+    energy = float((aw * aw).sum())
+    if energy <= 0:
+        return 0.0
+    shift = np.array([[1.0, 0.0, du], [0.0, 1.0, dv]], np.float32)
+    return float((aw * cv2.warpAffine(aw, shift, (w, h), flags=cv2.INTER_LINEAR)).sum()) / energy
+
+
+def _looks_like_itself(a: np.ndarray, du: float, dv: float, share: float) -> bool:
+    """A move of ``(du, dv)`` px whose peak is ``share`` (< 1) of the zero-shift peak that the layer's own pattern
+    explains: the layer's edges, shifted so, match themselves at least as well (:func:`self_similarity` >= ``share``)."""
+    return share < 1.0 and self_similarity(a, du, dv) >= share
+
+
 def _rotation(a: np.ndarray, b: np.ndarray, centre: tuple[float, float]) -> tuple[float, float]:
     """Best rotation of ``a`` about ``centre`` (px) to match ``b``, searched at half resolution: ``(degrees, gain)``."""
     a2 = cv2.resize(a, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
@@ -292,6 +327,16 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     photo shows best where the reference has none (:func:`_new_place`): at
     a shift's first layers the layers below give peaks within about a
     millimetre of zero that can outrank the moved layer's own.
+
+    A move whose peak is lower than the zero-shift peak is refused when the
+    layer's own edges, shifted by it, overlap themselves at least as much as
+    the peak's share of the zero-shift peak (:func:`self_similarity`): a
+    regular infill looks like itself a period away, and a layer of dense
+    lines overlaps itself at any small shift, so a defect that weakens the
+    zero-shift peak (missing infill) left such a peak to pass for a layer
+    shift (Simplify3D cross-part run). The price: a real shift whose peak is
+    weaker than the layers below's and whose layer is that dense is not
+    measured (a straight wall moved along itself overlaps itself too).
     """
     fp = np.asarray(footprint, bool)
     fbox = mask_box(fp) if footprint_box is None else footprint_box
@@ -312,9 +357,10 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     r = corr.surface(a)
     reach, near = MOVE_MAX_MM * topview.px_per_mm, MOVE_MIN_MM * topview.px_per_mm
     du, dv, height = _peak(r, reach)
+    zero = height if math.hypot(du, dv) < near else _peak(r, near)[2]  # the zero-shift peak
     if math.hypot(du, dv) < near:
         du2, dv2, height2 = _peak(r, reach, exclude_px=near)
-        if height2 >= SECOND_PEAK * height:
+        if height2 >= SECOND_PEAK * height and not _looks_like_itself(a, du2, dv2, height2 / height):
             du, dv, height = du2, dv2, height2
     d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
     if math.hypot(du, dv) < near:
@@ -338,6 +384,8 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     # a part that did not turn: which of the strong peaks away from zero is the layer's new place
     du2, dv2, height2 = _new_place(r, a, b, ref_edges, (du, dv, height), reach, near)
     if (du2, dv2) == (du, dv):
+        return motion
+    if _looks_like_itself(a, du2, dv2, height2 / max(zero, 1e-12)):
         return motion
     d = topview.to_mm(np.array([du2, dv2], float)) - topview.to_mm(np.zeros(2))
     return dataclasses.replace(motion, dx_mm=float(d[0]), dy_mm=float(d[1]), peak=height2)
