@@ -3,6 +3,7 @@ previous photo, off with the paper's settings, and never a pause from a black or
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -113,3 +114,30 @@ def test_a_layer_the_typer_found_moved_gets_no_thin_wall_or_infill_region(job, m
     assert clean.layer_change is not None and clean.layer_change.added_mm2 + clean.layer_change.unchanged_mm2 > 0
     assert moved.layer_change is not None and "the part moved" in moved.layer_change.note
     assert moved.layer_change.unchanged_mm2 == 0.0
+
+
+def test_small_moved_regions_leave_the_channel_on_apart_from_their_outline(job, monkeypatch):
+    """Moved regions of less than the policy's ``min_area_mm2`` together (here raised above the shift's) do not
+    switch the channel off for the layer: only the unchanged pixels within 1 mm of their outline are left out."""
+    import layerwatch.pipeline.layer_change as lc_module
+    from layerwatch.analysis.failure_kinds import MOVED_KINDS
+    from layerwatch.analysis.layer_change import moved_pixels
+    from layerwatch.simulate import Failure
+
+    monkeypatch.setattr(lc_module, "MAX_UNCHANGED_SHARE", 1.0)
+    seen = []
+    real = lc_module.unchanged_regions
+    monkeypatch.setattr(lc_module, "unchanged_regions", lambda top, *a: seen.append(top) or real(top, *a))
+    tp, cam, square, bed, _ = job
+    tv = TopViewSettings(**square).topview()
+    shifted = PrintSimulator(tp, cam, tv, (Failure("layer_shift", onset=12, size_mm=4.0, seed=1),), seed=7)
+    pipe = _pipe(job, layer_change={"min_ncc": 0.0, "min_gain": 0.0}, policy={"min_area_mm2": 1e4})
+    moved = [pipe.process(shifted.frame(i).photo, i) for i in (10, 11, 12)][-1]
+    regions = [r for r in moved.regions if r.kind in MOVED_KINDS]
+    assert regions and sum(r.area_mm2 for r in regions) < 1e4
+    assert moved.layer_change is not None and "the part moved" not in moved.layer_change.note
+    top = seen[-1]
+    assert top.any(), "the channel judged the pixels away from the moved part"
+    k = 2 * int(round(lc_module.MOVED_MARGIN_MM * tv.px_per_mm)) + 1
+    near = cv2.dilate(moved_pixels(regions, tv).view(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    assert not (top & (near > 0)).any()

@@ -269,3 +269,26 @@ def test_clipped_pixels_are_found_in_a_larger_colour_frame():
     assert out.shape == (120, 40)
     assert out[50 - 40, 100 - 90] and out.sum() == 5 * 10, "the glare, at half the photo's scale"
     assert not out[150 - 40].any(), "a clipped colour channel is not glare"
+
+
+def test_moved_pixels_are_the_outlines_of_moved_regions_or_their_boxes_and_apart_from_leaves_them_out():
+    from layerwatch.analysis.layer_change import apart_from, moved_pixels
+    from layerwatch.analysis.region_outline import outline_mask, outline_mm
+    from layerwatch.analysis.result import Region
+    from layerwatch.geometry.topview import TopView
+
+    tv = TopView(px_per_mm=5.0, width_mm=40.0, height_mm=40.0, center_mm=(100.0, 100.0))
+    band = np.zeros(tv.shape, bool)
+    band[40:60, 20:30] = True
+    shaped = Region(200.0, (84.0, 88.0, 86.0, 92.0), (85.0, 90.0), 4, 0.2, kind="layer_shift",
+                    outline_mm=outline_mm(band, tv))
+    boxed = Region(4.0, (110.0, 110.0, 112.0, 112.0), (111.0, 111.0), 1, 0.2, kind="layer_shift")
+    m = moved_pixels([shaped, boxed], tv)
+    assert m[outline_mask(shaped.outline_mm, tv)].all()
+    (u0, v0), (u1, v1) = np.round(tv.to_px(np.array([[110.0, 112.0], [112.0, 110.0]]))).astype(int)
+    assert m[v0: v1 + 1, u0: u1 + 1].all()
+    assert int(m.sum()) == int(outline_mask(shaped.outline_mm, tv).sum()) + (v1 - v0 + 1) * (u1 - u0 + 1)
+    everywhere = np.ones(tv.shape, bool)
+    kept = apart_from(everywhere, m, 1.0, tv)
+    assert not (kept & m).any() and kept[50, 20 - 6] and not kept[50, 20 - 4]  # 1 mm = 5 px beside the band
+    assert np.array_equal(apart_from(everywhere, np.zeros_like(m), 1.0, tv), everywhere)

@@ -83,6 +83,7 @@ import numpy as np
 from pydantic import Field
 
 from layerwatch.analysis.block_masks import block_tiles
+from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import change_regions, top_coords
 from layerwatch.analysis.scoring import anomaly_ratio
@@ -90,8 +91,8 @@ from layerwatch.gcode.toolpath import FEATURES, Toolpath
 from layerwatch.geometry.topview import TopView
 from layerwatch.settings_base import Section
 
-__all__ = ["CLIP_LEVEL", "EDGE_DEPTH", "EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "blocks_on_top", "clipped_box", "drop_edge_slivers", "pair_noise",
-           "parallax_px", "printed_kind", "unchanged_regions", "window_change"]
+__all__ = ["CLIP_LEVEL", "EDGE_DEPTH", "EDGE_SHARE", "OWN_GROW_PX", "OWN_SHARE", "LayerChangeSettings", "WindowChange", "add_unchanged", "apart_from", "blocks_on_top", "clipped_box", "drop_edge_slivers",
+           "moved_pixels", "pair_noise", "parallax_px", "printed_kind", "unchanged_regions", "window_change"]
 
 #: quiet blocks need this much texture variance (grey levels^2) in both photos to calibrate the noise on
 QUIET_MIN_VAR = 1.0
@@ -554,6 +555,44 @@ def _crop_mask(mask: np.ndarray, box: tuple[slice, slice]) -> np.ndarray:
     out = np.zeros_like(mask)
     out[box] = mask[box]
     return out
+
+
+def moved_pixels(regions: list[Region], topview: TopView) -> np.ndarray:
+    """The top-view pixels a moved part's regions mark, bool (H, W).
+
+    Each region's :attr:`~layerwatch.analysis.result.Region.outline_mm` (for a layer
+    shift or a detachment: where the layer is and should not be, and where it should
+    be and is not), or its box when it has none.
+    """
+    out = np.zeros((int(topview.shape[0]), int(topview.shape[1])), bool)
+    for r in regions:
+        if r.outline_mm:
+            out |= outline_mask(r.outline_mm, topview)
+            continue
+        x0, y0, x1, y1 = r.bbox_mm
+        (u0, v0), (u1, v1) = np.round(topview.to_px(np.array([[x0, y1], [x1, y0]], float))).astype(int)
+        out[max(v0, 0): max(v1 + 1, 0), max(u0, 0): max(u1 + 1, 0)] = True
+    return out
+
+
+def apart_from(unchanged_top: np.ndarray, moved: np.ndarray, grow_mm: float, topview: TopView) -> np.ndarray:
+    """``unchanged_top`` without the pixels within ``grow_mm`` of ``moved``, bool (H, W).
+
+    Parameters
+    ----------
+    unchanged_top : ndarray, bool, shape (H, W)
+        Unchanged top-view pixels.
+    moved : ndarray, bool, shape (H, W)
+        Pixels a moved part explains (:func:`moved_pixels`).
+    grow_mm : float
+        Margin around ``moved``, mm (a disc).
+    topview : TopView
+    """
+    if not moved.any():
+        return np.asarray(unchanged_top, bool)
+    k = 2 * int(round(grow_mm * topview.px_per_mm)) + 1
+    near = cv2.dilate(moved.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    return np.asarray(unchanged_top, bool) & ~near
 
 
 def add_unchanged(res: LayerResult, mask: np.ndarray, regions: list[Region], topview: TopView) -> float:

@@ -16,10 +16,13 @@ verdict (``LayerResult.layer_change.judged`` is False with a note). A layer
 that looks as before over most of its footprint (more than
 :data:`MAX_UNCHANGED_SHARE` of the judged pixels) is not a local defect but
 nothing extruded, the nothing-extruded check's failure: no region here. Nor
-is a layer that the failure typer found moved (a region typed layer shift or
-detachment, :data:`~layerwatch.analysis.failure_kinds.MOVED_KINDS`): its
-planned place looks as before because the layer lies elsewhere, and the moved
-outline already marks it.
+is a layer that the failure typer found moved (regions typed layer shift or
+detachment, :data:`~layerwatch.analysis.failure_kinds.MOVED_KINDS`, of at least
+``moved_min_mm2`` together): its planned place looks as before because the
+layer lies elsewhere, and the moved outline already marks it. Smaller moved
+regions (a registration that took part of the layer's pattern for a move, or a
+move too small to pause on) leave the channel on: only the unchanged pixels
+within :data:`MOVED_MARGIN_MM` of their outline are left out.
 """
 
 from __future__ import annotations
@@ -35,8 +38,10 @@ from layerwatch.analysis.failure_kinds import MOVED_KINDS
 from layerwatch.analysis.layer_change import (
     LayerChangeSettings,
     add_unchanged,
+    apart_from,
     blocks_on_top,
     clipped_box,
+    moved_pixels,
     parallax_px,
     unchanged_regions,
     window_change,
@@ -50,13 +55,15 @@ from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.checks import JobChecks
 
-__all__ = ["MAX_UNCHANGED_SHARE", "NEAR_MARGIN_MM", "LayerChange"]
+__all__ = ["MAX_UNCHANGED_SHARE", "MOVED_MARGIN_MM", "NEAR_MARGIN_MM", "LayerChange"]
 
 #: the new layer's projection grown by this (mm) is never a quiet block (the noise is calibrated off it)
 NEAR_MARGIN_MM = 1.5
 #: more than this share of the judged pixels unchanged: the whole layer looks as before, which is the
 #: nothing-extruded check's failure (clog, run-out; ``[extrusion]``), not a local defect: no region here
 MAX_UNCHANGED_SHARE = 0.5
+#: unchanged pixels within this of a small moved region's outline are the motion's, not a defect, mm
+MOVED_MARGIN_MM = 1.0
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)`` (the pipeline's references)
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
 
@@ -74,12 +81,17 @@ class LayerChange:
     toolpath : Toolpath
         The job's G-code (what each layer prints: walls or infill).
     settings : LayerChangeSettings
+    moved_min_mm2 : float
+        Moved regions (layer shift, detachment) of at least this area together switch the
+        channel off for the layer (module notes), mm^2; the pipeline passes the policy's
+        ``min_area_mm2``, the smallest area that pauses.
     """
 
     def __init__(self, checks: JobChecks, topview: TopView, warper: TopViewWarper, toolpath: Toolpath,
-                 settings: LayerChangeSettings) -> None:
+                 settings: LayerChangeSettings, moved_min_mm2: float = 5.0) -> None:
         self.checks, self.topview, self.warper = checks, topview, warper
         self.toolpath, self.settings = toolpath, settings
+        self.moved_min_mm2 = float(moved_min_mm2)
         self.new_print()
 
     def new_print(self) -> None:
@@ -147,7 +159,8 @@ class LayerChange:
             return
         if not change.unchanged.any():
             return
-        if any(r.kind in MOVED_KINDS for r in res.regions):
+        moved = [r for r in res.regions if r.kind in MOVED_KINDS]
+        if moved and sum(r.area_mm2 for r in moved) >= self.moved_min_mm2:
             # a shifted or detached layer leaves its planned place as it was: the typer's moved
             # outline already marks that area, a thin-wall or infill region there would be wrong
             stats.note = "the part moved (a region is typed layer shift or detachment): its unchanged area is the motion's"
@@ -159,6 +172,8 @@ class LayerChange:
         rows, cols = self.checks.box
         top = blocks_on_top(change.unchanged, 1, (rows.start or 0, cols.start or 0),
                             (size[0] / w, size[1] / h), source, fp & valid)
+        if moved:  # small moved regions: only the unchanged pixels at their outline are theirs
+            top = apart_from(top, moved_pixels(moved, self.topview), MOVED_MARGIN_MM, self.topview)
         mask, regions = unchanged_regions(top, fp, self.toolpath, index, self.topview, st.min_area_mm2)
         stats.added_mm2 = round(add_unchanged(res, mask, regions, self.topview), 3)
         stats.unchanged_mm2 = round(float(sum(r.area_mm2 for r in regions)), 3)
