@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from analysis_scenes import TOPVIEW
+from report_case import report_case
 from scipy import ndimage
 
 from layerwatch.analysis import failure_typing
@@ -657,25 +658,7 @@ def test_a_shift_of_several_small_objects_is_registered(shared_data):
     layer 11): the unmoved layers' ledges (much outline per area) keep the zero-shift peak high, and the true
     move's peak read 0.58 of it, under the former 0.6 gate: no move, its regions typed spaghetti. Now the move is
     found and measured."""
-    from layerwatch.cli.pipeline import job_settings
-    from layerwatch.evaluate.harness import plan_frames
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.pipeline.step import LayerPipeline
-    from layerwatch.simulate import PrintSimulator, default_camera
-
-    gcode = shared_data / "gcode" / "kisslicer-2.0.6.gcode"
-    if not gcode.is_file():
-        pytest.skip("kisslicer-2.0.6.gcode not in the shared data")
-    tp = read_toolpath(gcode)
-    cfg = job_settings(None, gcode, tp).config
-    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
-    cfg = cfg.for_camera(cam)
-    plan = plan_frames(tp, 200, seed=0, beside_share=0.3)
-    k = next(i for i, (s, _) in enumerate(plan) if s.name == "s008-layer_shift")
-    scen, _ = plan[k]
-    sim = PrintSimulator(tp, cam, cfg.topview.topview(), scen, seed=k)
-    pipe = LayerPipeline(tp, cam, cfg, memo=tp.n_layers)
-    pipe.new_print(sim.bed_photo())
+    sim, pipe, _ = report_case(shared_data / "gcode" / "kisslicer-2.0.6.gcode", "s008-layer_shift")
     for i in (9, 10):
         pipe.process(sim.frame(i).photo, i)
     res = pipe.process(sim.frame(11).photo, 11)

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 from analysis_scenes import TOPVIEW
+from report_case import report_case
 
 from layerwatch.analysis.part_registration import (
     MOVE_MAX_MM,
@@ -84,23 +85,7 @@ def test_an_infill_defect_of_the_simplify3d_part_does_not_register_as_a_layer_sh
     """The cross-part evaluation's Simplify3D infill defect s017 (seed 0, 200 layers, beside share 0.3), its first
     layer: the missing infill weakens the zero-shift peak and a peak 1.2 mm away (0.6 of it) was taken as a layer
     shift, yet the layer's own edges shifted 1.2 mm match themselves 0.71: that peak is the layer's pattern."""
-    from layerwatch.cli.pipeline import job_settings
-    from layerwatch.evaluate.harness import plan_frames
-    from layerwatch.gcode import read_toolpath
-    from layerwatch.pipeline.step import LayerPipeline
-    from layerwatch.simulate import PrintSimulator, default_camera
-
-    gcode = shared_data / "gcode" / "simplify3d-4.1.2_zlift.gcode"
-    tp = read_toolpath(gcode)
-    cfg = job_settings(None, gcode, tp).config
-    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
-    cfg = cfg.for_camera(cam)
-    plan = plan_frames(tp, 200, seed=0, beside_share=0.3)
-    k = next(i for i, (s, _) in enumerate(plan) if s.name == "s017-infill_defect")
-    scen, layers = plan[k]
-    sim = PrintSimulator(tp, cam, cfg.topview.topview(), scen, seed=k)
-    pipe = LayerPipeline(tp, cam, cfg, memo=tp.n_layers)
-    pipe.new_print(sim.bed_photo())
+    sim, pipe, layers = report_case(shared_data / "gcode" / "simplify3d-4.1.2_zlift.gcode", "s017-infill_defect")
     for i in layers[:2]:
         res = pipe.process(sim.frame(i).photo, i)
     assert res.regions, "the defect is seen"
