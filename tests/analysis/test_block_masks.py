@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -10,6 +11,7 @@ from layerwatch.analysis.block_masks import (
     block_tiles,
     blocks_to_pixels,
     close_gaps,
+    components,
     fill_holes,
     whole_blocks,
 )
@@ -63,3 +65,35 @@ def test_fill_holes_is_scipys_binary_fill_holes():
     for _ in range(100):
         m = rng.random((int(rng.integers(1, 40)), int(rng.integers(1, 40)))) < rng.uniform(0.2, 0.8)
         assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("threads", [1, 2])
+def test_components_on_the_box_label_and_measure_every_area_as_the_whole_image_does(seed, threads):
+    rng = np.random.default_rng(seed)
+    mask = np.zeros((120, 150), bool)
+    for _ in range(int(rng.integers(1, 25))):  # rectangles with holes, some touching: areas of any shape
+        y, x = rng.integers(3, 110, 2)
+        h, w = rng.integers(1, 9, 2)
+        mask[y:y + h, x:x + w] = True
+    mask &= rng.random(mask.shape) < 0.8
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(threads)
+    try:
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+        n2, lab2, stats2, (v0, u0) = components(mask)
+    finally:
+        cv2.setNumThreads(before)
+    assert v0 % 2 == 0 and u0 % 2 == 0
+    assert n2 == n and np.array_equal(stats2[1:], stats[1:])
+    rows, cols = slice(v0, v0 + lab2.shape[0]), slice(u0, u0 + lab2.shape[1])
+    assert np.array_equal(lab2, lab[rows, cols])
+    outside = np.ones(mask.shape, bool)
+    outside[rows, cols] = False
+    assert not mask[outside].any()
+
+
+def test_components_of_an_empty_mask_are_the_background_alone():
+    n, lab, stats, origin = components(np.zeros((10, 12), bool))
+    assert n == 1 and lab.size == 0 and origin == (0, 0)
+    assert stats.shape == (1, 5) and stats[0, cv2.CC_STAT_AREA] == 120

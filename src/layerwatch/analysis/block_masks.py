@@ -11,7 +11,8 @@ pixel. Two layouts occur:
   (:func:`block_tiles`; :func:`whole_blocks` paints the whole block instead).
 
 :func:`close_gaps` and :func:`fill_holes` are the morphology such masks (and
-footprints) get: gaps of sparse infill closed, the inside of an outline filled.
+footprints) get: gaps of sparse infill closed, the inside of an outline filled;
+:func:`components` labels a mask's connected areas on its bounding box only.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["block_tiles", "blocks_to_pixels", "close_gaps", "fill_holes", "whole_blocks"]
+__all__ = ["block_tiles", "blocks_to_pixels", "close_gaps", "components", "fill_holes", "whole_blocks"]
 
 
 def blocks_to_pixels(values: np.ndarray, block_px: int, shape: tuple[int, int], fill=0) -> np.ndarray:
@@ -114,3 +115,41 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     framed = cv2.copyMakeBorder(m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     cv2.floodFill(framed, None, (0, 0), 2, flags=4)
     return framed[1:-1, 1:-1] != 2
+
+
+def components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, tuple[int, int]]:
+    """8-connected areas of ``mask``, labelled on its bounding box only.
+
+    :func:`cv2.connectedComponentsWithStats` with its statistics costs ~2 ms on a
+    600 x 600 top view however few pixels are set; a failure's regions cover a
+    small part of it. The box starts on an even row and column, so that the
+    labelling's 2 x 2 blocks fall as on the whole image and every area gets
+    the label, and the statistics, that the whole image gives it (tested).
+
+    Parameters
+    ----------
+    mask : ndarray, bool or uint8, shape (H, W)
+
+    Returns
+    -------
+    n : int
+        Number of labels, the background (0) included.
+    labels : ndarray, int32, shape (h, w)
+        Labels of the box's pixels (the whole image's ``labels[rows, cols]``).
+    stats : ndarray, int32, shape (n, 5)
+        ``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``, ``AREA`` per label, in whole-image
+        px (row 0, the background, counts the box's background only).
+    origin : (int, int)
+        Row and column of the box's first pixel.
+    """
+    m = np.ascontiguousarray(mask)
+    m = m.view(np.uint8) if m.dtype == bool else (m != 0).astype(np.uint8)
+    u, v, w, h = cv2.boundingRect(m)
+    if w == 0 or h == 0:
+        return 1, np.zeros((0, 0), np.int32), np.array([[0, 0, m.shape[1], m.shape[0], m.size]], np.int32), (0, 0)
+    v0, u0 = v & ~1, u & ~1
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(np.ascontiguousarray(m[v0 : v + h, u0 : u + w]),
+                                                            connectivity=8)
+    stats[1:, cv2.CC_STAT_LEFT] += u0
+    stats[1:, cv2.CC_STAT_TOP] += v0
+    return n, labels, stats, (v0, u0)

@@ -82,7 +82,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from layerwatch.analysis.block_masks import block_tiles
+from layerwatch.analysis.block_masks import block_tiles, components
 from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import change_regions, top_coords
@@ -533,11 +533,13 @@ def unchanged_regions(unchanged_top: np.ndarray, footprint: np.ndarray, toolpath
         footprint found unchanged, ``outside_fraction`` 0.
     """
     on = unchanged_top & footprint
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8)
+    _, lab, stats, (v0, u0) = components(on)
     area = stats[:, cv2.CC_STAT_AREA] / topview.px_per_mm**2
     keep = np.flatnonzero(area >= min_area_mm2)
     keep = keep[keep > 0]
-    mask = np.isin(lab, keep) if keep.size else np.zeros_like(on)
+    mask = np.zeros(on.shape, bool)
+    if keep.size:
+        mask[v0 : v0 + lab.shape[0], u0 : u0 + lab.shape[1]] = np.isin(lab, keep)
     sim = np.where(mask, 0.0, 1.0).astype(np.float32)
     regions = change_regions(mask, sim, topview, min_area_mm2)
     for r in regions:

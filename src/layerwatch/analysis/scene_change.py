@@ -58,7 +58,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from layerwatch.analysis.block_masks import blocks_to_pixels
+from layerwatch.analysis.block_masks import blocks_to_pixels, components
 from layerwatch.analysis.result import Region
 from layerwatch.analysis.settings import SceneSettings
 from layerwatch.errors import AnalysisError
@@ -607,7 +607,7 @@ def change_regions(changed: np.ndarray, similarity: np.ndarray, topview: TopView
         Largest first; ``outside_fraction`` 1, ``n_blocks`` the region's
         area in 2 x 2 mm blocks (rounded up).
     """
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(changed.astype(np.uint8), connectivity=8)
+    n, lab, stats, (v0, u0) = components(changed)
     px_mm2 = 1.0 / topview.px_per_mm**2
     out: list[Region] = []
     for i in range(1, n):
@@ -615,7 +615,7 @@ def change_regions(changed: np.ndarray, similarity: np.ndarray, topview: TopView
         area = area_px * px_mm2
         if area < min_area_mm2:
             continue
-        sel = lab[y : y + h, x : x + w] == i
+        sel = lab[y - v0 : y - v0 + h, x - u0 : x - u0 + w] == i
         sims = similarity[y : y + h, x : x + w][sel]
         vv, uu = np.nonzero(sel)
         (x0, y0), (x1, y1) = topview.to_mm(np.array([[x, y + h - 1], [x + w - 1, y]], float))  # v runs down
