@@ -8,11 +8,20 @@ the part), its high-row edge faces the camera (beyond it the camera sees the par
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
-from layerwatch.analysis.scene_change import predicted_change
-from layerwatch.analysis.seen_past import BLIND_SHARE, outline_of, past_share, seen_past
+from layerwatch.analysis.block_masks import fill_holes
+from layerwatch.analysis.scene_change import predicted_change, top_coords
+from layerwatch.analysis.seen_past import (
+    BLIND_SHARE,
+    CLOSE_MM,
+    EDGE_PX,
+    outline_of,
+    past_share,
+    seen_past,
+)
 from layerwatch.geometry.topview import TopView
 
 TV = TopView(10.0, 20.0, 20.0, (0.0, 0.0))  # 200 x 200 px, 10 px/mm
@@ -111,6 +120,53 @@ def test_the_part_s_own_edge_texture_beside_a_side_wall_is_not_past_it():
     tex[56:130, 38:40] += 20.0  # the high pass of the side wall's bright edge rings onto the bed beside it
     tex[56:130, 40:42] -= 20.0
     assert not seen_past(surface, fp, Z, Z_BEFORE, MAPS, TV, tex, NOISE).any()
+
+
+def _outline_whole(fp: np.ndarray) -> np.ndarray:
+    """The outline computed on the whole view (zero padding by more than the closing reaches)."""
+    k = int(round(CLOSE_MM * TV.px_per_mm)) | 1
+    pad = k + 1
+    big = cv2.copyMakeBorder(fp.astype(np.uint8), pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+    closed = cv2.morphologyEx(big, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return fill_holes(closed)[pad:-pad, pad:-pad]
+
+
+def _past_share_whole(surface, fp, tex, noise=NOISE, sig=3.0):
+    """The share computed on the whole working image: band, blurs and all."""
+    out = np.full(surface.shape, -1.0, np.float32)
+    outline = _outline_whole(fp).astype(np.uint8)
+
+    def outside(zp):
+        seen = cv2.remap(outline, *top_coords(MAPS, zp), cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0)
+        return cv2.dilate(seen, np.ones((2 * EDGE_PX + 1,) * 2, np.uint8)) == 0
+
+    band = outside(Z_BEFORE) & outside(0.0)
+    e = tex**2
+    hidden = cv2.GaussianBlur(np.where(band, e, 0).astype(np.float32), (0, 0), sig)
+    total = cv2.GaussianBlur(e, (0, 0), sig)
+    valid = surface & (hidden >= 2.0 * noise)
+    out[valid] = hidden[valid] / (total[valid] + 1e-6)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_outline_and_the_share_on_the_surface_s_box_are_the_whole_image_s_bit_for_bit(seed):
+    """Placed anywhere, at the view's borders too (the right border: whole rows), infill cells and all."""
+    rng = np.random.default_rng(seed)
+    fp = np.zeros(TV.shape, bool)
+    for _ in range(int(rng.integers(1, 4))):
+        v0, u0 = (int(x) for x in rng.integers(-20, 190, 2))
+        v1, u1 = v0 + int(rng.integers(8, 90)), u0 + int(rng.integers(8, 90))
+        fp[max(v0, 0):v1, max(u0, 0):u1] = True
+    fp &= (np.add.outer(np.arange(200), np.arange(200)) % int(rng.integers(9, 40))) > 2  # infill cells
+    assert np.array_equal(outline_of(fp, TV), _outline_whole(fp))
+    tex = rng.normal(0.0, 0.5, TV.shape).astype(np.float32)
+    tex[rng.random(TV.shape) < 0.05] += 20.0  # lines and specks all over: past the part too
+    surface = _surface(fp)
+    share = past_share(surface, fp, Z, Z_BEFORE, MAPS, TV, tex, NOISE)
+    assert (share >= 0).any()
+    assert np.array_equal(share, _past_share_whole(surface, fp, tex))
 
 
 @pytest.mark.slow

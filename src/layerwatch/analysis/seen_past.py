@@ -65,10 +65,42 @@ def outline_of(footprint: np.ndarray, topview: TopView, close_mm: float = CLOSE_
     """
     k = int(round(close_mm * topview.px_per_mm)) | 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    fp = np.asarray(footprint, np.uint8)
-    pad = k + 1  # closing near the border of the view: pad so that the dilation does not clip
-    big = cv2.copyMakeBorder(fp, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    return fill_holes(cv2.morphologyEx(big, cv2.MORPH_CLOSE, se))[pad:-pad, pad:-pad]
+    fp = (np.asarray(footprint) != 0).astype(np.uint8)
+    out = np.zeros(fp.shape, bool)
+    u, v, w, h = cv2.boundingRect(fp)
+    if w == 0 or h == 0:
+        return out
+    # on the footprint's box, padded with zeros by more than the closing reaches (also beyond the view's
+    # border, so that the dilation does not clip there): the closing and the filling are the whole view's
+    pad = k + 1
+    big = cv2.copyMakeBorder(fp[v:v + h, u:u + w], pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+    filled = fill_holes(cv2.morphologyEx(big, cv2.MORPH_CLOSE, se))
+    r0, c0 = max(v - pad, 0), max(u - pad, 0)
+    r1, c1 = min(v + h + pad, fp.shape[0]), min(u + w + pad, fp.shape[1])
+    out[r0:r1, c0:c1] = filled[r0 - (v - pad):r1 - (v - pad), c0 - (u - pad):c1 - (u - pad)]
+    return out
+
+
+def _blur_reach(sigma: float) -> int:
+    """Radius (px) of the kernel :func:`cv2.GaussianBlur` uses for a float image at ``sigma`` (size ``round(8 sigma + 1) | 1``)."""
+    return (int(round(8.0 * sigma + 1.0)) | 1) // 2
+
+
+def _window_box(mask: np.ndarray, reach: int) -> tuple[slice, slice] | None:
+    """``mask``'s bounding box grown by ``reach`` px, within the image; ``None`` when empty.
+
+    A blur of the box then gives the whole image's values on ``mask`` bit for bit, except when
+    the box ends at the image's right border: OpenCV filters a row's last pixels on another
+    path, so such a box takes whole rows.
+    """
+    u, v, w, h = cv2.boundingRect(np.ascontiguousarray(mask).view(np.uint8))
+    if w == 0 or h == 0:
+        return None
+    H, W = mask.shape
+    c0, c1 = max(u - reach, 0), min(u + w + reach, W)
+    if c1 == W:
+        c0 = 0
+    return slice(max(v - reach, 0), min(v + h + reach, H)), slice(c0, c1)
 
 
 def past_share(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: float,
@@ -88,26 +120,37 @@ def past_share(surface: np.ndarray, footprint: np.ndarray, z: float, z_before: f
     out = np.full(surface.shape, -1.0, np.float32)
     if z_before >= z or not surface.any():
         return out
+    sig = float(window_px)
+    # only the windows of the surface's pixels are read: the band and both blurs on the surface's box,
+    # grown by the blur's reach (the band by EDGE_PX more, which its dilation reads)
+    box = _window_box(np.asarray(surface, bool), _blur_reach(sig))
+    assert box is not None
+    h, w = surface.shape
+    outer = (slice(max(box[0].start - EDGE_PX, 0), min(box[0].stop + EDGE_PX, h)),
+             slice(max(box[1].start - EDGE_PX, 0), min(box[1].stop + EDGE_PX, w)))
+    inner = (slice(box[0].start - outer[0].start, box[0].stop - outer[0].start),
+             slice(box[1].start - outer[1].start, box[1].stop - outer[1].start))
+    outer_maps = (maps[0][:, outer[0], outer[1]], maps[1][:, outer[0], outer[1]])
     outline = outline_of(footprint, topview).astype(np.uint8)
 
     grow = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
 
     def outside(zp: float) -> np.ndarray:
-        mx, my = top_coords(maps, zp)
+        mx, my = top_coords(outer_maps, zp)
         seen = cv2.remap(outline, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return cv2.dilate(seen, grow) == 0
+        return (cv2.dilate(seen, grow) == 0)[inner]
 
     # past the part: the ray misses the outer outline at the previous top and on the bed (the
     # part's own faces and holes are not past it), off the high-pass spread of the part's edges
     band = outside(float(z_before)) & outside(0.0)
     if not band.any():
         return out
-    e = np.asarray(previous, np.float32) ** 2
-    sig = float(window_px)
+    e = np.asarray(previous, np.float32)[box] ** 2
     hidden = cv2.GaussianBlur(np.where(band, e, 0).astype(np.float32), (0, 0), sig)
     total = cv2.GaussianBlur(e, (0, 0), sig)
-    valid = surface & (hidden >= (1.0 + min_snr) * noise)
-    out[valid] = hidden[valid] / (total[valid] + 1e-6)
+    valid = np.asarray(surface, bool)[box] & (hidden >= (1.0 + min_snr) * noise)
+    crop = out[box]
+    crop[valid] = hidden[valid] / (total[valid] + 1e-6)
     return out
 
 
