@@ -1,6 +1,6 @@
 """Capacity of one farm service: printers per core, memory per printer, verdict latency p99.
 
-Run: ``python benchmarks/farm_capacity.py [--quick] [--dask N] [--dask-speedup N]`` (``make bench`` runs ``--quick``).
+Run: ``python benchmarks/farm_capacity.py [--quick] [--same-file S] [--bisect K] [--dask N] [--dask-speedup N]`` (``make bench`` runs ``--quick``).
 
 What is measured
 ----------------
@@ -36,9 +36,18 @@ What is measured
   the windows print both), on Dask its wall time. Verdict latency = virtual finish -
   trigger. So a minute of farm time costs only the compute it needs, and the
   queueing is what a saturated pool would see.
-* **Ramp.** ``N`` grows (x1.25; ``--quick`` x1.5 with 20 s windows) from 70 % of the estimate
-  made with one warm frame's cost until the latency p99 of a window exceeds 2 s; ``printers_per_core`` is the
-  largest ``N`` that kept p99 <= 2 s, divided by the workers.
+* **Ramp.** ``N`` grows (x1.25; ``--quick`` x1.3 with 20 s windows) from 70 % of the estimate
+  made with one warm frame's cost until the latency p99 of a window exceeds 2 s; then ``--bisect K``
+  windows (3; ``--quick`` 2) halve the interval between the last step that passed and the first that
+  failed (the printers past a window's count are parked: their jobs held, and their memory counted). A
+  window stops as soon as enough of its frames are over 2 s for its p99 to be over 2 s whatever the
+  rest would be (its p50/p99 are then those of the frames run);
+  ``printers_per_core`` is the largest ``N`` that kept p99 <= 2 s, divided by the workers.
+* **Shared files.** By default every printer prints a file of its own (nothing is shared between
+  printers: each renders its own references). ``--same-file S``: a share ``S`` of the printers print
+  one file with one camera model, and the farm renders each of its layers once for all of them
+  (:mod:`layerwatch.pipeline.shared_references`; their photos stay distinct); the last line then ends
+  with ``same_file=S``.
 * **Memory.** Resident set growth of this process over the ``N`` printers'
   monitors and pipelines, divided by ``N`` (many printers of the last window have not
   analysed a layer yet, so this reads low); and the **long run** (:func:`soak`): groups of
@@ -192,6 +201,7 @@ class Printer:
     period_s: float
     next_t: float
     start: int = 0  # layer of its job at which the printer joined the farm
+    same_file: bool = False  # prints the file the other `same_file` printers print (their references are shared)
     mon: FarmMonitor | None = None
     cam: SnapshotBytes | None = None
     job: int = 0  # jobs started (the part printed again after its last layer)
@@ -223,7 +233,8 @@ class Runner:
         if p.mon is not None:
             p.mon.close()
             p.mon.pipeline.close()
-        ctx = JobContext(f"bench/{p.index}/{p.job}", self.scene.toolpath, self.scene.camera, self.scene.cfg)
+        ctx = JobContext(f"bench/{p.index}/{p.job}", self.scene.toolpath, self.scene.camera, self.scene.cfg,
+                         share_references=p.same_file)
         cfg = self.scene.cfg
         p.cam = SnapshotBytes()
         p.mon = FarmMonitor(VirtualPrinter(b"G1 Z0.2\n"), p.cam, PoolPipeline(self.pool, ctx.pipeline(), ctx),
@@ -282,23 +293,39 @@ class Runner:
             self.pool.close()
 
 
-def inline_printer(scene: Scene, index: int) -> tuple[Runner, Printer, WorkerPool]:
+def inline_printer(scene: Scene, index: int, same_file: bool = False) -> tuple[Runner, Printer, WorkerPool]:
     """A printer whose pool runs each task inline on the caller's thread (one clock, one order).
 
     Used by ``farm_steps.py`` (CPU per step) and ``farm_records.py`` (records to compare): the
-    job is attached, no frame is run yet.
+    job is attached, no frame is run yet. ``same_file``: its references are shared with the other
+    ``same_file`` printers (:mod:`layerwatch.pipeline.shared_references`).
     """
     pool = WorkerPool(1)
     pool.run = lambda fn, *a, key=None: fn(*a)  # type: ignore[method-assign]  # inline
     runner = Runner(scene, None)
     runner.pool = pool
-    p = Printer(index, 60.0, 0.0)
+    p = Printer(index, 60.0, 0.0, same_file=same_file)
     runner.attach(p)
     return runner, p, pool
 
 
-def window(printers: list[Printer], runner: Runner, t0: float, t1: float) -> list[float]:
-    """Simulate [t0, t1) of farm time; returns the verdict latencies of its counted frames, s."""
+def certain_p99_over(limit_count: int) -> int:
+    """How many of ``limit_count`` latencies over a limit make their p99 (linear, as :func:`numpy.percentile`) exceed it
+    whatever the others are: the order statistic at ``floor(0.99 (n - 1))`` and every one above it."""
+    return limit_count - int(np.floor(0.99 * (limit_count - 1)))
+
+
+def window(printers: list[Printer], runner: Runner, t0: float, t1: float,
+           stop_over: float | None = None) -> tuple[list[float], int | None]:
+    """Simulate [t0, t1) of farm time: the verdict latencies of its counted frames (s), and the frames it had when it
+    stopped early (else None).
+
+    ``stop_over``: the window stops once so many latencies exceed it that the p99 of all the window's
+    frames exceeds it whatever the rest would be (:func:`certain_p99_over`): a step that fails is known
+    failed without running its backlog. The frames not run are not taken: their printers' next layer
+    stays the first one not run, triggered in the next window at the printer's phase (a skipped layer
+    would make the next frame's lag check render the layer before it again, from the first layer).
+    """
     n = runner.scene.toolpath.n_layers
     events = []
     for p in printers:
@@ -310,6 +337,7 @@ def window(printers: list[Printer], runner: Runner, t0: float, t1: float) -> lis
     servers = [t0] * runner.workers
     heapq.heapify(servers)
     lat: list[float] = []
+    over, enough = 0, certain_p99_over(len(events))
     by_index = {p.index: p for p in printers}
     for i in range(0, len(events), runner.workers):  # frames in trigger order, `workers` at a time
         chunk = events[i:i + runner.workers]
@@ -323,7 +351,13 @@ def window(printers: list[Printer], runner: Runner, t0: float, t1: float) -> lis
             p.free_t = start + cost
             heapq.heappush(servers, p.free_t)
             lat.append(p.free_t - t)
-    return lat
+            over += stop_over is not None and lat[-1] > stop_over
+        if stop_over is not None and over >= enough and i + runner.workers < len(events):
+            for _, k, _ in events[i + runner.workers:]:  # the frames not run are not taken: the layers wait
+                by_index[k].layer -= 1
+                by_index[k].next_t -= by_index[k].period_s
+            return lat, len(events)
+    return lat, None
 
 
 def baseline(scene: Scene, layers: int) -> tuple[float, float]:
@@ -343,8 +377,17 @@ def baseline(scene: Scene, layers: int) -> tuple[float, float]:
 
 
 def ramp(runner: Runner, rng: np.random.Generator, n: int, step: float, win: float, fast_share: float,
-         t_start: float) -> tuple[int, float, float]:
-    """Add printers (x ``step`` per window of ``win`` farm seconds) until the latency p99 passes 2 s.
+         t_start: float, same_file: float = 0.0, bisect: int = 0) -> tuple[int, float, float]:
+    """Add printers (x ``step`` per window of ``win`` farm seconds) until the latency p99 passes 2 s, then bisect.
+
+    Once a step fails, up to ``bisect`` more windows halve the interval between the most printers
+    that passed and the fewest that failed (a printer count between them: the printers past it
+    are *parked*, their jobs held and their memory kept, and join again, at their next layer, when a
+    later window has more). A window after a failed one starts without the failed one's backlog
+    (a farm of that size never built it); after a passed one, the backlog carries over. A share
+    ``same_file`` of the printers (drawn per printer) print one file with one camera model and
+    share its references (:mod:`layerwatch.pipeline.shared_references`); the rest print files of
+    their own and share nothing.
 
     Returns
     -------
@@ -356,43 +399,63 @@ def ramp(runner: Runner, rng: np.random.Generator, n: int, step: float, win: flo
     mem0 = rss_mb()
     work0 = worker_mb(client) if client is not None else 0.0
     try:
-        return _ramp(runner, printers, rng, n, step, win, fast_share, t_start, mem0, work0)
+        return _ramp(runner, printers, rng, n, step, win, fast_share, t_start, mem0, work0, same_file, bisect)
     finally:
         runner.close(printers, pool=False)
 
 
 def _ramp(runner: Runner, printers: list[Printer], rng: np.random.Generator, n: int, step: float, win: float,
-          fast_share: float, t_start: float, mem0: float, work0: float) -> tuple[int, float, float]:
+          fast_share: float, t_start: float, mem0: float, work0: float, same_file: float,
+          bisect: int) -> tuple[int, float, float]:
     client = runner.client
-    best = (0, 0.0, float("nan"))
+    shares = np.random.default_rng(rng.integers(2**32))  # its own draws: the other printer draws as without sharing
+    best: tuple[int, float, float] | None = None  # the most printers that passed, their MB per printer, p99
+    worst: int | None = None  # the fewest printers that failed
+    halvings = 0
+    fresh = False  # the window before failed: its backlog is not carried over
     t = 0.0
     while True:
         while len(printers) < n:  # printers join in the middle of a job: uniform phase and layer (steady state)
             period = 10.0 if rng.random() < fast_share else 60.0
             start = int(rng.integers(runner.scene.toolpath.n_layers))
-            p = Printer(len(printers), period, t + rng.random() * period, start)
+            p = Printer(len(printers), period, t + rng.random() * period, start,
+                        same_file=bool(shares.random() < same_file))
             runner.join(p)
             printers.append(p)
-        for p in printers:
-            p.free_t = max(p.free_t, t)
+        active = printers[:n]
+        for p in active:
+            if p.next_t < t:  # parked over the windows before: its next layer at its own phase from now
+                p.next_t = t + (p.next_t - t) % p.period_s
+            p.free_t = t if fresh else max(p.free_t, t)
         runner.wall_s = runner.charged_s = 0.0
-        lat = window(printers, runner, t, t + win)
+        lat, events = window(active, runner, t, t + win, stop_over=P99_LIMIT_S)
         t += win
         p99 = float(np.percentile(lat, 99)) if lat else float("nan")
-        mem = (rss_mb() - mem0) / len(printers) if client is None else worker_mb(client, work0) / len(printers)
-        print(f"N={len(printers):5d} frames={len(lat):5d} p50={np.percentile(lat, 50):.3f}s p99={p99:.3f}s "
+        stopped = events is not None  # stopped early: p99 of all its frames > 2 s for certain (the figure: the run part's)
+        held = rss_mb() - mem0 if client is None else worker_mb(client, work0)
+        mem = held / len(printers)  # parked printers hold their jobs' memory too
+        sharing = sum(p.same_file for p in active)
+        print(f"N={n:5d} frames={len(lat):5d}{f'/{events} (stopped: p99 > 2 s for certain)' if stopped else ''} p50={np.percentile(lat, 50):.3f}s p99={p99:.3f}s "
               f"MB/printer={mem:.2f} cost={runner.charged_s / max(len(lat), 1) * 1e3:.0f}ms/frame "
-              f"(wall {runner.wall_s / max(len(lat), 1) * 1e3:.0f}) load={os.getloadavg()[0]:.1f} "
+              f"(wall {runner.wall_s / max(len(lat), 1) * 1e3:.0f}) same_file={sharing} "
+              f"{'' if n == len(printers) else f'parked={len(printers) - n} '}load={os.getloadavg()[0]:.1f} "
               f"elapsed={time.perf_counter() - t_start:.0f}s", flush=True)
-        if p99 > P99_LIMIT_S and best[0] == 0 and n > 10:  # the first step was already too many: start lower
-            runner.close(printers, pool=False)
-            printers.clear()
+        passed = p99 <= P99_LIMIT_S and not stopped
+        fresh = not passed
+        if passed and (best is None or n > best[0]):
+            best = (n, mem, p99)
+        if not passed:
+            worst = n if worst is None else min(worst, n)
+        if worst is None:
+            n = int(n * step) + 1
+        elif best is None:  # the first step was already too many: start lower
+            if n <= 10:
+                return 0, mem, p99
             n = max(10, n // 2)
-            continue
-        if p99 > P99_LIMIT_S:
+        elif halvings >= bisect or worst - best[0] <= max(1, best[0] // 50):
             return best
-        best = (len(printers), mem, p99)
-        n = int(n * step) + 1
+        else:
+            n, halvings = (best[0] + worst) // 2, halvings + 1
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -403,12 +466,19 @@ def main(argv: list[str] | None = None) -> str:
                     help="only compare the farm pool on N Dask worker processes with one (throughput ratio)")
     ap.add_argument("--fast-share", type=float, default=0.1, help="share of printers at one layer per 10 s")
     ap.add_argument("--window", type=float, default=None, help="farm seconds per ramp step (default 20 quick, 120)")
+    ap.add_argument("--same-file", type=float, default=0.0, metavar="SHARE",
+                    help="share of printers printing one file with one camera model (their references shared; "
+                         "default 0: every printer its own file)")
+    ap.add_argument("--bisect", type=int, default=None, metavar="K",
+                    help="windows that halve the interval between the last passed and the first failed step "
+                         "(default 2 with --quick, else 3)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--march", choices=("plane", "image"), default=None,
                     help="render.march of the printers' references (default: the settings' own)")
     a = ap.parse_args(argv)
-    if not (0.0 <= a.fast_share <= 1.0) or a.dask < 0 or not (a.dask_speedup == 0 or 2 <= a.dask_speedup <= 64):
-        ap.error("--fast-share must be in [0, 1], --dask >= 0 and --dask-speedup in [2, 64]")
+    if (not (0.0 <= a.fast_share <= 1.0) or not (0.0 <= a.same_file <= 1.0) or a.dask < 0
+            or not (a.dask_speedup == 0 or 2 <= a.dask_speedup <= 64) or (a.bisect is not None and a.bisect < 0)):
+        ap.error("--fast-share and --same-file must be in [0, 1], --dask >= 0, --bisect >= 0 and --dask-speedup in [2, 64]")
     t_start = time.perf_counter()
     if a.dask_speedup:
         scene = Scene(layers=speedup_layers(), march=a.march)
@@ -417,7 +487,7 @@ def main(argv: list[str] | None = None) -> str:
         print(line)
         return line
     win = a.window or (20.0 if a.quick else 120.0)
-    step = 1.5 if a.quick else 1.25
+    step = 1.3 if a.quick else 1.25
     scene = Scene(layers=33, march=a.march)  # every layer of the part: a printer at one layer per 10 s prints past layer 12
     warm = Runner(scene)
     first = Printer(-1, 60.0, 0.0)
@@ -428,8 +498,10 @@ def main(argv: list[str] | None = None) -> str:
     per_layer, rss_base = baseline(scene, 8)
     rate = (1 - a.fast_share) / 60.0 + a.fast_share / 10.0  # layers per printer per s
     print(f"farm per-frame work {per_frame * 1e3:.0f} ms CPU/frame (warm); baseline: single-printer monitor {per_layer * 1e3:.0f} ms CPU/layer, process RSS {rss_base:.0f} MB "
-          f"(one monitor process per printer); layer rate {rate * 60:.2f}/min per printer", flush=True)
+          f"(one monitor process per printer); layer rate {rate * 60:.2f}/min per printer; "
+          f"elapsed={time.perf_counter() - t_start:.0f}s", flush=True)
     soak_mb = soak(scene, (4, 8, 16) if a.quick else (4, 16, 64), 12 if a.quick else scene.layers) if not a.dask else 0.0
+    print(f"ramp starts: elapsed={time.perf_counter() - t_start:.0f}s", flush=True)
     pool = None
     workers = 1
     if a.dask:
@@ -439,7 +511,8 @@ def main(argv: list[str] | None = None) -> str:
     runner = Runner(scene, pool, workers)
     n0 = max(10, int(0.7 * workers / (rate * per_frame)))  # ramp from 70 % of the estimate of one frame's cost
     try:
-        best = ramp(runner, np.random.default_rng(a.seed), n0, step, win, a.fast_share, t_start)
+        bisect = a.bisect if a.bisect is not None else (2 if a.quick else 3)
+        best = ramp(runner, np.random.default_rng(a.seed), n0, step, win, a.fast_share, t_start, a.same_file, bisect)
     finally:
         if pool is not None:
             pool.close()
@@ -454,6 +527,8 @@ def main(argv: list[str] | None = None) -> str:
           f"process ({rss_base:.0f} MB each); memory per printer {rss_base / max(mb, 1e-9):.0f}x less; "
           f"CPU per layer: monitor {per_layer * 1e3:.0f} ms vs farm {per_frame * 1e3:.0f} ms")
     line = f"printers_per_core={ppc:.0f} mb_per_printer={mb:.1f} p99_s={p99:.3f}"
+    if a.same_file > 0:  # the figure holds for a farm where this share of the printers print one file
+        line += f" same_file={a.same_file:g}"
     print(line)
     return line
 

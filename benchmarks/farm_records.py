@@ -7,7 +7,8 @@ Each printer of :mod:`farm_capacity` (its own shifted, gained JPEG photos of the
 layer through a :class:`~layerwatch.farm.monitor.FarmMonitor` as the capacity benchmark runs it (camera-fault
 gate, per-layer task, lag check, policy); the pool's work runs in the calling thread. Written per layer: the
 record without timings (``timings_ms``, the scene channel's ``ms``, ``photo_ms``, ``trigger_to_pause_ms``) and
-the SHA-1 of the overlay thumbnail.
+the SHA-1 of the overlay thumbnail. ``--same-file``: the printers share their references (the second and
+third read the first one's): the file must equal the one written without it.
 """
 
 from __future__ import annotations
@@ -22,13 +23,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def records(printers: int) -> list:
+def records(printers: int, same_file: bool = False) -> list:
     import farm_capacity as fc  # noqa: PLC0415 - sets the thread limits before NumPy/OpenCV load
 
     scene = fc.Scene(layers=33)
     out = []
     for k in range(printers):
-        runner, p, pool = fc.inline_printer(scene, k)
+        runner, p, pool = fc.inline_printer(scene, k, same_file)
         for i in range(scene.toolpath.n_layers):
             runner.frame(p, i, scene.jpeg(k, i))
             assert p.mon is not None
@@ -62,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("out", nargs="?", help="JSON file to write")
     ap.add_argument("--printers", type=int, default=3)
+    ap.add_argument("--same-file", action="store_true",
+                    help="the printers share their references (one file, one camera model): the records must not change")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two files written before")
     a = ap.parse_args(argv)
     if a.compare:
@@ -71,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if diff else 0
     if not a.out or a.printers < 1:
         ap.error("give OUT.json (and --printers >= 1), or --compare A B")
-    recs = records(a.printers)
+    recs = records(a.printers, a.same_file)
     Path(a.out).write_text(json.dumps(recs, allow_nan=True))
     print(f"{len(recs)} layers written to {a.out}")
     return 0

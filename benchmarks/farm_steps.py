@@ -8,7 +8,8 @@ the printer up (scene baseline, reference stack) and are not counted; the printe
 layer, as a farm's frames are. Each step is the CPU time (``time.process_time``) spent inside the function
 that does it, inclusive, a step inside another one counted in both (the reference's render inside the scene
 channel's first call, the lag check's warp inside the lag check); ``total`` is the whole frame. No profiler:
-the figures are the code's own (the machine's load still shows in them: run two checkouts one after the
+the figures are the code's own; ``--same-file``: the printers share their references, the first printer of a
+layer renders it (the machine's load still shows in them: run two checkouts one after the
 other, twice, and compare the pairs).
 """
 
@@ -56,7 +57,7 @@ def _steps() -> list[tuple[str, object, str]]:
     ]
 
 
-def timed(printers: int, first: int) -> tuple[dict[str, float], int]:
+def timed(printers: int, first: int, same_file: bool = False) -> tuple[dict[str, float], int]:
     """CPU ms per counted frame of each step, and the frames counted."""
     import farm_capacity as fc  # noqa: PLC0415 - sets the thread limits before NumPy/OpenCV load
 
@@ -91,7 +92,7 @@ def timed(printers: int, first: int) -> tuple[dict[str, float], int]:
     jpegs = {(k, i): scene.jpeg(k, i) for k in range(printers) for i in range(n)}
     runs = []
     for k in range(printers):
-        runner, p, pool = fc.inline_printer(scene, k)
+        runner, p, pool = fc.inline_printer(scene, k, same_file)
         for i in range(first):
             runner.frame(p, i, jpegs[k, i])
         runs.append((runner, p, pool))
@@ -114,11 +115,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--printers", type=int, default=3)
     ap.add_argument("--first", type=int, default=8, help="first counted layer (the ones before warm up)")
+    ap.add_argument("--same-file", action="store_true",
+                    help="the printers print one file with one camera model and share its references")
     a = ap.parse_args(argv)
     if a.printers < 1 or not 1 <= a.first < 33:
         ap.error("--printers >= 1, --first in 1..32")
-    ms, frames = timed(a.printers, a.first)
-    print(f"CPU ms per warm frame, {frames} frames ({a.printers} printers x layers {a.first}-32), "
+    ms, frames = timed(a.printers, a.first, a.same_file)
+    print(f"CPU ms per warm frame, {frames} frames ({a.printers} printers{' sharing one file' if a.same_file else ''} "
+          f"x layers {a.first}-32), "
           f"load average {os.getloadavg()[0]:.1f}")
     for name, _, _ in _steps():
         if name in ms:

@@ -52,9 +52,10 @@ from layerwatch.monitor.frame_checks import CAMERA_FAULT, FrameChecks
 from layerwatch.monitor.service import camera_error, frame_problem, pipeline_error
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.policy import PolicySettings
+from layerwatch.pipeline.shared_references import SharedReferences
 from layerwatch.pipeline.step import LayerPipeline, Reference
 
-__all__ = ["FrameRules", "FrameVerdict", "JobContext", "Verdict", "WorkerJob", "analyse_on", "analyse_remote",
+__all__ = ["SHARED_REFERENCES", "FrameRules", "FrameVerdict", "JobContext", "Verdict", "WorkerJob", "analyse_on", "analyse_remote",
            "forget_pipeline", "judge_on", "judge_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH", "Thumbnail", "WARP_MAPS"]
 
 log = logging.getLogger("layerwatch.farm")
@@ -66,6 +67,11 @@ MEMO = 1
 #: (its scene-channel step reuses it). Each layer has its own height, so more would only fill up over the
 #: first layers of every job (16 by default: ~40 MB per printer) without a hit.
 WARP_MAPS = 1
+
+#: the references the farm pipelines of this process share (:mod:`layerwatch.pipeline.shared_references`: printers
+#: printing the same file with the same camera model render each layer once; each Dask worker process has its own),
+#: at most 256 MB (~230 references at 600 x 600 px)
+SHARED_REFERENCES = SharedReferences(max_mb=256.0)
 
 #: pipelines a Dask worker process keeps (one per job it analyses)
 PIPELINES_PER_WORKER = 1024
@@ -88,16 +94,22 @@ class JobContext:
     camera : CameraModel
         With its bed pose.
     config : JobConfig
+    share_references : bool
+        The job's pipelines read and store their references in the process's :data:`SHARED_REFERENCES`
+        (the farm service's jobs do; records are the same either way).
     """
 
     key: str
     toolpath: Toolpath
     camera: CameraModel
     config: JobConfig
+    share_references: bool = False
 
     def pipeline(self) -> LayerPipeline:
-        """A new pipeline for this job (:data:`MEMO` references, :data:`WARP_MAPS` remap tables kept)."""
-        pipe = LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO)
+        """A new pipeline for this job (:data:`MEMO` references, :data:`WARP_MAPS` remap tables kept; the process's
+        shared references with :attr:`share_references`)."""
+        pipe = LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO,
+                             shared=SHARED_REFERENCES if self.share_references else None)
         pipe.warper.cache_size = WARP_MAPS
         return pipe
 

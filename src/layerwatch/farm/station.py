@@ -293,7 +293,8 @@ class Station:
         :class:`ArtifactStore` (retention applied as the job starts and when it ends).
         """
         job = self.history.start_job(self.spec.name, path, hashlib.sha256(data).hexdigest(), config=cfg)
-        ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg)
+        ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg,
+                         share_references=True)  # a file printed again, or on a twin printer: rendered once
         self._set(job=Path(path).name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
         with self._lock:
             self._ratios.clear()

@@ -93,6 +93,7 @@ from layerwatch.pipeline.layer_change import LayerChange
 from layerwatch.pipeline.policy import Decision, PausePolicy, layer_alarm
 from layerwatch.pipeline.scene import SceneModel, SceneObservation
 from layerwatch.pipeline.scene_hold import failing_blocks
+from layerwatch.pipeline.shared_references import SharedReferences, reference_identity
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
 from layerwatch.render.camera_match import match_camera as camera_matched
 from layerwatch.render.fast import StackRenderer
@@ -164,6 +165,10 @@ class LayerPipeline:
     bed_photo : ndarray, optional
         Empty-bed photo of the same camera and pose: the scene channel's first
         expected appearance (without it, the first accepted photo is).
+    shared : SharedReferences, optional
+        References shared with other pipelines of the process (a farm's printers printing the same
+        file with the same camera model, :mod:`layerwatch.pipeline.shared_references`): a layer another
+        pipeline rendered is read, not rendered; a layer rendered here is stored.
 
     Raises
     ------
@@ -183,6 +188,7 @@ class LayerPipeline:
         memo: int = 8,
         frame_gate: FrameGate | None = None,
         bed_photo: np.ndarray | None = None,
+        shared: SharedReferences | None = None,
     ) -> None:
         if toolpath.n_layers == 0:
             raise RenderError(f"{toolpath.source} has no layers; check the G-code has extrusion moves.")
@@ -224,6 +230,9 @@ class LayerPipeline:
         self._kept: tuple[int, np.ndarray, np.ndarray, float] | None = None
         self._cache = None
         self._hash = None
+        #: the references shared with the process's other pipelines, and this pipeline's key there (made when first used)
+        self.shared = shared
+        self._identity: str | None = None
         if cache_dir is not None:
             self._cache = ReferenceCache(cache_dir)
             self._hash = toolpath_hash(toolpath)
@@ -254,7 +263,9 @@ class LayerPipeline:
         again, from the first layer, as the renderer only moves up (a lower layer resets its stack): a
         cost that grows with the print's height (~33 ms at layer 20 of the example part). A kept layer
         is the image its render gave, with its HOG computed again (the same function of the same image):
-        the same :class:`Reference`, array for array (``tests/render/test_kept_reference.py``).
+        the same :class:`Reference`, array for array (``tests/render/test_kept_reference.py``). With
+        :attr:`shared` references, a layer past the memo is looked up there first and what is made here is
+        stored there (read-only: a shared reference's arrays are not writeable).
 
         Raises
         ------
@@ -268,6 +279,21 @@ class LayerPipeline:
         if hit is not None:
             self._memo.move_to_end(index)
             return hit
+        if self.shared is not None and self._identity is None:
+            self._identity = reference_identity(self.toolpath, self.camera, self.config, self.topview, self.match_camera)
+        shared = self.shared.get(self._identity, index) if self.shared is not None and self._identity else None
+        ref = shared if isinstance(shared, Reference) else None
+        if ref is None:
+            ref = self._new_reference(index)
+            if self.shared is not None and self._identity:
+                self.shared.put(self._identity, index, ref)
+        self._memo[index] = ref
+        while len(self._memo) > self._memo_size:
+            self._memo.popitem(last=False)
+        return ref
+
+    def _new_reference(self, index: int) -> Reference:
+        """The reference of layer ``index`` made here: from a kept layer (:meth:`reference`) or rendered."""
         kept = next((k for k in (self._own, self._kept) if k is not None and k[0] == index), None)
         if kept is not None:  # a layer analysed on this or the previous photo, past the memo (docstring)
             _, kept_image, bits, z = kept
@@ -279,11 +305,7 @@ class LayerPipeline:
             image, footprint = r.image, r.mask
             if self.match_camera:
                 image = camera_matched(image, self.camera, self.topview, z)
-        ref = Reference(image, footprint, z, reference_hog(image, self.config.analysis))
-        self._memo[index] = ref
-        while len(self._memo) > self._memo_size:
-            self._memo.popitem(last=False)
-        return ref
+        return Reference(image, footprint, z, reference_hog(image, self.config.analysis))
 
     def prepare(self, layers: Iterable[int] | None = None) -> None:
         """Render references ahead of the print (in increasing order, into the memo/cache).
@@ -302,6 +324,7 @@ class LayerPipeline:
             raise RenderError(f"the new toolpath has {toolpath.n_layers} layers, the job {self.toolpath.n_layers}")
         self.toolpath = toolpath
         self.renderer = StackRenderer(toolpath, self.topview, self.config.render, self.camera)
+        self._identity = None  # another toolpath: other shared references
         if self.layer_change is not None:
             self.layer_change.toolpath = toolpath
         self._memo.clear()
