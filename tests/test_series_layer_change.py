@@ -116,6 +116,30 @@ def test_a_layer_the_typer_found_moved_gets_no_thin_wall_or_infill_region(job, m
     assert moved.layer_change.unchanged_mm2 == 0.0
 
 
+def test_the_moved_area_that_switches_the_channel_off_is_the_policy_s_current_one(job, monkeypatch):
+    """A settings edit of ``[policy] min_area_mm2`` while the pipeline runs applies from the next layer on:
+    the shifted layer that switched the channel off at the default area leaves it on once the area is raised
+    above the shift's (the pipeline not rebuilt), whether the config is replaced or its section edited."""
+    import layerwatch.pipeline.layer_change as lc_module
+    from layerwatch.simulate import Failure
+
+    monkeypatch.setattr(lc_module, "MAX_UNCHANGED_SHARE", 1.0)
+    tp, cam, square, bed, _ = job
+    tv = TopViewSettings(**square).topview()
+    shifted = PrintSimulator(tp, cam, tv, (Failure("layer_shift", onset=12, size_mm=4.0, seed=1),), seed=7)
+    pipe = _pipe(job, layer_change={"min_ncc": 0.0, "min_gain": 0.0})
+    assert pipe.layer_change is not None and pipe.layer_change.moved_min_mm2 == pipe.config.policy.min_area_mm2
+    for i in (10, 11):
+        pipe.process(shifted.frame(i).photo, i)
+    pipe.config = pipe.config.model_copy(update={"policy": pipe.config.policy.model_copy(update={"min_area_mm2": 1e4})})
+    assert pipe.layer_change.moved_min_mm2 == 1e4
+    moved = pipe.process(shifted.frame(12).photo, 12)
+    assert moved.layer_change is not None and moved.layer_change.judged
+    assert "the part moved" not in moved.layer_change.note
+    pipe.config.policy.min_area_mm2 = 1.0  # an edit in place reaches it too
+    assert pipe.layer_change.moved_min_mm2 == 1.0
+
+
 def test_small_moved_regions_leave_the_channel_on_apart_from_their_outline(job, monkeypatch):
     """Moved regions of less than the policy's ``min_area_mm2`` together (here raised above the shift's) do not
     switch the channel off for the layer: only the unchanged pixels within 1 mm of their outline are left out."""

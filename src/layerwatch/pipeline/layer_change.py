@@ -81,18 +81,28 @@ class LayerChange:
     toolpath : Toolpath
         The job's G-code (what each layer prints: walls or infill).
     settings : LayerChangeSettings
-    moved_min_mm2 : float
+    moved_min_mm2 : float or callable
         Moved regions (layer shift, detachment) of at least this area together switch the
-        channel off for the layer (module notes), mm^2; the pipeline passes the policy's
-        ``min_area_mm2``, the smallest area that pauses.
+        channel off for the layer (module notes), mm^2; or a function that gives it, read at
+        every layer. The pipeline passes one that reads its policy's ``min_area_mm2`` (the
+        smallest area that pauses), so a settings edit applies from the next layer on.
     """
 
     def __init__(self, checks: JobChecks, topview: TopView, warper: TopViewWarper, toolpath: Toolpath,
-                 settings: LayerChangeSettings, moved_min_mm2: float = 5.0) -> None:
+                 settings: LayerChangeSettings, moved_min_mm2: float | Callable[[], float] = 5.0) -> None:
         self.checks, self.topview, self.warper = checks, topview, warper
         self.toolpath, self.settings = toolpath, settings
-        self.moved_min_mm2 = float(moved_min_mm2)
+        if callable(moved_min_mm2):
+            self._moved_min = moved_min_mm2
+        else:
+            area = float(moved_min_mm2)
+            self._moved_min = lambda: area
         self.new_print()
+
+    @property
+    def moved_min_mm2(self) -> float:
+        """The moved area that switches the channel off for a layer, mm^2 (its current value)."""
+        return float(self._moved_min())
 
     def new_print(self) -> None:
         """Forget the previous photo (a new print, or the single-photo mode's reset)."""

@@ -220,7 +220,7 @@ class LayerPipeline:
                                 reach_mm=reach, top_z_mm=top_z)
         #: the "changed as predicted" channel (``None`` when ``[layer_change] enabled`` is off)
         self.layer_change = (LayerChange(self.checks, self.topview, self.warper, toolpath, self.config.layer_change,
-                                         self.config.policy.min_area_mm2)
+                                         lambda: self.config.policy.min_area_mm2)  # live: the policy's current value
                              if self.config.layer_change.enabled else None)
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
