@@ -252,3 +252,21 @@ def test_an_object_on_a_lower_floor_beside_the_layer_is_seen_by_the_series_chann
     assert all(area == 0 for area, _ in seen["clean"]), seen["clean"]
     assert all(area == 0 for area, _ in seen["key"][:3]), seen["key"]
     assert all(area >= 12.0 and "foreign_body" in kinds for area, kinds in seen["key"][3:]), seen["key"]
+
+
+def test_copy_where_is_numpy_s_masked_copy_into_a_view_of_the_image():
+    """The update's masked copy into E and its clipped channels (pipeline/scene._copy_where), float and bool."""
+    from layerwatch.pipeline.scene import _copy_where
+
+    rng = np.random.default_rng(4)
+    box = (slice(5, 37), slice(9, 60))
+    where = rng.random((32, 51)) < 0.4
+    for image, values in ((rng.random((50, 70, 3)).astype(np.float32), rng.random((32, 51, 3)).astype(np.float32)),
+                          (rng.random((50, 70, 3)) < 0.5, rng.random((32, 51, 3)) < 0.5)):
+        want = image.copy()
+        np.copyto(want[box], values, where=where[..., None])
+        got = image.copy()
+        _copy_where(got[box], values, where)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+        _copy_where(got[0:0, 0:0], values[0:0, 0:0], where[0:0, 0:0])  # an empty box: nothing to do
+        assert np.array_equal(got, want)

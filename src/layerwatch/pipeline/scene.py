@@ -142,6 +142,21 @@ def _box(mask: np.ndarray) -> tuple[slice, slice]:
     return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
 
+def _copy_where(dst: np.ndarray, src: np.ndarray, where: np.ndarray) -> None:
+    """``np.copyto(dst, src, where=where[..., None])`` for (h, w, c) images and a bool (h, w) mask.
+
+    By :func:`cv2.copyTo`, which writes into ``dst`` (a view of a larger image too) in one pass:
+    ~0.03 ms where NumPy's broadcast ``where`` takes ~0.8 ms on the scene channel's box.
+    Bool images are copied as their bytes.
+    """
+    if where.size == 0:
+        return
+    d = dst.view(np.uint8) if dst.dtype == bool else dst
+    out = cv2.copyTo(src.view(np.uint8) if src.dtype == bool else src, np.ascontiguousarray(where).view(np.uint8), d)
+    if out is not d:  # (OpenCV allocated anew: another type or layout)
+        dst[...] = out.astype(dst.dtype) if dst.dtype != bool else out.view(bool)
+
+
 def check_bed_photo(photo: np.ndarray | None, camera: CameraModel, name: str = "bed photo") -> np.ndarray:
     """Validate an empty-bed photo at the edge: a uint8 frame of the camera's size.
 
@@ -602,10 +617,9 @@ class SceneModel:
             rows, cols = _box(take)  # the division only where E takes the photo (E's own coordinates)
             r0, c0 = self.box[0].start, self.box[1].start
             img_box = (slice(rows.start + r0, rows.stop + r0), slice(cols.start + c0, cols.stop + c0))
-            np.copyto(self.expected[rows, cols], self._in_expected_frame(obs, img_box),
-                      where=take[rows, cols][..., None])
+            _copy_where(self.expected[rows, cols], self._in_expected_frame(obs, img_box), take[rows, cols])
             assert self.clipped is not None
-            np.copyto(self.clipped[rows, cols], obs.image[img_box] >= SATURATED, where=take[rows, cols][..., None])
+            _copy_where(self.clipped[rows, cols], obs.image[img_box] >= SATURATED, take[rows, cols])
             self._ack = self._ack_patch(obs)
             self._confirmed = True
             self.body, self.ledges = obs.body[self.reach_box].copy(), obs.ledges[self.reach_box].copy()
