@@ -41,7 +41,9 @@ What is measured
   windows (3; ``--quick`` 2) halve the interval between the last step that passed and the first that
   failed (the printers past a window's count are parked: their jobs held, and their memory counted). A
   window stops as soon as enough of its frames are over 2 s for its p99 to be over 2 s whatever the
-  rest would be (its p50/p99 are then those of the frames run);
+  rest would be (its p50/p99 are then those of the frames run); ``--quick`` starts no window predicted to
+  end after 170 s (``--budget-s``: a ramp or bisection cut short leaves the last step that passed, a lower
+  bound);
   ``printers_per_core`` is the largest ``N`` that kept p99 <= 2 s, divided by the workers.
 * **Shared files.** By default every printer prints a file of its own (nothing is shared between
   printers: each renders its own references). ``--same-file S``: a share ``S`` of the printers print
@@ -377,7 +379,7 @@ def baseline(scene: Scene, layers: int) -> tuple[float, float]:
 
 
 def ramp(runner: Runner, rng: np.random.Generator, n: int, step: float, win: float, fast_share: float,
-         t_start: float, same_file: float = 0.0, bisect: int = 0) -> tuple[int, float, float]:
+         t_start: float, same_file: float = 0.0, bisect: int = 0, budget_s: float | None = None) -> tuple[int, float, float]:
     """Add printers (x ``step`` per window of ``win`` farm seconds) until the latency p99 passes 2 s, then bisect.
 
     Once a step fails, up to ``bisect`` more windows halve the interval between the most printers
@@ -387,7 +389,9 @@ def ramp(runner: Runner, rng: np.random.Generator, n: int, step: float, win: flo
     (a farm of that size never built it); after a passed one, the backlog carries over. A share
     ``same_file`` of the printers (drawn per printer) print one file with one camera model and
     share its references (:mod:`layerwatch.pipeline.shared_references`); the rest print files of
-    their own and share nothing.
+    their own and share nothing. With ``budget_s``, no window starts that would end (its joins and its
+    frames, predicted from the window before and the joins so far) after the run (since ``t_start``) has
+    taken that long: the figure is then the most printers that passed so far (a lower bound).
 
     Returns
     -------
@@ -399,14 +403,14 @@ def ramp(runner: Runner, rng: np.random.Generator, n: int, step: float, win: flo
     mem0 = rss_mb()
     work0 = worker_mb(client) if client is not None else 0.0
     try:
-        return _ramp(runner, printers, rng, n, step, win, fast_share, t_start, mem0, work0, same_file, bisect)
+        return _ramp(runner, printers, rng, n, step, win, fast_share, t_start, mem0, work0, same_file, bisect, budget_s)
     finally:
         runner.close(printers, pool=False)
 
 
 def _ramp(runner: Runner, printers: list[Printer], rng: np.random.Generator, n: int, step: float, win: float,
           fast_share: float, t_start: float, mem0: float, work0: float, same_file: float,
-          bisect: int) -> tuple[int, float, float]:
+          bisect: int, budget_s: float | None) -> tuple[int, float, float]:
     client = runner.client
     shares = np.random.default_rng(rng.integers(2**32))  # its own draws: the other printer draws as without sharing
     best: tuple[int, float, float] | None = None  # the most printers that passed, their MB per printer, p99
@@ -414,7 +418,9 @@ def _ramp(runner: Runner, printers: list[Printer], rng: np.random.Generator, n: 
     halvings = 0
     fresh = False  # the window before failed: its backlog is not carried over
     t = 0.0
+    joins_s = window_s = 0.0  # wall time of the joins so far, and of the last window
     while True:
+        joined, t_join = len(printers), time.perf_counter()
         while len(printers) < n:  # printers join in the middle of a job: uniform phase and layer (steady state)
             period = 10.0 if rng.random() < fast_share else 60.0
             start = int(rng.integers(runner.scene.toolpath.n_layers))
@@ -422,13 +428,16 @@ def _ramp(runner: Runner, printers: list[Printer], rng: np.random.Generator, n: 
                         same_file=bool(shares.random() < same_file))
             runner.join(p)
             printers.append(p)
+        joins_s += time.perf_counter() - t_join if len(printers) > joined else 0.0
         active = printers[:n]
         for p in active:
             if p.next_t < t:  # parked over the windows before: its next layer at its own phase from now
                 p.next_t = t + (p.next_t - t) % p.period_s
             p.free_t = t if fresh else max(p.free_t, t)
         runner.wall_s = runner.charged_s = 0.0
+        t_window = time.perf_counter()
         lat, events = window(active, runner, t, t + win, stop_over=P99_LIMIT_S)
+        window_s = max(window_s, (time.perf_counter() - t_window) / n)  # per printer (the longest: a stopped one is short)
         t += win
         p99 = float(np.percentile(lat, 99)) if lat else float("nan")
         stopped = events is not None  # stopped early: p99 of all its frames > 2 s for certain (the figure: the run part's)
@@ -456,6 +465,11 @@ def _ramp(runner: Runner, printers: list[Printer], rng: np.random.Generator, n: 
             return best
         else:
             n, halvings = (best[0] + worst) // 2, halvings + 1
+        ahead = window_s * n + max(n - len(printers), 0) * joins_s / len(printers)  # the next window's joins and frames
+        if budget_s is not None and time.perf_counter() - t_start + ahead > budget_s and best is not None:
+            print(f"time budget of {budget_s:.0f} s spent: no more windows ({'no step failed yet: ' if worst is None else ''}"
+                  f"the figure is a lower bound)", flush=True)
+            return best
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -472,6 +486,9 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("--bisect", type=int, default=None, metavar="K",
                     help="windows that halve the interval between the last passed and the first failed step "
                          "(default 2 with --quick, else 3)")
+    ap.add_argument("--budget-s", type=float, default=None, metavar="S",
+                    help="start no window predicted to end after S s of the run (default 170 with --quick: it ends "
+                         "within 3 min; else none)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--march", choices=("plane", "image"), default=None,
                     help="render.march of the printers' references (default: the settings' own)")
@@ -512,7 +529,9 @@ def main(argv: list[str] | None = None) -> str:
     n0 = max(10, int(0.7 * workers / (rate * per_frame)))  # ramp from 70 % of the estimate of one frame's cost
     try:
         bisect = a.bisect if a.bisect is not None else (2 if a.quick else 3)
-        best = ramp(runner, np.random.default_rng(a.seed), n0, step, win, a.fast_share, t_start, a.same_file, bisect)
+        budget = a.budget_s if a.budget_s is not None else (170.0 if a.quick else None)
+        best = ramp(runner, np.random.default_rng(a.seed), n0, step, win, a.fast_share, t_start, a.same_file, bisect,
+                    budget)
     finally:
         if pool is not None:
             pool.close()
