@@ -4,9 +4,16 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from layerwatch.analysis.extrusion import highpass
-from layerwatch.analysis.layer_change import LayerChangeSettings, WindowChange, window_change
+from layerwatch.analysis.layer_change import (
+    EDGE_DEPTH,
+    LayerChangeSettings,
+    WindowChange,
+    drop_edge_slivers,
+    window_change,
+)
 from layerwatch.analysis.wall_runs import (
     MIN_RAY_ANGLE_DEG,
     ray_angles,
@@ -242,3 +249,31 @@ def test_excluded_pixels_are_no_candidates():
     half[:, GAP.start:GAP.start + 25] = True  # half the gap out: the other half's run (3.5 mm) stays
     kept = wall_verdict(change, surface, walls, SHIFT, COORDS, st, RAY, half) & ~change.unchanged
     assert kept.any() and not kept[half].any()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_verdict_on_the_surface_s_box_is_the_whole_image_s(seed):
+    """wall_verdict works on the surface's bounding box: the same pixels as the silhouette test and the runs
+    on the whole image, for footprints anywhere (at the image's border too) and random verdicts."""
+    rng = np.random.default_rng(seed)
+    surface, walls = np.zeros((H, W), bool), np.zeros((H, W), bool)
+    for k in range(int(rng.integers(2, 5))):  # one in the middle, the others anywhere
+        v0, u0 = (60, 100) if k == 0 else (int(rng.integers(-10, H - 20)), int(rng.integers(-10, W - 20)))
+        v1, u1 = v0 + int(rng.integers(40, 90)), u0 + int(rng.integers(40, 150))
+        surface[max(v0, 0):v1, max(u0, 0):u1] = True
+        walls[max(v0, 0):v1, max(u0, 0):u1] = True
+        walls[max(v0, 0) + 3:v1 - 3, max(u0, 0) + 3:u1 - 3] = False  # its perimeter, 3 px wide
+        mid = (max(v0, 0) + v1) // 2
+        walls[mid - 2:mid + 2, max(u0, 0) + 3:u1 - 3] = True  # and an inner wall across the line of sight
+    same = rng.uniform(0.5, 1.0, (H, W)).astype(np.float32)
+    twin = (same - rng.uniform(0.0, 0.2, (H, W))).astype(np.float32)
+    judged = surface & (rng.random((H, W)) < 0.9)
+    change = WindowChange(same, twin, judged, judged & (rng.random((H, W)) < 0.05), 1.0)
+    exclude = rng.random((H, W)) < 0.05
+    st = LayerChangeSettings(enabled=True, wall_run_mm=1.0)
+    sig = float(st.window_px)
+    cand = (walls & surface & judged & (same >= st.wall_min_ncc) & (same - twin >= st.wall_min_gain) & ~exclude)
+    cand = drop_edge_slivers(cand, surface, SHIFT, int(round(2 * sig)), max(1, int(round(EDGE_DEPTH * sig))))
+    want = change.unchanged | wall_runs(cand, walls & surface, COORDS, st.wall_run_mm, ray=RAY)
+    assert (want & ~change.unchanged).any()  # runs were added
+    assert np.array_equal(wall_verdict(change, surface, walls, SHIFT, COORDS, st, RAY, exclude), want)

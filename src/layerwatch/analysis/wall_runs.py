@@ -261,10 +261,19 @@ def wall_verdict(change: WindowChange, surface: np.ndarray, walls: np.ndarray, p
     on = walls & surface
     if settings.wall_run_mm <= 0 or not on.any():
         return change.unchanged
-    same, twin = change.same, change.twin
-    cand = on & change.judged & (same >= settings.wall_min_ncc) & (same - twin >= settings.wall_min_gain)
+    # on the surface's box: every candidate, run and footprint pixel the tests read lies in it (beyond it
+    # the silhouette test's erosions read the footprint's zeros either way), so the result is the whole image's
+    u, v, w, h = cv2.boundingRect(np.ascontiguousarray(surface).view(np.uint8))
+    box = (slice(v, v + h), slice(u, u + w))
+    on = on[box]
+    same, twin = change.same[box], change.twin[box]
+    cand = on & change.judged[box] & (same >= settings.wall_min_ncc) & (same - twin >= settings.wall_min_gain)
     if exclude is not None:
-        cand &= ~exclude
+        cand &= ~exclude[box]
     sig = float(settings.window_px)
-    cand = drop_edge_slivers(cand, surface, parallax, int(round(2 * sig)), max(1, int(round(EDGE_DEPTH * sig))))
-    return change.unchanged | wall_runs(cand, on, coords_mm, settings.wall_run_mm, ray=ray)
+    cand = drop_edge_slivers(cand, surface[box], parallax, int(round(2 * sig)), max(1, int(round(EDGE_DEPTH * sig))))
+    runs = wall_runs(cand, on, (coords_mm[0][box], coords_mm[1][box]), settings.wall_run_mm,
+                     ray=None if ray is None else np.asarray(ray)[:, box[0], box[1]])
+    out = change.unchanged.copy()
+    out[box] |= runs
+    return out
