@@ -85,6 +85,22 @@ def test_predicted_change_is_the_footprint_where_the_camera_sees_it_and_grows_wi
     assert not m2[int(far[1]), int(far[0])]
 
 
+def test_predicted_change_takes_the_planes_coordinates_it_is_given_and_keeps_the_ones_it_computes():
+    cam = default_camera(TV, image_size=(640, 360))
+    maps = plane_maps(image_rays(cam, (640, 360)), cam.center_mm, TV)
+    fp = np.zeros(TV.shape, bool)
+    (u0, v1), (u1, v0) = np.round(TV.to_px(np.array([[100.0, 90.0], [120.0, 110.0]]))).astype(int)
+    fp[v0:v1, u0:u1] = True
+    planes: dict = {}
+    m = predicted_change(fp, (4.8, 5.0), maps, TV, 1.0, planes)
+    assert np.array_equal(m, predicted_change(fp, (4.8, 5.0), maps, TV, 1.0))
+    assert set(planes) == {4.8, 5.0}
+    assert all(np.array_equal(c, w) for c, w in zip(planes[5.0], top_coords(maps, 5.0), strict=True))
+    assert np.array_equal(predicted_change(fp, (5.0,), maps, TV, 0.0, planes), predicted_change(fp, (5.0,), maps, TV, 0.0))
+    planes[5.0] = top_coords(maps, 0.0)  # what it is given is what it projects with
+    assert np.array_equal(predicted_change(fp, (5.0,), maps, TV, 0.0, planes), predicted_change(fp, (0.0,), maps, TV, 0.0))
+
+
 def test_a_light_change_is_not_a_change_but_an_object_is():
     E = _texture()
     h, w = E.shape[:2]

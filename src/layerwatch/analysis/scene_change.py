@@ -297,6 +297,7 @@ def predicted_change(
     maps: tuple[np.ndarray, np.ndarray],
     topview: TopView,
     margin_mm: float,
+    coords: dict[float, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> np.ndarray:
     """Where the camera image may change because the G-code printed ``footprint`` between the planes.
 
@@ -313,6 +314,10 @@ def predicted_change(
     margin_mm : float
         Dilation of the footprint before the projection, mm; a negative
         margin erodes it (the inside of a top surface, away from its walls).
+    coords : dict of float to (ndarray, ndarray), optional
+        :func:`top_coords` of ``maps`` by plane height, for a caller that projects several
+        footprints onto one plane: the planes found there are not computed again, the
+        others are computed and added to it.
 
     Returns
     -------
@@ -324,8 +329,13 @@ def predicted_change(
     if k > 1:
         fp = _morph_near(fp, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dilate=margin_mm > 0)
     out = np.zeros(maps[0].shape[1:], np.uint8)
-    for z in np.asarray(z_planes, float).ravel():
-        mx, my = top_coords(maps, float(z))
+    for z in (float(v) for v in np.asarray(z_planes, float).ravel()):
+        if coords is not None and z in coords:
+            mx, my = coords[z]
+        else:
+            mx, my = top_coords(maps, z)
+            if coords is not None:
+                coords[z] = (mx, my)
         out |= np.asarray(cv2.remap(fp, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
                           np.uint8)
     return out.astype(bool)

@@ -47,7 +47,7 @@ from layerwatch.analysis.layer_change import (
     window_change,
 )
 from layerwatch.analysis.result import LayerChangeStats, LayerResult
-from layerwatch.analysis.scene_change import predicted_change, top_coords
+from layerwatch.analysis.scene_change import predicted_change
 from layerwatch.analysis.seen_past import BLIND_SHARE, past_share
 from layerwatch.analysis.wall_runs import WALL_BLIND_SHARE, wall_top, wall_verdict
 from layerwatch.gcode.toolpath import Toolpath
@@ -139,8 +139,9 @@ class LayerChange:
                  maps: tuple[np.ndarray, np.ndarray], photo: np.ndarray) -> None:
         st = self.settings
         z_before = previous[1]
-        surface = predicted_change(fp, np.array([z]), maps, self.topview, 0.0)
-        near = predicted_change(fp, np.array([z_before, z]), maps, self.topview, NEAR_MARGIN_MM)
+        planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # each plane's top-view coordinates, computed once
+        surface = predicted_change(fp, np.array([z]), maps, self.topview, 0.0, planes)
+        near = predicted_change(fp, np.array([z_before, z]), maps, self.topview, NEAR_MARGIN_MM, planes)
         if self._shift_per_mm is None:
             self._shift_per_mm = parallax_px(maps, z, 1.0)
         shift = (self._shift_per_mm[0] * (z - z_before), self._shift_per_mm[1] * (z - z_before))
@@ -157,8 +158,9 @@ class LayerChange:
             change.judged &= ~blind
             change.unchanged &= ~blind
         if st.wall_run_mm > 0:  # a perimeter pixel counts only in a run along the wall
-            walls = predicted_change(wall_top(self.toolpath, index, self.topview), np.array([z]), maps, self.topview, 0.0)
-            tx, ty = top_coords(maps, z)
+            walls = predicted_change(wall_top(self.toolpath, index, self.topview), np.array([z]), maps, self.topview, 0.0,
+                                     planes)
+            tx, ty = planes[float(z)]
             ppm = self.topview.px_per_mm
             change.unchanged = wall_verdict(change, surface, walls, shift, (tx / ppm, ty / ppm), st, maps[1],
                                             past >= WALL_BLIND_SHARE)

@@ -440,12 +440,14 @@ class SceneModel:
         out[self.reach_box] = mask
         return out
 
-    def _predicted(self, footprint: np.ndarray, z_planes: np.ndarray, margin_mm: float) -> np.ndarray:
-        """:func:`predicted_change` as a working-size bool mask (False outside :attr:`box`)."""
+    def _predicted(self, footprint: np.ndarray, z_planes: np.ndarray, margin_mm: float,
+                   planes: dict[float, tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
+        """:func:`predicted_change` as a working-size bool mask (False outside :attr:`box`); ``planes``:
+        its ``coords`` (the planes' coordinates shared between the calls of one photo)."""
         out = np.zeros(self.observed.shape, bool)
         if self.maps[0].size == 0:  # the camera does not see the observed square (or the print) at all
             return out
-        out[self.reach_box] = predicted_change(footprint, z_planes, self.maps, self.topview, margin_mm)
+        out[self.reach_box] = predicted_change(footprint, z_planes, self.maps, self.topview, margin_mm, planes)
         return out
 
     # ------------------------------------------------------------ per photo
@@ -513,14 +515,16 @@ class SceneModel:
         first = self.body_layer + 1 if self.body_layer < obs.layer else obs.layer
         predicted = np.zeros(self.observed.shape, bool)
         ledges = self._full(self.ledges)
+        planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # the planes' top-view coordinates, computed once
         for j in range(first, obs.layer + 1):
             fp, z0, z1 = footprints(j)
-            band = self._predicted(fp, np.array([z0, z1]), st.margin_mm)
+            planes = {z: c for z, c in planes.items() if z == float(z0)}  # (the last layer's top: this one's bottom)
+            band = self._predicted(fp, np.array([z0, z1]), st.margin_mm, planes)
             predicted |= band
             ledges &= ~band
             if j == obs.layer:  # lower floors inside M: no earlier photo of this series showed them
                 obs.hidden_ledges = ledges & predicted
-            ledges |= self._predicted(fp, np.array([z1]), -st.margin_mm)
+            ledges |= self._predicted(fp, np.array([z1]), -st.margin_mm, planes)
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
