@@ -1,4 +1,4 @@
-"""What the off-colour test of the printed layer adds to the 1080p layer, timed in isolation.
+"""What the off-colour tests of the printed layer and its rim add to the 1080p layer, timed in isolation.
 
 Run: ``python benchmarks/bench_part_colour.py [--rounds 20]``.
 
@@ -10,7 +10,9 @@ layers 2-19, photographed at 1920 x 1080 with a blue hex key lying on the
 part from layer 8, and the arguments of each call are kept; then each call
 is repeated ``--rounds`` times, timed by the process's CPU time on one thread
 (``cv2.setNumThreads(1)``). Printed: the median per layer and the largest
-layer's median, ms.
+layer's median, ms; the same for :func:`~layerwatch.analysis.part_colour.rim_material`
+on the same arguments (the step calls it on analysed layers when the scene
+channel is on).
 """
 
 from __future__ import annotations
@@ -77,6 +79,15 @@ def main() -> None:
           f"{calls[0][0].shape[0]} px), {args.rounds} rounds, CPU time, one thread:")
     print(f"  median per layer {np.median(medians):.3f} ms, largest {max(medians):.3f} ms; "
           f"layers with off-colour blocks: {found}")
+    rim = []
+    for top_bgr, fp, valid, cell_px, _, px_per_mm in calls:
+        t = []
+        for _ in range(args.rounds):
+            t0 = time.process_time()
+            part_colour.rim_material(top_bgr, fp, valid, cell_px, px_per_mm)
+            t.append((time.process_time() - t0) * 1e3)
+        rim.append(float(np.median(t)))
+    print(f"rim_material on the same layers: median per layer {np.median(rim):.3f} ms, largest {max(rim):.3f} ms")
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ from layerwatch.analysis.part_colour import (
     off_colour,
     off_colour_blocks,
     part_chroma,
+    rim_material,
 )
 from layerwatch.analysis.scoring import analyze_layer
 from layerwatch.analysis.settings import AnalysisSettings
@@ -192,3 +193,55 @@ def test_the_step_sees_a_blue_hex_key_on_the_printed_layer_by_its_colour():
     assert found.anomaly_ratio > results[False, "key"].anomaly_ratio
     c = resolve(key, tp).center
     assert any(abs(r.centroid_mm[0] - c[0]) < 6 and abs(r.centroid_mm[1] - c[1]) < 6 for r in found.regions)
+
+
+def _rim_layer(gains=(1.0, 1.0, 1.0), part=(0.85, 0.5, 0.16), screw=True, shadow=False, glare=False):
+    """:func:`_layer` (the printed layer, 96 px square, lit brighter) framed by 40 px more of the grey bed (208 x 208, the layer
+    at rows and columns 56-152), with a light steel screw lying across its right edge (rows 80-87, columns
+    136-165: half of it hangs over the edge); exposure and white-balance ``gains`` act before the sensor clips."""
+    inner, fp_inner = _layer(part=part)
+    img = np.full((208, 208, 3), 90.0, np.float32) + np.random.default_rng(2).normal(0, 3, (208, 208, 3))
+    img[40:168, 40:168] = inner
+    fp = np.zeros((208, 208), bool)
+    fp[40:168, 40:168] = fp_inner
+    img[fp] *= 1.5  # a lit part, lighter than the bed
+    if screw:
+        img[80:87, 136:165] = (140.0, 143.0, 146.0) + 10.0 * np.sin(np.arange(29) / 3.0)[None, :, None]
+    if shadow:
+        img[100:130, 152:166] *= 0.6  # the part's shadow on the bed beside it
+    if glare:
+        img[110:118, 144:164] = 250.0  # the lamp's reflection clipped on a glossy bed and the part's edge
+    return np.clip(img * np.array(gains, np.float32), 0, 255).astype(np.uint8), fp
+
+
+def test_rim_material_finds_a_grey_screw_over_the_part_edge_in_any_exposure():
+    for gains in ((1.0, 1.0, 1.0), (0.7, 0.7, 0.7), (1.2, 1.2, 1.2), (1.1, 1.0, 0.9), (0.9, 1.0, 1.1)):
+        img, fp = _rim_layer(gains)
+        got = rim_material(img, fp, None, 8, 6.67)
+        assert got is not None, gains
+        assert got[81:86, 149:164].mean() > 0.8, gains  # from half a cell inside the edge to beyond it
+        assert got.sum() < 1.3 * 7 * 29 and not got[:78].any() and not got[90:].any(), gains
+    valid = np.ones_like(fp)
+    valid[:, 158:] = False  # the camera did not see beyond column 158
+    got = rim_material(_rim_layer()[0], fp, valid, 8, 6.67)
+    assert got is not None and got.any() and not got[:, 158:].any()
+
+
+def test_rim_material_stays_quiet_on_shadows_glare_exposure_and_white_balance():
+    for gains in ((1.0, 1.0, 1.0), (0.6, 0.6, 0.6), (1.3, 1.3, 1.3), (1.25, 1.0, 0.8), (0.8, 1.0, 1.2)):
+        img, fp = _rim_layer(gains, screw=False, shadow=True, glare=True)
+        got = rim_material(img, fp, None, 8, 6.67)
+        assert got is not None and not got.any(), gains
+
+
+def test_rim_material_judges_no_dark_grey_white_part_nor_a_black_frame():
+    for rgb in ((0.05, 0.05, 0.055), (0.5, 0.5, 0.5), (0.85, 0.85, 0.82)):  # dark, grey, white filament
+        img, fp = _rim_layer(part=rgb)
+        assert rim_material(img, fp, None, 8, 6.67) is None, rgb
+    img, fp = _rim_layer()
+    assert rim_material(np.zeros_like(img), fp, None, 8, 6.67) is None  # a black frame
+    assert rim_material(img[..., 1], fp, None, 8, 6.67) is None  # a grey photo
+    assert rim_material(img, np.zeros_like(fp), None, 8, 6.67) is None  # nothing printed
+    assert rim_material(*_layer(), None, 8, 6.67) is None  # the part fills the view: too little bare bed to measure
+    with pytest.raises(AnalysisError, match="shape"):
+        rim_material(img, fp[:100], None, 8, 6.67)

@@ -126,7 +126,7 @@ from layerwatch.analysis.part_registration import (
     part_motion,
     top_from_plan,
 )
-from layerwatch.analysis.region_outline import Outline, outline_mm
+from layerwatch.analysis.region_outline import Outline, outline_mm, region_box
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.gcode.toolpath import FEATURES, Toolpath, part_mask
 from layerwatch.geometry.topview import TopView
@@ -565,13 +565,7 @@ class _Scene:
         return float((~self.solid(box) & seen).sum() / max(int(seen.sum()), 1))
 
     def box(self, r: Region) -> tuple[slice, slice] | None:
-        (u0, v0), (u1, v1) = np.round(self.topview.to_px(np.array([r.bbox_mm[:2], r.bbox_mm[2:]], float))).astype(int)
-        h, w = self.shape
-        us, vs = sorted((u0, u1)), sorted((v0, v1))
-        u_lo, u_hi, v_lo, v_hi = max(0, us[0]), min(w, us[1] + 1), max(0, vs[0]), min(h, vs[1] + 1)
-        if u_hi <= u_lo or v_hi <= v_lo:
-            return None
-        return slice(int(v_lo), int(v_hi)), slice(int(u_lo), int(u_hi))
+        return region_box(r.bbox_mm, self.topview, self.shape)
 
 
 def part_below(toolpath: Toolpath, index: int, topview: TopView) -> np.ndarray | None:

@@ -24,7 +24,7 @@ test. So is a grey or black object on a coloured part (a dark lump, a
 steel screw lie on the shading line): those differ in brightness, which
 the HOG test sees.
 
-Two places use it:
+Three places use it:
 
 * :func:`off_colour`, the pixels of a mask (the *hidden ledges*,
   :mod:`layerwatch.analysis.ledges`: the lower floors no earlier photo
@@ -37,7 +37,32 @@ Two places use it:
   It works at half the top view's resolution on the footprint's bounding
   box (a 1 mm hex key is still 3 px wide at 6.67 px/mm): 0.8 ms median per
   layer of the example part at 1080p (600 x 600 px top view; CPU time on one
-  thread of a loaded machine, ``benchmarks/bench_part_colour.py``).
+  thread of a loaded machine, ``benchmarks/bench_part_colour.py``);
+* :func:`rim_material`, grey material at the printed layer's *rim*: the
+  band :data:`RIM_MM` round the footprint's edge that neither test above
+  judges (the hue test erodes the footprint by half a cell) and that the
+  scene channel leaves out as the part's walls. An object lying on the
+  part's edge mostly hangs over it (a screw on a perimeter: 17 % of it on
+  the footprint, 6 % on the eroded one). Its pixels join the change beside
+  the printed layer (the pipeline's outside regions).
+
+Grey material. A grey or metal object (a steel screw) lies on the shading
+line: its chroma is near zero, like a shadow's. What tells the two apart is
+the chroma *at that lightness*: a diffuse surface in shadow keeps its chroma
+in proportion to its lightness (``C* / (L* + 16)`` about constant, 0.47 for
+an orange part), a grey object has almost none (0.05 for the screw at L*
+62). :func:`rim_material` counts a pixel as grey material when its chroma is
+under a third of what the part would have at that lightness (at least
+:data:`GREY_CHROMA` below; measured from the bare bed's chroma when the bed is
+grey, whose chroma is then the photo's white-balance cast), when it is lighter than the bare bed by
+the factor :data:`BED_RATIO` (the bed beside the part, its shadows, the skirt's gap
+are no object), no lighter than the part's median (brightest channel; a reflection of the lamp
+on a glossy bed or part is brighter than any lit diffuse surface, and may
+not clip) and not clipped. A metal object's own highlights are left out
+with the glare: what counts is its body, lit like the part. A
+part whose colour cannot be told from grey is not judged; nor is a grey
+object darker than the bed, or one on a bed as light as it (left to the HOG
+test).
 
 References
 ----------
@@ -52,8 +77,9 @@ import numpy as np
 from layerwatch.analysis.scoring import printed_weight
 from layerwatch.errors import AnalysisError
 
-__all__ = ["CLIPPED", "MIN_PART_CHROMA", "OFF_CELL_SHARE", "OFF_LINE_MIN", "OFF_LINE_SHARE", "OFF_TILE_SHARE",
-           "ON_LINE_SHARE", "off_colour", "off_colour_blocks", "part_chroma"]
+__all__ = ["BED_RATIO", "CLIPPED", "GREY_CHROMA", "MIN_PART_CHROMA", "OFF_CELL_SHARE", "OFF_LINE_MIN",
+           "OFF_LINE_SHARE", "OFF_TILE_SHARE", "ON_LINE_SHARE", "RIM_MM", "off_colour", "off_colour_blocks",
+           "part_chroma", "rim_material"]
 
 #: the colour test judges a part whose median chroma |(a*, b*)| is at least this (CIELAB units)
 MIN_PART_CHROMA = 12.0
@@ -68,6 +94,15 @@ OFF_TILE_SHARE = 0.25
 ON_LINE_SHARE = 0.8
 #: a pixel with a channel at this value or above is clipped: its colour is not judged
 CLIPPED = 245
+#: width of the rim beyond the footprint's edge that :func:`rim_material` judges, mm
+RIM_MM = 4.0
+#: grey material has chroma under ``max(GREY_CHROMA, part chroma at its lightness / 3)`` (CIELAB units)
+GREY_CHROMA = 8.0
+#: grey material is lighter than the bare bed's median by at least this factor (brightest 8-bit channel: a ratio
+#: of gamma-encoded values does not change with the exposure)
+BED_RATIO = 1.3
+#: the bare bed is what the camera sees this far (mm) or farther from the footprint
+BED_AWAY_MM = 3.0
 
 
 def _lab(top_bgr: np.ndarray) -> np.ndarray:
@@ -277,3 +312,101 @@ def _tile_shares(mask: np.ndarray, lo: int, grid_shape: tuple[int, int], cell: i
     n, m = grid_shape
     tiles = np.ascontiguousarray(mask[lo: lo + n * cell, lo: lo + m * cell]).view(np.uint8).astype(np.float32)
     return cv2.resize(tiles, (m, n), interpolation=cv2.INTER_AREA)
+
+
+def rim_material(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray | None, cell_px: int,
+                 px_per_mm: float) -> np.ndarray | None:
+    """Grey material at the printed layer's rim: an object lying on the part's edge (see module notes).
+
+    Runs at half the top view's resolution (a 1 mm object is still 3 px wide at 6.67 px/mm) on the
+    footprint's box grown by the rim and the bed's distance; colours are measured only where they are used.
+
+    Parameters
+    ----------
+    top_bgr : ndarray, uint8, shape (H, W, 3)
+        Colour top view of the layer plane (BGR), as warped.
+    footprint : ndarray, bool, shape (H, W)
+        The layer's printed pixels.
+    valid : ndarray, bool, shape (H, W) or None
+        Pixels the camera saw (None: all).
+    cell_px : int
+        HOG cell side, px: the rim starts half a cell inside the footprint's edge (where the hue
+        test of :func:`off_colour_blocks` stops).
+    px_per_mm : float
+        The top view's scale.
+
+    Returns
+    -------
+    ndarray, bool, shape (H, W) or None
+        Grey-material pixels of the rim (opened by a 3 x 3 square at half resolution: specks are noise);
+        None when the part cannot be judged (:func:`part_chroma`), or the camera saw fewer than 100 px
+        (half resolution) of bare bed.
+
+    Raises
+    ------
+    AnalysisError
+        The footprint or valid mask is not the top view's shape.
+    """
+    img = np.asarray(top_bgr)
+    if img.ndim != 3 or img.shape[2] != 3:
+        return None
+    shape = img.shape[:2]
+    fp = np.asarray(footprint, bool)
+    seen = None if valid is None else np.asarray(valid, bool)
+    if fp.shape != shape or (seen is not None and seen.shape != shape):
+        raise AnalysisError(f"footprint {fp.shape} and valid mask {None if seen is None else seen.shape} "
+                            f"must be the top view's shape {shape}.")
+    fp_seen = fp if seen is None else fp & seen
+    x, y, w, h = cv2.boundingRect(fp_seen.view(np.uint8))
+    if w == 0:
+        return None
+    f = 2
+    reach = int(round(max(RIM_MM, BED_AWAY_MM) * px_per_mm)) * 2 + f
+    y0, x0 = max(y - reach, 0) // f * f, max(x - reach, 0) // f * f
+    y1, x1 = min(y + h + reach, shape[0]) // f * f, min(x + w + reach, shape[1]) // f * f
+    crop = cv2.resize(img[y0:y1, x0:x1], ((x1 - x0) // f, (y1 - y0) // f), interpolation=cv2.INTER_AREA)
+    fp_c = fp_seen[y0:y1:f, x0:x1:f]
+    seen_c = np.ones(fp_c.shape, bool) if seen is None else seen[y0:y1:f, x0:x1:f]
+    if np.count_nonzero(fp_c) < 100:
+        return None
+    lab = _lab(crop)
+    # the part's colour (as :func:`part_chroma`), on the footprint's pixels only
+    on_part = lab[fp_c]
+    part = np.array([_median_u8(on_part[:, 1]), _median_u8(on_part[:, 2])], np.float32) - 128.0
+    chroma_part = float(np.hypot(*part))
+    if chroma_part < MIN_PART_CHROMA:
+        return None
+    if np.count_nonzero(_off_line(on_part[:, 1:].astype(np.float32) - 128.0, part) <= _line_tolerance(part)) \
+            < ON_LINE_SHARE * len(on_part):
+        return None
+    mm_out = cv2.distanceTransform((~fp_c).view(np.uint8), cv2.DIST_L2, 3) * (f / float(px_per_mm))
+    # the brightest channel, 8-bit: a grey's value, a coloured surface's lit channel (element-wise: numpy's
+    # reduction over a 3-long axis is slow)
+    value = np.maximum(np.maximum(crop[..., 0], crop[..., 1]), crop[..., 2])
+    bed = seen_c & (mm_out > BED_AWAY_MM) & (value > 0)
+    if np.count_nonzero(bed) < 100:
+        return None
+    on_bed = lab[bed]
+    bed_v, part_v = _median_u8(value[bed]), _median_u8(value[fp_c])
+    part_l = _median_u8(on_part[:, 0]) * (100.0 / 255.0)
+    # a grey bed's own chroma is the photo's white-balance cast: grey is measured from it
+    neutral = np.array([_median_u8(on_bed[:, 1]), _median_u8(on_bed[:, 2])], np.float32)
+    if float(np.hypot(*(neutral - 128.0))) >= GREY_CHROMA:  # a coloured bed (gold PEI, blue tape): no cast known
+        neutral[:] = 128.0
+    cf = max(int(cell_px) // f, 1)
+    rim = (mm_out <= RIM_MM) & seen_c & (value >= BED_RATIO * bed_v) & (value <= part_v) & (value < CLIPPED)
+    rim &= ~(cv2.erode(fp_c.view(np.uint8), np.ones((cf // 2 * 2 + 1,) * 2, np.uint8)) > 0)
+    ys, xs = np.nonzero(rim)
+    if len(ys) == 0:
+        return np.zeros(shape, bool)
+    px = lab[ys, xs].astype(np.float32)
+    chroma = np.hypot(px[:, 1] - neutral[0], px[:, 2] - neutral[1])
+    expected = chroma_part * (px[:, 0] * (100.0 / 255.0) + 16.0) / (part_l + 16.0)  # the part's at that lightness
+    grey = np.zeros(fp_c.shape, np.uint8)
+    grey[ys, xs] = chroma < np.maximum(GREY_CHROMA, expected / 3.0)
+    grey = cv2.morphologyEx(grey, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    out = np.zeros(shape, bool)
+    if not grey.any():
+        return out
+    out[y0:y1, x0:x1] = cv2.resize(grey, (x1 - x0, y1 - y0), interpolation=cv2.INTER_NEAREST) > 0
+    return out

@@ -15,7 +15,7 @@ import numpy as np
 
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["Outline", "outline_mask", "outline_mm"]
+__all__ = ["Outline", "outline_mask", "outline_mm", "region_box"]
 
 #: polygons, each ``((x, y), ...)`` in bed mm
 Outline = tuple[tuple[tuple[float, float], ...], ...]
@@ -59,3 +59,16 @@ def outline_mask(outline: Outline, topview: TopView) -> np.ndarray:
         cv2.fillPoly(out, polys, 1)  # one scan of all edges: a hole's polygon inside its part's cancels
         cv2.polylines(out, polys, True, 1)
     return out.astype(bool)
+
+
+def region_box(bbox_mm: tuple[float, float, float, float], topview: TopView,
+               shape: tuple[int, int]) -> tuple[slice, slice] | None:
+    """A region's bed-mm box ``(xmin, ymin, xmax, ymax)`` as top-view rows and columns, clipped to ``shape``
+    (both ends included, as the regions' boxes are drawn); None when nothing of it lies in the view."""
+    (u0, v0), (u1, v1) = np.round(topview.to_px(np.array([bbox_mm[:2], bbox_mm[2:]], float))).astype(int)
+    h, w = int(shape[0]), int(shape[1])
+    us, vs = sorted((int(u0), int(u1))), sorted((int(v0), int(v1)))
+    u_lo, u_hi, v_lo, v_hi = max(0, us[0]), min(w, us[1] + 1), max(0, vs[0]), min(h, vs[1] + 1)
+    if u_hi <= u_lo or v_hi <= v_lo:
+        return None
+    return slice(v_lo, v_hi), slice(u_lo, u_hi)

@@ -32,7 +32,7 @@ import numpy as np
 from layerwatch.analysis.block_masks import block_tiles
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS, MOVED_KINDS
 from layerwatch.analysis.overlay import anomalous_blocks
-from layerwatch.analysis.region_outline import outline_mask
+from layerwatch.analysis.region_outline import outline_mask, region_box
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scoring import whole_view_score
 from layerwatch.evaluate.stats import iou, roc_auc
@@ -78,9 +78,7 @@ class ModeScore:
 
 
 def _box(r: Region, topview: TopView, shape: tuple[int, int]) -> tuple[slice, slice]:
-    (u0, v0), (u1, v1) = np.round(topview.to_px(np.array([r.bbox_mm[:2], r.bbox_mm[2:]], float))).astype(int)
-    us, vs = sorted((int(u0), int(u1))), sorted((int(v0), int(v1)))
-    return slice(max(vs[0], 0), min(vs[1] + 1, shape[0])), slice(max(us[0], 0), min(us[1] + 1, shape[1]))
+    return region_box(r.bbox_mm, topview, shape) or (slice(0, 0), slice(0, 0))
 
 
 def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:

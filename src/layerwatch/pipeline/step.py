@@ -77,9 +77,10 @@ import numpy as np
 
 from layerwatch.analysis.failure_typing import FailureTyper
 from layerwatch.analysis.ledges import ledge_regions
-from layerwatch.analysis.part_colour import off_colour, off_colour_blocks
+from layerwatch.analysis.part_colour import off_colour, off_colour_blocks, rim_material
+from layerwatch.analysis.region_outline import region_box
 from layerwatch.analysis.result import LayerResult
-from layerwatch.analysis.scene_change import working_to_top
+from layerwatch.analysis.scene_change import change_regions, working_to_top
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_back
@@ -513,6 +514,8 @@ class LayerPipeline:
         h, w = np.asarray(photo).shape[:2]
         self.scene.fill_result(res, obs, self.warper, z, (w, h), valid)
         self._hidden_ledges(res, obs, z, (w, h), valid, top_bgr, footprint)
+        if self.config.analysis.off_colour:
+            self._rim_objects(res, valid, top_bgr, footprint)
         if res.heatmap is not None and res.grid is not None and layer_alarm(
                 float(res.anomaly_ratio), float(res.anomalous_area_mm2 + res.uncounted_mm2), self.config.policy):
             self.scene.hold_failing(obs, failing_blocks(res, self.topview.shape), z)  # "a failure that stays, counts"
@@ -534,6 +537,25 @@ class LayerPipeline:
         coloured = off_colour(top_bgr, footprint & valid, top, st.cell_px)
         found = ledge_regions(res.heatmap, res.mask, top, st.threshold, st.cell_px, st.block_cells, self.topview,
                               self.config.scene.min_region_mm2, coloured)
+        if found:
+            res.outside_regions = sorted(res.outside_regions + found, key=lambda r: -r.area_mm2)
+            res.outside_anomalous_mm2 += float(sum(r.area_mm2 for r in found))
+
+    def _rim_objects(self, res: LayerResult, valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
+        """Grey material at the layer's rim (:func:`~layerwatch.analysis.part_colour.rim_material`: an object
+        on the part's edge, over the walls the scene channel leaves out) joins the change beside the printed
+        layer, outside the regions already there."""
+        if res.heatmap is None:
+            return
+        grey = rim_material(top_bgr, footprint, valid, self.config.analysis.cell_px, self.topview.px_per_mm)
+        if grey is None or not grey.any():
+            return
+        for r in res.outside_regions:  # counted once
+            box = region_box(r.bbox_mm, self.topview, grey.shape)
+            if box is not None:
+                grey[box] = False
+        found = change_regions(grey, np.where(grey, np.float32(0.5), np.float32(1.0)), self.topview,
+                               self.config.scene.min_region_mm2)
         if found:
             res.outside_regions = sorted(res.outside_regions + found, key=lambda r: -r.area_mm2)
             res.outside_anomalous_mm2 += float(sum(r.area_mm2 for r in found))
