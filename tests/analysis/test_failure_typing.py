@@ -577,6 +577,24 @@ def test_a_registration_that_puts_the_layer_on_bare_bed_is_no_move(monkeypatch):
     assert real.moved and _Scene(_colour(top), top, ref, foot, TOPVIEW, None).arrived(real) > 0.9
 
 
+def test_a_move_that_leaves_one_object_of_a_plate_on_bare_bed_is_no_move():
+    """A plate of two objects; part-coloured strands beside the first lie where a 3 mm move would put its edge. Over
+    the whole plate most of the new places look like the part (the registration locked on the strands); the second
+    object's new place is bare bed, and a move carries every object: no move."""
+    top, ref, foot = _part(6)  # the first object (100-120, 92-108 mm) did not move
+    (u0, v1), (u1, v0) = TOPVIEW.to_px(np.array([[104.0, 112.0], [110.0, 116.0]])).round().astype(int)
+    top[v0:v1, u0:u1] = 200  # the second object, 4 mm beyond the first
+    foot = foot.copy()
+    foot[v0:v1, u0:u1] = True
+    (s0, t1), (s1, t0) = TOPVIEW.to_px(np.array([[100.0, 108.0], [120.0, 111.0]])).round().astype(int)
+    top[t0:t1, s0:s1] = 190  # the strands, the part's colour
+    bogus = PartMotion(dx_mm=0.0, dy_mm=3.0, peak=0.02)
+    assert _Scene(_colour(top), top, ref, foot, TOPVIEW, None).arrived(bogus) < failure_typing.ARRIVED_MIN
+    (_, t2) = TOPVIEW.to_px(np.array([104.0, 119.0])).round().astype(int)
+    top[t2:v0, u0:u1] = 200  # the second object's new place shows the part too: a move
+    assert _Scene(_colour(top), top, ref, foot, TOPVIEW, None).arrived(bogus) > 0.5
+
+
 def test_an_object_on_a_wider_base_of_the_part_is_a_foreign_body():
     """Beside the layer, on the part's own wider base: most of the region unlike the bed is the base (the part's
     colour); the object is the pixels unlike both, far beyond the part's shading."""

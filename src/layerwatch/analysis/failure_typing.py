@@ -494,7 +494,11 @@ class _Scene:
         it shifted or the part came off. Bare bed there means the
         registration locked on something else (an object on the part, the
         edges of another feature). Each seen pixel counts for the nearer of
-        the part's and the bed's median colour; 0.5 (no evidence) as in
+        the part's and the bed's median colour. On a plate each object's new
+        place counts for itself and the least share is returned: the move
+        carried every object printed since (a clump of strands beside one
+        object of a plate locked the registration on a move that leaves the
+        others' new places on bare bed). 0.5 (no evidence) as in
         :meth:`ledge` (also where that area lies on the part's lower layers,
         which are the part's colour either way).
         """
@@ -511,28 +515,39 @@ class _Scene:
             return 0.5
         below = None if self._below is None else self._below()
         if arrived:
-            uncovered = self.moved_area(motion) & ~self.outline
-            if below is not None:  # on the part's lower layers (planned place): the part's colour either way
-                uncovered &= ~below
-            return self._part_coloured_share(uncovered, part, bed)
+            # each object of a plate for itself: the move carried all of them, so one that arrived on bare
+            # bed says the registration locked on something else (a clump of strands beside another object)
+            n, labels = cv2.connectedComponents(self.outline.view(np.uint8), connectivity=8)
+            h, w = self.shape
+            to_moved = top_from_plan(motion, self.topview)
+            shares = []
+            for i in range(1, n):
+                carried = cv2.warpAffine((labels == i).view(np.uint8), to_moved, (w, h), flags=cv2.INTER_NEAREST)
+                uncovered = (carried > 0) & ~self.outline
+                if below is not None:  # on the part's lower layers (planned place): the part's colour either way
+                    uncovered &= ~below
+                shares.append(self._part_coloured_share(uncovered, part, bed))
+            known = [v for v in shares if v is not None]
+            return min(known) if known else 0.5
         uncovered = self.outline & self.moved_area(motion)
         if below is not None:  # where the moved part's own lower layers would show: no evidence either way
             h, w = self.shape
             carried = cv2.warpAffine(below.view(np.uint8), top_from_plan(motion, self.topview), (w, h),
                                      flags=cv2.INTER_NEAREST)
             uncovered &= carried == 0
-        return self._part_coloured_share(uncovered, part, bed)
+        share = self._part_coloured_share(uncovered, part, bed)
+        return 0.5 if share is None else share
 
-    def _part_coloured_share(self, area: np.ndarray, part: np.ndarray, bed: np.ndarray) -> float:
-        """Share of ``area``'s photo pixels (bool, top view) nearer the part's colour than the bed's, 0.5 (no
-        evidence) when fewer than 20 are left after trimming ``LEDGE_TRIM_MM`` off its edges (slivers:
-        registration error, walls' parallax) and keeping the valid pixels."""
+    def _part_coloured_share(self, area: np.ndarray, part: np.ndarray, bed: np.ndarray) -> float | None:
+        """Share of ``area``'s photo pixels (bool, top view) nearer the part's colour than the bed's, None (no
+        evidence) when fewer than 20 are left after trimming ``LEDGE_TRIM_MM`` off its edges (slivers: registration error,
+        walls' parallax) and keeping the valid pixels."""
         k = 2 * int(round(LEDGE_TRIM_MM * self.topview.px_per_mm)) + 1
         area = cv2.erode(area.view(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
         if self.valid is not None:
             area &= self.valid
         if area.sum() < 20:
-            return 0.5
+            return None
         lab = _lab(self.lab_u8[area])
         return float(np.mean(_lab_distance(lab, part) < _lab_distance(lab, bed)))
 
