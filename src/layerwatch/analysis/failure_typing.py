@@ -149,6 +149,8 @@ NOISE_SIGMAS = 2.5
 OBJECT_CLOSE_MM, NOISE_RING_MM = 1.0, 2.0
 #: smallest area of a foreign body's pixels that replaces its blocks, mm^2
 OBJECT_MIN_MM2 = 2.0
+#: a connected part of the footprint this large (mm^2) is an object of its own when a move's arrival is judged
+PLATE_OBJECT_MM2 = 4.0
 #: the area a moved layer uncovered is trimmed by this much on each side before its colour counts, mm
 #: (slivers along its edges are the registration's error and the moved walls' parallax, not a ledge or the bed)
 LEDGE_TRIM_MM = 0.75
@@ -351,6 +353,24 @@ class _Scene:
             out[crop] = closed
         return out
 
+    @cached_property
+    def objects(self) -> list[np.ndarray]:
+        """The layer's objects: the footprint's connected parts of at least :data:`PLATE_OBJECT_MM2`, each with
+        its own gaps closed as :attr:`outline` closes them, bool (H, W) each (objects of a plate standing
+        closer than the closing's 3 mm are one in :attr:`outline`)."""
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(self.fp.view(np.uint8), connectivity=8)
+        k2 = max(3, int(round(3.0 * self.topview.px_per_mm)) | 1)
+        out = []
+        for i in range(1, n):
+            x, y, w, h, area = (int(v) for v in stats[i])
+            if area < PLATE_OBJECT_MM2 * self.topview.px_per_mm ** 2:
+                continue
+            crop = pad_box((y, y + h, x, x + w), k2 + 1, self.shape)
+            obj = np.zeros(self.shape, bool)
+            obj[crop] = close_gaps(labels[crop] == i, k2)
+            out.append(obj)
+        return out
+
     def moved_area(self, motion: PartMotion) -> np.ndarray:
         """:func:`moved_area` of the closed outline, bool (H, W) (kept for the last ``motion`` asked)."""
         if self._moved is None or self._moved[0] != motion:
@@ -515,14 +535,13 @@ class _Scene:
             return 0.5
         below = None if self._below is None else self._below()
         if arrived:
-            # each object of a plate for itself: the move carried all of them, so one that arrived on bare
-            # bed says the registration locked on something else (a clump of strands beside another object)
-            n, labels = cv2.connectedComponents(self.outline.view(np.uint8), connectivity=8)
+            # each object of a plate for itself (:attr:`objects`): the move carried all of them, so one that arrived
+            # on bare bed says the registration locked on something else (a clump of strands beside another object)
             h, w = self.shape
             to_moved = top_from_plan(motion, self.topview)
             shares = []
-            for i in range(1, n):
-                carried = cv2.warpAffine((labels == i).view(np.uint8), to_moved, (w, h), flags=cv2.INTER_NEAREST)
+            for obj in self.objects:
+                carried = cv2.warpAffine(obj.view(np.uint8), to_moved, (w, h), flags=cv2.INTER_NEAREST)
                 uncovered = (carried > 0) & ~self.outline
                 if below is not None:  # on the part's lower layers (planned place): the part's colour either way
                     uncovered &= ~below
