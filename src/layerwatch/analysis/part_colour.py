@@ -369,16 +369,6 @@ def rim_material(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray |
     seen_c = np.ones(fp_c.shape, bool) if seen is None else seen[y0:y1:f, x0:x1:f]
     if np.count_nonzero(fp_c) < 100:
         return None
-    lab = _lab(crop)
-    # the part's colour (as :func:`part_chroma`), on the footprint's pixels only
-    on_part = lab[fp_c]
-    part = np.array([_median_u8(on_part[:, 1]), _median_u8(on_part[:, 2])], np.float32) - 128.0
-    chroma_part = float(np.hypot(*part))
-    if chroma_part < MIN_PART_CHROMA:
-        return None
-    if np.count_nonzero(_off_line(on_part[:, 1:].astype(np.float32) - 128.0, part) <= _line_tolerance(part)) \
-            < ON_LINE_SHARE * len(on_part):
-        return None
     mm_out = cv2.distanceTransform((~fp_c).view(np.uint8), cv2.DIST_L2, 3) * (f / float(px_per_mm))
     # the brightest channel, 8-bit: a grey's value, a coloured surface's lit channel (element-wise: numpy's
     # reduction over a 3-long axis is slow)
@@ -386,20 +376,32 @@ def rim_material(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray |
     bed = seen_c & (mm_out > BED_AWAY_MM) & (value > 0)
     if np.count_nonzero(bed) < 100:
         return None
-    on_bed = lab[bed]
+    # CIELAB only of the pixels used, as (N, 1, 3) images: every other footprint and bed pixel of the half-
+    # resolution crop for the medians (the same statistics), the rim's candidates for the test
+    on_part = _lab(crop[::2, ::2][fp_c[::2, ::2]][:, None, :])[:, 0]
+    if len(on_part) < 25:
+        return None
+    part = np.array([_median_u8(on_part[:, 1]), _median_u8(on_part[:, 2])], np.float32) - 128.0
+    chroma_part = float(np.hypot(*part))  # the part's colour as :func:`part_chroma` judges it
+    if chroma_part < MIN_PART_CHROMA:
+        return None
+    if np.count_nonzero(_off_line(on_part[:, 1:].astype(np.float32) - 128.0, part) <= _line_tolerance(part)) \
+            < ON_LINE_SHARE * len(on_part):
+        return None
     bed_v, part_v = _median_u8(value[bed]), _median_u8(value[fp_c])
-    part_l = _median_u8(on_part[:, 0]) * (100.0 / 255.0)
-    # a grey bed's own chroma is the photo's white-balance cast: grey is measured from it
-    neutral = np.array([_median_u8(on_bed[:, 1]), _median_u8(on_bed[:, 2])], np.float32)
-    if float(np.hypot(*(neutral - 128.0))) >= GREY_CHROMA:  # a coloured bed (gold PEI, blue tape): no cast known
-        neutral[:] = 128.0
     cf = max(int(cell_px) // f, 1)
     rim = (mm_out <= RIM_MM) & seen_c & (value >= BED_RATIO * bed_v) & (value <= part_v) & (value < CLIPPED)
     rim &= ~(cv2.erode(fp_c.view(np.uint8), np.ones((cf // 2 * 2 + 1,) * 2, np.uint8)) > 0)
     ys, xs = np.nonzero(rim)
     if len(ys) == 0:
         return np.zeros(shape, bool)
-    px = lab[ys, xs].astype(np.float32)
+    on_bed = _lab(crop[::2, ::2][bed[::2, ::2]][:, None, :])[:, 0]
+    part_l = _median_u8(on_part[:, 0]) * (100.0 / 255.0)
+    # a grey bed's own chroma is the photo's white-balance cast: grey is measured from it
+    neutral = np.array([_median_u8(on_bed[:, 1]), _median_u8(on_bed[:, 2])], np.float32)
+    if float(np.hypot(*(neutral - 128.0))) >= GREY_CHROMA:  # a coloured bed (gold PEI, blue tape): no cast known
+        neutral[:] = 128.0
+    px = _lab(crop[ys, xs][:, None, :])[:, 0].astype(np.float32)
     chroma = np.hypot(px[:, 1] - neutral[0], px[:, 2] - neutral[1])
     expected = chroma_part * (px[:, 0] * (100.0 / 255.0) + 16.0) / (part_l + 16.0)  # the part's at that lightness
     grey = np.zeros(fp_c.shape, np.uint8)
