@@ -9,6 +9,7 @@ from pydantic import ValidationError
 
 from layerwatch.analysis.extrusion import highpass
 from layerwatch.analysis.layer_change import (
+    CLIP_LEVEL,
     LayerChangeSettings,
     add_unchanged,
     blocks_on_top,
@@ -292,3 +293,24 @@ def test_moved_pixels_are_the_outlines_of_moved_regions_or_their_boxes_and_apart
     kept = apart_from(everywhere, m, 1.0, tv)
     assert not (kept & m).any() and kept[50, 20 - 6] and not kept[50, 20 - 4]  # 1 mm = 5 px beside the band
     assert np.array_equal(apart_from(everywhere, np.zeros_like(m), 1.0, tv), everywhere)
+
+
+@pytest.mark.parametrize(("photo_size", "size"), [((1920, 1080), (1280, 720)), ((1920, 1080), (640, 360)),
+                                                   ((1000, 750), (600, 450)), ((1280, 720), (1280, 720))])
+def test_clipped_box_resizes_only_the_rows_with_glare_as_the_whole_box_would(photo_size, size):
+    """The working rows without a clipped source pixel are not resized (scales p / 2^k; others: the whole box)."""
+    rng = np.random.default_rng(sum(photo_size) + size[0])
+    (pw, ph), (W, H) = photo_size, size
+    for _ in range(12):
+        photo = np.full((ph, pw, 3), 120, np.uint8)
+        for _ in range(int(rng.integers(1, 4))):  # glare spots, some a single pixel
+            y, x = int(rng.integers(0, ph)), int(rng.integers(0, pw))
+            photo[y:y + int(rng.integers(1, 30)), x:x + int(rng.integers(1, 30))] = 255
+        r0, c0 = int(rng.integers(0, H // 2)), int(rng.integers(0, W // 2))
+        box = (slice(r0, r0 + int(rng.integers(20, H // 2))), slice(c0, c0 + int(rng.integers(20, W // 2))))
+        y0, y1 = int(np.floor(box[0].start * ph / H)), int(np.ceil(box[0].stop * ph / H))
+        x0, x1 = int(np.floor(box[1].start * pw / W)), int(np.ceil(box[1].stop * pw / W))
+        hot = cv2.inRange(np.ascontiguousarray(photo[y0:y1, x0:x1]), (CLIP_LEVEL,) * 3, (255,) * 3)
+        want = cv2.resize(hot, (box[1].stop - box[1].start, box[0].stop - box[0].start),
+                          interpolation=cv2.INTER_AREA) > 0
+        assert np.array_equal(clipped_box(photo, size, box), want)

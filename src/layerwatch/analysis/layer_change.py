@@ -77,6 +77,7 @@ Petsiuk & Pearce (2022), eq. (5): a% = S_A / S_P.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 
 import cv2
 import numpy as np
@@ -302,13 +303,25 @@ def clipped_box(photo: np.ndarray, size: tuple[int, int], box: tuple[slice, slic
     (r0, r1), (c0, c1) = ((s.start or 0, n if s.stop is None else s.stop) for s, n in zip(box, (H, W), strict=True))
     y0, y1 = int(np.floor(r0 * h / H)), int(np.ceil(r1 * h / H))
     x0, x1 = int(np.floor(c0 * w / W)), int(np.ceil(c1 * w / W))
-    crop = np.ascontiguousarray(arr[y0:y1, x0:x1])
+    crop = arr[y0:y1, x0:x1]
     lo = (CLIP_LEVEL,) * (crop.shape[2] if crop.ndim == 3 else 1)
     hot = cv2.inRange(crop, lo, (255,) * len(lo))  # 255 where every channel is clipped (one pass)
-    if cv2.countNonZero(hot) == 0:
-        return np.zeros((r1 - r0, c1 - c0), bool)
-    # the share of each working pixel's source area that is clipped (area resize): any share counts
-    return cv2.resize(hot, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) > 0
+    out = np.zeros((r1 - r0, c1 - c0), bool)
+    u, v, w, h = cv2.boundingRect(hot)
+    if w == 0 or h == 0:
+        return out
+    # the share of each working pixel's source area that is clipped (area resize): any share counts.
+    # Only the working rows whose source rows hold a clipped pixel can be set: resized alone when the rows'
+    # scale is p / 2^k (every row weight an exact binary fraction, so they come out as in the whole resize)
+    scale = Fraction(hot.shape[0], r1 - r0)
+    q = scale.denominator
+    i0, i1 = 0, r1 - r0
+    if q & (q - 1) == 0:
+        i0 = int(v / scale) // q * q
+        i1 = min(-(-(int((v + h - 1) / scale) + 1) // q) * q, r1 - r0)
+    band = hot[int(i0 * scale):int(i1 * scale)]
+    out[i0:i1] = cv2.resize(band, (c1 - c0, i1 - i0), interpolation=cv2.INTER_AREA) > 0
+    return out
 
 
 def window_change(a: np.ndarray, b: np.ndarray, surface: np.ndarray, near: np.ndarray,
