@@ -222,6 +222,30 @@ def off_colour(top_bgr: np.ndarray, footprint: np.ndarray, judged: np.ndarray, c
     return out
 
 
+def _colour_inputs(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """The colour top view, footprint and valid mask of :func:`off_colour_blocks` and :func:`rim_material`, checked.
+
+    Returns ``(img, footprint, valid)`` (uint8 (H, W, 3), bool (H, W), bool (H, W) or None), or None when
+    the top view is not a 3-channel colour image (nothing to judge).
+
+    Raises
+    ------
+    AnalysisError
+        The footprint or valid mask is not the top view's shape.
+    """
+    img = np.asarray(top_bgr)
+    if img.ndim != 3 or img.shape[2] != 3:
+        return None
+    shape = img.shape[:2]
+    fp = np.asarray(footprint, bool)
+    seen = None if valid is None else np.asarray(valid, bool)
+    if fp.shape != shape or (seen is not None and seen.shape != shape):
+        raise AnalysisError(f"footprint {fp.shape} and valid mask {None if seen is None else seen.shape} "
+                            f"must be the top view's shape {shape}.")
+    return img, fp, seen
+
+
 def off_colour_blocks(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray | None,
                       cell_px: int, block_cells: int, px_per_mm: float) -> np.ndarray | None:
     """HOG blocks of the printed layer whose tile is at least :data:`OFF_TILE_SHARE` another material.
@@ -259,15 +283,11 @@ def off_colour_blocks(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndar
     AnalysisError
         The footprint or valid mask is not the top view's shape.
     """
-    img = np.asarray(top_bgr)
-    if img.ndim != 3 or img.shape[2] != 3:
+    got_in = _colour_inputs(top_bgr, footprint, valid)
+    if got_in is None:
         return None
+    img, fp, seen_mask = got_in
     shape = img.shape[:2]
-    fp = np.asarray(footprint, bool)
-    seen_mask = None if valid is None else np.asarray(valid, bool)
-    if fp.shape != shape or (seen_mask is not None and seen_mask.shape != shape):
-        raise AnalysisError(f"footprint {fp.shape} and valid mask {None if seen_mask is None else seen_mask.shape} "
-                            f"must be the top view's shape {shape}.")
     seen = fp if seen_mask is None else fp & seen_mask
     c, b = int(cell_px), int(block_cells)
     n, m = shape[0] // c - b + 1, shape[1] // c - b + 1
@@ -347,15 +367,11 @@ def rim_material(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndarray |
     AnalysisError
         The footprint or valid mask is not the top view's shape.
     """
-    img = np.asarray(top_bgr)
-    if img.ndim != 3 or img.shape[2] != 3:
+    got_in = _colour_inputs(top_bgr, footprint, valid)
+    if got_in is None:
         return None
+    img, fp, seen = got_in
     shape = img.shape[:2]
-    fp = np.asarray(footprint, bool)
-    seen = None if valid is None else np.asarray(valid, bool)
-    if fp.shape != shape or (seen is not None and seen.shape != shape):
-        raise AnalysisError(f"footprint {fp.shape} and valid mask {None if seen is None else seen.shape} "
-                            f"must be the top view's shape {shape}.")
     fp_seen = fp if seen is None else fp & seen
     x, y, w, h = cv2.boundingRect(fp_seen.view(np.uint8))
     if w == 0:
