@@ -12,7 +12,7 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY src ./src
 RUN python -m venv /opt/layerwatch \
- && /opt/layerwatch/bin/pip install '.[web,notify]'
+ && /opt/layerwatch/bin/pip install '.[web,notify,fast]'
 
 FROM python:3.11-slim
 # a fixed non-root uid/gid, so a bind-mounted /data can be chowned to it on the host

@@ -10,7 +10,7 @@ OUT ?= demo-out
 $(STAMP): pyproject.toml setup.py src/layerwatch/gcode/_ckernel.c
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[web,notify,dask,mqtt,test]'
+	$(PY) -m pip install --quiet -e '.[web,notify,dask,mqtt,fast,test]'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -19,6 +19,7 @@ import httpx
 import numpy as np
 
 from layerwatch.errors import CameraError
+from layerwatch.monitor.jpeg_decode import decode_jpeg
 
 __all__ = ["Camera", "SnapshotCamera", "MjpegCamera", "DeviceCamera", "FolderCamera", "SimCamera", "open_camera", "decode_image",
            "frame_digest", "file_digest", "EncodedFrame", "StaleCheck", "sniff_image"]
@@ -53,9 +54,15 @@ def sniff_image(data: bytes, where: str) -> bytes:
 
 
 def decode_image(data: bytes, where: str) -> np.ndarray:
-    """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) image or raise CameraError."""
+    """Decode JPEG/PNG bytes to a BGR uint8 (H, W, 3) image or raise CameraError.
+
+    A JPEG goes to libjpeg-turbo directly where :func:`~layerwatch.monitor.jpeg_decode.decode_jpeg` can
+    take it (the optional ``simplejpeg``: the same pixels, ~10 % less CPU), everything else to OpenCV.
+    """
     _web_page(data, where)
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+    img = decode_jpeg(data) if data else None
+    if img is None and data:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise _not_an_image(data, where)
     return check_frame(img, where)
