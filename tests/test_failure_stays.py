@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from layerwatch.analysis.ledges import slab_layers
 from layerwatch.evaluate.harness import plan_frames
 from layerwatch.gcode import read_toolpath
 from layerwatch.pipeline.config import observed_square, resolve_config
@@ -91,3 +92,36 @@ def test_a_clean_interleaved_print_holds_nothing_and_never_pauses(plate):
     assert all(res.outside_anomalous_mm2 == 0.0 for res, _, _ in out), [r.outside_anomalous_mm2 for r, _, _ in out]
     assert not any(d.stops or d.action == "notify" for _, d, _ in out), [d.reason for _, d, _ in out]
     assert np.all([res.anomaly_ratio <= 0.025 for res, _, _ in out])
+
+
+def _single(tp, failures, layer, seed=20):
+    """Layer ``layer``'s photo in single-photo mode (the pipeline forgets the print first: bed photo only)."""
+    cfg = resolve_config(None, recommended=True, gcode=observed_square(tp.bounds)).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1280, 720))
+    cfg = cfg.for_camera(cam)
+    sim = PrintSimulator(tp, cam, cfg.topview.topview(), failures, seed=seed)
+    pipe = LayerPipeline(tp, cam, cfg, bed_photo=sim.bed_photo())
+    res = pipe.process(sim.frame(layer).photo, layer)
+    assert res.status == "ok", res.message
+    return res
+
+
+@pytest.mark.slow
+def test_single_photo_sees_the_object_on_the_cube_on_the_layer_the_cube_does_not_print(plate):
+    """Without history (single-photo mode) layer 9 (the other object) has the cube's top, printed at layer 8
+    0.07 mm below the layer plane, in its slab: judged as the printed layer's blocks are, the object on it
+    counts beside the printed layer. The clean photos of layers 6-12 report nothing there."""
+    tp = plate
+    assert slab_layers(tp.layers, 9) == [8]
+    res = _single(tp, (_cube_object(tp),), 9)
+    assert res.anomaly_ratio == 0.0 and res.outside_anomalous_mm2 >= 10.0, res.outside_anomalous_mm2
+    assert any(_boxes_overlap(r.bbox_mm, tp.layers[8].bounds) for r in res.outside_regions)
+    for i in LAYERS:
+        assert _single(tp, (), i).outside_anomalous_mm2 == 0.0, i
+
+
+@pytest.mark.slow
+def test_without_the_slab_tops_the_single_photo_misses_the_object(plate, monkeypatch):
+    """The rule's own effect: the cube's top left to the hidden ledges (eroded by the scene's margin)."""
+    monkeypatch.setattr(LayerPipeline, "_slab_blocks", lambda self, *a: (None, None))
+    assert _single(plate, (_cube_object(plate),), 9).outside_anomalous_mm2 == 0.0

@@ -6,10 +6,17 @@ import numpy as np
 import pytest
 
 import layerwatch.pipeline.step as step_module
-from layerwatch.analysis.ledges import LEDGE_SHARE, ledge_blocks, ledge_regions
+from layerwatch.analysis.ledges import (
+    LEDGE_SHARE,
+    ledge_blocks,
+    ledge_regions,
+    slab_layers,
+    slab_tops,
+)
 from layerwatch.errors import AnalysisError
 from layerwatch.examples import PART_CONFIG, PART_GCODE
 from layerwatch.gcode import read_toolpath
+from layerwatch.gcode.toolpath import Layer
 from layerwatch.geometry.topview import TopView
 from layerwatch.pipeline.config import resolve_config
 from layerwatch.pipeline.step import LayerPipeline
@@ -126,3 +133,43 @@ def test_single_photo_sees_a_blue_hex_key_on_the_plate_by_its_colour(monkeypatch
     monkeypatch.setattr(step_module, "off_colour", lambda *a: None)  # the HOG test alone
     pipe.new_print(sim.bed_photo())
     assert marked(pipe.process(frame.photo, layer), frame.truth_area) < 0.35
+
+
+def _layers(zs, heights):
+    return [Layer(i, z, h, 0, 0, 0, 0, (0.0, 0.0, 1.0, 1.0), 1.0) for i, (z, h) in enumerate(zip(zs, heights, strict=True))]
+
+
+def test_slab_layers_are_the_earlier_tops_above_the_layers_bottom():
+    """KISSlicer's interleaved objects (0.263 / 0.278 mm steps): layer 3's slab (0.278-0.556 mm) holds layer 2's
+    top (0.526 mm), layer 2's (0.263-0.526 mm) layer 1's (0.278 mm); a plain stack's previous layer lies at its
+    bottom, not in it."""
+    plate = _layers([0.263, 0.278, 0.526, 0.556], [0.263, 0.278, 0.263, 0.278])
+    assert [slab_layers(plate, i) for i in range(4)] == [[], [0], [1], [2]]
+    plain = _layers([0.2, 0.4, 0.6], [0.2, 0.2, 0.2])
+    assert [slab_layers(plain, i) for i in range(3)] == [[], [], []]
+    assert slab_layers(_layers([0.2, 0.3], [0.2, 0.0]), 1) == []  # thickness unknown: no slab
+
+
+def test_slab_tops_are_the_earlier_footprints_the_layer_does_not_print_over():
+    a, b, own = (np.zeros((8, 8), bool) for _ in range(3))
+    a[0:3, 0:3] = True
+    b[5:8, 5:8] = True
+    own[2:6, 2:6] = True
+    got = slab_tops([a, b], own)
+    assert got.sum() == 9 + 9 - 1 - 1 and not (got & own).any()
+    with pytest.raises(AnalysisError, match="slab layer"):
+        slab_tops([np.zeros((4, 4), bool)], own)
+
+
+def test_ledge_regions_judge_the_given_blocks_besides_the_ledges():
+    heat = np.ones((7, 7))
+    heat[1, 1] = 0.05  # on no ledge: judged only when given
+    judged = np.zeros((7, 7), bool)
+    judged[1, 1] = True
+    none = np.zeros(TV.shape, bool)
+    considered = np.zeros((7, 7), bool)
+    assert ledge_regions(heat, considered, none, 0.2, 8, 2, TV, 0.5) == []
+    regions = ledge_regions(heat, considered, none, 0.2, 8, 2, TV, 0.5, judged=judged)
+    assert len(regions) == 1 and regions[0].min_similarity == pytest.approx(0.05)
+    with pytest.raises(AnalysisError, match="block grid"):
+        ledge_regions(heat, considered, none, 0.2, 8, 2, TV, 0.5, judged=np.zeros((6, 7), bool))

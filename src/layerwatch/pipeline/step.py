@@ -76,12 +76,12 @@ from pathlib import Path
 import numpy as np
 
 from layerwatch.analysis.failure_typing import FailureTyper
-from layerwatch.analysis.ledges import ledge_regions
+from layerwatch.analysis.ledges import ledge_regions, slab_layers, slab_tops
 from layerwatch.analysis.part_colour import off_colour, off_colour_blocks, rim_material
 from layerwatch.analysis.region_outline import region_box
 from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scene_change import change_regions, working_to_top
-from layerwatch.analysis.scoring import analyze_layer, grey_u8, reference_hog
+from layerwatch.analysis.scoring import analyze_layer, grey_u8, near_footprint, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
 from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_back
 from layerwatch.errors import LayerwatchError, RenderError
@@ -527,19 +527,52 @@ class LayerPipeline:
 
     def _hidden_ledges(self, res: LayerResult, obs: SceneObservation, z: float, photo_size: tuple[int, int],
                        valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
-        """Lower floors no earlier photo showed, judged by the reference's HOG and by the part's colour
+        """Lower floors no earlier photo showed, and the hidden tops of the layer's slab (another object of a
+        plate printed in turns), judged by the reference's HOG and by the part's colour
         (:mod:`layerwatch.analysis.ledges`): their failing regions join the change beside the printed layer."""
-        hidden = obs.hidden_ledges
-        if hidden is None or not hidden.any() or res.heatmap is None or res.mask is None:
+        if res.heatmap is None or res.mask is None:
             return
         st = self.config.analysis
-        top = (working_to_top(hidden.view(np.uint8), self.warper, z, photo_size) > 0) & valid
-        coloured = off_colour(top_bgr, footprint & valid, top, st.cell_px)
-        found = ledge_regions(res.heatmap, res.mask, top, st.threshold, st.cell_px, st.block_cells, self.topview,
-                              self.config.scene.min_region_mm2, coloured)
+        hidden = obs.hidden_ledges
+        top = None
+        if hidden is not None and hidden.any():
+            top = (working_to_top(hidden.view(np.uint8), self.warper, z, photo_size) > 0) & valid
+        judged, tops = self._slab_blocks(res, obs, z, photo_size, valid, footprint)
+        if top is None and judged is None:
+            return
+        heat = res.heatmap
+        if judged is not None and tops is not None and st.off_colour:  # the slab's tops: the printed layer's colour test
+            other = off_colour_blocks(top_bgr, tops, valid, st.cell_px, st.block_cells, self.topview.px_per_mm)
+            if other is not None and other.any():
+                heat = np.where(other & judged, np.minimum(heat, np.float32(0.5 * st.threshold)), heat)
+        coloured = None
+        if top is None:
+            top = np.zeros(valid.shape, bool)
+        else:
+            coloured = off_colour(top_bgr, footprint & valid, top, st.cell_px)
+        found = ledge_regions(heat, res.mask, top, st.threshold, st.cell_px, st.block_cells, self.topview,
+                              self.config.scene.min_region_mm2, coloured, judged)
         if found:
             res.outside_regions = sorted(res.outside_regions + found, key=lambda r: -r.area_mm2)
             res.outside_anomalous_mm2 += float(sum(r.area_mm2 for r in found))
+
+    def _slab_blocks(self, res: LayerResult, obs: SceneObservation, z: float, photo_size: tuple[int, int],
+                     valid: np.ndarray, footprint: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The hidden tops of the layer's slab (:func:`~layerwatch.analysis.ledges.slab_tops`, inside ``M``) and
+        the blocks with a cell on them, as the printed layer's are chosen; ``(None, None)`` when there are none."""
+        lay = self.toolpath.layers
+        index = int(res.layer)
+        if obs.predicted is None or not 0 <= index < len(lay):
+            return None, None
+        earlier = slab_layers(lay, index)
+        if not earlier:
+            return None, None
+        tops = slab_tops([self.reference(j).footprint for j in earlier], footprint)
+        tops &= (working_to_top(obs.predicted.view(np.uint8), self.warper, z, photo_size) > 0) & valid
+        if not tops.any():
+            return None, None
+        assert res.heatmap is not None
+        return near_footprint(tops, res.heatmap.shape, self.topview, self.config.analysis, 0.0, valid), tops
 
     def _rim_objects(self, res: LayerResult, valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
         """Grey material at the layer's rim (:func:`~layerwatch.analysis.part_colour.rim_material`: an object
