@@ -311,6 +311,40 @@ def test_a_foreign_body_without_pixels_unlike_bed_and_part_keeps_its_blocks():
     assert scene.object_outline(dataclasses.replace(nut, area_mm2=60.0)) == ()
 
 
+def test_a_thin_object_keeps_its_outline_when_its_region_is_the_blocks_it_crossed():
+    """A 1 mm hex key, 12 mm long, on the bed: the 2 mm change blocks it crossed measured about three times its
+    own area (36 mm^2 against ~13 mm^2). Grown to those blocks its pixels explain the region: the key is marked,
+    not the blocks' box."""
+    top, ref, foot = _part(6)
+    bgr = _colour(top)
+    a, b = (tuple(int(v) for v in TOPVIEW.to_px(np.array(p)).round()) for p in ([92.0, 86.0], [92.0, 98.0]))
+    cv2.line(bgr, a, b, (200, 120, 60), int(round(1.0 * TOPVIEW.px_per_mm)))
+    key = dataclasses.replace(_region(90.5, 85.0, 93.5, 99.0), area_mm2=36.0)
+    scene = _Scene(bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, TOPVIEW, None)
+    outline = scene.object_outline(key)
+    assert outline
+    marked = outline_mask(outline, TOPVIEW)
+    assert marked.sum() / TOPVIEW.px_per_mm ** 2 < 18.0  # the key, not its blocks
+    assert scene.object_outline(dataclasses.replace(key, area_mm2=120.0)) == ()  # far more than the key crossed
+
+
+def test_a_fringe_that_only_the_closing_joins_keeps_the_blocks():
+    """Scattered pixels unlike bed and part (every third one of a 3 x 10 mm band: the lit fringe of a dark lump
+    on a dark bed) closed into a band: most of the band is the closing's fill, not the object's colour, so the
+    region keeps its blocks, although the band covers half of the region's area."""
+    top, ref, foot = _part(6)
+    bgr = _colour(top)
+    (u0, v0), (u1, v1) = (TOPVIEW.to_px(np.array(p)).round().astype(int) for p in ([90.0, 112.0], [93.0, 102.0]))
+    band = bgr[v0:v1, u0:u1]
+    band[::3, ::3] = (200, 120, 60)
+    band[1::3, 1::3] = (200, 120, 60)
+    lump = dataclasses.replace(_region(88.5, 101.0, 95.5, 113.0), area_mm2=40.0)
+    scene = _Scene(bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, TOPVIEW, None)
+    assert scene.object_outline(lump) == ()
+    band[:] = (200, 120, 60)  # the same band solid: the object's own pixels
+    assert _Scene(bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, foot, TOPVIEW, None).object_outline(lump)
+
+
 def test_typer_uses_the_previous_photo_of_the_print_and_forgets_it_on_reset():
     top, ref, foot = _part(7)
     typer = FailureTyper(None, TOPVIEW)

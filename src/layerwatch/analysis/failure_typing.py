@@ -157,8 +157,13 @@ LEDGE_TRIM_MM = 0.75
 #: a registered move stands only when at least this share of the area the layer newly covers looks like the part
 #: (a real move: about half to all of it; a registration locked on an object: bare bed nearly everywhere)
 ARRIVED_MIN = 0.25
-#: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels must cover
+#: smallest share of the region's own area (its failing blocks or changed pixels) the object's pixels, grown to the
+#: blocks that measured them (:data:`OBJECT_BLOCK_MM`), must cover
 OBJECT_MIN_SHARE = 0.5
+#: side of the blocks the channels measure a region in, mm: the scene channel's change blocks (8 working px, about
+#: 2 mm on the bed) and the HOG blocks (2 x 2 cells of 1.2 mm); a region's area is its blocks' (or their tiles'),
+#: which a thin object only partly fills
+OBJECT_BLOCK_MM = 2.0
 #: how far beyond a moved part (on top of its displacement) a region is still taken for the moved part, mm
 MOVED_REACH_MM = 3.0
 
@@ -450,7 +455,9 @@ class _Scene:
         beyond the blocks that fired on it), closed by a
         :data:`OBJECT_CLOSE_MM` square, their holes filled (a glint on the
         object), and the parts that reach into the box are kept. ``()`` (the region keeps its blocks) when neither colour
-        is known, the pixels cover less than :data:`OBJECT_MIN_MM2`, or less
+        is known, the pixels cover less than :data:`OBJECT_MIN_MM2`, or, grown
+        to the blocks that measured the region (a square of :data:`OBJECT_BLOCK_MM`:
+        a 1 mm hex key fills about a third of each 2 mm block it crosses), less
         than :data:`OBJECT_MIN_SHARE` of the region's own area: then the colour
         test missed most of what the region measured (a dark object on a dark
         bed differs from it in lightness by less than the noise) and the
@@ -478,7 +485,13 @@ class _Scene:
         obj = fill_holes(close_gaps(obj, k))
         _, labels = cv2.connectedComponents(obj.view(np.uint8), connectivity=8)
         obj = np.isin(labels, np.unique(labels[inner & obj]))  # the parts that reach into the region's box
-        if obj.sum() < max(OBJECT_MIN_MM2, OBJECT_MIN_SHARE * r.area_mm2) * self.topview.px_per_mm ** 2:
+        px_mm2 = self.topview.px_per_mm ** 2
+        n_obj = int(np.count_nonzero(obj))
+        if n_obj < OBJECT_MIN_MM2 * px_mm2 or 2 * np.count_nonzero(dist[obj] > thr) <= n_obj:
+            return ()  # too small, or mostly the closing's fill: a fringe of a low-contrast object
+        kb = max(3, int(round(OBJECT_BLOCK_MM * self.topview.px_per_mm)) | 1)  # the blocks it fills, on average
+        blocks = cv2.dilate(obj.view(np.uint8), np.ones((kb, kb), np.uint8))
+        if np.count_nonzero(blocks) < OBJECT_MIN_SHARE * r.area_mm2 * px_mm2:
             return ()
         mask = np.zeros(self.shape, bool)
         mask[pad] = obj
