@@ -50,31 +50,3 @@ def test_rows_march_as_before_on_the_example_part_from_three_cameras(shared_data
 def test_rows_march_as_before_on_slicers_files(source, shared_data, monkeypatch):
     tp, tv = _job(source, shared_data)
     assert _compare_every_layer(tp, tv, [default_camera(tv).center_mm], monkeypatch) == tp.n_layers
-
-
-def test_level_rays_are_not_marched_and_read_the_same(shared_data, monkeypatch):
-    """Rays over bare, level bed (:func:`volume.level_tiles`) take the bed's value without a march: every layer's
-    image and hit heights equal the march of every ray, and such rays are a good share of the view."""
-    tp, tv = _job("example", shared_data)
-    cam = default_camera(tv).center_mm
-    real_tiles, real_march = volume.level_tiles, volume._march_volume
-    level_share = []
-
-    def marched(*a):
-        real_march(*a)
-        every_out, every_hit = np.empty_like(a[16]), np.empty_like(a[17])
-        b = list(a)
-        b[16], b[17], b[19] = every_out, every_hit, np.zeros((0, 0), np.int32)
-        real_march(*b)
-        np.testing.assert_array_equal(a[16], every_out)
-        np.testing.assert_array_equal(a[17], every_hit)
-        b[16], b[17], b[19], b[21] = np.empty_like(a[16]), np.empty_like(a[17]), a[19], -1.0  # a marker value
-        real_march(*b)
-        level_share.append(float(np.mean(b[16] == -1.0)))  # the rays given the level value unmarched
-
-    monkeypatch.setattr(volume, "_march_volume", marched)
-    r = StackRenderer(tp, tv, RenderSettings(reference="volume"))
-    for index in range(tp.n_layers):
-        r.render(index, cam)
-    assert len(level_share) == tp.n_layers and real_tiles is volume.level_tiles
-    assert min(level_share) > 0.1, level_share  # a good share of the rays is not marched

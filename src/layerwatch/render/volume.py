@@ -193,10 +193,6 @@ class OccupancyStack:
         return lowest
 
 
-#: side (px) of the tiles :func:`level_tiles` marks level
-LEVEL_TILE_PX = 8
-
-
 @njit(cache=True, inline="always")
 def _bit(bits, r0, b0, s, xi, yi):
     """1 when slot ``s`` is printed at pixel ``(xi, yi)``, else 0 (outside the box, or a slot not allocated yet: empty)."""
@@ -267,76 +263,9 @@ def approach_reach_px(skip_px: float, step_px: float) -> int:
     return int(math.ceil((math.ceil(skip_px / step_px) + 2) * step_px)) + 1
 
 
-@njit(cache=True, inline="always")
-def _on_level(sat, tile_px, u, v, du, dv, reach, step_px, H, W):
-    """True when the ray of pixel ``(u, v)`` stays on level tiles down to the bed (:func:`level_tiles`).
-
-    The ray moves ``(du, dv) / L`` px per px and descends to the bed within ``|(du, dv)| reach`` px plus one
-    step (it stops at the first sample at or below the bed); its samples round to pixels within 0.5 px of
-    the path and the bilinear sample at its end reads the next pixel: 3 px around the path's box cover
-    all of them. A box that leaves the view (the march samples the clamped border there) is not level.
-    """
-    x0, x1 = (u, u + du * reach) if du >= 0.0 else (u + du * reach, u)
-    y0, y1 = (v, v + dv * reach) if dv >= 0.0 else (v + dv * reach, v)
-    m = step_px + 3.0
-    x0, x1, y0, y1 = x0 - m, x1 + m, y0 - m, y1 + m
-    if x0 < 0.0 or y0 < 0.0 or x1 > W - 1.0 or y1 > H - 1.0:
-        return False
-    c0, c1, r0, r1 = int(x0) // tile_px, int(x1) // tile_px + 1, int(y0) // tile_px, int(y1) // tile_px + 1
-    return sat[r1, c1] - sat[r0, c1] - sat[r1, c0] + sat[r0, c0] == 0
-
-
-@njit(cache=True)
-def _level_sat(height, shaded, level, tile_px):
-    """Summed-area table (int32 (TH + 1, TW + 1)) of the tiles holding a printed pixel or a shaded value other than ``level``."""
-    H, W = height.shape
-    th, tw = (H + tile_px - 1) // tile_px, (W + tile_px - 1) // tile_px
-    busy = np.zeros((th, tw), np.int32)
-    for v in range(H):
-        i = v // tile_px
-        for j in range(tw):
-            if busy[i, j]:  # (a tile known busy is not read again)
-                continue
-            for u in range(j * tile_px, min(j * tile_px + tile_px, W)):
-                if height[v, u] != 0.0 or shaded[v, u] != level:
-                    busy[i, j] = 1
-                    break
-    sat = np.zeros((th + 1, tw + 1), np.int32)
-    for i in range(th):
-        run = 0
-        for j in range(tw):
-            run += busy[i, j]
-            sat[i + 1, j + 1] = sat[i, j + 1] + run
-    return sat
-
-
-def level_tiles(height: np.ndarray, shaded: np.ndarray, tile_px: int = 8) -> tuple[np.ndarray, float]:
-    """Where the view is bare, level bed: tiles with nothing printed and one shaded value.
-
-    Parameters
-    ----------
-    height : ndarray, shape (H, W), float32
-        Height map, mm.
-    shaded : ndarray, shape (H, W), float32
-        Shaded top view.
-    tile_px : int
-        Tile side, px.
-
-    Returns
-    -------
-    sat : ndarray, shape (ceil(H / tile_px) + 1, ceil(W / tile_px) + 1), int32
-        Summed-area table of the tiles that are *not* level (a printed pixel, or a shaded value other
-        than ``level``): a box of tiles is level when its sum is 0.
-    level : float
-        The bed's shaded value (the view's first pixel's; any value would do: tiles with another are busy).
-    """
-    level = np.float32(shaded[0, 0])
-    return _level_sat(height, shaded, level, int(tile_px)), float(level)
-
-
 @njit(cache=True)
 def _march_volume(height, hmax, skip_px, shaded, bed, bits, r0, b0, tops, cu, cv, cz, z, step_px, max_steps, look,
-                  out, hit_z, clear, level_tiles, tile_px, level, reach):
+                  out, hit_z, clear):
     """Follow the camera ray through every top-view pixel into the occupancy volume.
 
     ``look`` = ``(wall_value, wall_ambient, line_contrast, layer_h, hidden_value, depth_scale,
@@ -345,10 +274,7 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, r0, b0, tops, cu, cv
     but the bed before it: its last steps are taken without looking (the same steps, the same
     sample: the result is identical, bit for bit); the rest as in
     :func:`~layerwatch.render.camera_view._march`. ``bits``: :attr:`OccupancyStack.bits` at its ``origin``
-    ``(r0, b0)``. ``level_tiles`` (:func:`level_tiles`, tiles of ``tile_px``; empty: not used): a ray
-    whose whole path down to the bed (:func:`ray_box`, ``reach`` = ``z / (C_z - z)``) lies on tiles where
-    nothing is printed and the shaded top view is ``level`` ends on the bare bed there, and a bilinear
-    sample of four equal values is that value: it is ``level`` at height 0 without being marched.
+    ``(r0, b0)``.
     """
     H, W = height.shape
     WB = (W + 7) // 8 * 8  # the packed rows' width, where a wall's neighbours clamp
@@ -373,9 +299,6 @@ def _march_volume(height, hmax, skip_px, shaded, bed, bits, r0, b0, tops, cu, cv
                 out[v, u], hit_z[v, u] = shaded[v, u], height[v, u]
                 continue
             dx, dy, dz = row_dx[u], row_dy[u], row_dz[u]
-            if level_tiles.shape[0] > 0 and _on_level(level_tiles, tile_px, u, v, du, dv, reach, step_px, H, W):
-                out[v, u], hit_z[v, u] = level, 0.0
-                continue
             x, y, zz = float(u), float(v), z
             val, hz = -1.0, 0.0
             k = 0
@@ -478,9 +401,6 @@ def view_through_volume(
     hmax = skip_map(h, SKIP_PX)
     clear = clear_map(hmax, SKIP_PX, approach_reach_px(SKIP_PX, look.step_px))
     r0, b0 = volume.origin
-    sat, level = level_tiles(h, s, LEVEL_TILE_PX)
-    reach = float(z) / (float(c[2]) - float(z)) * (1.0 + 1e-9)  # px to the bed per px from the nadir, with slack
     _march_volume(h, hmax, float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits, int(r0), int(b0),
-                  volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit, clear,
-                  sat, LEVEL_TILE_PX, level, reach)
+                  volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit, clear)
     return out, hit
