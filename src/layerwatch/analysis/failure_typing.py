@@ -30,6 +30,15 @@ Evidence (per region, all scale-free or in mm)
   visible top of it (the layer and the lower layers beyond it), where the
   photo shows it and where the plan has it (:meth:`_Scene.detached_area`):
   all of a part that came off is out of place.
+* **The new material and the shift that stays** (series mode,
+  :meth:`FailureTyper._other_moves`): where the whole registration sees no
+  move, the run's layer shift (a shift stays: every layer printed after it
+  is off by the same vector, so the plate's other objects too) and then the
+  place of the edges that are new since the print's previous photo
+  (:class:`~layerwatch.analysis.part_registration.NewMaterial`: the unmoved
+  layers below, whose zero-shift peak hides a shift's first layers on
+  plates of small objects, are no new material) are tried. A shift is kept
+  for the next photos only when the new material puts the layer there.
 * **What the moved layer uncovered** (:meth:`_Scene.ledge`): the layers
   below where they were (the part's colour: a layer shift) or the bare bed
   (a detached part took its first layers with it). Only where the part's
@@ -118,7 +127,9 @@ from layerwatch.analysis.part_registration import (
     ROTATION_MIN_DEG,
     ROTATIONS_DEG,
     SECOND_PEAK,
+    NewMaterial,
     PartMotion,
+    crop_box,
     edges,
     mask_box,
     moved_area,
@@ -535,17 +546,24 @@ class _Scene:
         :meth:`ledge` (also where that area lies on the part's lower layers,
         which are the part's colour either way).
         """
+        share = self._colour_share(motion, arrived=True)
+        return 0.5 if share is None else share
+
+    def arrival_seen(self, motion: PartMotion) -> float | None:
+        """:meth:`arrived`, None where it has no evidence (instead of 0.5)."""
         return self._colour_share(motion, arrived=True)
 
     def _ledge_share(self, motion: PartMotion) -> float:
-        return self._colour_share(motion, arrived=False)
+        share = self._colour_share(motion, arrived=False)
+        return 0.5 if share is None else share
 
-    def _colour_share(self, motion: PartMotion, arrived: bool) -> float:
+    def _colour_share(self, motion: PartMotion, arrived: bool) -> float | None:
+        """:meth:`arrived` (``arrived``) or :meth:`ledge`; None where they say 0.5 (no evidence)."""
         if not motion.moved or self.part_colour is None or self.bed_colour is None:
-            return 0.5
+            return None
         part, bed = self.part_colour, self.bed_colour
         if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
-            return 0.5
+            return None
         below = None if self._below is None else self._below()
         if arrived:
             # each object of a plate for itself (:attr:`objects`): the move carried all of them, so one that arrived
@@ -560,15 +578,14 @@ class _Scene:
                     uncovered &= ~below
                 shares.append(self._part_coloured_share(uncovered, part, bed))
             known = [v for v in shares if v is not None]
-            return min(known) if known else 0.5
+            return min(known) if known else None
         uncovered = self.outline & self.moved_area(motion)
         if below is not None:  # where the moved part's own lower layers would show: no evidence either way
             h, w = self.shape
             carried = cv2.warpAffine(below.view(np.uint8), top_from_plan(motion, self.topview), (w, h),
                                      flags=cv2.INTER_NEAREST)
             uncovered &= carried == 0
-        share = self._part_coloured_share(uncovered, part, bed)
-        return 0.5 if share is None else share
+        return self._part_coloured_share(uncovered, part, bed)
 
     def _part_coloured_share(self, area: np.ndarray, part: np.ndarray, bed: np.ndarray) -> float | None:
         """Share of ``area``'s photo pixels (bool, top view) nearer the part's colour than the bed's, None (no
@@ -823,6 +840,9 @@ class FailureTyper:
         #: first layer of the run of photos with a region typed as a moved part (series mode; a photo read as a
         #: detachment in a shifted print's run does not restart it), None: no moved part now
         self.shift_since: int | None = None
+        #: the displacement of the run's last photo typed as a layer shift (a shift stays: every layer printed
+        #: after it is off by the same vector), None: none in this run
+        self.shift_motion: PartMotion | None = None
         self.previous: list[Region] = []
         self._below: tuple[int, np.ndarray | None] | None = None
 
@@ -858,9 +878,12 @@ class FailureTyper:
         """A new print: forget the previous photo's regions."""
         self.previous = []
         self.shift_since = None
+        self.shift_motion = None
 
     def type_result(self, res: LayerResult, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray,
-                    footprint: np.ndarray, valid: np.ndarray | None = None) -> PartMotion | None:
+                    footprint: np.ndarray, valid: np.ndarray | None = None,
+                    previous: Callable[[tuple[slice, slice]], tuple[np.ndarray, np.ndarray] | None] | None = None,
+                    ) -> PartMotion | None:
         """Fill ``kind``, ``kind_confidence`` and ``displacement_mm`` of every region of ``res``.
 
         Parameters
@@ -873,6 +896,10 @@ class FailureTyper:
             Grey top view and the layer's reference.
         footprint : ndarray, bool, shape (H, W)
         valid : ndarray, bool, shape (H, W), optional
+        previous : callable, optional
+            ``previous(box)``: the print's previous photo as a grey top view of this layer's plane
+            on ``box`` (rows, columns of the top view) and its valid pixels, or None (series mode:
+            the new material's place, :meth:`_other_moves`).
 
         Returns
         -------
@@ -887,18 +914,32 @@ class FailureTyper:
             return None
         try:
             fp_box = mask_box(footprint)
-            motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box)
+            motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box,
+                                 hints=() if self.shift_motion is None else (self.shift_motion,))
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
                            below=lambda: self._part_below(res.layer), seen=lambda: self._part_seen(res.layer))
             if motion.moved and scene.arrived(motion) < ARRIVED_MIN:  # bare bed where the layer would now be
                 motion = PartMotion(peak=motion.peak)
+            made: list[NewMaterial | None] = []
+
+            def new_material() -> NewMaterial | None:  # made once, when first needed
+                if not made:
+                    made.append(self._new_material(previous, top, reference, footprint, valid, fp_box))
+                return made[0]
+
+            if not motion.moved:
+                motion, placed = self._other_moves(motion, scene, new_material)
+            else:  # a shift seen by the whole registration is kept for the next photos only when placed so
+                placed = not motion.turned and (nm := new_material()) is not None and nm.placed(motion)
             for r in regions:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
             if not moved:
-                self.shift_since = None
+                self.shift_since = self.shift_motion = None
             elif self.shift_since is None or self.shift_since > res.layer:
                 self.shift_since = res.layer
+            if placed and any(r.kind == "layer_shift" for r in moved):
+                self.shift_motion = motion
             outlines: dict[str, Outline] = {}  # the moved part's area per kind, the same for each of its regions
             for r in moved:
                 if r.kind not in outlines:
@@ -918,6 +959,44 @@ class FailureTyper:
             return None
         self.previous = regions
         return motion
+
+    def _new_material(self, previous: Callable[[tuple[slice, slice]], tuple[np.ndarray, np.ndarray] | None] | None,
+                      top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, valid: np.ndarray | None,
+                      fp_box: tuple[int, int, int, int] | None) -> NewMaterial | None:
+        """:class:`NewMaterial` against the print's previous photo (``previous``), None without one."""
+        if previous is None or fp_box is None:
+            return None
+        before = previous(crop_box(footprint, self.topview, fp_box))
+        if before is None:
+            return None
+        return NewMaterial(top, before[0], reference, footprint, self.topview, valid, before[1], fp_box)
+
+    def _other_moves(self, motion: PartMotion, scene: _Scene,
+                     new_material: Callable[[], NewMaterial | None]) -> tuple[PartMotion, bool]:
+        """A layer shift that the whole registration (``motion``: no move) did not see, or ``motion``.
+
+        Series mode only (``new_material``: the new edges since the print's previous photo).
+        First the run's layer shift (:attr:`shift_motion`: a shift stays, every layer
+        printed after it is off by the same vector) where its new place still shows the
+        part (:meth:`_Scene.arrived` at least :data:`ARRIVED_MIN`, as for a registered
+        move); then the place of the material printed since the previous photo
+        (:meth:`NewMaterial.motion`: the unmoved layers below, whose zero-shift peak hides a
+        shift's first layers, are no new material), taken when the new material puts the
+        layer there rather than where planned (:meth:`NewMaterial.placed`) and its new place
+        is seen to show the part (:meth:`_Scene.arrival_seen`: a move of under about twice
+        :data:`LEDGE_TRIM_MM` leaves nothing to see and is not taken). Returns the motion and
+        whether the new material placed it.
+        """
+        if self.shift_motion is not None and scene.arrived(self.shift_motion) >= ARRIVED_MIN:
+            return self.shift_motion, True
+        new = new_material()
+        if new is None:
+            return motion, False
+        m = new.motion()
+        seen = scene.arrival_seen(m) if m.moved else None
+        if seen is not None and seen >= ARRIVED_MIN and new.placed(m):
+            return m, True
+        return motion, False
 
     def _type_region(self, r: Region, beside: bool, layer: int, scene: _Scene, motion: PartMotion) -> None:
         """Fill ``r.kind``, ``r.kind_confidence`` and ``r.displacement_mm`` (``beside``: a scene-channel region)."""

@@ -6,6 +6,10 @@ far, and whether turned, the part moved. It is the *whole-part motion*
 evidence of :mod:`layerwatch.analysis.failure_typing` (a layer shift is a
 pure translation, a detached part also turns) and the source of the
 displacement in bed mm that a layer shift or a detachment reports.
+:class:`NewMaterial` registers the same layer against the edges that are new
+since the print's previous photo (series mode): at a shift's first layers the
+unmoved layers below outweigh the moved layer in the whole photo, not in
+what is new.
 
 Cost (issue 18's per-layer budget)
 ----------------------------------
@@ -35,8 +39,8 @@ import scipy.fft as sfft
 from layerwatch.geometry.topview import TopView
 
 __all__ = ["EDGE_PAD_PX", "MOVE_MAX_MM", "MOVE_MIN_MM", "ROTATION_GAIN", "ROTATION_MIN_DEG", "ROTATIONS_DEG",
-           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "moved_area", "pad_box", "part_motion", "self_similarity",
-           "top_from_plan"]
+           "SECOND_PEAK", "PartMotion", "edges", "mask_box", "moved_area", "NewMaterial", "crop_box", "pad_box", "part_motion",
+           "self_similarity", "top_from_plan"]
 
 #: smallest displacement of the part's top layer reported as a move, mm (registration noise is ~0.2 mm)
 MOVE_MIN_MM = 0.75
@@ -286,7 +290,8 @@ def _rotation(a: np.ndarray, b: np.ndarray, centre: tuple[float, float]) -> tupl
 
 def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, topview: TopView,
                 valid: np.ndarray | None = None,
-                footprint_box: tuple[int, int, int, int] | None = None) -> PartMotion:
+                footprint_box: tuple[int, int, int, int] | None = None,
+                hints: tuple[PartMotion, ...] = ()) -> PartMotion:
     """Register the printed part's top layer in the top view against its reference: translation (mm) and rotation.
 
     Parameters
@@ -302,6 +307,10 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
         Pixels the camera saw (others do not count).
     footprint_box : tuple of int, optional
         :func:`mask_box` of ``footprint`` when the caller has it.
+    hints : tuple of PartMotion, optional
+        Translations known from elsewhere (the print's layer shift seen on an earlier photo:
+        a shift stays), compared with the strong peaks as the moved layer's new place
+        when the part moved and did not turn (:func:`_new_place`).
 
     Returns
     -------
@@ -382,7 +391,8 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     if motion.turned:
         return motion
     # a part that did not turn: which of the strong peaks away from zero is the layer's new place
-    du2, dv2, height2 = _new_place(r, a, b, ref_edges, (du, dv, height), reach, near)
+    du2, dv2, height2 = _new_place(r, a, b, ref_edges, (du, dv, height), reach, near,
+                                   [_to_px(m, topview) for m in hints if m.moved])
     if (du2, dv2) == (du, dv):
         return motion
     if _looks_like_itself(a, du2, dv2, height2 / max(zero, 1e-12)):
@@ -391,8 +401,114 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     return dataclasses.replace(motion, dx_mm=float(d[0]), dy_mm=float(d[1]), peak=height2)
 
 
+class NewMaterial:
+    """Where the material printed since the print's previous photo lies against the layer's plan.
+
+    :func:`part_motion` registers the layer against the whole photo, where the layers
+    below (unmoved at a shift's first layers, and with much outline per area on small
+    objects) give a peak at zero shift that the moved layer's own peak must reach a share
+    of (:data:`SECOND_PEAK`): at the onset of a shift on KISSlicer's and Cura's plates the
+    true peak read 0.27-0.45 of it. The camera is stationary: what the previous photo
+    already showed (the layers below, the bed, a plate's other objects) is no new edge.
+    Here the layer's reference edges (its top layer, as :func:`part_motion` forms them) are
+    compared with the edges that are new in the photo (its edge strength above the previous
+    photo's): on a sound print the layer printed since is new where the plan puts it, after a
+    shift at the gantry's offset.
+
+    Parameters
+    ----------
+    top : ndarray, uint8, shape (H, W)
+        Grey top view of the photo on the layer's plane.
+    previous : ndarray, uint8
+        Grey top view of the print's previous photo **on the same plane** (the same warp, the
+        same residual view shift undone): the whole view (H, W), or only :attr:`box`
+        (:func:`crop_box` gives it before the object is made).
+    reference : ndarray, uint8, shape (H, W)
+        The layer's rendered reference.
+    footprint : ndarray, bool, shape (H, W)
+        Pixels printed in the layer (not empty).
+    topview : TopView
+    valid, previous_valid : ndarray, bool, optional
+        Pixels the camera saw in ``top`` (H, W) and in ``previous`` (its shape).
+    footprint_box : tuple of int, optional
+        :func:`mask_box` of ``footprint``.
+
+    Notes
+    -----
+    A top view of the previous photo on another plane would be off by the parallax of the
+    height difference (about 2 px a layer here), which makes every edge new along one side.
+    """
+
+    def __init__(self, top: np.ndarray, previous: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
+                 topview: TopView, valid: np.ndarray | None = None, previous_valid: np.ndarray | None = None,
+                 footprint_box: tuple[int, int, int, int] | None = None) -> None:
+        fp = np.asarray(footprint, bool)
+        self.topview = topview
+        self.box = crop_box(fp, topview, footprint_box)
+        box = self.box
+        whole = previous.shape[:2] == fp.shape
+        seen = np.ones(fp[box].shape, bool) if valid is None else np.asarray(valid, bool)[box]
+        if previous_valid is not None:
+            seen = seen & np.asarray(previous_valid, bool)[box if whole else (slice(None), slice(None))]
+        k = int(round(topview.px_per_mm)) * 2 + 1
+        top_layer = cv2.GaussianBlur(cv2.dilate(fp[box].astype(np.uint8), np.ones((k, k), np.uint8)).astype(np.float32),
+                                     (0, 0), 2.0)
+        #: the layer's reference edges (top layer) and the photo's new edges on :attr:`box`, float32
+        self.layer = edges(reference[box]) * top_layer * seen
+        self.new = np.maximum(edges(top[box]) - edges(previous[box] if whole else previous), 0.0) * seen
+
+    def motion(self) -> PartMotion:
+        """The translation (bed mm) of the highest peak of the phase correlation of the layer's edges against
+        the new edges, ``peak`` its height; no rotation. No motion (peak 0) when either image is empty."""
+        a, b = self.layer, self.new
+        h, w = a.shape
+        if h < 16 or w < 16 or not a.any() or not b.any():
+            return PartMotion()
+        du, dv, height = _peak(_PhaseCorrelator(b).surface(a), MOVE_MAX_MM * self.topview.px_per_mm)
+        d = self.topview.to_mm(np.array([du, dv], float)) - self.topview.to_mm(np.zeros(2))
+        return PartMotion(float(d[0]), float(d[1]), peak=height)
+
+    def placed(self, motion: PartMotion) -> bool:
+        """Whether the layer was printed where ``motion`` puts it rather than where the plan does.
+
+        ``c(d)``, the layer's edges moved by ``d`` times the new edges (summed), is ``c(0)``'s
+        prediction under each explanation: printed at ``d``, the new edges are the layer's
+        own moved by ``d``, so ``c(0) / c(d)`` is the layer's :func:`self_similarity` at ``d``
+        (only where moved and planned edges overlap is the plan's place new too); printed as
+        planned, with something else new beside it (strands, an object), ``c(0) >= c(d)``.
+        The move stands when ``c(0) / c(d)`` lies below the midpoint of the two predictions.
+        """
+        if not motion.moved:
+            return False
+        a, b = self.layer, self.new
+        h, w = a.shape
+        du, dv = _to_px(motion, self.topview)
+        moved = cv2.warpAffine(a, np.array([[1.0, 0.0, du], [0.0, 1.0, dv]], np.float32), (w, h))
+        at_d, at_0 = float((moved * b).sum()), float((a * b).sum())
+        if at_d <= 0:
+            return False
+        return at_0 / at_d < 0.5 * (1.0 + self_similarity(a, du, dv))
+
+
+def crop_box(footprint: np.ndarray, topview: TopView,
+             footprint_box: tuple[int, int, int, int] | None = None) -> tuple[slice, slice]:
+    """The registered crop: the footprint's box widened by :data:`MOVE_MAX_MM`, as slices (empty for no footprint)."""
+    fp = np.asarray(footprint, bool)
+    fbox = mask_box(fp) if footprint_box is None else footprint_box
+    if fbox is None:
+        return slice(0, 0), slice(0, 0)
+    return pad_box(fbox, int(round(MOVE_MAX_MM * topview.px_per_mm)), fp.shape)
+
+
+def _to_px(motion: PartMotion, topview: TopView) -> tuple[float, float]:
+    """A motion's translation as ``(du, dv)`` top-view px."""
+    d = topview.to_px(np.array([motion.dx_mm, motion.dy_mm])) - topview.to_px(np.zeros(2))
+    return float(d[0]), float(d[1])
+
+
 def _new_place(r: np.ndarray, a: np.ndarray, b: np.ndarray, ref_edges: np.ndarray,
-               chosen: tuple[float, float, float], reach: float, near: float) -> tuple[float, float, float]:
+               chosen: tuple[float, float, float], reach: float, near: float,
+               hints: list[tuple[float, float]] | None = None) -> tuple[float, float, float]:
     """The move among the strong correlation peaks whose new edges the photo shows best: ``(du, dv, height)``.
 
     At a shift's first layers the unmoved layers below give the highest peak (zero shift) and
@@ -401,11 +517,16 @@ def _new_place(r: np.ndarray, a: np.ndarray, b: np.ndarray, ref_edges: np.ndarra
     least :data:`CANDIDATE_PEAK` of the zero-shift peak (:func:`_candidates`); each is scored by
     :func:`_new_edges_match` outside the reference's own edges (above :data:`PLANNED_EDGE` of
     their 99th percentile, widened by 2 px): the near peaks of the layers below land
-    mostly on those edges, the layer's true new place does not.
+    mostly on those edges, the layer's true new place does not. ``hints`` (``(du, dv)`` px,
+    e.g. the print's shift seen earlier) are candidates too, whatever their height.
     """
     h, w = r.shape
     zero = _peak(r, near)[2]
     cands = _candidates(r, reach, near, CANDIDATE_PEAK * zero)
+    for du, dv in hints or []:
+        v, u = int(round(dv)) + h // 2, int(round(du)) + w // 2
+        if 0 < v < h - 1 and 0 < u < w - 1:
+            cands.append((v, u))
     strong = ref_edges[ref_edges > 0]
     if not cands or strong.size == 0:
         return chosen

@@ -71,6 +71,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -204,6 +205,9 @@ class LayerPipeline:
         self.frame_gate = frame_gate
         #: last photo the frame gate passed (its ``previous`` argument)
         self.previous_photo: np.ndarray | None = None
+        #: the print's last analysed photo ``(layer, photo, residual view shift)``: what the failure typing
+        #: compares the new photo with (:meth:`_previous_top`)
+        self._before: tuple[int, np.ndarray, tuple[int, int]] | None = None
         #: grey top view and valid mask of the last successfully warped photo (for overlays)
         self.last_top: np.ndarray | None = None
         self.last_valid: np.ndarray | None = None
@@ -359,6 +363,7 @@ class LayerPipeline:
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
         """Forget the scene of the previous print (the scene channel starts again from ``bed_photo``)."""
         self.previous_photo = None
+        self._before = None
         self.typer.reset()
         self.view_shift.reset()
         if self.scene is not None:
@@ -489,7 +494,9 @@ class LayerPipeline:
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid, top_bgr, ref.footprint)
             t_type = time.perf_counter()
-            self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid)
+            before = self._before if self._before is not None and self._before[0] < index else None
+            self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid,
+                                   previous=None if before is None else partial(self._previous_top, before, ref.z))
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
             with self.checks.frame():  # the checks' plane maps built once for both
                 self.checks.after_layer(res, photo, index, self.footprint)
@@ -504,7 +511,24 @@ class LayerPipeline:
                           **{k: v for k, v in res.timings_ms.items() if k != "total"},
                           "total": (t3 - t0) * 1e3}
         self.last_top, self.last_valid = top, valid
+        self._before = (index, photo, shift)
         return res
+
+    def _previous_top(self, before: tuple[int, np.ndarray, tuple[int, int]], z: float,
+                      box: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The print's previous analysed photo ``before`` as a grey top view of the plane ``z`` on ``box``.
+
+        Its own residual view shift undone as :func:`moved_back` undid it (the box read
+        from the warp is offset by it), so that it lies pixel for pixel on the new
+        photo's top view; ``(top, valid)``, None when the offset box leaves the view.
+        """
+        _, photo, (dx, dy) = before
+        h, w = self.topview.shape
+        b = (slice(box[0].start + dy, box[0].stop + dy), slice(box[1].start + dx, box[1].stop + dx))
+        if b[0].start < 0 or b[1].start < 0 or b[0].stop > h or b[1].stop > w:
+            return None
+        top, valid = self.warper.warp(photo, z, box=b)
+        return grey_u8(top), valid
 
     def _scene_result(self, res: LayerResult, obs: SceneObservation, photo: np.ndarray, z: float,
                       valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
