@@ -150,7 +150,10 @@ def run(rev: str = "e74a860", rounds: int = 3, size: tuple[int, int] = (1920, 10
         typer_cls = old_typing[TYPING_MODULE].FailureTyper
         assert old_typing[TYPING_MODULE].__file__ != lw_typing.__file__, "the baseline typer is the current code"
         pipes["old_typing"] = _pipeline(current, False, bed, size)
-        pipes["old_typing"].typer = typer_cls(pipes["old_typing"].toolpath, pipes["old_typing"].topview)
+        old_typer = typer_cls(pipes["old_typing"].toolpath, pipes["old_typing"].topview)
+        typed = old_typer.type_result  # the old typer takes no previous photo (series-mode evidence added since)
+        old_typer.type_result = lambda *a, previous=None, **k: typed(*a, **k)
+        pipes["old_typing"].typer = old_typer
     times = {k: [] for k in pipes}
     cpu = {k: [] for k in pipes}
     results = {k: {} for k in pipes}

@@ -518,14 +518,16 @@ def _new_place(r: np.ndarray, a: np.ndarray, b: np.ndarray, ref_edges: np.ndarra
     :func:`_new_edges_match` outside the reference's own edges (above :data:`PLANNED_EDGE` of
     their 99th percentile, widened by 2 px): the near peaks of the layers below land
     mostly on those edges, the layer's true new place does not. ``hints`` (``(du, dv)`` px,
-    e.g. the print's shift seen earlier) are candidates too, whatever their height.
+    e.g. the print's shift seen earlier) are candidates too, whatever their height, unless
+    ``near`` or nearer to ``chosen`` or a candidate (this photo's own peak measures that move).
     """
     h, w = r.shape
     zero = _peak(r, near)[2]
     cands = _candidates(r, reach, near, CANDIDATE_PEAK * zero)
-    for du, dv in hints or []:
+    for du, dv in hints or []:  # a hint this photo's own peaks do not already measure
         v, u = int(round(dv)) + h // 2, int(round(du)) + w // 2
-        if 0 < v < h - 1 and 0 < u < w - 1:
+        known = [(chosen[1] + h // 2, chosen[0] + w // 2), *cands]
+        if 0 < v < h - 1 and 0 < u < w - 1 and min(math.hypot(v - a, u - b) for a, b in known) >= near:
             cands.append((v, u))
     strong = ref_edges[ref_edges > 0]
     if not cands or strong.size == 0:
