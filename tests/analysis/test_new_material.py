@@ -60,7 +60,8 @@ def test_the_new_material_registers_at_a_shifts_onset_and_is_placed_there(shift)
     assert m.moved and np.hypot(m.dx_mm - shift[0], m.dy_mm - shift[1]) < 0.5
     assert nm.placed(m)
     crop = nm.box  # the previous photo's crop alone gives the same
-    assert NewMaterial(top, previous[crop], ref, foot, TOPVIEW).motion() == m
+    c = NewMaterial(top, previous[crop], ref, foot, TOPVIEW).motion()
+    assert np.hypot(c.dx_mm - m.dx_mm, c.dy_mm - m.dy_mm) < 0.05
 
 
 @pytest.mark.parametrize("cubes", [CUBES[:1], CUBES])
