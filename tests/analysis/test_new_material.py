@@ -13,7 +13,7 @@ import pytest
 from analysis_scenes import TOPVIEW
 from report_case import report_case
 
-from layerwatch.analysis.part_registration import NewMaterial, PartMotion
+from layerwatch.analysis.part_registration import NewMaterial, PartMotion, part_motion
 
 S = TOPVIEW.px_per_mm
 BED = 60
@@ -62,6 +62,11 @@ def test_the_new_material_registers_at_a_shifts_onset_and_is_placed_there(shift)
     crop = nm.box  # the previous photo's crop alone gives the same
     c = NewMaterial(top, previous[crop], ref, foot, TOPVIEW).motion()
     assert np.hypot(c.dx_mm - m.dx_mm, c.dy_mm - m.dy_mm) < 0.05
+    got: dict = {}  # the registration's own edge images of the crop, reused: the same images (up to OpenCV's
+    part_motion(top, ref, foot, TOPVIEW, crop_edges=got)  # float rounding, which follows the arrays' alignment)
+    reused = NewMaterial(top, previous, ref, foot, TOPVIEW, crop_edges=got)
+    assert got["box"] == crop
+    assert np.allclose(reused.layer, nm.layer, atol=1e-3) and np.allclose(reused.new, nm.new, atol=1e-3)
 
 
 @pytest.mark.parametrize("cubes", [CUBES[:1], CUBES])

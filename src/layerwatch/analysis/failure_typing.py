@@ -914,8 +914,9 @@ class FailureTyper:
             return None
         try:
             fp_box = mask_box(footprint)
+            crop_edges: dict = {}  # the registration's edge images, for the new material's
             motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box,
-                                 hints=() if self.shift_motion is None else (self.shift_motion,))
+                                 hints=() if self.shift_motion is None else (self.shift_motion,), crop_edges=crop_edges)
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
                            below=lambda: self._part_below(res.layer), seen=lambda: self._part_seen(res.layer))
             if motion.moved and scene.arrived(motion) < ARRIVED_MIN:  # bare bed where the layer would now be
@@ -924,7 +925,7 @@ class FailureTyper:
 
             def new_material() -> NewMaterial | None:  # made once, when first needed
                 if not made:
-                    made.append(self._new_material(previous, top, reference, footprint, valid, fp_box))
+                    made.append(self._new_material(previous, top, reference, footprint, valid, fp_box, crop_edges))
                 return made[0]
 
             if not motion.moved:
@@ -962,14 +963,15 @@ class FailureTyper:
 
     def _new_material(self, previous: Callable[[tuple[slice, slice]], tuple[np.ndarray, np.ndarray] | None] | None,
                       top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, valid: np.ndarray | None,
-                      fp_box: tuple[int, int, int, int] | None) -> NewMaterial | None:
-        """:class:`NewMaterial` against the print's previous photo (``previous``), None without one."""
+                      fp_box: tuple[int, int, int, int] | None, crop_edges: dict | None = None) -> NewMaterial | None:
+        """:class:`NewMaterial` against the print's previous photo (``previous``), None without one
+        (``crop_edges``: :func:`part_motion`'s edge images of the crop, reused)."""
         if previous is None or fp_box is None:
             return None
         before = previous(crop_box(footprint, self.topview, fp_box))
         if before is None:
             return None
-        return NewMaterial(top, before[0], reference, footprint, self.topview, valid, before[1], fp_box)
+        return NewMaterial(top, before[0], reference, footprint, self.topview, valid, before[1], fp_box, crop_edges)
 
     def _other_moves(self, motion: PartMotion, scene: _Scene,
                      new_material: Callable[[], NewMaterial | None]) -> tuple[PartMotion, bool]:

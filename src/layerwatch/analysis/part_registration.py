@@ -291,7 +291,7 @@ def _rotation(a: np.ndarray, b: np.ndarray, centre: tuple[float, float]) -> tupl
 def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, topview: TopView,
                 valid: np.ndarray | None = None,
                 footprint_box: tuple[int, int, int, int] | None = None,
-                hints: tuple[PartMotion, ...] = ()) -> PartMotion:
+                hints: tuple[PartMotion, ...] = (), crop_edges: dict | None = None) -> PartMotion:
     """Register the printed part's top layer in the top view against its reference: translation (mm) and rotation.
 
     Parameters
@@ -311,6 +311,10 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
         Translations known from elsewhere (the print's layer shift seen on an earlier photo:
         a shift stays), compared with the strong peaks as the moved layer's new place
         when the part moved and did not turn (:func:`_new_place`).
+    crop_edges : dict, optional
+        Filled with the registered crop (``"box"``, :func:`crop_box`) and its edge images
+        (``"layer"``: the top layer's reference edges, ``"top"``: the photo's, both zero where
+        unseen) for :class:`NewMaterial` to reuse.
 
     Returns
     -------
@@ -359,6 +363,8 @@ def part_motion(top: np.ndarray, reference: np.ndarray, footprint: np.ndarray, t
     ref_edges = edges(reference[box])
     a = ref_edges * top_layer * seen  # unseen pixels 0 (edge strengths are finite)
     b = edges(top[box]) * seen
+    if crop_edges is not None:
+        crop_edges.update(box=box, layer=a, top=b)
     h, w = a.shape
     if h < 16 or w < 16 or not a.any() or not b.any():
         return PartMotion()
@@ -432,6 +438,8 @@ class NewMaterial:
         Pixels the camera saw in ``top`` (H, W) and in ``previous`` (its shape).
     footprint_box : tuple of int, optional
         :func:`mask_box` of ``footprint``.
+    crop_edges : dict, optional
+        :func:`part_motion`'s edge images of the same crop (its ``crop_edges``), not computed again.
 
     Notes
     -----
@@ -441,7 +449,7 @@ class NewMaterial:
 
     def __init__(self, top: np.ndarray, previous: np.ndarray, reference: np.ndarray, footprint: np.ndarray,
                  topview: TopView, valid: np.ndarray | None = None, previous_valid: np.ndarray | None = None,
-                 footprint_box: tuple[int, int, int, int] | None = None) -> None:
+                 footprint_box: tuple[int, int, int, int] | None = None, crop_edges: dict | None = None) -> None:
         fp = np.asarray(footprint, bool)
         self.topview = topview
         self.box = crop_box(fp, topview, footprint_box)
@@ -450,12 +458,16 @@ class NewMaterial:
         seen = np.ones(fp[box].shape, bool) if valid is None else np.asarray(valid, bool)[box]
         if previous_valid is not None:
             seen = seen & np.asarray(previous_valid, bool)[box if whole else (slice(None), slice(None))]
-        k = int(round(topview.px_per_mm)) * 2 + 1
-        top_layer = cv2.GaussianBlur(cv2.dilate(fp[box].astype(np.uint8), np.ones((k, k), np.uint8)).astype(np.float32),
-                                     (0, 0), 2.0)
+        if crop_edges is not None and crop_edges.get("box") == box:  # part_motion's, zero where unseen
+            layer, top_edges = crop_edges["layer"], crop_edges["top"]
+        else:
+            k = int(round(topview.px_per_mm)) * 2 + 1
+            top_layer = cv2.GaussianBlur(cv2.dilate(fp[box].astype(np.uint8), np.ones((k, k), np.uint8))
+                                         .astype(np.float32), (0, 0), 2.0)
+            layer, top_edges = edges(reference[box]) * top_layer, edges(top[box])
         #: the layer's reference edges (top layer) and the photo's new edges on :attr:`box`, float32
-        self.layer = edges(reference[box]) * top_layer * seen
-        self.new = np.maximum(edges(top[box]) - edges(previous[box] if whole else previous), 0.0) * seen
+        self.layer = layer * seen
+        self.new = np.maximum(top_edges - edges(previous[box] if whole else previous), 0.0) * seen
 
     def motion(self) -> PartMotion:
         """The translation (bed mm) of the highest peak of the phase correlation of the layer's edges against
