@@ -93,6 +93,7 @@ from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.layer_change import LayerChange
 from layerwatch.pipeline.policy import Decision, PausePolicy, layer_alarm
+from layerwatch.pipeline.previous_view import PreviousView, typing_area
 from layerwatch.pipeline.scene import SceneModel, SceneObservation
 from layerwatch.pipeline.scene_hold import failing_blocks
 from layerwatch.pipeline.shared_references import SharedReferences, reference_identity
@@ -205,9 +206,11 @@ class LayerPipeline:
         self.frame_gate = frame_gate
         #: last photo the frame gate passed (its ``previous`` argument)
         self.previous_photo: np.ndarray | None = None
-        #: the print's last analysed photo ``(layer, photo, residual view shift)``: what the failure typing
-        #: compares the new photo with (:meth:`_previous_top`)
-        self._before: tuple[int, np.ndarray, tuple[int, int]] | None = None
+        #: the print's last analysed photo as the next layer's plane shows it: what the failure typing compares
+        #: the new photo with (:mod:`layerwatch.pipeline.previous_view`; ~0.3 MB, not the 6 MB photo)
+        self._before: PreviousView | None = None
+        #: the top-view rows and columns any layer's typing reads of the previous photo
+        self._typing_area = typing_area(print_reach_mm(toolpath), self.topview)
         #: grey top view and valid mask of the last successfully warped photo (for overlays)
         self.last_top: np.ndarray | None = None
         self.last_valid: np.ndarray | None = None
@@ -494,9 +497,9 @@ class LayerPipeline:
             if obs is not None:
                 self._scene_result(res, obs, photo, ref.z, valid, top_bgr, ref.footprint)
             t_type = time.perf_counter()
-            before = self._before if self._before is not None and self._before[0] < index else None
+            before = self._before if self._before is not None and self._before.layer < index else None
             self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid,
-                                   previous=None if before is None else partial(self._previous_top, before, ref.z))
+                                   previous=None if before is None else partial(before.top, self.warper, ref.z))
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
             with self.checks.frame():  # the checks' plane maps built once for both
                 self.checks.after_layer(res, photo, index, self.footprint)
@@ -506,29 +509,24 @@ class LayerPipeline:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
             return self._error(base, f"could not analyse the photo ({type(exc).__name__}: {exc}).", timings, t0)
+        self._before = self._kept_view(photo, index, shift)  # (its warp is this step's work: timed in it)
         t3 = time.perf_counter()
         res.timings_ms = {**timings, "analysis": (t3 - t2) * 1e3,
                           **{k: v for k, v in res.timings_ms.items() if k != "total"},
                           "total": (t3 - t0) * 1e3}
         self.last_top, self.last_valid = top, valid
-        self._before = (index, photo, shift)
         return res
 
-    def _previous_top(self, before: tuple[int, np.ndarray, tuple[int, int]], z: float,
-                      box: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray] | None:
-        """The print's previous analysed photo ``before`` as a grey top view of the plane ``z`` on ``box``.
-
-        Its own residual view shift undone as :func:`moved_back` undid it (the box read
-        from the warp is offset by it), so that it lies pixel for pixel on the new
-        photo's top view; ``(top, valid)``, None when the offset box leaves the view.
-        """
-        _, photo, (dx, dy) = before
-        h, w = self.topview.shape
-        b = (slice(box[0].start + dy, box[0].stop + dy), slice(box[1].start + dx, box[1].stop + dx))
-        if b[0].start < 0 or b[1].start < 0 or b[0].stop > h or b[1].stop > w:
+    def _kept_view(self, photo: np.ndarray, index: int, shift: tuple[int, int]) -> PreviousView | None:
+        """What the next photo's failure typing reads of this one (:class:`PreviousView` of the next layer's plane);
+        None after the last layer."""
+        if not 0 <= index < self.toolpath.n_layers - 1:
             return None
-        top, valid = self.warper.warp(photo, z, box=b)
-        return grey_u8(top), valid
+        try:
+            return PreviousView.capture(self.warper, photo, index, float(self.toolpath.layers[index + 1].z),
+                                        self._typing_area, shift)
+        except LayerwatchError:  # (the next plane unseen): the next photo is typed without this one
+            return None
 
     def _scene_result(self, res: LayerResult, obs: SceneObservation, photo: np.ndarray, z: float,
                       valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
