@@ -1,25 +1,23 @@
-"""The print's previous photo, kept as the next layer's plane shows it.
+"""The print's previous photo, kept as the top view the step already made of it.
 
 Series mode compares each photo with the one before it
 (:class:`~layerwatch.analysis.part_registration.NewMaterial`: the edges that
 are new since the previous photo, on the new layer's plane). Keeping the
 previous photo itself costs 6 MB a printer at 1080p, most of a farm printer's
-budget (10 MB), and only a few hundred kilobytes of it are ever read: the top
-view of the layer's surroundings on the next plane.
+budget (10 MB), and warping it again onto the new plane costs a whole warp
+(~4 ms at 1080p); only a few hundred kilobytes of it are ever read, and only
+on the layers that have failing regions to type.
 
-:class:`PreviousView` keeps exactly that. After a photo is analysed, its grey
-top view of the next layer's plane is warped on the current footprint's
-registration crop (:func:`~layerwatch.analysis.part_registration.crop_box`)
-widened by :data:`GROWTH_MM`, offset by the photo's residual view shift as
-:func:`~layerwatch.analysis.view_shift.moved_back` undoes it (~0.3 MB, uint8,
-for the example part). When the next photo is of that layer (the usual case)
-its box is read out of the kept view: the pixels of a warp of the previous
-photo itself, bit for bit (a box's warp is the whole warp's pixels,
-:meth:`~layerwatch.geometry.warp.TopViewWarper.warp`). For another plane (a
-skipped layer, a photo retaken lower) the kept view is moved onto that plane
-through the plane-to-plane homography (eq. 1-3 of Petsiuk & Pearce twice: top
-view -> undistorted image -> top view), bilinear, with what it did not keep
-marked unseen.
+:class:`PreviousView` keeps the analysed photo's grey top view (its own
+layer's plane, its residual view shift undone) on the rows and columns any
+layer's registration crop can read (:func:`typing_area`: the print's reach
+widened as :func:`~layerwatch.analysis.part_registration.crop_box` widens a
+footprint; ~0.3 MB for the example part), a copy of what the step made anyway.
+The next photo's typing asks for it on its own plane: the kept view is moved
+there through the plane-to-plane homography (eqs. 1-3 of Petsiuk & Pearce
+twice: top view -> undistorted image -> top view; the parallax of the layers
+between, ~2 px a layer here), bilinear, unseen where the kept view ends. On
+the kept plane itself it is the kept pixels.
 """
 
 from __future__ import annotations
@@ -28,7 +26,6 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.part_registration import MOVE_MAX_MM
-from layerwatch.analysis.scoring import grey_u8
 from layerwatch.geometry.homography import image_from_top, top_from_image
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
@@ -58,21 +55,21 @@ def typing_area(reach_mm: tuple[float, float, float, float] | None, topview: Top
 
 
 class PreviousView:
-    """One analysed photo's grey top view of the next layer's plane, on the part's surroundings.
+    """One analysed photo's grey top view on the print's surroundings (:meth:`keep`).
 
     Parameters
     ----------
     layer : int
         The photo's layer index.
     z : float
-        The plane kept, mm (the next layer's top).
+        The plane kept, mm (the photo's layer top).
     top : ndarray, uint8, shape (h, w)
-        Grey top view of the photo on ``z``, rows and columns ``box`` of the warp of the raw photo
-        (before the residual view shift is undone: :meth:`top` offsets the boxes it is asked for).
+        Grey top view of the photo on ``z`` as analysed (its residual view shift undone), rows and
+        columns ``box``.
     valid : ndarray, bool, shape (h, w)
         Pixels of ``top`` the camera saw.
     box : (slice, slice)
-        Where ``top`` lies in the whole top view of the raw photo, px.
+        Where ``top`` lies in the whole top view, px.
     shift : (int, int)
         The photo's residual view shift ``(dx, dy)``, top-view px.
     """
@@ -91,72 +88,65 @@ class PreviousView:
         return int(self._top.nbytes + self._valid.nbytes)
 
     @classmethod
-    def capture(cls, warper: TopViewWarper, photo: np.ndarray, layer: int, z_next: float,
-                area: tuple[slice, slice], shift: tuple[int, int]) -> PreviousView | None:
-        """Keep ``photo`` (analysed as layer ``layer``) as the plane ``z_next`` shows it on ``area``.
+    def keep(cls, layer: int, z: float, top: np.ndarray, valid: np.ndarray, area: tuple[slice, slice],
+             shift: tuple[int, int]) -> PreviousView:
+        """Keep ``area`` of an analysed photo's top view.
+
+        Parameters
+        ----------
+        layer : int
+            The photo's layer index.
+        z : float
+            The plane of ``top``, mm (the layer's top).
+        top : ndarray, uint8, shape (H, W)
+            Grey top view as analysed (:func:`~layerwatch.analysis.view_shift.moved_back` applied).
+        valid : ndarray, bool, shape (H, W)
+            Pixels of ``top`` the camera saw.
+        area : (slice, slice)
+            Rows and columns kept (:func:`typing_area`).
+        shift : (int, int)
+            The photo's residual view shift ``(dx, dy)``, top-view px (what ``moved_back`` undid).
+        """
+        return cls(layer, z, np.array(top[area], np.uint8), np.asarray(valid, bool)[area], area, shift)
+
+    def top(self, warper: TopViewWarper, z: float, box: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The kept photo as a grey top view of the plane ``z`` on ``box``, lying on the new photo's top view.
+
+        Both top views are in the analysed frame (each photo's residual view shift undone): a top-view
+        pixel ``p`` of the new plane is ``p + s`` of the kept photo's raw warp (``s`` its shift), which
+        the planes' homography ``H`` takes to ``H (p + s)`` on the kept plane, ``H (p + s) - s`` in
+        the kept view.
 
         Parameters
         ----------
         warper : TopViewWarper
-            The pipeline's warper.
-        photo : ndarray, uint8, shape (h, w) or (h, w, 3)
-            The camera frame as analysed.
-        layer : int
-        z_next : float
-            The plane of the layer the next photo is expected of, mm.
-        area : (slice, slice)
-            Top-view rows and columns the next photo's typing may read, in the analysed frame
-            (:func:`typing_area`).
-        shift : (int, int)
-            The photo's residual view shift ``(dx, dy)``, top-view px (:meth:`ViewShift.update
-            <layerwatch.analysis.view_shift.ViewShift.update>`).
-
-        Returns
-        -------
-        PreviousView or None
-            None when ``area``, offset by the shift, is outside the view.
-        """
-        dx, dy = int(shift[0]), int(shift[1])
-        h, w = warper.topview.shape
-        # the raw photo's rows and columns that moved_back puts onto ``area`` (clipped to the view)
-        box = (slice(max(area[0].start + dy, 0), min(area[0].stop + dy, h)),
-               slice(max(area[1].start + dx, 0), min(area[1].stop + dx, w)))
-        if box[0].stop <= box[0].start or box[1].stop <= box[1].start:
-            return None
-        top, valid = warper.warp(photo, z_next, box=box)
-        return cls(layer, z_next, grey_u8(top), valid, box, (dx, dy))
-
-    def top(self, warper: TopViewWarper, z: float, box: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray] | None:
-        """The kept photo as a grey top view of the plane ``z`` on ``box``, its residual view shift undone.
-
-        ``box`` is in the analysed photo's frame (its view shift undone): the kept photo's own shift
-        is undone as :func:`~layerwatch.analysis.view_shift.moved_back` undid it (the box read from
-        its warp is offset by it), so the result lies pixel for pixel on the new photo's top view.
+            The pipeline's warper (its camera and top view).
+        z : float
+            The new photo's plane, mm.
+        box : (slice, slice)
+            Top-view rows and columns wanted.
 
         Returns
         -------
         (top, valid) or None
-            Grey uint8 and bool, the shape of ``box``; None when the offset box leaves the view.
-            On the kept plane and inside the kept box: the warp of the photo itself, bit for bit.
+            Grey uint8 and bool, the shape of ``box``; None for an empty box. ``valid`` is False
+            where the kept view did not reach or was unseen (every pixel a bilinear sample reads).
         """
-        h, w = warper.topview.shape
-        dx, dy = self.shift
-        b = (slice(box[0].start + dy, box[0].stop + dy), slice(box[1].start + dx, box[1].stop + dx))
-        if b[0].start < 0 or b[1].start < 0 or b[0].stop > h or b[1].stop > w:
+        if box[0].stop <= box[0].start or box[1].stop <= box[1].start:
             return None
         r0, c0 = self.box[0].start, self.box[1].start
         kh, kw = self.box[0].stop - r0, self.box[1].stop - c0
         valid_kept = np.unpackbits(self._valid, count=kh * kw).view(bool).reshape(kh, kw)
-        if round(float(z), 4) == round(self.z, 4) and (r0 <= b[0].start and b[0].stop <= self.box[0].stop
-                                                     and c0 <= b[1].start and b[1].stop <= self.box[1].stop):
-            rows, cols = slice(b[0].start - r0, b[0].stop - r0), slice(b[1].start - c0, b[1].stop - c0)
+        if round(float(z), 4) == round(self.z, 4) and (r0 <= box[0].start and box[0].stop <= self.box[0].stop
+                                                     and c0 <= box[1].start and box[1].stop <= self.box[1].stop):
+            rows, cols = slice(box[0].start - r0, box[0].stop - r0), slice(box[1].start - c0, box[1].stop - c0)
             return self._top[rows, cols].copy(), valid_kept[rows, cols].copy()
-        # another plane, or beyond the kept box: the kept view moved onto plane z (raw-photo frames both)
         cam, tv = warper.camera, warper.topview
-        to_kept = top_from_image(cam, tv, self.z) @ image_from_top(cam, tv, float(z))
-        M = (np.array([[1.0, 0, -c0], [0, 1, -r0], [0, 0, 1]]) @ to_kept
-             @ np.array([[1.0, 0, b[1].start], [0, 1, b[0].start], [0, 0, 1]]))
-        size = (b[1].stop - b[1].start, b[0].stop - b[0].start)
+        dx, dy = self.shift
+        planes = top_from_image(cam, tv, self.z) @ image_from_top(cam, tv, float(z))  # raw top(z) -> raw top(kept)
+        M = (np.array([[1.0, 0, -dx - c0], [0, 1, -dy - r0], [0, 0, 1]]) @ planes
+             @ np.array([[1.0, 0, box[1].start + dx], [0, 1, box[0].start + dy], [0, 0, 1]]))
+        size = (box[1].stop - box[1].start, box[0].stop - box[0].start)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         top = cv2.warpPerspective(self._top, M, size, flags=flags, borderValue=0)
         # seen where every pixel the bilinear sample reads was seen (an unseen one blends in its zero)

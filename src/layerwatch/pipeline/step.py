@@ -206,8 +206,8 @@ class LayerPipeline:
         self.frame_gate = frame_gate
         #: last photo the frame gate passed (its ``previous`` argument)
         self.previous_photo: np.ndarray | None = None
-        #: the print's last analysed photo as the next layer's plane shows it: what the failure typing compares
-        #: the new photo with (:mod:`layerwatch.pipeline.previous_view`; ~0.3 MB, not the 6 MB photo)
+        #: the print's last analysed photo as its top view: what the failure typing compares the new photo with
+        #: on the new plane (:mod:`layerwatch.pipeline.previous_view`; ~0.3 MB, not the 6 MB photo)
         self._before: PreviousView | None = None
         #: the top-view rows and columns any layer's typing reads of the previous photo
         self._typing_area = typing_area(print_reach_mm(toolpath), self.topview)
@@ -509,24 +509,14 @@ class LayerPipeline:
             return self._error(base, str(exc), timings, t0)
         except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
             return self._error(base, f"could not analyse the photo ({type(exc).__name__}: {exc}).", timings, t0)
-        self._before = self._kept_view(photo, index, shift)  # (its warp is this step's work: timed in it)
+        # what the next photo's typing reads of this one (a copy of the print's surroundings, ~0.3 MB)
+        self._before = PreviousView.keep(index, ref.z, top, valid, self._typing_area, shift)
         t3 = time.perf_counter()
         res.timings_ms = {**timings, "analysis": (t3 - t2) * 1e3,
                           **{k: v for k, v in res.timings_ms.items() if k != "total"},
                           "total": (t3 - t0) * 1e3}
         self.last_top, self.last_valid = top, valid
         return res
-
-    def _kept_view(self, photo: np.ndarray, index: int, shift: tuple[int, int]) -> PreviousView | None:
-        """What the next photo's failure typing reads of this one (:class:`PreviousView` of the next layer's plane);
-        None after the last layer."""
-        if not 0 <= index < self.toolpath.n_layers - 1:
-            return None
-        try:
-            return PreviousView.capture(self.warper, photo, index, float(self.toolpath.layers[index + 1].z),
-                                        self._typing_area, shift)
-        except LayerwatchError:  # (the next plane unseen): the next photo is typed without this one
-            return None
 
     def _scene_result(self, res: LayerResult, obs: SceneObservation, photo: np.ndarray, z: float,
                       valid: np.ndarray, top_bgr: np.ndarray, footprint: np.ndarray) -> None:
