@@ -16,8 +16,8 @@ footprint; ~0.3 MB for the example part), a copy of what the step made anyway.
 The next photo's typing asks for it on its own plane: the kept view is moved
 there through the plane-to-plane homography (eqs. 1-3 of Petsiuk & Pearce
 twice: top view -> undistorted image -> top view; the parallax of the layers
-between, ~2 px a layer here), bilinear, unseen where the kept view ends. On
-the kept plane itself it is the kept pixels.
+between, ~2 px a layer here), bilinear, unseen where the kept view ends (on
+the kept plane itself the homography is the identity: the kept pixels).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from layerwatch.analysis.part_registration import MOVE_MAX_MM
+from layerwatch.analysis.part_registration import MOVE_MAX_MM, pad_box
 from layerwatch.geometry.homography import image_from_top, top_from_image
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
@@ -48,10 +48,9 @@ def typing_area(reach_mm: tuple[float, float, float, float] | None, topview: Top
     if reach_mm is None or not np.all(np.isfinite(reach_mm)):
         return slice(0, h), slice(0, w)
     (u0, v0), (u1, v1) = topview.to_px(np.array([reach_mm[:2], reach_mm[2:]], float))
-    pad = int(np.ceil(MOVE_MAX_MM * topview.px_per_mm)) + 2
-    us, vs = sorted((u0, u1)), sorted((v0, v1))
-    return (slice(max(int(np.floor(vs[0])) - pad, 0), min(int(np.ceil(vs[1])) + pad + 1, h)),
-            slice(max(int(np.floor(us[0])) - pad, 0), min(int(np.ceil(us[1])) + pad + 1, w)))
+    (v0, v1), (u0, u1) = sorted((v0, v1)), sorted((u0, u1))
+    box = (int(np.floor(v0)), int(np.ceil(v1)) + 1, int(np.floor(u0)), int(np.ceil(u1)) + 1)
+    return pad_box(box, int(np.ceil(MOVE_MAX_MM * topview.px_per_mm)) + 2, (h, w))
 
 
 class PreviousView:
@@ -137,10 +136,6 @@ class PreviousView:
         r0, c0 = self.box[0].start, self.box[1].start
         kh, kw = self.box[0].stop - r0, self.box[1].stop - c0
         valid_kept = np.unpackbits(self._valid, count=kh * kw).view(bool).reshape(kh, kw)
-        if round(float(z), 4) == round(self.z, 4) and (r0 <= box[0].start and box[0].stop <= self.box[0].stop
-                                                     and c0 <= box[1].start and box[1].stop <= self.box[1].stop):
-            rows, cols = slice(box[0].start - r0, box[0].stop - r0), slice(box[1].start - c0, box[1].stop - c0)
-            return self._top[rows, cols].copy(), valid_kept[rows, cols].copy()
         cam, tv = warper.camera, warper.topview
         dx, dy = self.shift
         planes = top_from_image(cam, tv, self.z) @ image_from_top(cam, tv, float(z))  # raw top(z) -> raw top(kept)
