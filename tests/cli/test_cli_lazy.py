@@ -41,6 +41,8 @@ def test_history_works_without_loading_the_web_extra(tmp_path):
     code = (
         "import sys, io, contextlib\n"
         "from layerwatch.cli import main\n"
+        "from layerwatch.storage.history import History\n"
+        f"History({str(tmp_path / 'h.db')!r}).close()\n"
         "with contextlib.redirect_stdout(io.StringIO()):\n"
         f"    assert main(['history', '--db', {str(tmp_path / 'h.db')!r}]) == 0\n"
         "print(','.join(m for m in ('fastapi', 'starlette', 'uvicorn', 'layerwatch.web.app') if m in sys.modules))\n"

@@ -60,6 +60,19 @@ def test_cli_history_and_report(history, image_root, tmp_path, capsys):
     assert main(["report", "42", "--db", db, "-o", str(tmp_path / "r")]) == 2
 
 
+def test_history_and_report_leave_no_database_behind_a_mistyped_db(tmp_path, capsys, monkeypatch):
+    """The read-only verbs create no database (nor its folders): a --db naming none is exit 2, no default is 0 jobs."""
+    missing = tmp_path / "typo" / "histroy.db"
+    assert main(["history", "--db", str(missing)]) == 2
+    assert main(["report", "1", "--db", str(missing), "-o", str(tmp_path / "rep")]) == 2
+    assert not (tmp_path / "typo").exists()
+    monkeypatch.setenv("LAYERWATCH_DB", str(missing))  # the default database, not made yet
+    capsys.readouterr()
+    assert main(["history"]) == 0 and "0 job(s): no history database at" in capsys.readouterr().out
+    assert main(["report", "1", "-o", str(tmp_path / "rep")]) == 2
+    assert not (tmp_path / "typo").exists()
+
+
 def test_token_created_0600_once(tmp_path):
     p = tmp_path / "cfg" / "token"
     tok, created = load_or_create_token(p)

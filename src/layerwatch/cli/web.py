@@ -37,9 +37,37 @@ def _open(db: Path | None):
     return History(db or default_db())
 
 
+#: what writes a history database, for the read-only verbs' messages
+_WRITERS = "`layerwatch serve` and `layerwatch monitor --history FILE` write one"
+
+
+def _existing_db(db: Path | None) -> Path | None:
+    """The database the read-only verbs (``history``, ``report``) read; None when the default one is not made yet.
+
+    They create nothing: a ``--db`` that names no database file is a mistake (one line, exit 2), where
+    opening it would leave a new empty database, and its folders, at the mistyped path.
+
+    Raises
+    ------
+    ConfigError
+        ``--db`` names no file, or something that is not a file.
+    """
+    path = db or default_db()
+    if path.is_file():
+        return path
+    if db is None and not path.exists():
+        return None
+    what = "is not a file" if path.exists() else "does not exist"
+    raise ConfigError(f"history database {path} {what}; give the --db of the print's history ({_WRITERS}).")
+
+
 def history(db: DbOpt = None) -> None:
-    """List the jobs in the history database."""
-    with _open(db) as h:
+    """List the jobs in the history database (a missing database is listed as empty, not created)."""
+    path = _existing_db(db)
+    if path is None:
+        console.print(f"0 job(s): no history database at {default_db()} yet ({_WRITERS}).", soft_wrap=True)
+        return
+    with _open(path) as h:
         jobs = h.jobs()
     table = Table(title=f"{len(jobs)} job(s)")
     for col in ("job", "printer", "part", "started", "layers", "max a%", "outcome"):
@@ -58,7 +86,10 @@ def report(
     images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder the stored image paths are relative to (default: beside the database).")] = None,
 ) -> None:
     """Write a self-contained HTML report of one job."""
-    with _open(db) as h:
+    path = _existing_db(db)
+    if path is None:
+        raise ConfigError(f"no history database at {default_db()}; give the --db of the print's history ({_WRITERS}).")
+    with _open(path) as h:
         path = build_report(h, job, out, image_root=images)
     console.print(f"report written to [bold]{path}[/]")
 
