@@ -36,7 +36,7 @@ def main(argv: list[str]) -> int:
     tot = {"layers": 0, "layer_alarms": 0, "policy_alarms": 0, "pauses": 0, "max_a": 0.0, "sum_a": 0.0}
     t0 = time.perf_counter()
     for s in seeds:
-        got = _clean_print(part, cfg, cam, pol, s, lambda: None)
+        got = _clean_print(part, cfg, cam, pol, s, None, lambda: None)
         mean_a = sum(got["a"]) / max(len(got["a"]), 1)
         print(f"seed {s}: layers {got['layers']} alarms {got['layer_alarms']} policy {got['policy_alarms']} "
               f"pauses {got['pauses']} max_a {got['max_a']:.4f} mean_a {mean_a:.5f}", flush=True)

@@ -63,7 +63,7 @@ def main() -> None:
             continue
         taken[kind] += 1
         records, _ = harness._scenario_records(tp, cam, cfg, scen, layers, a.seed * 1000 + k, False, ("series",),
-                                               lambda: None)
+                                               None, lambda: None)
         for r in records:
             m = r.modes["series"]
             rows.append({"scenario": r.scenario, "layer": r.layer, "kind": r.kind, "size_mm": r.size_mm,

@@ -22,7 +22,7 @@ from layerwatch.gcode import read_toolpath
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.pipeline.config import observed_square, resolve_config
 from layerwatch.pipeline.scene import load_bed_photo
-from layerwatch.simulate import Failure, PrintSimulator, default_camera, save_frame
+from layerwatch.simulate import Failure, PrintSimulator, SimSettings, default_camera, save_frame
 
 __all__ = ["register"]
 
@@ -121,6 +121,22 @@ def analyze(
         console.print("no layer would have paused the print")
 
 
+PhotorealOpt = Annotated[bool, typer.Option("--photoreal", help="Render the photos with Blender Cycles (needs `blender`; "
+                                           "seconds a photo) instead of the simulator's ray caster.")]
+SamplesOpt = Annotated[int, typer.Option("--samples", parser=Finite(1, 4096, integer=True), help="Cycles samples per "
+                                         "pixel with --photoreal.")]
+
+
+def _sim_settings(photoreal: bool, samples: int) -> SimSettings | None:
+    """The simulator's settings for ``--photoreal`` (checked for Blender now, not at the first photo)."""
+    if not photoreal:
+        return None
+    from layerwatch.render.blender import find_blender
+
+    find_blender()
+    return SimSettings(renderer="blender", blender_samples=samples)
+
+
 def simulate(
     gcode: Annotated[Path | None, typer.Option("--gcode", "-g", exists=True, dir_okay=False, help="G-code (default: the bundled example part).")] = None,
     failure: Annotated[list[str] | None, typer.Option("--failure", "-f", help="TYPE@LAYER[:SIZE_MM][/beside], repeatable, "
@@ -131,6 +147,8 @@ def simulate(
     seed: Annotated[int, typer.Option("--seed", parser=SEED, help="Simulation seed.")] = 0,
     width: Annotated[int, typer.Option("--width", parser=Finite(64, 8192, integer=True, unit="px"), help="Photo width px (16:9).")] = 1280,
     config: Annotated[Path | None, typer.Option("--config", "-c", exists=True, dir_okay=False, help="Job config TOML ([topview]).")] = None,
+    photoreal: PhotorealOpt = False,
+    samples: SamplesOpt = 32,
 ) -> None:
     """Simulate camera photos of a print (with failures and ground-truth masks) and the empty bed (bed.png)."""
     fails = []
@@ -147,12 +165,13 @@ def simulate(
             fails.append(Failure(kind.strip(), onset=int(onset), **opts))
         except ValueError:
             raise ConfigError(f"--failure {spec!r} is not TYPE@LAYER[:SIZE_MM][/beside]; e.g. spaghetti@15.") from None
+    sim_settings = _sim_settings(photoreal, samples)
     tp = _toolpath(gcode)
     cfg = job_settings(config, gcode, tp).config
     cam = default_camera(cfg.topview.topview(), image_size=(width, int(round(width * 9 / 16))))
     tv = cfg.for_camera(cam).topview.topview()  # truth masks in the top view analyze will use
     out.mkdir(parents=True, exist_ok=True)
-    sim = PrintSimulator(tp, cam, tv, fails, seed=seed)
+    sim = PrintSimulator(tp, cam, tv, fails, seed=seed, settings=sim_settings)
     cv2.imwrite(str(out / "bed.png"), sim.bed_photo())  # the empty bed, kept with the camera as calibrate does
     cam.bed_photo = str(out / "bed.png")
     cam.save(out / "camera.toml")
@@ -182,8 +201,11 @@ def evaluate(
                                           "and spaghetti placed on the bed beside the part.")] = 0.0,
     workers: Annotated[int, typer.Option("--workers", "-j", parser=Finite(0, 1024, integer=True), help="Worker processes "
                                          "(0 = all cores); the report is the same for any number.")] = 1,
+    photoreal: PhotorealOpt = False,
+    samples: SamplesOpt = 32,
 ) -> None:
     """Score the twelve measures on simulated failures; write a Markdown report with charts."""
+    sim_settings = _sim_settings(photoreal, samples)
     tp = _toolpath(gcode)
     flags = {"analysis": {"footprint_margin_mm": margin}} if margin is not None else None
     cfg = job_settings(config, gcode, tp, paper=paper, flags=flags).config
@@ -191,7 +213,8 @@ def evaluate(
     with _progress() as bar:
         task = bar.add_task("simulating + scoring", total=layers)
         data = run_evaluation(tp, cfg, cam, n_layers=layers, seed=seed, match_camera=match_camera, beside_share=beside,
-                              progress=lambda d, n: bar.update(task, completed=d, total=n), workers=workers)
+                              progress=lambda d, n: bar.update(task, completed=d, total=n), workers=workers,
+                              sim_settings=sim_settings)
     s = summarize(data)
     notes = [f"{e}" for e in data.errors]
     clean_run = None
@@ -200,7 +223,8 @@ def evaluate(
             task = bar.add_task("clean prints (false alarms)", total=clean_layers)
             clean_run = clean_false_alarms(tp, cfg, cam, clean_layers, float(cfg.policy.pause_ratio),
                                            consecutive=cfg.policy.consecutive_layers, workers=workers,
-                                           progress=lambda d, n: bar.update(task, completed=d, total=n))
+                                           progress=lambda d, n: bar.update(task, completed=d, total=n),
+                                           sim_settings=sim_settings)
         clean_run.pop("a", None)
         clean_run["setting"] = (f"{cfg.analysis.metric} T_S {cfg.analysis.threshold:.2f}, pause a% > "
                                 f"{100 * cfg.policy.pause_ratio:.1f} % on {cfg.policy.consecutive_layers} layers")

@@ -54,6 +54,7 @@ from layerwatch.simulate import (
     FAILURE_TYPES,
     PrintSimulator,
     Scenario,
+    SimSettings,
     patch_layers,
     random_scenarios,
 )
@@ -321,6 +322,7 @@ def run_evaluation(
     beside_share: float = 0.0,
     modes: tuple[str, ...] = MODES,
     workers: int = 1,
+    sim_settings: SimSettings | None = None,
 ) -> EvalData:
     """Simulate about ``n_layers`` layer photos and score them (see module notes).
 
@@ -348,6 +350,9 @@ def run_evaluation(
         Processes that score the scenarios (:func:`~layerwatch.evaluate.parallel.map_prints`;
         0 = every core). Each scenario has its own seed and pipelines, so the records are
         the same for any number.
+    sim_settings : SimSettings, optional
+        How the photos are made (default :class:`~layerwatch.simulate.settings.SimSettings`: the raster
+        photographer; ``renderer = "blender"``: photoreal, :mod:`layerwatch.simulate.photoreal`).
 
     Returns
     -------
@@ -362,6 +367,7 @@ def run_evaluation(
         "analysis": config.analysis.model_dump(), "match_camera": match_camera, "scene": config.scene.enabled, "beside_share": beside_share,
         "toolpath": Path(str(toolpath.source)).name, "toolpath_layers": toolpath.n_layers, "seed": seed,
         "thin_walls": has_thin_walls(toolpath),  # else a thin-wall defect is a wall gap (report row label)
+        "renderer": _renderer(sim_settings),
     })
     planned = {sc.failures[0].type for sc, _ in plan if sc.failures}
     for t in FAILURE_TYPES:
@@ -369,7 +375,7 @@ def run_evaluation(
             data.errors.append(f"{t}: not injected, no layer of this part can take it (e.g. no infill or no "
                                "perimeters marked in the G-code); not scored")
     data.setup["modes"] = list(modes)
-    tasks = [(toolpath, camera, config, scen, layers, seed * 1000 + k, match_camera, modes)
+    tasks = [(toolpath, camera, config, scen, layers, seed * 1000 + k, match_camera, modes, sim_settings)
              for k, (scen, layers) in enumerate(plan)]
     for records, errors in map_prints(_scenario_records, tasks, [len(ls) for _, ls in plan], workers, progress):
         data.records += records
@@ -378,8 +384,15 @@ def run_evaluation(
     return data
 
 
+def _renderer(settings: SimSettings | None) -> str:
+    """How the photos were made, for the report: ``"raster"`` or ``"blender (N samples)"``."""
+    if settings is None or settings.renderer == "raster":
+        return "raster"
+    return f"blender ({settings.blender_samples} samples)"
+
+
 def _scenario_records(toolpath: Toolpath, camera: CameraModel, config: JobConfig, scen: Scenario, layers: list[int],
-                      sim_seed: int, match_camera: bool, modes: tuple[str, ...],
+                      sim_seed: int, match_camera: bool, modes: tuple[str, ...], sim_settings: SimSettings | None,
                       tick: Callable[[], None]) -> tuple[list[LayerRecord], list[str]]:
     """Simulate one scenario's photos and score them (one task of :func:`run_evaluation`).
 
@@ -391,7 +404,7 @@ def _scenario_records(toolpath: Toolpath, camera: CameraModel, config: JobConfig
     pipe = LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
     single = (LayerPipeline(toolpath, camera, config, match_camera=match_camera, memo=toolpath.n_layers)
               if "single" in modes else None)
-    sim = PrintSimulator(toolpath, camera, tv, scen, seed=sim_seed)
+    sim = PrintSimulator(toolpath, camera, tv, scen, seed=sim_seed, settings=sim_settings)
     bed = sim.bed_photo()
     pipe.new_print(bed if pipe.scene is not None else None)
     size = scen.failures[0].size_mm if scen.failures else 0.0
@@ -427,12 +440,12 @@ _CLEAN_COUNTS = ("layers", "prints", "layer_alarms", "ratio_layers", "policy_ala
 
 
 def _clean_print(toolpath: Toolpath, config: JobConfig, camera: CameraModel, policy_settings, sim_seed: int,
-                 tick: Callable[[], None]) -> dict:
+                 sim_settings: SimSettings | None, tick: Callable[[], None]) -> dict:
     """Run one whole clean print of ``toolpath`` through the step and the policy; the counts of :func:`clean_false_alarms`."""
     tv = config.topview.topview()
     pipe = LayerPipeline(toolpath, camera, config, memo=toolpath.n_layers)
     out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"prints": 1, "max_a": 0.0, "a": [], "max_outside_mm2": 0.0}
-    sim = PrintSimulator(toolpath, camera, tv, (), seed=sim_seed)
+    sim = PrintSimulator(toolpath, camera, tv, (), seed=sim_seed, settings=sim_settings)
     pipe.new_print(sim.bed_photo() if pipe.scene is not None else None)
     paused = False
     photos = ((i, sim.frame(i).photo) for i in range(toolpath.n_layers))
@@ -480,6 +493,7 @@ def clean_false_alarms(
     progress: Callable[[int, int], None] | None = None,
     window_share: float = 0.25,
     workers: int = 1,
+    sim_settings: SimSettings | None = None,
 ) -> dict:
     """Simulate whole clean prints (about ``n_layers`` photos) and count false alarms.
 
@@ -498,7 +512,7 @@ def clean_false_alarms(
     through its wall, a bridge and an overhang: what a height-map reference
     cannot hold), centred on the observed square; the rest are prints of ``toolpath``.
     Each print has its own seed and pipeline, so ``workers`` processes (0 = every core)
-    give the same counts as one.
+    give the same counts as one. ``sim_settings``: how the photos are made (as :func:`run_evaluation`).
 
     Returns
     -------
@@ -517,7 +531,7 @@ def clean_false_alarms(
     if share > 0:
         parts.append(("window part", window_part(center=(float(config.topview.center_mm[0]), float(config.topview.center_mm[1]))), n_layers * share))
     plan = [(name, tp, max(1, int(round(n / tp.n_layers)))) for name, tp, n in parts if n > 0]
-    tasks = [(tp, config, camera, policy_settings, seed + 1000 * k + j)
+    tasks = [(tp, config, camera, policy_settings, seed + 1000 * k + j, sim_settings)
              for k, (_, tp, prints) in enumerate(plan) for j in range(prints)]
     names = [name for name, _, prints in plan for _ in range(prints)]
     out: dict[str, Any] = {k: 0 for k in _CLEAN_COUNTS} | {"max_a": 0.0, "a": [], "max_outside_mm2": 0.0, "parts": {}}

@@ -124,7 +124,12 @@ class PrintSimulator:
         self.grid = TopView(st.grid_px_per_mm, topview.width_mm + 2 * m, topview.height_mm + 2 * m,
                             topview.center_mm)
         self.gp = grid_params(self.grid)
-        self.cam = Photographer(camera, topview, self.grid, st, self.seed)
+        if st.renderer == "blender":  # Blender Cycles for the scene's radiance (simulate/photoreal.py)
+            from layerwatch.simulate.photoreal import BlenderPhotographer
+
+            self.cam: Photographer = BlenderPhotographer(camera, topview, self.grid, st, self.seed)
+        else:
+            self.cam = Photographer(camera, topview, self.grid, st, self.seed)
         self.C = self.cam.C
         self._reset()
 

@@ -111,15 +111,42 @@ class Photographer:
         Returns ``(photo, info)``: BGR uint8 (h, w, 3) and a dict of the frame's
         light position, exposure and blur.
         """
-        st = self.settings
-        s = self.gp[0]
         rng = np.random.default_rng([self.seed, 2, index])
-        # one-cell ledges of lower layers poking out under a tall wall (grid quantisation of
-        # the bead jitter) would read as dark stripes: fold them into the wall
-        k3 = np.ones((3, 3), np.uint8)
-        mx, mn = cv2.dilate(h, k3), cv2.erode(h, k3)
-        ledge = (mx - h > 1.0) & (h - mn > 0.1)
-        h = np.where(ledge, mx, h)
+        light = self.light(rng)
+        rad = self.radiance(h, mat, layer_h, gap, light)
+        return self.develop(rad, index, rng, light)
+
+    def light(self, rng: np.random.Generator) -> np.ndarray:
+        """This frame's lights: ``[Lx, Ly, Lz, ax, ay, az, cos_in, cos_out, I, ambient, fill, dref]``.
+
+        A spot beside the camera (position ``light_offset_mm`` in the camera's axes, jittered by
+        ``light_jitter_mm``; axis to the observed square's centre; full inside 30 deg, none beyond
+        60 deg; intensity ``I`` at distance ``dref``, bed mm), an ambient and an overhead fill
+        (:func:`~layerwatch.simulate.shade.render_view` reads them so).
+        """
+        st = self.settings
+        target = np.array([*self.topview.center_mm, 0.0])
+        off = np.asarray(st.light_offset_mm, float)
+        R = self.camera.R  # camera axes in bed frame are rows of R
+        lpos = self.C + R[0] * off[0] + (-R[1]) * off[2] + R[2] * off[1]
+        lpos = lpos + rng.normal(0, st.light_jitter_mm, 3)
+        axis = target - lpos
+        dref = np.linalg.norm(axis)
+        axis /= dref
+        inten = st.light_intensity * (1 + rng.normal(0, st.light_intensity_jitter))
+        amb = st.ambient * (1 + rng.normal(0, 0.1))
+        return np.array([*lpos, *axis, np.cos(np.deg2rad(30)), np.cos(np.deg2rad(60)), inten, amb,
+                         st.fill, dref])
+
+    def radiance(self, h: np.ndarray, mat: np.ndarray, layer_h: float, gap: np.ndarray | None,
+                 light: np.ndarray) -> np.ndarray:
+        """Linear RGB radiance of the scene seen by the camera, float32 (h, w, 3) (before the sensor).
+
+        The height field ray-cast and shaded by :func:`~layerwatch.simulate.shade.render_view`
+        (``h``, ``mat``, ``gap`` as :meth:`shoot` takes them; ``light`` from :meth:`light`).
+        """
+        s = self.gp[0]
+        h = fold_ledges(h)
         if gap is None:
             gap = np.zeros((*h.shape, 2), np.float32)
         gy, gx = np.gradient(_slits_filled(h, gap, _SLIT_LAYERS * max(float(layer_h), 0.05)))
@@ -131,34 +158,34 @@ class Photographer:
         small = cv2.resize(h, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
         blur = cv2.resize(cv2.GaussianBlur(small, (0, 0), 0.4 * s), h.shape[::-1])
         ao = np.clip(1.0 - 0.35 * (blur - h), 0.35, 1.0).astype(np.float32)
-        rows, cols = np.any(h > 0, 1), np.any(h > 0, 0)
-        if rows.any():
-            v0, v1 = np.flatnonzero(rows)[[0, -1]]
-            u0, u1 = np.flatnonzero(cols)[[0, -1]]
-            (xa, ya), (xb, yb) = self.grid.to_mm(np.array([[u0 - 1, v1 + 1], [u1 + 1, v0 - 1]]))
-            bbox = np.array([xa, ya, xb, yb])
-            zmax = float(h.max())
-        else:
-            bbox, zmax = np.zeros(4), 0.0
-        cam = self.C
-        target = np.array([*self.topview.center_mm, 0.0])
-        off = np.asarray(st.light_offset_mm, float)
-        R = self.camera.R  # camera axes in bed frame are rows of R
-        lpos = cam + R[0] * off[0] + (-R[1]) * off[2] + R[2] * off[1]
-        lpos = lpos + rng.normal(0, st.light_jitter_mm, 3)
-        axis = target - lpos
-        dref = np.linalg.norm(axis)
-        axis /= dref
-        inten = st.light_intensity * (1 + rng.normal(0, st.light_intensity_jitter))
-        amb = st.ambient * (1 + rng.normal(0, 0.1))
-        light = np.array([*lpos, *axis, np.cos(np.deg2rad(30)), np.cos(np.deg2rad(60)), inten, amb,
-                          st.fill, dref])
+        bbox, zmax = self.printed_box(h)
         w, hh = self.camera.image_size
         rad = np.empty((hh, w, 3), np.float32)
         render_view(self.dirs, self.C, h, mat, np.ascontiguousarray(gap, np.float32), nrm.astype(np.float32), wn, ao, *self.gp, zmax, bbox,
                     self.albedo, self.spec, light, self.bed_alb,
-                    np.asarray(st.background_rgb, float), float(layer_h), rad)
-        # camera: exposure and white-balance drift, vignetting, blur, noise, gamma
+                    np.asarray(self.settings.background_rgb, float), float(layer_h), rad)
+        return rad
+
+    def printed_box(self, h: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(xmin, ymin, xmax, ymax)`` bed mm of the cells of ``h`` above the bed, one cell wider, and the
+        highest point (mm); zeros and 0 when nothing is printed."""
+        rows, cols = np.any(h > 0, 1), np.any(h > 0, 0)
+        if not rows.any():
+            return np.zeros(4), 0.0
+        v0, v1 = np.flatnonzero(rows)[[0, -1]]
+        u0, u1 = np.flatnonzero(cols)[[0, -1]]
+        (xa, ya), (xb, yb) = self.grid.to_mm(np.array([[u0 - 1, v1 + 1], [u1 + 1, v0 - 1]]))
+        return np.array([xa, ya, xb, yb]), float(h.max())
+
+    def develop(self, rad: np.ndarray, index: int, rng: np.random.Generator,
+                light: np.ndarray) -> tuple[np.ndarray, dict]:
+        """The sensor: exposure and white-balance drift, vignetting, blur, noise, gamma; ``(photo, info)``.
+
+        ``rad``: linear RGB radiance (h, w, 3) float32 (:meth:`radiance`); ``rng``: the frame's
+        generator after :meth:`light` drew from it.
+        """
+        st = self.settings
+        w, hh = self.camera.image_size
         ph = np.random.default_rng([self.seed, 3]).uniform(0, 2 * np.pi, 4)
         expo = st.exposure * (1 + st.exposure_drift * np.sin(2 * np.pi * index / 37 + ph[0])
                               + rng.normal(0, st.exposure_drift / 3))
@@ -170,8 +197,19 @@ class Photographer:
         photo = np.empty((hh, w, 3), np.uint8)
         finish(img, self.vignette, gain.astype(np.float64), self.noise_bank, oy, ox,
                st.read_noise, st.shot_noise, self.lut, photo)
-        info = {"light_mm": lpos.round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
+        info = {"light_mm": light[:3].round(1).tolist(), "exposure": float(expo), "blur_px": sigma}
         return photo, info
+
+
+def fold_ledges(h: np.ndarray) -> np.ndarray:
+    """``h`` with one-cell ledges of lower layers under a tall wall raised into the wall.
+
+    The grid quantises the beads' jitter: a cell of a lower layer pokes out under a wall more than
+    1 mm tall here and there, and would be drawn as a dark stripe down the wall. float32 (H, W) mm.
+    """
+    k3 = np.ones((3, 3), np.uint8)
+    mx, mn = cv2.dilate(h, k3), cv2.erode(h, k3)
+    return np.where((mx - h > 1.0) & (h - mn > 0.1), mx, h)
 
 
 def _slits_filled(h: np.ndarray, gap: np.ndarray, depth_mm: float) -> np.ndarray:

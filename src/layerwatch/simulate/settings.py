@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from layerwatch.settings_base import Section
@@ -38,3 +40,8 @@ class SimSettings(Section):
     extrusion_noise: float = Field(0.10, ge=0, description="bead-width wobble amplitude")
     position_jitter_mm: float = Field(0.02, ge=0)
     z_jitter_mm: float = Field(0.01, ge=0)
+    renderer: Literal["raster", "blender"] = Field(
+        "raster", description="raster: the simulator's own ray caster; blender: Blender Cycles (photoreal, seconds a photo)")
+    blender_samples: int = Field(32, ge=1, le=4096, description="Cycles samples per pixel (photoreal)")
+    blender_threads: int = Field(0, ge=0, le=256, description="Cycles threads (0 = all cores)")
+    blender_timeout_s: float = Field(900.0, gt=0, le=86_400, description="longest wait for one photoreal photo")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["render_view", "bed_albedo_image", "finish"]
+__all__ = ["render_view", "bed_albedo_image", "bed_albedo_at", "finish"]
 
 
 @njit(cache=True, inline="always")
@@ -253,6 +253,22 @@ def bed_albedo_image(dirs, C, bed, bed_rgb, bg_rgb, markers, marker_r, seed):
                         markers, marker_r, seed, alb)
             for c in range(3):
                 out[i, j, c] = alb[c]
+    return out
+
+
+@njit(cache=True)
+def bed_albedo_at(x, y, bed, bed_rgb, bg_rgb, markers, marker_r, seed):
+    """Albedo of the bare bed at bed points ``(x, y)`` mm (float64 (n,) each), float32 (n, 3) RGB.
+
+    The same textured sheet, dot markers and background as :func:`bed_albedo_image`
+    gives each camera pixel, at given points (the photoreal renderer's bed texture).
+    """
+    out = np.empty((x.shape[0], 3), np.float32)
+    alb = np.zeros(3)
+    for k in range(x.shape[0]):
+        _bed_albedo(x[k], y[k], bed, bed_rgb, bg_rgb, markers, marker_r, seed, alb)
+        for c in range(3):
+            out[k, c] = alb[c]
     return out
 
 

@@ -1,0 +1,268 @@
+"""Photoreal simulated photos: the simulator's scene rendered by Blender Cycles through the calibrated camera.
+
+The raster photographer (:class:`~layerwatch.simulate.photo.Photographer`)
+ray-casts the simulator's height field with a Blinn-Phong model of its own.
+:class:`BlenderPhotographer` hands the same scene to a path tracer instead
+(``[simulate] renderer = "blender"``, ``layerwatch simulate --photoreal``):
+soft shadows of a lamp with a size, inter-reflections between the part and
+the bed, a microfacet (GGX) specular lobe, light that grazes walls as it does
+on a printer. Everything else of a simulated frame is shared: the geometry and
+its failures (the height field and per-cell materials of
+:class:`~layerwatch.simulate.camera_sim.PrintSimulator`), the frame's light
+position and strengths (:meth:`~layerwatch.simulate.photo.Photographer.light`),
+the truth masks, and the sensor (exposure and white-balance drift, vignetting,
+blur, shot and read noise, gamma: :meth:`~layerwatch.simulate.photo.Photographer.develop`
+develops Cycles' linear radiance as it develops the raster's).
+
+The scene (:mod:`layerwatch.simulate.photoreal_scene`, run inside Blender):
+
+* the printed cells as a height-field mesh (one vertex a cell of the
+  simulator's grid, bed mm, on the box of the printed cells), each vertex with
+  its material's albedo, specular weight and roughness;
+* the bed as a plane textured with the bed's albedo (sheet texture, white dot
+  markers: the same function the raster draws it with), a dark floor beyond;
+* a spot of ``radius 5 mm`` where the frame's spot is, an overhead sun for the
+  fill, a uniform world for the ambient, their strengths set so that a white
+  Lambertian sheet facing each light reads what the raster model gives it;
+* a pinhole camera with the intrinsics of ``K`` at the camera's centre; the
+  lens distortion is applied to the render afterwards (:meth:`BlenderPhotographer.radiance`),
+  so markers and part land on the pixels the calibration predicts.
+
+Limits: a height field keeps one surface per cell, so the empty space under a
+bridge, an overhang or the lintel of a window (the raster's ``gap``) is filled
+here; bead layer lines on walls are only the height field's. Cycles takes
+seconds per frame (about 10-40 s at 1280 x 720 and 32 samples on two cores):
+the mode is for photoreal checks and benchmarks, not the routine evaluation.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import tempfile
+import weakref
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from layerwatch.errors import RenderError
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.topview import TopView
+from layerwatch.render.blender import find_blender
+from layerwatch.simulate.photo import Photographer, fold_ledges
+from layerwatch.simulate.settings import SimSettings
+from layerwatch.simulate.shade import bed_albedo_at
+
+__all__ = ["BlenderPhotographer", "blender_camera", "SCENE_SCRIPT"]
+
+SCENE_SCRIPT = Path(__file__).with_name("photoreal_scene.py")
+
+#: Blender's sensor width for the pinhole (any value: the focal length follows it), mm
+SENSOR_WIDTH_MM = 36.0
+#: radius of the lamp (soft shadows), mm
+LAMP_RADIUS_MM = 5.0
+#: cells of bare bed kept around the printed cells in the height-field mesh
+FIELD_BORDER_CELLS = 2
+#: bed texture resolution, px/mm, at most (and at most 4096 px a side)
+BED_TEXTURE_PX_PER_MM = 8.0
+
+
+def blender_camera(camera: CameraModel) -> dict:
+    """The Blender pinhole camera that sees the bed as ``camera`` does without its lens distortion.
+
+    OpenCV's camera looks along +z with image y down, pixel centres at whole
+    coordinates; Blender's looks along -z with y up, a pixel's centre half a
+    pixel into it. The principal point becomes the lens shift, in units of the
+    image width (``sensor_fit = "HORIZONTAL"``).
+
+    Parameters
+    ----------
+    camera : CameraModel
+        Posed camera; ``fx`` and ``fy`` equal within 0.1 % (square pixels).
+
+    Returns
+    -------
+    dict
+        ``camera_to_bed`` (4 x 4 rows, mm), ``lens_mm``, ``sensor_width_mm``, ``shift`` ``(x, y)``,
+        ``resolution`` ``(width, height)`` px.
+
+    Raises
+    ------
+    RenderError
+        The camera has non-square pixels.
+    """
+    K = np.asarray(camera.K, float)
+    w, h = (int(v) for v in camera.image_size)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if abs(fx - fy) > 1e-3 * fx:
+        raise RenderError(f"the photoreal renderer needs square pixels; the camera has fx {fx:.1f} and fy {fy:.1f} px.")
+    R = np.asarray(camera.R, float)  # rows: the camera's axes in the bed frame
+    m = np.eye(4)
+    m[:3, :3] = np.stack([R[0], -R[1], -R[2]], axis=1)
+    m[:3, 3] = np.asarray(camera.center_mm, float)
+    return {
+        "camera_to_bed": m.tolist(),
+        "lens_mm": float(fx * SENSOR_WIDTH_MM / w),
+        "sensor_width_mm": SENSOR_WIDTH_MM,
+        "shift": [float((w / 2 - cx - 0.5) / w), float((cy + 0.5 - h / 2) / w)],
+        "resolution": [w, h],
+    }
+
+
+def _spot(light: np.ndarray) -> dict:
+    """The frame's spot (:meth:`Photographer.light`) as a Blender spot: pose, cone, power in W."""
+    pos, axis = np.asarray(light[:3], float), np.asarray(light[3:6], float)
+    z = -axis / np.linalg.norm(axis)  # a Blender spot shines along its -z
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, :3] = np.stack([x, y, z], axis=1)
+    m[:3, 3] = pos
+    inner, outer = math.degrees(math.acos(light[6])), math.degrees(math.acos(light[7]))
+    # Cycles: a point or spot light of power P gives a white Lambertian sheet facing it at distance d
+    # the radiance P / (4 pi^2 d^2); the raster gives it I (dref / d)^2
+    return {"matrix": m.tolist(), "outer_deg": outer, "blend": (outer - inner) / outer,
+            "radius_mm": LAMP_RADIUS_MM, "power_w": float(4 * math.pi**2 * light[8] * light[11] ** 2)}
+
+
+class BlenderPhotographer(Photographer):
+    """The simulator's photographer with Blender Cycles for the scene's radiance (see module notes).
+
+    Parameters
+    ----------
+    camera, topview, grid, settings, seed
+        As :class:`~layerwatch.simulate.photo.Photographer`; ``settings.blender_samples``,
+        ``blender_threads`` and ``blender_timeout_s`` set the render.
+    executable : str, optional
+        Blender executable (default ``$LAYERWATCH_BLENDER`` or ``blender`` on PATH).
+
+    Raises
+    ------
+    MissingBlenderError
+        ``blender`` is not installed (one line naming how to install it).
+    RenderError
+        The camera has non-square pixels.
+    """
+
+    def __init__(self, camera: CameraModel, topview: TopView, grid: TopView, settings: SimSettings, seed: int,
+                 executable: str | None = None) -> None:
+        super().__init__(camera, topview, grid, settings, seed)
+        self.executable = find_blender(executable)
+        self.view = blender_camera(camera)
+        #: scratch folder of the renders (bed texture, each frame's job), removed with the photographer
+        self.workdir = Path(tempfile.mkdtemp(prefix="layerwatch-photoreal-"))
+        weakref.finalize(self, shutil.rmtree, self.workdir, True)
+        self._renders = 0
+        self._bed_texture = self._write_bed_texture()
+        self._map_x, self._map_y = self._distortion_maps()
+
+    # ------------------------------------------------------------------ set-up
+    def _write_bed_texture(self) -> Path:
+        """The bed's albedo on its square as a linear 16-bit PNG (row 0 at the bed's far edge, +y)."""
+        x0, y0, x1, y1 = (float(v) for v in self.bed)
+        ppm = min(BED_TEXTURE_PX_PER_MM, 4096.0 / max(x1 - x0, y1 - y0))
+        nx, ny = max(2, int(round((x1 - x0) * ppm))), max(2, int(round((y1 - y0) * ppm)))
+        xs = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
+        ys = y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny
+        gx, gy = np.meshgrid(xs, ys)
+        rgb = self._bed_albedo(gx.ravel(), gy.ravel()).reshape(ny, nx, 3)
+        path = self.workdir / "bed.png"
+        cv2.imwrite(str(path), np.round(np.clip(rgb[..., ::-1], 0, 1) * 65535).astype(np.uint16))
+        return path
+
+    def _bed_albedo(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Albedo RGB of the bare bed at bed points (mm), float32 (n, 3)."""
+        st = self.settings
+        return bed_albedo_at(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64), self.bed,
+                             np.asarray(st.bed_rgb, float), np.asarray(st.background_rgb, float), self.markers,
+                             st.marker_diameter_mm / 2, self.seed)
+
+    def _distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per photo pixel, where its ray meets the undistorted (pinhole) render, px (``cv2.remap`` maps)."""
+        d = self.dirs @ np.asarray(self.camera.R, np.float32).T  # camera-frame ray of every photo pixel
+        K = np.asarray(self.camera.K, np.float64)
+        z = np.maximum(d[..., 2], 1e-6)
+        mx = (K[0, 0] * d[..., 0] / z + K[0, 2]).astype(np.float32)
+        my = (K[1, 1] * d[..., 1] / z + K[1, 2]).astype(np.float32)
+        return mx, my
+
+    # ------------------------------------------------------------------ a frame
+    def radiance(self, h: np.ndarray, mat: np.ndarray, layer_h: float, gap: np.ndarray | None,
+                 light: np.ndarray) -> np.ndarray:
+        """Linear RGB radiance from Cycles, float32 (h, w, 3), lens distortion applied (``gap`` is not held).
+
+        Raises
+        ------
+        RenderError
+            Blender failed, crashed or ran past ``settings.blender_timeout_s``.
+        """
+        st = self.settings
+        self._renders += 1
+        frame = self.workdir / f"frame{self._renders}"
+        frame.mkdir()
+        job: dict = {**self.view, "output": str(frame / "out.png"), "bed_texture": str(self._bed_texture),
+                     "bed_box_mm": [float(v) for v in self.bed], "background_rgb": list(st.background_rgb),
+                     "bed_specular": float(min(2 * self.spec[0, 0], 1.0)),
+                     "bed_roughness": float(_roughness(self.spec[0, 1])),
+                     "spot": _spot(light), "fill_strength": float(math.pi * light[10]), "ambient": float(light[9]),
+                     "samples": int(st.blender_samples), "threads": int(st.blender_threads),
+                     "seed": int((self.seed * 1_000_003 + self._renders) % 2**31)}
+        job.update(self._field(h, mat, frame))
+        (frame / "job.json").write_text(json.dumps(job))
+        cmd = [self.executable, "-b", "--factory-startup", "-noaudio", "--python-exit-code", "3",
+               "-P", str(SCENE_SCRIPT), "--", str(frame / "job.json")]
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=st.blender_timeout_s)
+        except subprocess.TimeoutExpired:
+            raise RenderError(f"Blender did not finish a photo within {st.blender_timeout_s:.0f} s; raise "
+                              "[simulate] blender_timeout_s or lower blender_samples.") from None
+        except OSError as exc:
+            raise RenderError(f"cannot start Blender ({exc}); check `{self.executable}` runs.") from None
+        out = frame / "out.png"
+        img = cv2.imread(str(out), cv2.IMREAD_UNCHANGED) if out.is_file() else None
+        w, hh = self.camera.image_size
+        if proc.returncode != 0 or img is None or img.shape[:2] != (hh, w) or img.dtype != np.uint16:
+            tail = " | ".join((proc.stderr or proc.stdout or "").strip().splitlines()[-3:])
+            raise RenderError(f"Blender failed on a photoreal photo (exit {proc.returncode}): {tail[:300]}; "
+                              "check the Blender installation or use the raster renderer.")
+        for p in frame.iterdir():
+            p.unlink()
+        frame.rmdir()
+        rad = img[..., 2::-1].astype(np.float32) / 65535.0  # BGR -> RGB, linear
+        return cv2.remap(rad, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def _field(self, h: np.ndarray, mat: np.ndarray, frame: Path) -> dict:
+        """Write the height-field mesh of the printed cells (and their border) for the job; its keys."""
+        printed = h > 0
+        if not printed.any():
+            return {"field_shape": None}
+        h = fold_ledges(h)  # as the raster draws the walls
+        rows, cols = np.flatnonzero(printed.any(1)), np.flatnonzero(printed.any(0))
+        b = FIELD_BORDER_CELLS
+        v0, v1 = max(rows[0] - b, 0), min(rows[-1] + b + 1, h.shape[0])
+        u0, u1 = max(cols[0] - b, 0), min(cols[-1] + b + 1, h.shape[1])
+        vv, uu = np.mgrid[v0:v1, u0:u1]
+        xy = self.grid.to_mm(np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float))
+        z = h[v0:v1, u0:u1].ravel().astype(np.float64)
+        m = mat[v0:v1, u0:u1].ravel()
+        albedo = np.empty((m.size, 4), np.float32)
+        albedo[:, :3] = self.albedo[m]
+        albedo[:, 3] = 1.0
+        bed = m == 0
+        if bed.any():
+            albedo[bed, :3] = self._bed_albedo(xy[bed, 0], xy[bed, 1])
+        spec = np.stack([np.minimum(2 * self.spec[m, 0], 1.0), _roughness(self.spec[m, 1])], axis=1)
+        arrays = {"field_verts": np.column_stack([xy, z]).astype("<f4"), "field_albedo": albedo.astype("<f4"),
+                  "field_spec": spec.astype("<f4")}
+        for name, arr in arrays.items():
+            (frame / f"{name}.bin").write_bytes(np.ascontiguousarray(arr).tobytes())
+        return {"field_shape": [int(v1 - v0), int(u1 - u0)], **{k: str(frame / f"{k}.bin") for k in arrays}}
+
+
+def _roughness(shininess: np.ndarray | float) -> np.ndarray:
+    """Microfacet roughness of a Blinn-Phong exponent (``sqrt(2 / (n + 2))``, Walter et al. 2007), 0.05-1."""
+    return np.clip(np.sqrt(2.0 / (np.asarray(shininess, float) + 2.0)), 0.05, 1.0)

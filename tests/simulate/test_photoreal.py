@@ -1,0 +1,120 @@
+"""Photoreal simulated photos (Blender Cycles): the camera's conventions, clean errors, and one print when installed."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from layerwatch.errors import RenderError
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.render.blender import MissingBlenderError
+from layerwatch.simulate import Failure, PrintSimulator
+from layerwatch.simulate.photoreal import blender_camera
+from layerwatch.simulate.raster import solid_area
+from layerwatch.simulate.settings import SimSettings
+
+HAS_BLENDER = shutil.which("blender") is not None
+
+
+def _blender_project(view: dict, points: np.ndarray) -> np.ndarray:
+    """Blender's pinhole (camera along -z, y up, lens shift in image widths, pixel centres at +0.5) in OpenCV px."""
+    m = np.asarray(view["camera_to_bed"])
+    p = (np.linalg.inv(m) @ np.column_stack([points, np.ones(len(points))]).T).T[:, :3]
+    w, h = view["resolution"]
+    k = view["lens_mm"] / view["sensor_width_mm"]
+    u = w * (0.5 + k * p[:, 0] / -p[:, 2] - view["shift"][0])
+    v = w * (h / (2 * w) - k * p[:, 1] / -p[:, 2] + view["shift"][1])
+    return np.column_stack([u, v]) - 0.5
+
+
+def test_the_blender_camera_projects_the_bed_where_the_pinhole_does(camera):
+    rng = np.random.default_rng(0)
+    cam = CameraModel(K=np.array([[700.0, 0, 300.0], [0, 700.0, 200.0], [0, 0, 1]]), dist=np.zeros(5),
+                      image_size=camera.image_size, rvec=camera.rvec, tvec=camera.tvec)  # principal point off centre
+    pts = np.column_stack([rng.uniform(-40, 40, (50, 2)), rng.uniform(0, 30, 50)])
+    want, _ = cv2.projectPoints(pts, cam.rvec, cam.tvec, cam.K, np.zeros(5))
+    assert np.allclose(_blender_project(blender_camera(cam), pts), want.reshape(-1, 2), atol=1e-6)
+
+
+def test_non_square_pixels_are_refused_in_one_line(camera):
+    K = camera.K.copy()
+    K[1, 1] *= 1.01
+    cam = CameraModel(K=K, dist=camera.dist, image_size=camera.image_size, rvec=camera.rvec, tvec=camera.tvec)
+    with pytest.raises(RenderError, match="square pixels"):
+        blender_camera(cam)
+
+
+def test_a_missing_blender_is_one_line_naming_the_install(part, camera, topview, monkeypatch):
+    monkeypatch.setenv("LAYERWATCH_BLENDER", "no-such-blender-xyz")
+    with pytest.raises(MissingBlenderError, match="apt-get install blender"):
+        PrintSimulator(part, camera, topview, settings=SimSettings(renderer="blender"))
+
+
+def _top_view(photo, camera, topview, z):
+    """The photo's top view of plane ``z`` (undistort, then the plane's homography), BGR."""
+    und = cv2.undistort(photo, camera.K, camera.dist)
+    R, t = camera.R, camera.tvec
+    img_from_top = camera.K @ np.column_stack([R[:, 0], R[:, 1], R[:, 2] * z + t]) @ topview.bed_from_top
+    h, w = topview.shape
+    return cv2.warpPerspective(und, img_from_top, (w, h), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_LINEAR)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_BLENDER, reason="blender not installed")
+def test_a_photoreal_print_is_posed_lit_and_shaped_like_the_raster_one(part, camera, topview):
+    pose = pytest.importorskip("layerwatch.geometry.pose")
+    from layerwatch.geometry.settings import MarkerSettings
+
+    fb = [Failure("foreign_body", onset=4, size_mm=8.0, seed=1)]
+    photoreal = PrintSimulator(part, camera, topview, fb, seed=2,
+                               settings=SimSettings(renderer="blender", blender_samples=8, blender_threads=2))
+    raster = PrintSimulator(part, camera, topview, fb, seed=2)
+    bed = photoreal.bed_photo()
+    assert bed.shape == (360, 640, 3) and bed.dtype == np.uint8
+    # the markers are where the calibrated camera puts them: the pose recovered from them is the camera's
+    posed = pose.locate_bed(camera, bed, MarkerSettings(), topview)
+    assert np.allclose(posed.center_mm, camera.center_mm, atol=3.0)
+    # lit as the raster is: the same lights, exposure and sensor (within a tenth)
+    assert abs(float(bed.mean()) / float(raster.bed_photo().mean()) - 1.0) < 0.1
+    i = 6
+    fr = photoreal.frame(i)
+    assert fr.truth is not None and fr.truth.any()
+    # the printed top lands on its footprint in the top view of its plane
+    top = _top_view(fr.photo, camera, topview, part.layers[i].z).astype(int)
+    filament = (top[..., 2] - top[..., 0]) > 60
+    sl = part.layer_slice(i)
+    footprint = solid_area(part.start[sl], part.end[sl], part.width[sl] / 2, topview)
+    inter = (filament & footprint).sum()
+    assert inter / footprint.sum() > 0.6 and inter / max(filament.sum(), 1) > 0.6
+    # the foreign body (a dark object) shows where the truth says it is
+    grey = cv2.cvtColor(fr.photo, cv2.COLOR_BGR2GRAY)
+    clean = cv2.cvtColor(PrintSimulator(part, camera, topview, seed=2, settings=photoreal.settings).frame(i).photo,
+                         cv2.COLOR_BGR2GRAY)
+    changed = cv2.absdiff(grey, clean) > 40
+    assert changed.sum() > 50
+
+
+def test_simulate_photoreal_without_blender_is_exit_2_before_any_work(monkeypatch, tmp_path, capsys):
+    from layerwatch.cli import main
+
+    monkeypatch.setenv("LAYERWATCH_BLENDER", "no-such-blender-xyz")
+    assert main(["simulate", "--photoreal", "-n", "1", "-o", str(tmp_path / "sim")]) == 2
+    assert "apt-get install blender" in capsys.readouterr().err
+    assert not (tmp_path / "sim").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_BLENDER, reason="blender not installed")
+def test_simulate_photoreal_writes_the_print(tmp_path):
+    from layerwatch.cli import main
+
+    out = tmp_path / "sim"
+    assert main(["simulate", "--photoreal", "--samples", "2", "--width", "192", "-n", "2", "-f", "spaghetti@1",
+                 "-o", str(out)]) == 0
+    photos = [p for p in out.glob("*.png") if p.name != "bed.png" and not p.stem.endswith(("_truth", "_area"))]
+    assert (out / "bed.png").is_file() and (out / "camera.toml").is_file()
+    assert len(photos) == 2 and len(list(out.glob("*_truth.png"))) == 1  # spaghetti from layer 1 on
+    assert cv2.imread(str(out / "bed.png")).shape == (108, 192, 3)
