@@ -12,7 +12,7 @@ from layerwatch.errors import RenderError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.render.blender import MissingBlenderError
 from layerwatch.simulate import Failure, PrintSimulator
-from layerwatch.simulate.photoreal import blender_camera
+from layerwatch.simulate.photoreal import blender_camera, scene_meshes
 from layerwatch.simulate.raster import solid_area
 from layerwatch.simulate.settings import SimSettings
 
@@ -37,6 +37,27 @@ def test_the_blender_camera_projects_the_bed_where_the_pinhole_does(camera):
     pts = np.column_stack([rng.uniform(-40, 40, (50, 2)), rng.uniform(0, 30, 50)])
     want, _ = cv2.projectPoints(pts, cam.rvec, cam.tvec, cam.K, np.zeros(5))
     assert np.allclose(_blender_project(blender_camera(cam), pts), want.reshape(-1, 2), atol=1e-6)
+
+
+def test_the_air_under_a_lintel_stays_open_and_the_slab_over_it_is_closed():
+    n, m = 12, 14
+    xy = np.stack(np.meshgrid(np.arange(m) * 0.125, -np.arange(n) * 0.125), axis=-1)
+    h = np.full((n, m), 3.0, np.float32)  # a block 3 mm tall ...
+    gap = np.zeros((n, m, 2), np.float32)
+    gap[3:9, 4:11] = (1.0, 2.0)  # ... with air from 1 to 2 mm under part of it (a window's lintel)
+    (ground, gq, gcells), (slab, sq, scells) = scene_meshes(xy, h, gap)
+    z = ground[:, 2].reshape(n, m)
+    assert np.all(z[3:9, 4:11] == 1.0) and np.all(z[:3] == 3.0)  # open down to the sill, solid elsewhere
+    assert len(gq) == (n - 1) * (m - 1) and np.array_equal(gcells, np.arange(n * m))
+    assert set(np.round(slab[:, 2], 3)) == {2.0, 3.0} and len(slab) == 2 * 6 * 7 and len(scells) == len(slab)
+    # a closed shell: every edge of the slab's quads is shared by exactly two of them, in opposite directions
+    e = np.concatenate([sq[:, [0, 1]], sq[:, [1, 2]], sq[:, [2, 3]], sq[:, [3, 0]]])
+    assert len({tuple(x) for x in e}) == len(e) and {tuple(x) for x in e} == {tuple(x) for x in e[:, ::-1]}
+    # the top faces up (counter-clockwise seen from +z), the underside down
+    p = slab[sq[:, :3]]
+    normal_z = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 1])[:, 2]
+    assert (normal_z[:30] > 0).all() and (normal_z[30:60] < 0).all()
+    assert len(scene_meshes(xy, h, None)) == 1
 
 
 def test_non_square_pixels_are_refused_in_one_line(camera):

@@ -28,9 +28,10 @@ The scene (:mod:`layerwatch.simulate.photoreal_scene`, run inside Blender):
   lens distortion is applied to the render afterwards (:meth:`BlenderPhotographer.radiance`),
   so markers and part land on the pixels the calibration predicts.
 
-Limits: a height field keeps one surface per cell, so the empty space under a
-bridge, an overhang or the lintel of a window (the raster's ``gap``) is filled
-here; bead layer lines on walls are only the height field's. Cycles takes
+Limits: the cells are meshed at the simulator's grid (0.125 mm), one vertex a
+cell, so a wall is as sharp as the raster's and bead layer lines on walls are only
+the grid's; the air under a bridge, an overhang or a window's lintel (the
+simulator's one ``gap`` a cell) is kept open (:func:`scene_meshes`). Cycles takes
 seconds per frame (about 10-40 s at 1280 x 720 and 32 samples on two cores):
 the mode is for photoreal checks and benchmarks, not the routine evaluation.
 """
@@ -56,7 +57,7 @@ from layerwatch.simulate.photo import Photographer, fold_ledges
 from layerwatch.simulate.settings import SimSettings
 from layerwatch.simulate.shade import bed_albedo_at
 
-__all__ = ["BlenderPhotographer", "blender_camera", "SCENE_SCRIPT"]
+__all__ = ["BlenderPhotographer", "blender_camera", "scene_meshes", "SCENE_SCRIPT"]
 
 SCENE_SCRIPT = Path(__file__).with_name("photoreal_scene.py")
 
@@ -193,7 +194,7 @@ class BlenderPhotographer(Photographer):
     # ------------------------------------------------------------------ a frame
     def radiance(self, h: np.ndarray, mat: np.ndarray, layer_h: float, gap: np.ndarray | None,
                  light: np.ndarray) -> np.ndarray:
-        """Linear RGB radiance from Cycles, float32 (h, w, 3), lens distortion applied (``gap`` is not held).
+        """Linear RGB radiance from Cycles, float32 (h, w, 3), lens distortion applied.
 
         Raises
         ------
@@ -211,7 +212,7 @@ class BlenderPhotographer(Photographer):
                      "spot": _spot(light), "fill_strength": float(math.pi * light[10]), "ambient": float(light[9]),
                      "samples": int(st.blender_samples), "threads": int(st.blender_threads),
                      "seed": int((self.seed * 1_000_003 + self._renders) % 2**31)}
-        job.update(self._field(h, mat, frame))
+        job.update(self._field(h, mat, gap, frame))
         (frame / "job.json").write_text(json.dumps(job))
         cmd = [self.executable, "-b", "--factory-startup", "-noaudio", "--python-exit-code", "3",
                "-P", str(SCENE_SCRIPT), "--", str(frame / "job.json")]
@@ -235,32 +236,93 @@ class BlenderPhotographer(Photographer):
         rad = img[..., 2::-1].astype(np.float32) / 65535.0  # BGR -> RGB, linear
         return cv2.remap(rad, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    def _field(self, h: np.ndarray, mat: np.ndarray, frame: Path) -> dict:
-        """Write the height-field mesh of the printed cells (and their border) for the job; its keys."""
+    def _field(self, h: np.ndarray, mat: np.ndarray, gap: np.ndarray | None, frame: Path) -> dict:
+        """Write the printed scene's meshes for the job (see :func:`scene_meshes`); the job's ``meshes`` entry."""
         printed = h > 0
         if not printed.any():
-            return {"field_shape": None}
-        h = fold_ledges(h)  # as the raster draws the walls
+            return {"meshes": []}
         rows, cols = np.flatnonzero(printed.any(1)), np.flatnonzero(printed.any(0))
         b = FIELD_BORDER_CELLS
         v0, v1 = max(rows[0] - b, 0), min(rows[-1] + b + 1, h.shape[0])
         u0, u1 = max(cols[0] - b, 0), min(cols[-1] + b + 1, h.shape[1])
-        vv, uu = np.mgrid[v0:v1, u0:u1]
-        xy = self.grid.to_mm(np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float))
-        z = h[v0:v1, u0:u1].ravel().astype(np.float64)
-        m = mat[v0:v1, u0:u1].ravel()
-        albedo = np.empty((m.size, 4), np.float32)
-        albedo[:, :3] = self.albedo[m]
-        albedo[:, 3] = 1.0
+        box = (slice(v0, v1), slice(u0, u1))
+        vv, uu = np.mgrid[box]
+        xy = self.grid.to_mm(np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)).reshape(*vv.shape, 2)
+        m = mat[box]
+        albedo = np.empty((*m.shape, 3), np.float32)
+        albedo[:] = self.albedo[m]
         bed = m == 0
         if bed.any():
-            albedo[bed, :3] = self._bed_albedo(xy[bed, 0], xy[bed, 1])
-        spec = np.stack([np.minimum(2 * self.spec[m, 0], 1.0), _roughness(self.spec[m, 1])], axis=1)
-        arrays = {"field_verts": np.column_stack([xy, z]).astype("<f4"), "field_albedo": albedo.astype("<f4"),
-                  "field_spec": spec.astype("<f4")}
-        for name, arr in arrays.items():
-            (frame / f"{name}.bin").write_bytes(np.ascontiguousarray(arr).tobytes())
-        return {"field_shape": [int(v1 - v0), int(u1 - u0)], **{k: str(frame / f"{k}.bin") for k in arrays}}
+            albedo[bed] = self._bed_albedo(xy[bed][:, 0], xy[bed][:, 1])
+        spec = np.stack([np.minimum(2 * self.spec[m, 0], 1.0), _roughness(self.spec[m, 1])], axis=-1)
+        g = None if gap is None else gap[box]
+        out = []
+        for k, (verts, quads, at) in enumerate(scene_meshes(xy, fold_ledges(h)[box], g)):
+            arrays = {"verts": verts.astype("<f4"), "quads": quads.astype("<i4"),
+                      "albedo": np.column_stack([albedo.reshape(-1, 3)[at], np.ones(len(at))]).astype("<f4"),
+                      "spec": spec.reshape(-1, 2)[at].astype("<f4")}
+            entry = {}
+            for name, arr in arrays.items():
+                path = frame / f"mesh{k}_{name}.bin"
+                path.write_bytes(np.ascontiguousarray(arr).tobytes())
+                entry[name] = str(path)
+            out.append(entry)
+        return {"meshes": out}
+
+
+def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The simulator's cells as quad meshes: the ground and, where material was printed over air, a slab.
+
+    A cell of the simulator is solid from the bed to ``h``, except its ``gap`` interval ``(lo, hi)``
+    (the air under a bridge, an overhang, a window's lintel; ``hi = 0``: none). The ground mesh is
+    the height field of ``lo`` on such cells and ``h`` elsewhere (so the air is open: a window shows
+    what is behind it); the slab is the material from ``hi`` to ``h`` over the cells with a gap, a
+    closed shell (top, underside facing down, walls at its border). One vertex a cell at the cell's
+    centre; a quad joins four neighbouring cells (the slab's: four cells with a gap).
+
+    Parameters
+    ----------
+    xy : ndarray, float, shape (n, m, 2)
+        Bed mm of each cell's centre.
+    h : ndarray, float32, shape (n, m)
+        Height of each cell's top, mm.
+    gap : ndarray, float32, shape (n, m, 2), or None
+
+    Returns
+    -------
+    list of (verts, quads, cells)
+        Per mesh: vertices (V, 3) mm, quads (Q, 4) vertex indices counter-clockwise seen from
+        outside, and the flat cell index (V,) whose material each vertex takes.
+    """
+    n, m = h.shape
+    idx = np.arange(n * m).reshape(n, m)
+    lo, hi = (np.zeros((n, m)), np.zeros((n, m))) if gap is None else (gap[..., 0], gap[..., 1])
+    air = hi > 0
+    ground = np.where(air, lo, h).astype(np.float64)
+    # counter-clockwise seen from +z: a cell, the one below it (y decreases with rows), then to the right
+    a = idx[:-1, :-1].ravel()
+    quads = np.stack([a, a + m, a + m + 1, a + 1], axis=1)
+    out = [(np.column_stack([xy.reshape(-1, 2), ground.ravel()]), quads, idx.ravel())]
+    if not air.any():
+        return out
+    inside = air[:-1, :-1] & air[1:, :-1] & air[1:, 1:] & air[:-1, 1:]
+    if not inside.any():
+        return out
+    cells = np.flatnonzero(air)
+    top_of = np.full(n * m, -1)
+    top_of[cells] = np.arange(len(cells))
+    k = len(cells)
+    verts = np.concatenate([np.column_stack([xy.reshape(-1, 2)[cells], h.ravel()[cells]]),
+                            np.column_stack([xy.reshape(-1, 2)[cells], hi.ravel()[cells]])])
+    q = top_of[quads[inside.ravel()]]  # (Q, 4) top vertices
+    faces = [q, q[:, ::-1] + k]  # the top; the underside, facing down
+    # walls along the slab's border: a quad edge that no other slab quad shares
+    edges = np.concatenate([q[:, [0, 1]], q[:, [1, 2]], q[:, [2, 3]], q[:, [3, 0]]])
+    key = np.sort(edges, axis=1)
+    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    border = edges[count[inv.ravel()] == 1]
+    faces.append(np.column_stack([border[:, 1], border[:, 0], border[:, 0] + k, border[:, 1] + k]))
+    return out + [(verts, np.concatenate(faces), np.concatenate([cells, cells]))]
 
 
 def _roughness(shininess: np.ndarray | float) -> np.ndarray:

@@ -5,9 +5,10 @@ Not imported by layerwatch itself. Reads a JSON job written by
 Blender has no numpy), builds the simulator's scene and renders one 16-bit PNG
 of linear radiance (no view transform: the simulator's sensor model develops it):
 
-* the printed scene: a height-field mesh of the simulator's cells (one vertex a
-  cell, bed mm, flat-shaded quads), per-vertex albedo, specular weight and
-  roughness of the cell's material (filament, strands, objects, bare bed);
+* the printed scene: quad meshes of the simulator's cells (one vertex a cell,
+  bed mm, flat-shaded: the ground and the slabs printed over air), per-vertex
+  albedo, specular weight and roughness of the cell's material (filament,
+  strands, objects, bare bed);
 * the bed: a plane textured with the bed's albedo (sheet texture, white dot
   markers), a dark plane beyond it;
 * the lights of the simulated frame: a spot beside the camera (full inside
@@ -99,23 +100,14 @@ def _quad(x0, y0, x1, y1, z):
     return array.array("f", [x0, y0, z, x1, y0, z, x1, y1, z, x0, y1, z]), array.array("i", [0, 1, 2, 3]), array.array("i", [4])
 
 
-def _height_field(job):
-    """The printed scene as a height-field mesh with per-vertex material attributes."""
-    n_rows, n_cols = job["field_shape"]
-    verts = _read(job["field_verts"], "f")
-    albedo = _read(job["field_albedo"], "f")
-    spec = _read(job["field_spec"], "f")
-    loops, sizes = array.array("i"), array.array("i")
-    for v in range(n_rows - 1):
-        base = v * n_cols
-        for u in range(n_cols - 1):
-            a = base + u
-            loops.extend((a, a + n_cols, a + n_cols + 1, a + 1))  # counter-clockwise seen from +z
-    sizes = array.array("i", [4]) * ((n_rows - 1) * (n_cols - 1))
-    mat = _principled("scene", base_attr="albedo", spec_attr=True)
-    _, me = _mesh("scene", verts, loops, sizes, mat)
+def _scene_mesh(k, mesh, mat):
+    """One of the printed scene's quad meshes, with per-vertex albedo, specular weight and roughness."""
+    verts = _read(mesh["verts"], "f")
+    loops = _read(mesh["quads"], "i")
+    spec = _read(mesh["spec"], "f")
+    _, me = _mesh(f"scene{k}", verts, loops, array.array("i", [4]) * (len(loops) // 4), mat)
     col = me.color_attributes.new(name="albedo", type="FLOAT_COLOR", domain="POINT")
-    col.data.foreach_set("color", albedo)
+    col.data.foreach_set("color", _read(mesh["albedo"], "f"))
     ks = me.attributes.new(name="specular", type="FLOAT", domain="POINT")
     ks.data.foreach_set("value", spec[0::2])
     ro = me.attributes.new(name="roughness", type="FLOAT", domain="POINT")
@@ -164,8 +156,10 @@ def main(job_path):
         job = json.load(f)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
-    if job.get("field_shape"):
-        _height_field(job)
+    if job["meshes"]:
+        mat = _principled("scene", base_attr="albedo", spec_attr=True)
+        for k, mesh in enumerate(job["meshes"]):
+            _scene_mesh(k, mesh, mat)
     x0, y0, x1, y1 = job["bed_box_mm"]
     verts, loops, sizes = _quad(x0, y0, x1, y1, -0.02)
     _mesh("bed", verts, loops, sizes, _principled("bed", image=job["bed_texture"], specular=job["bed_specular"],
