@@ -629,6 +629,33 @@ def test_a_move_that_leaves_one_object_of_a_plate_on_bare_bed_is_no_move():
     assert _Scene(_colour(top), top, ref, foot, TOPVIEW, None).arrived(bogus) > 0.5
 
 
+def test_an_object_covering_a_small_objects_layer_is_not_the_parts_colour_for_the_motion_tests():
+    """A plate printed in turns: the layer is a 5 mm cube's, and a dark lump (nearly the bed's colour) covers all of
+    it. The footprint's colour is the lump's, so a registration locked on the lump's edges would find its new place
+    "part-coloured" (no evidence: the move stood). The motion tests read the filament where nothing failed: the
+    plate's other object, whose colour puts the lump's new place on the bed's side: no move."""
+    h, w = TOPVIEW.shape
+    grey = np.full((h, w), 60, np.uint8)
+    cube = outline_mask((((100.0, 100.0), (105.0, 100.0), (105.0, 105.0), (100.0, 105.0)),), TOPVIEW)
+    other = outline_mask((((112.0, 82.0), (124.0, 82.0), (124.0, 94.0), (112.0, 94.0)),), TOPVIEW)
+    grey[cube | other] = 200
+    bgr = _colour(grey)
+    lump = outline_mask((((98.0, 98.0), (108.0, 98.0), (108.0, 107.0), (98.0, 107.0)),), TOPVIEW)
+    bgr[lump] = (42, 52, 56)  # darker than the bed (45, 60, 60), no hue: near it in CIELAB
+    ref = grey.copy()
+    move = PartMotion(dx_mm=3.0, dy_mm=0.0, peak=0.3)
+    boxes = [failure_typing.region_box((97.5, 97.5, 108.5, 107.5), TOPVIEW, (h, w))]
+    args = (bgr, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), ref, cube, TOPVIEW, None)
+    plate = cube | other
+    old = _Scene(*args, below=lambda: plate)
+    assert old.arrived(move) == 0.5  # the footprint shows the lump: part and bed alike, no evidence
+    scene = _Scene(*args, below=lambda: plate, failing=boxes)
+    assert np.linalg.norm(scene.filament_colour - scene.part_colour) > 30  # the other object's, not the lump's
+    assert scene.arrived(move) < failure_typing.ARRIVED_MIN
+    # the layer's own footprint where no region covers it gives the colour first (the other object is not read)
+    assert _Scene(*args, below=lambda: None, failing=[]).filament_colour is not None
+
+
 def test_an_object_on_a_wider_base_of_the_part_is_a_foreign_body():
     """Beside the layer, on the part's own wider base: most of the region unlike the bed is the base (the part's
     colour); the object is the pixels unlike both, far beyond the part's shading."""

@@ -48,7 +48,10 @@ Evidence (per region, all scale-free or in mm)
 * **Where the moved layer arrived** (:meth:`_Scene.arrived`): a registered
   move whose new place (beyond the planned outline and the part's lower
   layers) shows the bare bed is no move: the registration locked on
-  something else, e.g. an object lying on the part.
+  something else, e.g. an object lying on the part. Both motion tests read
+  the part's filament colour where nothing failed (:attr:`_Scene.filament_colour`):
+  an object that covers a small part's whole layer (a lump on one cube of a
+  plate) is not the part's colour, and the plate's other objects show it.
 * **Where**: the share of the region outside the part's closed outline
   (the footprint with the gaps of sparse infill closed; material where the
   plan has none: strands, objects, a moved part) against inside (material
@@ -269,10 +272,12 @@ class _Scene:
                  topview: TopView, valid: np.ndarray | None,
                  footprint_box: tuple[int, int, int, int] | None = None,
                  below: Callable[[], np.ndarray | None] | None = None,
-                 seen: Callable[[], np.ndarray | None] | None = None) -> None:
+                 seen: Callable[[], np.ndarray | None] | None = None,
+                 failing: list[tuple[slice, slice]] | None = None) -> None:
         self.topview = topview
         self._below = below
         self._part_seen = seen
+        self._failing = failing or []
         self.top_bgr, self.top, self.reference = top_bgr, top, reference
         self.fp = np.asarray(footprint, bool)
         self.shape = self.fp.shape
@@ -331,6 +336,43 @@ class _Scene:
             return None
         inner = cv2.erode(fp.astype(np.uint8), np.ones((self.k, self.k), np.uint8)).astype(bool) & seen
         return _hist_median(_lab_hist(self.lab_u8[crop], inner if inner.sum() > 50 else fp & seen))
+
+    @cached_property
+    def filament_colour(self) -> np.ndarray | None:
+        """Median CIELAB of the part's filament where nothing failed; the motion tests' part colour.
+
+        The footprint eroded by 2 mm outside the failing regions' boxes; when that leaves
+        <= 50 px (a region covers the layer: an object lying on a small part of a plate),
+        the plate's other objects (the part's lower layers, :func:`part_below`, not
+        connected to the layer's footprint, eroded by 2 mm) outside the boxes: one
+        filament prints the whole plate. :attr:`part_colour` when neither leaves more.
+        :attr:`part_colour` is the colour of the footprint as the photo shows it; when an
+        object covers the footprint that is the object's, and a registration locked on the
+        object's edges would find its own new place "part-coloured".
+        """
+        if self.fp_box is None:
+            return None
+        crop = pad_box(self.fp_box, self.k, self.shape)
+        failing = np.zeros(self.shape, bool)
+        for box in self._failing:
+            failing[box] = True
+        inner = cv2.erode(self.fp[crop].view(np.uint8), np.ones((self.k, self.k), np.uint8)).astype(bool)
+        inner &= self.seen(crop) & ~failing[crop]
+        if np.count_nonzero(inner) > 50:
+            return _hist_median(_lab_hist(self.lab_u8[crop], inner))
+        below = self._below() if self._failing and self._below is not None else None
+        if below is not None and below.any():
+            _, labels = cv2.connectedComponents(below.view(np.uint8), connectivity=8)
+            ids = np.unique(labels[self.fp & below])
+            others = (labels > 0) & ~np.isin(labels, ids[ids > 0])
+            found = mask_box(others)
+            if found is not None:  # eroded on its box (padded: the erosion's border is the box's, not the view's)
+                rows, cols = pad_box(found, self.k, self.shape)
+                kept = cv2.erode(others[rows, cols].view(np.uint8), np.ones((self.k, self.k), np.uint8)) > 0
+                kept &= ~failing[rows, cols] & self.seen((rows, cols))
+                if np.count_nonzero(kept) > 50:
+                    return _hist_median(_lab_hist(self.lab_u8[rows, cols], kept))
+        return self.part_colour
 
     @cached_property
     def bed_colour(self) -> np.ndarray | None:
@@ -520,10 +562,11 @@ class _Scene:
         shift shows the layers below). Those pixels (the part below the
         layer, ``below``, carried by the same motion) are left out: only
         where the two explanations differ is the colour evidence. Each seen
-        pixel counts for the nearer of the part's and the bed's median
-        colour. 0.5 (no evidence) when the part did not move, either colour
-        is unknown, they are alike (within :data:`COLOUR_DELTA`) or fewer
-        than 20 pixels are left.
+        pixel counts for the nearer of the part's filament colour
+        (:attr:`filament_colour`) and the bed's median colour. 0.5 (no
+        evidence) when the part did not move, either colour is unknown, they
+        are alike (within :data:`COLOUR_DELTA`) or fewer than 20 pixels are
+        left.
         """
         if self._ledge is None or self._ledge[0] != motion:
             self._ledge = (motion, self._ledge_share(motion))
@@ -538,7 +581,8 @@ class _Scene:
         it shifted or the part came off. Bare bed there means the
         registration locked on something else (an object on the part, the
         edges of another feature). Each seen pixel counts for the nearer of
-        the part's and the bed's median colour. On a plate each object's new
+        the part's filament colour (:attr:`filament_colour`: not the colour of
+        an object covering the layer) and the bed's median colour. On a plate each object's new
         place counts for itself and the least share is returned: the move
         carried every object printed since (a clump of strands beside one
         object of a plate locked the registration on a move that leaves the
@@ -559,9 +603,9 @@ class _Scene:
 
     def _colour_share(self, motion: PartMotion, arrived: bool) -> float | None:
         """:meth:`arrived` (``arrived``) or :meth:`ledge`; None where they say 0.5 (no evidence)."""
-        if not motion.moved or self.part_colour is None or self.bed_colour is None:
+        if not motion.moved or self.filament_colour is None or self.bed_colour is None:
             return None
-        part, bed = self.part_colour, self.bed_colour
+        part, bed = self.filament_colour, self.bed_colour
         if float(_lab_distance(part, bed)) <= COLOUR_DELTA:
             return None
         below = None if self._below is None else self._below()
@@ -917,8 +961,10 @@ class FailureTyper:
             crop_edges: dict = {}  # the registration's edge images, for the new material's
             motion = part_motion(top, reference, footprint, self.topview, valid, footprint_box=fp_box,
                                  hints=() if self.shift_motion is None else (self.shift_motion,), crop_edges=crop_edges)
+            failing = [b for b in (region_box(r.bbox_mm, self.topview, footprint.shape) for r in regions) if b is not None]
             scene = _Scene(top_bgr, top, reference, footprint, self.topview, valid, fp_box,
-                           below=lambda: self._part_below(res.layer), seen=lambda: self._part_seen(res.layer))
+                           below=lambda: self._part_below(res.layer), seen=lambda: self._part_seen(res.layer),
+                           failing=failing)
             if motion.moved and scene.arrived(motion) < ARRIVED_MIN:  # bare bed where the layer would now be
                 motion = PartMotion(peak=motion.peak)
             made: list[NewMaterial | None] = []
