@@ -134,6 +134,7 @@ from layerwatch.analysis.part_registration import (
     PartMotion,
     crop_box,
     edges,
+    evidence_motion,
     mask_box,
     moved_area,
     pad_box,
@@ -887,6 +888,9 @@ class FailureTyper:
         #: the displacement of the run's last photo typed as a layer shift (a shift stays: every layer printed
         #: after it is off by the same vector), None: none in this run
         self.shift_motion: PartMotion | None = None
+        #: the new material's correlation surfaces (:meth:`NewMaterial.evidence`) summed over the run's photos
+        #: since its shift was placed: the vector carried is their peak (:meth:`_carried`)
+        self.shift_evidence: np.ndarray | None = None
         self.previous: list[Region] = []
         self._below: tuple[int, np.ndarray | None] | None = None
 
@@ -923,6 +927,7 @@ class FailureTyper:
         self.previous = []
         self.shift_since = None
         self.shift_motion = None
+        self.shift_evidence = None
 
     def type_result(self, res: LayerResult, top_bgr: np.ndarray, top: np.ndarray, reference: np.ndarray,
                     footprint: np.ndarray, valid: np.ndarray | None = None,
@@ -982,10 +987,12 @@ class FailureTyper:
                 self._type_region(r, any(r is q for q in res.outside_regions), res.layer, scene, motion)
             moved = [r for r in regions if r.kind in MOVED_KINDS]
             if not moved:
-                self.shift_since = self.shift_motion = None
+                self.shift_since = self.shift_motion = self.shift_evidence = None
             elif self.shift_since is None or self.shift_since > res.layer:
                 self.shift_since = res.layer
             if placed and any(r.kind == "layer_shift" for r in moved):
+                if self.shift_motion is None:  # placed on this photo: the run's evidence starts with it
+                    self.shift_evidence = made[0].evidence() if made and made[0] is not None else None
                 self.shift_motion = motion
             outlines: dict[str, Outline] = {}  # the moved part's area per kind, the same for each of its regions
             for r in moved:
@@ -1036,7 +1043,7 @@ class FailureTyper:
         whether the new material placed it.
         """
         if self.shift_motion is not None and scene.arrived(self.shift_motion) >= ARRIVED_MIN:
-            return self.shift_motion, True
+            return self._carried(scene, new_material), True
         new = new_material()
         if new is None:
             return motion, False
@@ -1045,6 +1052,33 @@ class FailureTyper:
         if seen is not None and seen >= ARRIVED_MIN and new.placed(m):
             return m, True
         return motion, False
+
+    def _carried(self, scene: _Scene, new_material: Callable[[], NewMaterial | None]) -> PartMotion:
+        """The run's layer shift on a later photo of it: the peak of the new material's surfaces summed over the
+        run (:meth:`NewMaterial.evidence`, :attr:`shift_evidence`) where its new place shows the part, else
+        the vector carried.
+
+        A shift stays: each photo after the onset measures the same vector again on the layer printed
+        since, so their surfaces add up. The onset's layer alone can leave two peaks of the same height
+        (Simplify3D's 2 mm shift ``s013``: 0.0056 and 0.0055, 1.9 mm apart); the next photos decide between
+        them rather than carry the first one read. The vector carried changes only for another peak (at
+        least :data:`MOVE_MIN_MM` away, the registration's noise being ~0.2 mm), not for its own peak's
+        wander within that noise.
+        """
+        carried = self.shift_motion
+        assert carried is not None
+        if self.shift_evidence is None:
+            return carried
+        new = new_material()
+        seen = None if new is None else new.evidence()
+        if seen is None or seen.shape != self.shift_evidence.shape:
+            return carried
+        total = self.shift_evidence + seen
+        m = evidence_motion(total, self.topview)
+        if not m.moved or scene.arrived(m) < ARRIVED_MIN:
+            return carried
+        self.shift_evidence = total
+        return m if math.hypot(m.dx_mm - carried.dx_mm, m.dy_mm - carried.dy_mm) >= MOVE_MIN_MM else carried
 
     def _type_region(self, r: Region, beside: bool, layer: int, scene: _Scene, motion: PartMotion) -> None:
         """Fill ``r.kind``, ``r.kind_confidence`` and ``r.displacement_mm`` (``beside``: a scene-channel region)."""

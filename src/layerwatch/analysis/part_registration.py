@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -469,16 +470,43 @@ class NewMaterial:
         self.layer = layer * seen
         self.new = np.maximum(top_edges - edges(previous[box] if whole else previous), 0.0) * seen
 
-    def motion(self) -> PartMotion:
-        """The translation (bed mm) of the highest peak of the phase correlation of the layer's edges against
-        the new edges, ``peak`` its height; no rotation. No motion (peak 0) when either image is empty."""
+    @cached_property
+    def _surface(self) -> np.ndarray | None:
+        """The phase correlation of the layer's edges against the new edges (zero shift at the centre); None when
+        either image is empty."""
         a, b = self.layer, self.new
         h, w = a.shape
         if h < 16 or w < 16 or not a.any() or not b.any():
-            return PartMotion()
-        du, dv, height = _peak(_PhaseCorrelator(b).surface(a), MOVE_MAX_MM * self.topview.px_per_mm)
-        d = self.topview.to_mm(np.array([du, dv], float)) - self.topview.to_mm(np.zeros(2))
-        return PartMotion(float(d[0]), float(d[1]), peak=height)
+            return None
+        return _PhaseCorrelator(b).surface(a)
+
+    def motion(self) -> PartMotion:
+        """The translation (bed mm) of the highest peak of the phase correlation of the layer's edges against
+        the new edges, ``peak`` its height; no rotation. No motion (peak 0) when either image is empty."""
+        r = self._surface
+        return PartMotion() if r is None else _motion_px(_peak(r, MOVE_MAX_MM * self.topview.px_per_mm), self.topview)
+
+    def evidence(self) -> np.ndarray | None:
+        """The surface of :meth:`motion` on the displacements up to :data:`MOVE_MAX_MM` (the square of half side
+        ``n``, that reach in px), over its highest point: float32 (2n + 1, 2n + 1), zero shift at the centre,
+        zero where the crop is narrower; None when either image is empty.
+
+        A layer shift stays: every photo after its onset measures the same vector again on its own new
+        material, so the surfaces of a run of photos add up (:func:`evidence_motion`), and a peak that a
+        single photo's layer leaves ambiguous is decided by the next ones. Each photo is one measurement:
+        its surface's heights follow how much edge its layer has, so it counts relative to its own peak.
+        """
+        r = self._surface
+        if r is None:
+            return None
+        n = int(math.floor(MOVE_MAX_MM * self.topview.px_per_mm))
+        h, w = r.shape
+        cy, cx = h // 2, w // 2
+        v_lo, v_hi, u_lo, u_hi = max(cy - n, 0), min(cy + n + 1, h), max(cx - n, 0), min(cx + n + 1, w)
+        out = np.zeros((2 * n + 1, 2 * n + 1), np.float32)
+        out[v_lo - cy + n:v_hi - cy + n, u_lo - cx + n:u_hi - cx + n] = r[v_lo:v_hi, u_lo:u_hi]
+        top = float(out.max())
+        return out / top if top > 0 else None
 
     def placed(self, motion: PartMotion) -> bool:
         """Whether the layer was printed where ``motion`` puts it rather than where the plan does.
@@ -500,6 +528,19 @@ class NewMaterial:
         if at_d <= 0:
             return False
         return at_0 / at_d < 0.5 * (1.0 + self_similarity(a, du, dv))
+
+
+def evidence_motion(evidence: np.ndarray, topview: TopView) -> PartMotion:
+    """The translation (bed mm) of the highest point of :meth:`NewMaterial.evidence` (or a sum of them),
+    ``peak`` its height (photos agreeing there); no rotation."""
+    return _motion_px(_peak(evidence, MOVE_MAX_MM * topview.px_per_mm), topview)
+
+
+def _motion_px(peak: tuple[float, float, float], topview: TopView) -> PartMotion:
+    """A correlation peak ``(du, dv, height)`` (top-view px) as a :class:`PartMotion` (bed mm)."""
+    du, dv, height = peak
+    d = topview.to_mm(np.array([du, dv], float)) - topview.to_mm(np.zeros(2))
+    return PartMotion(float(d[0]), float(d[1]), peak=height)
 
 
 def crop_box(footprint: np.ndarray, topview: TopView,
