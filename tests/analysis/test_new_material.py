@@ -88,7 +88,7 @@ def test_the_evidence_is_the_motions_surface_about_zero_shift():
     n = int(np.floor(MOVE_MAX_MM * S))
     assert e.shape == (2 * n + 1, 2 * n + 1) and e.dtype == np.float32 and e.max() == pytest.approx(1.0)
     m, got = nm.motion(), evidence_motion(e, TOPVIEW)
-    assert np.hypot(got.dx_mm - m.dx_mm, got.dy_mm - m.dy_mm) < 1e-6 and got.peak == pytest.approx(1.0)
+    assert np.hypot(got.dx_mm - m.dx_mm, got.dy_mm - m.dy_mm) < 1e-3 and got.peak == pytest.approx(1.0)
     assert evidence_motion(e + e, TOPVIEW).dx_mm == pytest.approx(m.dx_mm)  # a sum: the same place
 
 
