@@ -86,10 +86,10 @@ def report(
     images: Annotated[Path | None, typer.Option("--images", exists=True, file_okay=False, help="Folder the stored image paths are relative to (default: beside the database).")] = None,
 ) -> None:
     """Write a self-contained HTML report of one job."""
-    path = _existing_db(db)
-    if path is None:
+    dbp = _existing_db(db)
+    if dbp is None:
         raise ConfigError(f"no history database at {default_db()}; give the --db of the print's history ({_WRITERS}).")
-    with _open(path) as h:
+    with _open(dbp) as h:
         path = build_report(h, job, out, image_root=images)
     console.print(f"report written to [bold]{path}[/]")
 

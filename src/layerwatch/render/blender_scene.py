@@ -67,8 +67,11 @@ def _material_simple(name, rgb, emission=0.0):
     return mat
 
 
-def _mesh_object(name, verts, faces_flat, face_sizes, mat):
-    """Mesh from flat sequences: verts (3V floats), loops (L ints), sizes (F ints)."""
+def _mesh_object(name, verts, faces_flat, face_sizes, mat, uvs=None):
+    """Mesh from flat sequences: verts (3V floats), loops (L ints), sizes (F ints), optional uvs (2L floats).
+
+    Also what :mod:`layerwatch.simulate.photoreal_scene` builds its meshes with.
+    """
     me = bpy.data.meshes.new(name)
     me.vertices.add(len(verts) // 3)
     me.vertices.foreach_set("co", verts)
@@ -81,6 +84,8 @@ def _mesh_object(name, verts, faces_flat, face_sizes, mat):
         acc += n
     me.polygons.foreach_set("loop_start", starts)
     me.polygons.foreach_set("loop_total", face_sizes)
+    if uvs is not None:
+        me.uv_layers.new(name="uv").data.foreach_set("uv", uvs)
     me.update()
     me.validate()
     obj = bpy.data.objects.new(name, me)
@@ -90,9 +95,12 @@ def _mesh_object(name, verts, faces_flat, face_sizes, mat):
 
 
 def _read(path, code):
+    """A raw little-endian array file (the caller writes ``<`` arrays) as an ``array.array`` of ``code``."""
     a = array.array(code)
     with open(path, "rb") as f:
         a.frombytes(f.read())
+    if sys.byteorder != "little":
+        a.byteswap()
     return a
 
 

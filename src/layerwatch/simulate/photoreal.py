@@ -230,9 +230,7 @@ class BlenderPhotographer(Photographer):
             tail = " | ".join((proc.stderr or proc.stdout or "").strip().splitlines()[-3:])
             raise RenderError(f"Blender failed on a photoreal photo (exit {proc.returncode}): {tail[:300]}; "
                               "check the Blender installation or use the raster renderer.")
-        for p in frame.iterdir():
-            p.unlink()
-        frame.rmdir()
+        shutil.rmtree(frame)
         rad = img[..., 2::-1].astype(np.float32) / 65535.0  # BGR -> RGB, linear
         return cv2.remap(rad, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 

@@ -24,18 +24,14 @@ import array
 import json
 import math
 import sys
+from pathlib import Path
 
 import bpy  # noqa: F401  (only available inside Blender)
 from mathutils import Matrix
 
-
-def _read(path, code):
-    a = array.array(code)
-    with open(path, "rb") as f:
-        a.frombytes(f.read())
-    if sys.byteorder != "little":
-        a.byteswap()
-    return a
+# the reference renderer's Blender script, beside this package: its mesh builder and array reader serve here too
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "render"))
+from blender_scene import _mesh_object, _read  # noqa: E402
 
 
 def _principled(name, base_attr=None, rgb=None, image=None, spec_attr=False, specular=0.1, roughness=0.6):
@@ -72,30 +68,6 @@ def _principled(name, base_attr=None, rgb=None, image=None, spec_attr=False, spe
     return mat
 
 
-def _mesh(name, verts, loops, sizes, mat, uvs=None):
-    """A mesh object from flat arrays: verts (3V floats), loops (L ints), sizes (F ints)."""
-    me = bpy.data.meshes.new(name)
-    me.vertices.add(len(verts) // 3)
-    me.vertices.foreach_set("co", verts)
-    me.loops.add(len(loops))
-    me.loops.foreach_set("vertex_index", loops)
-    me.polygons.add(len(sizes))
-    starts, acc = array.array("i"), 0
-    for n in sizes:
-        starts.append(acc)
-        acc += n
-    me.polygons.foreach_set("loop_start", starts)
-    me.polygons.foreach_set("loop_total", sizes)
-    if uvs is not None:
-        me.uv_layers.new(name="uv").data.foreach_set("uv", uvs)
-    me.update()
-    me.validate()
-    obj = bpy.data.objects.new(name, me)
-    obj.data.materials.append(mat)
-    bpy.context.scene.collection.objects.link(obj)
-    return obj, me
-
-
 def _quad(x0, y0, x1, y1, z):
     return array.array("f", [x0, y0, z, x1, y0, z, x1, y1, z, x0, y1, z]), array.array("i", [0, 1, 2, 3]), array.array("i", [4])
 
@@ -105,7 +77,7 @@ def _scene_mesh(k, mesh, mat):
     verts = _read(mesh["verts"], "f")
     loops = _read(mesh["quads"], "i")
     spec = _read(mesh["spec"], "f")
-    _, me = _mesh(f"scene{k}", verts, loops, array.array("i", [4]) * (len(loops) // 4), mat)
+    me = _mesh_object(f"scene{k}", verts, loops, array.array("i", [4]) * (len(loops) // 4), mat).data
     col = me.color_attributes.new(name="albedo", type="FLOAT_COLOR", domain="POINT")
     col.data.foreach_set("color", _read(mesh["albedo"], "f"))
     ks = me.attributes.new(name="specular", type="FLOAT", domain="POINT")
@@ -162,12 +134,12 @@ def main(job_path):
             _scene_mesh(k, mesh, mat)
     x0, y0, x1, y1 = job["bed_box_mm"]
     verts, loops, sizes = _quad(x0, y0, x1, y1, -0.02)
-    _mesh("bed", verts, loops, sizes, _principled("bed", image=job["bed_texture"], specular=job["bed_specular"],
+    _mesh_object("bed", verts, loops, sizes, _principled("bed", image=job["bed_texture"], specular=job["bed_specular"],
                                                    roughness=job["bed_roughness"]),
           uvs=array.array("f", [0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0]))
     far = 100.0 * max(x1 - x0, y1 - y0)
     verts, loops, sizes = _quad(x0 - far, y0 - far, x1 + far, y1 + far, -0.05)
-    _mesh("floor", verts, loops, sizes, _principled("floor", rgb=job["background_rgb"], specular=0.1, roughness=0.8))
+    _mesh_object("floor", verts, loops, sizes, _principled("floor", rgb=job["background_rgb"], specular=0.1, roughness=0.8))
     _lights(job)
     _camera(job)
     r = scene.render
