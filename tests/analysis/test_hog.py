@@ -145,6 +145,32 @@ def test_split_ties_moves_only_votes_exactly_at_zero_degrees():
         hog_cell_histograms(straight, 8, 9, votes="nearest")
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
+def test_ties_counted_in_the_histogram_pass_equal_their_own_pass_bit_for_bit(dtype):
+    """``hist_from_image`` fills the 0-degree votes in its own pass (``zero``): the same array as
+    :func:`zero_angle_votes`, and the same histograms as without it, on images with many ties (flat runs,
+    straight edges along the columns, odd sizes that leave a partial cell out)."""
+    from layerwatch.analysis.hog import _bin_edges
+    from layerwatch.analysis.hog_kernels import hist_from_image, zero_angle_votes
+
+    rng = np.random.default_rng(11)
+    edges = _bin_edges(9)
+    cos_e, sin_e = np.cos(np.deg2rad(edges)), np.sin(np.deg2rad(edges))
+    coarse = rng.integers(0, 4, (83, 101)).astype(dtype) * 20  # many g_row == 0, with and without g_col
+    smooth = (rng.normal(100, 30, (83, 101)).astype(np.float64) * (1 if dtype != np.uint16 else 0) + 50).astype(dtype)
+    straight = np.repeat(rng.integers(0, 200, (1, 101)), 83, axis=0).astype(dtype)  # every g_row == 0
+    for img in (coarse, smooth, straight, np.zeros((17, 24), dtype)):
+        n_cr, n_cc = img.shape[0] // 8, img.shape[1] // 8
+        want_hist, got_hist = np.zeros((n_cr, n_cc, 9)), np.zeros((n_cr, n_cc, 9))
+        want_zero, got_zero = np.zeros((n_cr, n_cc)), np.full((n_cr, n_cc), np.nan)
+        hist_from_image(img, 8, n_cr, n_cc, cos_e, sin_e, edges, want_hist)
+        zero_angle_votes(img, 8, n_cr, n_cc, want_zero)
+        hist_from_image(img, 8, n_cr, n_cc, cos_e, sin_e, edges, got_hist, got_zero)
+        assert np.array_equal(got_hist, want_hist)
+        assert np.array_equal(got_zero, want_zero)
+        assert np.array_equal(np.signbit(got_zero), np.signbit(want_zero))
+
+
 def test_interpolated_votes_split_each_vote_between_the_two_nearest_centres():
     from layerwatch.analysis.hog import hog_cell_histograms
 

@@ -429,11 +429,47 @@ def test_marker_refinement_gives_the_figures_of_numpys_median_percentile_and_gri
             assert got == want, box
             found += got is not None
     assert found >= 80  # most boxes on a dot refine one
-    values = rng.integers(0, 256, 1001).astype(np.float32)
+    values = rng.integers(0, 256, 1001).astype(np.uint8)
     for n in (1, 2, 3, 7, 8, 200, 1001):
         for q in (0.0, 1.0, 50.0, 99.5, 99.9, 100.0):
-            assert markers._percentile(values[:n].copy(), q) == float(np.percentile(values[:n], q))
-        assert markers._median(values[:n].copy()) == float(np.median(values[:n]))
+            assert markers._percentile(values[:n], q) == float(np.percentile(values[:n].astype(np.float32), q))
+        assert markers._median(values[:n]) == float(np.median(values[:n].astype(np.float32)))
+
+
+def test_the_nearest_labelled_pixel_is_the_whole_images_argmin_ties_and_edges_included():
+    """``markers._nearest_label`` (a growing window) picks the label numpy's argmin over every labelled pixel
+    picks: sparse and dense label maps, points on pixels, between them (halves: exact ties), outside the map."""
+    from layerwatch.geometry.markers import _nearest_label
+
+    rng = np.random.default_rng(8)
+    for trial in range(300):
+        h, w = int(rng.integers(1, 90)), int(rng.integers(1, 90))
+        lab = np.where(rng.random((h, w)) < rng.choice([0.002, 0.02, 0.3]), rng.integers(1, 5, (h, w)), 0)
+        if not lab.any():
+            lab[int(rng.integers(h)), int(rng.integers(w))] = 7
+        cy, cx = rng.integers(-30, h + 30) / 2 * rng.choice([1, 2]), rng.integers(-30, w + 30) / 2 * rng.choice([1, 2])
+        yy, xx = np.nonzero(lab)
+        want = lab[yy, xx][np.argmin((yy - cy) ** 2 + (xx - cx) ** 2)]
+        assert _nearest_label(lab, cy, cx) == want, (trial, cy, cx)
+    ring = np.zeros((41, 41), np.int32)  # four pixels at one distance from the centre: the first row-major wins
+    ring[20, 0], ring[0, 20], ring[40, 20], ring[20, 40] = 4, 3, 2, 1
+    assert _nearest_label(ring, 20.0, 20.0) == 3
+    with pytest.raises(ValueError):
+        _nearest_label(np.zeros((5, 5), np.int32), 2.0, 2.0)
+
+
+def test_ranked_u8_gives_the_partitions_values():
+    from layerwatch.percentile import ranked_u8
+
+    rng = np.random.default_rng(9)
+    for n in (1, 2, 5, 256, 4001):
+        values = rng.integers(0, rng.integers(1, 257), (n,)).astype(np.uint8)
+        ranks = sorted({0, n // 2, n - 1, int(rng.integers(n))})
+        assert np.array_equal(ranked_u8(values, ranks), np.partition(values, ranks)[ranks])
+    with pytest.raises(ValueError):
+        ranked_u8(np.zeros(4, np.float32), [0])
+    with pytest.raises(ValueError):
+        ranked_u8(np.zeros(4, np.uint8), [4])
 
 
 def test_marker_watch_refuses_a_bad_confirm_distance():

@@ -192,18 +192,18 @@ def hog_cell_histograms(image: np.ndarray, cell_px: int = 8, bins: int = 9, gamm
             g_row, g_col = gradients(img)
             hist_soft_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_c, sin_c, out)
         return out
+    half = np.zeros((n_cr, n_cc), np.float64) if votes == "split_ties" else None
     if img.dtype == np.uint8:
         hist_from_u8(img, int(cell_px), n_cr, n_cc, _u8_bin_table(bins), bins, out)
-    elif img.ndim == 2:
-        hist_from_image(img, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
+    elif img.ndim == 2:  # (the ties' votes in the same pass: they read the same gradients)
+        hist_from_image(img, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out, half)
     else:
         g_row, g_col = gradients(img)
         hist_from_gradients(g_row, g_col, int(cell_px), n_cr, n_cc, cos_e, sin_e, edges, out)
-    if votes == "split_ties":
-        half = np.zeros((n_cr, n_cc), np.float64)
-        if img.ndim == 2:
+    if half is not None:
+        if img.dtype == np.uint8:
             zero_angle_votes(img, int(cell_px), n_cr, n_cc, half)
-        else:  # the colour image's gradients, computed above
+        elif img.ndim == 3:  # the colour image's gradients, computed above
             on = (g_row == 0.0)[: n_cr * cell_px, : n_cc * cell_px]
             g = np.where(on, np.abs(g_col[: n_cr * cell_px, : n_cc * cell_px]), 0.0)
             half = g.reshape(n_cr, cell_px, n_cc, cell_px).sum(axis=(1, 3)) / (cell_px * cell_px)

@@ -55,8 +55,12 @@ def _bin_of(gr, gc, mag, cos_e, sin_e, edges):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True)
-def hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pragma: no cover - jit
-    """Fused gradient + binning + cell accumulation for a grey image of any real dtype."""
+def hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out, zero=None):  # pragma: no cover - jit
+    """Fused gradient + binning + cell accumulation for a grey image of any real dtype.
+
+    ``zero``: an (n_cr, n_cc) float64 array, or None: filled with :func:`zero_angle_votes` of the image,
+    value for value (the same gradients, summed in the same order in float64), in the same pass.
+    """
     h, w = img.shape
     bins = edges.size - 1
     area = cell_px * cell_px
@@ -64,19 +68,24 @@ def hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # prag
     for ci in range(n_cr):
         for cj in range(n_cc):
             acc[:] = 0.0
+            flat = 0.0  # the cell's votes at exactly 0 degrees (``zero``)
             for r in range(ci * cell_px, ci * cell_px + cell_px):
                 row_in = 0 < r < h - 1
                 for c in range(cj * cell_px, cj * cell_px + cell_px):
                     gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
                     gc = float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0
-                    if gr == 0.0 and gc == 0.0:
-                        continue
+                    if gr == 0.0:
+                        flat += abs(gc)
+                        if gc == 0.0:
+                            continue
                     mag = math.sqrt(gr * gr + gc * gc)
                     b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
                     if b >= 0:  # single-precision accumulation, as skimage's cell_hog
                         acc[b] = np.float32(np.float64(acc[b]) + mag)
             for b in range(bins):
                 out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+            if zero is not None:
+                zero[ci, cj] = flat / area
 
 
 @njit(cache=True, nogil=True)

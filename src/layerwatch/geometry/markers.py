@@ -24,7 +24,7 @@ import numpy as np
 
 from layerwatch.errors import MarkerError
 from layerwatch.geometry.warp import check_image
-from layerwatch.percentile import lerp, linear_index
+from layerwatch.percentile import lerp, linear_index, ranked_u8
 
 __all__ = ["Blob", "confirm_dots", "detect_dots", "detect_aruco", "photo_problem", "to_grey"]
 
@@ -66,56 +66,81 @@ def photo_problem(photo: np.ndarray) -> str | None:
     return None
 
 
-def _order_stats(values: np.ndarray, ks: list[int]) -> np.ndarray:
-    """The order statistics ``ks`` (0-based sorted positions) of a flat array, partitioned in a copy."""
-    return np.partition(values, ks)[ks]
-
-
 def _median(values: np.ndarray) -> float:
-    """:func:`numpy.median` of a flat float32 array of integers, bit for bit (the mean of the middle one or two
-    values: exact for integers below 2**23), without numpy's general machinery (~0.1 ms on a small array)."""
+    """:func:`numpy.median` of a flat uint8 array taken as float32, bit for bit (the mean of the middle one or
+    two values, in float32: exact for integers), from its counts (:func:`~layerwatch.percentile.ranked_u8`)."""
     n = values.size
     ks = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
-    mid = _order_stats(values, ks)
+    mid = ranked_u8(values, ks).astype(np.float32)
     return float(mid[0] if len(mid) == 1 else (mid[0] + mid[1]) / np.float32(2))
 
 
 def _percentile(values: np.ndarray, q: float) -> float:
-    """:func:`numpy.percentile` (linear) of a flat float32 array, bit for bit, for a Python-float ``q``.
+    """:func:`numpy.percentile` (linear) of a uint8 array taken as float32, bit for bit, for a Python-float ``q``.
 
     numpy's steps (:mod:`layerwatch.percentile`) on the two order statistics it needs, in float32.
     """
     lo, hi, t = linear_index(values.size, q)
-    a, b = _order_stats(values, sorted({lo, hi}))[[0, -1]]
+    a, b = ranked_u8(values, [lo, hi]).astype(np.float32)
     return lerp(a, b, t)
+
+
+def _nearest_label(lab: np.ndarray, cy: float, cx: float) -> int:
+    """The label of the labelled pixel (``lab > 0``) nearest to ``(cy, cx)``, the first in row-major order
+    among equally near ones: ``lab[yy, xx][argmin((yy - cy)**2 + (xx - cx)**2)]`` over ``np.nonzero(lab)``.
+
+    Looked for in a window around the point, doubled until the nearest pixel in it is nearer than any pixel
+    outside it can be (a strict bound: no tie outside); distances are those of the whole image (halves of
+    integers, squared exactly), and the window's row-major order is the image's, so the same pixel is chosen.
+    ``lab`` must hold a labelled pixel.
+    """
+    H, W = lab.shape
+    r = 8
+    while True:
+        r0, r1 = min(max(int(np.floor(cy)) - r, 0), H), min(max(int(np.ceil(cy)) + r + 1, 0), H)
+        c0, c1 = min(max(int(np.floor(cx)) - r, 0), W), min(max(int(np.ceil(cx)) + r + 1, 0), W)
+        whole = r0 == 0 and c0 == 0 and r1 == H and c1 == W
+        yy, xx = np.nonzero(lab[r0:r1, c0:c1])
+        if yy.size:
+            yy, xx = yy + r0, xx + c0
+            d = (yy - cy) ** 2 + (xx - cx) ** 2
+            i = int(np.argmin(d))
+            # a pixel outside the window is at least this far, in rows or in columns
+            gap = min(cy - (r0 - 1) if r0 > 0 else np.inf, r1 - cy if r1 < H else np.inf,
+                      cx - (c0 - 1) if c0 > 0 else np.inf, c1 - cx if c1 < W else np.inf)
+            if whole or d[i] < gap * gap:
+                return int(lab[yy[i], xx[i]])
+        elif whole:
+            raise ValueError("no labelled pixel")
+        r *= 2
 
 
 def _refine(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, float, float] | None:
     """Coverage centroid ``(u, v, area)`` of the bright blob in ``box`` (x, y, w, h) at full resolution.
 
-    The background's median and the 99.5th percentile are read from two order statistics each (the
-    figures of :func:`numpy.median` and :func:`numpy.percentile`, bit for bit; tested), and the centroid's
-    coordinates are broadcast rows and columns instead of full grids (the same products and sums).
+    ``grey``: uint8 (:func:`to_grey`). The background's median and the 99.5th percentile are read from the
+    box's grey-level counts (the figures of :func:`numpy.median` and :func:`numpy.percentile` of its float32
+    copy, bit for bit; tested), the blob is the component nearest the box's centre (:func:`_nearest_label`),
+    and the centroid's coordinates are broadcast rows and columns instead of full grids (the same products and
+    sums).
     """
     x, y, w, h = box
     H, W = grey.shape
     pad = max(3, int(0.6 * max(w, h)))
     x0, y0, x1, y1 = max(x - pad, 0), max(y - pad, 0), min(x + w + pad, W), min(y + h + pad, H)
-    roi = grey[y0:y1, x0:x1].astype(np.float32)
-    border = np.concatenate([roi[0], roi[-1], roi[:, 0], roi[:, -1]])
-    bg = _median(border)
-    peak = _percentile(roi.ravel(), 99.5)
+    cut = grey[y0:y1, x0:x1]
+    bg = _median(np.concatenate([cut[0], cut[-1], cut[:, 0], cut[:, -1]]))
+    peak = _percentile(cut, 99.5)
     if peak - bg < 20:
         return None
+    roi = cut.astype(np.float32)
     cov = np.clip((roi - bg) / (peak - bg) * 1.15 - 0.075, 0.0, 1.0)  # soft background floor
 
     # keep only the component under the candidate (neighbours and texture out)
     n, lab = cv2.connectedComponents((cov > 0.5).astype(np.uint8))
     if n < 2:
         return None
-    cy, cx = (y + h / 2 - y0), (x + w / 2 - x0)
-    yy, xx = np.nonzero(lab)
-    k = lab[yy, xx][np.argmin((yy - cy) ** 2 + (xx - cx) ** 2)]
+    k = _nearest_label(lab, y + h / 2 - y0, x + w / 2 - x0)
     keep = cv2.dilate((lab == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     cov = np.where(keep, cov, 0.0)
     s = float(cov.sum())
