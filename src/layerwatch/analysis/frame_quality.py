@@ -35,7 +35,7 @@ import numpy as np
 from pydantic import Field
 
 from layerwatch.analysis.histogram import middle_values, percentiles
-from layerwatch.percentile import lerp, linear_index
+from layerwatch.percentile import lerp, linear_index, median, order_statistics
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
@@ -270,9 +270,9 @@ def change_from(small: np.ndarray, previous: np.ndarray) -> tuple[float, float]:
         return float("inf"), float("inf")
     a, b = gain_fit(previous.ravel()[::7], small.ravel()[::7])
     resid = cv2.blur(small - (a * previous + b), (5, 5))
-    # order statistics do not depend on the order of the values: the temporaries are partitioned in place
-    # (no copy per statistic; the values, and so the figures, are the same bit for bit)
-    dev = np.abs(resid - float(np.median(resid, overwrite_input=True)))
+    # order statistics selected, not the whole residual partitioned (percentile.order_statistics: the same values,
+    # so the same figures bit for bit; a zero median's sign may differ, which the absolute value takes away)
+    dev = np.abs(resid - float(median(resid.ravel())))
     med, tail = _median_and_percentile(dev.ravel(), 99.9)
     spread = float(med / 0.6745)
     return float(max(tail - 3.0 * spread, 0.0)), spread
@@ -298,18 +298,20 @@ def gain_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 def _median_and_percentile(values: np.ndarray, q: float) -> tuple[float, float]:
     """``numpy.median(values)`` and ``numpy.percentile(values, q)`` (linear) of a float64 (n,) array, bit for bit,
-    from one partition in place (numpy partitions once per statistic).
+    from the order statistics both need, selected together (:func:`~layerwatch.percentile.order_statistics`;
+    numpy partitions once per statistic).
 
-    The order statistics each needs are selected together; numpy's arithmetic on them is followed step
-    for step: the mean of the middle one or two for the median, the virtual index ``(n - 1) q / 100``,
-    its floor, and ``_lerp`` with a Python-float weight (``q`` is a Python float) for the percentile.
+    numpy's arithmetic on them is followed step for step: the mean of the middle one or two for the median, the
+    virtual index ``(n - 1) q / 100``, its floor, and ``_lerp`` with a Python-float weight (``q`` is a Python float)
+    for the percentile. ``values`` is not changed.
     """
     n = values.size
     mid = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
     lo, hi, t = linear_index(n, q)
-    values.partition(sorted({*mid, lo, hi}))
-    med = float(np.mean(values[mid[0]:mid[-1] + 1]))
-    return med, lerp(values[lo], values[hi], t)
+    ks = sorted({*mid, lo, hi})
+    got = dict(zip(ks, order_statistics(values, ks)[0], strict=True))
+    med = float(np.mean(np.array([got[k] for k in mid], values.dtype)))
+    return med, lerp(got[lo], got[hi], t)
 
 
 def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:
