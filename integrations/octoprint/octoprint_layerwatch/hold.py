@@ -96,6 +96,8 @@ class SnapshotHold:
         self._lock = threading.Lock()
         self._busy = False
         self._current: HoldRecord | None = None
+        #: ids of the records whose hold is being lifted (their outcome is set once it is)
+        self._releasing: set[int] = set()
         self._records: deque[HoldRecord] = deque(maxlen=int(keep))
 
     def trigger(self, trigger: Any) -> HoldRecord:
@@ -136,12 +138,16 @@ class SnapshotHold:
                 self._busy = False
 
     def _release(self, rec: HoldRecord, outcome: str) -> None:
+        """Lift ``rec``'s hold once (the first of the frame, the timeout and the end), then record how it ended.
+
+        The outcome is published after the hold is lifted, so whoever sees it no longer ``pending``
+        (the photo thread's ``expired``, a caller polling the record) sees the job already released.
+        """
+        released = time.time()
         with self._lock:
-            if rec.outcome != "pending":
+            if rec.outcome != "pending" or id(rec) in self._releasing:
                 return
-            rec.outcome, rec.released = outcome, time.time()
-            if self._current is rec:
-                self._current = None
+            self._releasing.add(id(rec))
         if outcome == "timeout":
             log.warning("layer %d: no frame after %.1f s, the print goes on", rec.layer, self.timeout_s)
         if rec.held:
@@ -149,6 +155,11 @@ class SnapshotHold:
                 self._set_hold(False)
             except Exception:  # noqa: BLE001
                 log.exception("could not lift the hold")
+        with self._lock:
+            rec.outcome, rec.released = outcome, released
+            self._releasing.discard(id(rec))
+            if self._current is rec:
+                self._current = None
 
     def end(self) -> None:
         """Lift a pending hold (the print ended or was cancelled)."""
