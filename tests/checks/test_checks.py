@@ -7,6 +7,7 @@ import pytest
 
 from layerwatch.analysis.check_settings import BedCheckSettings
 from layerwatch.analysis.result import LayerResult
+from layerwatch.analysis.scene_change import top_coords
 from layerwatch.evaluate.checks import (
     _footprints,
     _setup,
@@ -144,4 +145,15 @@ def test_plane_maps_are_built_once_per_frame_and_not_held_after(part):
         first, again = checks.maps, checks.maps
         assert first[0] is again[0]
         assert all(np.array_equal(a, b) for a, b in zip(first, outside, strict=True))
+        planes = checks.planes()
+        assert checks.planes() is planes and planes == {}
+        fp = np.zeros(tv.shape, bool)
+        fp[280:320, 270:330] = True
+        area, surface = checks._layer_surface(fp, 2.0, first, 0.4)
+        kept = planes[2.0]  # the plane's coordinates, computed once, for the layer-change channel too
+        assert all(np.array_equal(a, b) for a, b in zip(kept, top_coords(outside, 2.0), strict=True))
+        assert checks._layer_surface(fp, 2.0, first, 0.4)[1].tolist() == surface.tolist() and planes[2.0] is kept
     assert checks._frame_maps is None and checks.maps[0] is not first[0]
+    assert checks._frame_planes is None and checks.planes() == {} and checks.planes() is not planes
+    assert checks._layer_surface(fp, 2.0, checks.maps, 0.4)[1].tolist() == surface.tolist()  # as outside a frame
+    assert surface.any()

@@ -129,6 +129,7 @@ class JobChecks:
         self._reach = (reach_mm, top_z_mm)
         self._maps: tuple[np.ndarray | None, np.ndarray] | None = None
         self._frame_maps: tuple[np.ndarray, np.ndarray] | None = None  # :meth:`frame`'s rebuilt ``A``, ``B``
+        self._frame_planes: dict[float, tuple[np.ndarray, np.ndarray]] | None = None  # :meth:`planes` in a frame
         self._in_frame = False
         #: rows and columns of the working image the check keeps (:meth:`_crop_box`)
         self.box: tuple[slice, slice] = (slice(0, self.size[1]), slice(0, self.size[0]))
@@ -177,13 +178,24 @@ class JobChecks:
 
     @contextmanager
     def frame(self) -> Iterator[None]:
-        """Within it, :attr:`maps` builds ``A`` once (the checks and the layer-change channel of one photo
-        share it, ~1 ms each); it is dropped at the end (a printer holds nothing more between layers)."""
+        """Within it, :attr:`maps` builds ``A`` once and :meth:`planes` keeps each plane's top-view coordinates (the
+        checks and the layer-change channel of one photo share them, ~1 ms and ~0.2 ms); both are dropped at the end
+        (a printer holds nothing more between layers)."""
         self._in_frame = True
         try:
             yield
         finally:
-            self._in_frame, self._frame_maps = False, None
+            self._in_frame, self._frame_maps, self._frame_planes = False, None, None
+
+    def planes(self) -> dict[float, tuple[np.ndarray, np.ndarray]]:
+        """:func:`~layerwatch.analysis.scene_change.top_coords` of :attr:`maps` by plane height, for
+        :func:`~layerwatch.analysis.scene_change.predicted_change`'s ``coords``: within :meth:`frame` one dict for
+        the photo (a plane's coordinates computed once, the same arrays for every reader), else a new one."""
+        if not self._in_frame:
+            return {}
+        if self._frame_planes is None:
+            self._frame_planes = {}
+        return self._frame_planes
 
     def _box_maps(self) -> tuple[tuple[slice, slice], tuple[np.ndarray, np.ndarray]]:
         """:meth:`_crop_box` and the plane maps ``A``, ``B`` on it, without the rays of the whole working image.
@@ -410,7 +422,10 @@ class JobChecks:
         if k > 1:
             inner = cv2.erode(inner, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
         area = float(np.count_nonzero(inner)) / self.topview.px_per_mm ** 2
-        mx, my = top_coords(maps, z)
+        planes = self.planes()
+        if float(z) not in planes:
+            planes[float(z)] = top_coords(maps, z)
+        mx, my = planes[float(z)]
         H, W = self.topview.shape
         surface = cv2.remap(inner, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
         return area, surface & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)

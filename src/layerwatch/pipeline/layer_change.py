@@ -139,7 +139,7 @@ class LayerChange:
                  maps: tuple[np.ndarray, np.ndarray], photo: np.ndarray) -> None:
         st = self.settings
         z_before = previous[1]
-        planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # each plane's top-view coordinates, computed once
+        planes = self.checks.planes()  # each plane's top-view coordinates, computed once (with the checks' in a frame)
         surface = predicted_change(fp, np.array([z]), maps, self.topview, 0.0, planes)
         near = predicted_change(fp, np.array([z_before, z]), maps, self.topview, NEAR_MARGIN_MM, planes)
         if self._shift_per_mm is None:
