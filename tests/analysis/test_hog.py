@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -145,30 +147,124 @@ def test_split_ties_moves_only_votes_exactly_at_zero_degrees():
         hog_cell_histograms(straight, 8, 9, votes="nearest")
 
 
+@functools.cache
+def _cells_kernel():
+    """hog_kernels.hist_from_image as it was, a cell at a time with ``_bin_of`` per pixel (the reference for the
+    row-at-a-time kernel; compiled once from this frozen copy)."""
+    from numba import njit
+
+    from layerwatch.analysis.hog_kernels import _bin_of
+
+    @njit(cache=False)
+    def kernel(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):  # pragma: no cover - jit
+        h, w = img.shape
+        bins = edges.size - 1
+        area = cell_px * cell_px
+        acc = np.zeros(bins, dtype=np.float32)
+        for ci in range(n_cr):
+            for cj in range(n_cc):
+                acc[:] = 0.0
+                for r in range(ci * cell_px, ci * cell_px + cell_px):
+                    row_in = 0 < r < h - 1
+                    for c in range(cj * cell_px, cj * cell_px + cell_px):
+                        gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
+                        gc = float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0
+                        if gr == 0.0 and gc == 0.0:
+                            continue
+                        mag = np.sqrt(gr * gr + gc * gc)
+                        b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
+                        if b >= 0:
+                            acc[b] = np.float32(np.float64(acc[b]) + mag)
+                for b in range(bins):
+                    out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+
+    return kernel
+
+
+def _cells_before(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out):
+    _cells_kernel()(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out)
+
+
+def _kernel_images(dtype):
+    """Images for the kernel comparisons: flat runs, straight edges along the columns, gradients on bin edges
+    (ramps and steps), smooth noise, a blurred real-looking edge, sizes that leave partial cells out."""
+    rng = np.random.default_rng(11)
+    r, c = np.mgrid[0:40, 0:48]
+    ramps = np.where(r < 20, r + c, 3 * (c // 6)) + (r > 30) * 10 + rng.integers(0, 2, r.shape) * (c > 40)
+    noise = rng.normal(100, 30, (83, 101)) if dtype != np.uint16 else rng.integers(0, 4000, (83, 101))
+    out = [rng.integers(0, 4, (83, 101)) * 20, noise, np.repeat(rng.integers(0, 200, (1, 101)), 83, axis=0), ramps,
+           np.zeros((17, 24)), np.zeros((5, 30)), rng.integers(0, 9, (64, 8))]
+    if dtype != np.uint16:
+        out += [_edge(a) for a in (0.0, 20.0, 45.0, -0.5, 90.0)]
+    if dtype == np.float64:
+        out.append(_near_edge_stencils())
+    return [np.ascontiguousarray(np.asarray(im), dtype) for im in out]
+
+
+def _near_edge_stencils(bins: int = 9) -> np.ndarray:
+    """A float64 image whose isolated pixels have gradients within ~1e-15 rad of a bin edge where the sign test of
+    ``_bin_of`` and skimage's degree arithmetic disagree (the kernels' ``close`` fallback decides them)."""
+    from layerwatch.analysis.hog import _bin_edges
+
+    rng = np.random.default_rng(0)
+    edges = _bin_edges(bins)
+    ce, se = np.cos(np.deg2rad(edges)), np.sin(np.deg2rad(edges))
+    th = np.repeat(np.deg2rad(edges[1:bins].astype(np.float64)), 4000) + rng.normal(0, 1e-15, 4000 * (bins - 1))
+    m = rng.uniform(1, 200, th.size)
+    gr, gc = m * np.sin(th), m * np.cos(th)
+    count = sum((gr * ce[i] - gc * se[i] >= 0).astype(int) for i in range(1, bins))
+    ang = np.arctan2(gr, gc) * (180.0 / np.pi)
+    differ = count != np.searchsorted(edges, ang, side="right") - 1
+    assert differ.sum() >= 5  # (the test would not reach the fallback otherwise)
+    img = np.zeros((48, 48))
+    for k, (a, b) in enumerate(zip(gr[differ][:25], gc[differ][:25], strict=False)):
+        r, c = 2 + 4 * (k // 5), 2 + 4 * (k % 5)  # g_row = img[r+1, c] - img[r-1, c] = a, g_col = b
+        img[r + 1, c], img[r, c + 1] = a, b
+    return img
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
-def test_ties_counted_in_the_histogram_pass_equal_their_own_pass_bit_for_bit(dtype):
-    """``hist_from_image`` fills the 0-degree votes in its own pass (``zero``): the same array as
-    :func:`zero_angle_votes`, and the same histograms as without it, on images with many ties (flat runs,
-    straight edges along the columns, odd sizes that leave a partial cell out)."""
+@pytest.mark.parametrize("bins", [9, 4, 8, 7])
+def test_the_row_at_a_time_kernel_equals_the_cell_at_a_time_one_bit_for_bit(dtype, bins):
+    """``hist_from_image`` (a row of pixels at a time, edge tests over the row) gives the histograms of the kernel
+    it replaced (a cell at a time, :func:`_bin_of` per pixel) bit for bit, and the 0-degree votes it fills in the
+    same pass (``zero``) are :func:`zero_angle_votes`' bit for bit."""
     from layerwatch.analysis.hog import _bin_edges
     from layerwatch.analysis.hog_kernels import hist_from_image, zero_angle_votes
 
-    rng = np.random.default_rng(11)
+    edges = _bin_edges(bins)
+    cos_e, sin_e = np.cos(np.deg2rad(edges)), np.sin(np.deg2rad(edges))
+    for img in _kernel_images(dtype):
+        for cell in (8, 5):
+            n_cr, n_cc = img.shape[0] // cell, img.shape[1] // cell
+            want_hist, got_hist = np.zeros((n_cr, n_cc, bins)), np.full((n_cr, n_cc, bins), np.nan)
+            want_zero, got_zero = np.zeros((n_cr, n_cc)), np.full((n_cr, n_cc), np.nan)
+            _cells_before(img, cell, n_cr, n_cc, cos_e, sin_e, edges, want_hist)
+            zero_angle_votes(img, cell, n_cr, n_cc, want_zero)
+            hist_from_image(img, cell, n_cr, n_cc, cos_e, sin_e, edges, got_hist, got_zero)
+            assert np.array_equal(got_hist, want_hist), (img.shape, cell)
+            assert np.array_equal(got_zero, want_zero)
+            assert np.array_equal(np.signbit(got_zero), np.signbit(want_zero))
+            alone = np.full_like(got_hist, np.nan)
+            hist_from_image(img, cell, n_cr, n_cc, cos_e, sin_e, edges, alone)  # without ``zero``: the same
+            assert np.array_equal(alone, want_hist)
+
+
+def test_the_row_at_a_time_kernel_on_real_photos_and_a_rendered_reference(shared_data):
+    from layerwatch.analysis.hog import _bin_edges
+    from layerwatch.analysis.hog_kernels import hist_from_image
+
     edges = _bin_edges(9)
     cos_e, sin_e = np.cos(np.deg2rad(edges)), np.sin(np.deg2rad(edges))
-    coarse = rng.integers(0, 4, (83, 101)).astype(dtype) * 20  # many g_row == 0, with and without g_col
-    smooth = (rng.normal(100, 30, (83, 101)).astype(np.float64) * (1 if dtype != np.uint16 else 0) + 50).astype(dtype)
-    straight = np.repeat(rng.integers(0, 200, (1, 101)), 83, axis=0).astype(dtype)  # every g_row == 0
-    for img in (coarse, smooth, straight, np.zeros((17, 24), dtype)):
+    import cv2
+
+    for grey in _real_greys(shared_data):
+        img = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.0)
         n_cr, n_cc = img.shape[0] // 8, img.shape[1] // 8
-        want_hist, got_hist = np.zeros((n_cr, n_cc, 9)), np.zeros((n_cr, n_cc, 9))
-        want_zero, got_zero = np.zeros((n_cr, n_cc)), np.full((n_cr, n_cc), np.nan)
-        hist_from_image(img, 8, n_cr, n_cc, cos_e, sin_e, edges, want_hist)
-        zero_angle_votes(img, 8, n_cr, n_cc, want_zero)
-        hist_from_image(img, 8, n_cr, n_cc, cos_e, sin_e, edges, got_hist, got_zero)
-        assert np.array_equal(got_hist, want_hist)
-        assert np.array_equal(got_zero, want_zero)
-        assert np.array_equal(np.signbit(got_zero), np.signbit(want_zero))
+        want, got = np.zeros((n_cr, n_cc, 9)), np.zeros((n_cr, n_cc, 9))
+        _cells_before(img, 8, n_cr, n_cc, cos_e, sin_e, edges, want)
+        hist_from_image(img, 8, n_cr, n_cc, cos_e, sin_e, edges, got)
+        assert np.array_equal(got, want)
 
 
 def test_interpolated_votes_split_each_vote_between_the_two_nearest_centres():

@@ -42,50 +42,95 @@ def _bin_of(gr, gc, mag, cos_e, sin_e, edges):  # pragma: no cover - jit
         if abs(t) <= 1e-9 * mag:
             close = True
     if close:
-        ang = math.atan2(gr, gc) * (180.0 / np.pi)
-        if ang >= 180.0:
-            ang = 0.0
-        elif ang < 0.0:
-            ang += 180.0
-        b = 0
-        while b < bins and ang >= edges[b + 1]:
-            b += 1
+        b = _bin_by_angle(gr, gc, edges)
     # b == bins: at or above the last (float32) edge, outside every bin
     return b if b < bins else -1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _bin_by_angle(gr, gc, edges):  # pragma: no cover - jit
+    """skimage's bin of a gradient within 1e-9 rad of an edge: its degree arithmetic (libm atan2, ``% 180``);
+    ``edges.size - 1`` (no bin) at or above the last edge."""
+    bins = edges.size - 1
+    ang = math.atan2(gr, gc) * (180.0 / np.pi)
+    if ang >= 180.0:
+        ang = 0.0
+    elif ang < 0.0:
+        ang += 180.0
+    b = 0
+    while b < bins and ang >= edges[b + 1]:
+        b += 1
+    return b
+
+
 @njit(cache=True, nogil=True)
 def hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out, zero=None):  # pragma: no cover - jit
-    """Fused gradient + binning + cell accumulation for a grey image of any real dtype.
+    """Gradient + binning + cell accumulation for a grey image of any real dtype, a row of pixels at a time.
 
-    ``zero``: an (n_cr, n_cc) float64 array, or None: filled with :func:`zero_angle_votes` of the image,
-    value for value (the same gradients, summed in the same order in float64), in the same pass.
+    Each row's gradients, folded gradients and magnitudes are computed first, then the edge tests of
+    :func:`_bin_of` edge after edge over the whole row (loops without branches that the compiler vectorises;
+    the same products, differences and comparisons per pixel), then the votes in pixel order into one
+    accumulator per cell of the cell row, which adds each cell's pixels in skimage's order (rows, then
+    columns): the same float32 sums as a cell at a time. ``zero``: an (n_cr, n_cc) float64 array, or None:
+    filled with :func:`zero_angle_votes` of the image, value for value (the same gradients, summed in the same
+    order in float64), in the same pass.
     """
     h, w = img.shape
     bins = edges.size - 1
+    last = bins if edges[bins] < 180.0 else bins - 1  # an edge at 180 degrees bounds nothing
     area = cell_px * cell_px
-    acc = np.zeros(bins, dtype=np.float32)
+    width = n_cc * cell_px
+    if width == 0:
+        return
+    acc = np.zeros((n_cc, bins), dtype=np.float32)
+    flat = np.zeros(n_cc)  # each cell's votes at exactly 0 degrees (``zero``)
+    grs, gcs = np.zeros(width), np.zeros(width)
+    fr, fc, mag = np.empty(width), np.empty(width), np.empty(width)
+    count, close = np.empty(width, np.int32), np.empty(width, np.int32)
+    inner = min(width, w - 1)  # columns 1..inner-1 have both neighbours
     for ci in range(n_cr):
+        acc[:] = 0.0
+        flat[:] = 0.0
+        for r in range(ci * cell_px, ci * cell_px + cell_px):
+            if 0 < r < h - 1:
+                for c in range(width):
+                    grs[c] = float(img[r + 1, c]) - float(img[r - 1, c])
+            else:
+                grs[:] = 0.0
+            for c in range(1, inner):
+                gcs[c] = float(img[r, c + 1]) - float(img[r, c - 1])
+            gcs[0] = 0.0
+            if inner < width:
+                gcs[inner] = 0.0
+            for c in range(width):  # folded into the upper half plane (_bin_of)
+                gr, gc = grs[c], gcs[c]
+                neg = (gr < 0.0) | ((gr == 0.0) & (gc < 0.0))
+                fr[c] = -gr if neg else gr
+                fc[c] = -gc if neg else gc
+                mag[c] = math.sqrt(gr * gr + gc * gc)
+                count[c] = 0
+                close[c] = 0
+            for i in range(1, last + 1):
+                ce, se = cos_e[i], sin_e[i]
+                for c in range(width):
+                    t = fr[c] * ce - fc[c] * se
+                    count[c] += t >= 0.0
+                    close[c] |= abs(t) <= 1e-9 * mag[c]
+            for c in range(width):
+                gr, gc = grs[c], gcs[c]
+                cj = c // cell_px
+                if gr == 0.0:
+                    flat[cj] += abs(gc)
+                    if gc == 0.0:
+                        continue
+                b = _bin_by_angle(gr, gc, edges) if close[c] else count[c]
+                if b < bins:  # single-precision accumulation, as skimage's cell_hog
+                    acc[cj, b] = np.float32(np.float64(acc[cj, b]) + mag[c])
         for cj in range(n_cc):
-            acc[:] = 0.0
-            flat = 0.0  # the cell's votes at exactly 0 degrees (``zero``)
-            for r in range(ci * cell_px, ci * cell_px + cell_px):
-                row_in = 0 < r < h - 1
-                for c in range(cj * cell_px, cj * cell_px + cell_px):
-                    gr = float(img[r + 1, c]) - float(img[r - 1, c]) if row_in else 0.0
-                    gc = float(img[r, c + 1]) - float(img[r, c - 1]) if 0 < c < w - 1 else 0.0
-                    if gr == 0.0:
-                        flat += abs(gc)
-                        if gc == 0.0:
-                            continue
-                    mag = math.sqrt(gr * gr + gc * gc)
-                    b = _bin_of(gr, gc, mag, cos_e, sin_e, edges)
-                    if b >= 0:  # single-precision accumulation, as skimage's cell_hog
-                        acc[b] = np.float32(np.float64(acc[b]) + mag)
             for b in range(bins):
-                out[ci, cj, b] = np.float32(np.float64(acc[b]) / area)
+                out[ci, cj, b] = np.float32(np.float64(acc[cj, b]) / area)
             if zero is not None:
-                zero[ci, cj] = flat / area
+                zero[ci, cj] = flat[cj] / area
 
 
 @njit(cache=True, nogil=True)
