@@ -417,6 +417,9 @@ class ChangeMap:
     noise : float
         Robust spread of the block scores (1.4826 MAD), grey levels.
     block_px : int
+    shaded : ndarray, bool, shape (n, m), optional
+        Blocks above the threshold that the part's cast shadow explains
+        (:mod:`layerwatch.analysis.cast_shadow`), not in ``changed``; ``None`` when none were.
     """
 
     score: np.ndarray
@@ -425,6 +428,7 @@ class ChangeMap:
     threshold: float
     noise: float
     block_px: int
+    shaded: np.ndarray | None = None
 
     @property
     def changed_share(self) -> float:

@@ -161,6 +161,11 @@ class SceneSettings(Section):
         A frame whose changed blocks exceed this share of the scored blocks
         does not show the scene the model expects (camera moved, covered,
         light switched): it is rejected as a camera fault, never a failure.
+    shadow_reach : float
+        How far from the printed body a change may still be the part's own cast shadow, in heights of
+        the print (the cotangent of the lowest lamp elevation allowed for: 2 is 27 deg); such a change
+        is judged by :mod:`layerwatch.analysis.cast_shadow` (grey, within a shadow's range, texture
+        kept) and not counted when it is shade. 0 turns it off.
     """
 
     enabled: bool = False
@@ -171,3 +176,4 @@ class SceneSettings(Section):
     min_change: float = Field(8.0, ge=0, le=255)
     min_region_mm2: float = Field(4.0, ge=0)
     max_changed_share: float = Field(0.35, gt=0, le=1)
+    shadow_reach: float = Field(2.0, ge=0, le=20)

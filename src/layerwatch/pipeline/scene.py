@@ -67,13 +67,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from layerwatch.analysis.block_masks import blocks_to_pixels
+from layerwatch.analysis.cast_shadow import explained_by_shade, shadow_zone
 from layerwatch.analysis.result import LayerResult, SceneStats
 from layerwatch.analysis.scene_change import (
     SATURATED,
@@ -327,6 +328,19 @@ class _AckPatch:
     clipped: np.ndarray
 
 
+def _working_px_per_mm(mx: np.ndarray, observed: np.ndarray, topview: TopView) -> float:
+    """Working-image px per mm on the bed, along the image rows (the view's median; 0 when nothing is observed).
+
+    ``mx`` is the top-view column of every working pixel's ray on the bed (:func:`top_coords` at 0):
+    its step from one column to the next is top-view px per working px. Across the image rows a
+    camera at ~45 deg sees the bed least foreshortened, so this is the larger of the view's two scales.
+    """
+    step = np.abs(np.diff(mx, axis=1))[observed[:, 1:] & observed[:, :-1]]
+    if step.size == 0:
+        return 0.0
+    return float(topview.px_per_mm / max(float(np.median(step)), 1e-6))
+
+
 class SceneModel:
     """The expected appearance ``E`` of the camera view and its update rule (module notes).
 
@@ -365,6 +379,9 @@ class SceneModel:
         #: :func:`plane_maps` on :attr:`reach_box`
         self.maps = (np.ascontiguousarray(A[:, self.reach_box[0], self.reach_box[1]]),
                      np.ascontiguousarray(B[:, self.reach_box[0], self.reach_box[1]]))
+        #: working-image px per mm on the bed across the view (the larger of its two scales, at the view's
+        #: median): how far a cast shadow may reach in the image (:mod:`layerwatch.analysis.cast_shadow`)
+        self.px_per_mm = _working_px_per_mm(mx, self.observed, topview)
         self.reset(bed_photo)
 
     def _reach_box(self, A: np.ndarray, B: np.ndarray, reach_mm: tuple[float, float, float, float] | None,
@@ -516,8 +533,10 @@ class SceneModel:
         predicted = np.zeros(self.observed.shape, bool)
         ledges = self._full(self.ledges)
         planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # the planes' top-view coordinates, computed once
+        z_top = 0.0
         for j in range(first, obs.layer + 1):
             fp, z0, z1 = footprints(j)
+            z_top = max(z_top, float(z1))
             planes = {z: c for z, c in planes.items() if z == float(z0)}  # (the last layer's top: this one's bottom)
             band = self._predicted(fp, np.array([z0, z1]), st.margin_mm, planes)
             predicted |= band
@@ -553,7 +572,13 @@ class SceneModel:
             obs.rejected = (f"the frame does not show the expected scene (photometric gain "
                             f"{', '.join(f'{g:.2f}' for g in obs.gain)}: dark, covered or overexposed?)")
             return
-        obs.change = change_blocks(img, E, scored, obs.ratio, st, expected_clipped=self._clipped_full())
+        clipped = self._clipped_full()
+        obs.change = change_blocks(img, E, scored, obs.ratio, st, expected_clipped=clipped)
+        if st.shadow_reach > 0 and obs.change.changed.any():  # the part's own cast shadow is light, not material
+            zone = shadow_zone(obs.body, st.shadow_reach * z_top * self.px_per_mm)
+            shaded = explained_by_shade(obs.change, img, np.minimum(E * obs.ratio, 255.0), scored, zone, clipped)
+            if shaded.any():
+                obs.change = replace(obs.change, changed=obs.change.changed & ~shaded, shaded=shaded)
         share = obs.change.changed_share
         if share > st.max_changed_share:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "

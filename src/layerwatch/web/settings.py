@@ -76,6 +76,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "scene.working_px": (160, 4096, "px"), "scene.margin_mm": (0.0, 20.0, "mm"), "scene.block_px": (2, 64, "px"),
     "scene.noise_k": (0.1, 100.0, ""), "scene.min_change": (0.0, 255.0, "grey levels"),
     "scene.min_region_mm2": (0.0, 2500.0, "mm^2"), "scene.max_changed_share": (0.01, 1.0, ""),
+    "scene.shadow_reach": (0.0, 20.0, "heights"),
     "notify.min_interval_s": (0.0, 86400.0, "s"),
     "bed_check.min_area_mm2": (0.0, 2500.0, "mm^2"), "bed_check.block_px": (2, 64, "px"),
     "bed_check.noise_k": (0.1, 100.0, ""), "bed_check.min_change": (0.0, 255.0, "grey levels"),

@@ -1,0 +1,127 @@
+"""The part's cast shadow beside the print: light, not material (analysis/cast_shadow.py)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from layerwatch.analysis.cast_shadow import MIN_GAIN, explained_by_shade, shadow_zone
+from layerwatch.analysis.scene_change import change_blocks
+from layerwatch.analysis.settings import SceneSettings
+
+H, W, B = 160, 240, 8
+
+
+def _surface(rgb=(0.9, 0.55, 0.2), level=170.0, seed=0) -> np.ndarray:
+    """A printed floor: a fine bead texture around ``level``, tinted ``rgb``, float32 (H, W, 3)."""
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.normal(0, 12, (H, W)).astype(np.float32), (0, 0), 1.0)
+    beads = 6.0 * np.sin(np.arange(W, dtype=np.float32) * 1.3)[None, :]
+    grey = level + tex + beads
+    return np.clip(grey[..., None] * np.array(rgb, np.float32) / max(rgb), 0, 255).astype(np.float32)
+
+
+def _noisy(img: np.ndarray, seed: int, sigma: float = 1.5) -> np.ndarray:
+    return np.clip(img + np.random.default_rng(seed).normal(0, sigma, img.shape), 0, 255).astype(np.float32)
+
+
+def _judge(photo: np.ndarray, expected: np.ndarray, zone: np.ndarray):
+    scored = np.ones((H, W), bool)
+    ratio = np.ones((H, W, 3), np.float32)
+    change = change_blocks(photo, expected, scored, ratio, SceneSettings(enabled=True))
+    shaded = explained_by_shade(change, photo, np.minimum(expected * ratio, 255.0), scored, zone)
+    return change, shaded
+
+
+def _shadow(img: np.ndarray, gain: float, x0: int = 100, slope: float = 0.3) -> np.ndarray:
+    """``img`` darkened by ``gain`` right of a sharp slanted edge (a wall's cast shadow), with no blur."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    inside = xx > x0 + slope * yy
+    return np.where(inside[..., None], img * gain, img).astype(np.float32)
+
+
+def test_the_zone_reaches_the_given_distance_from_the_body_and_nothing_without_a_body():
+    body = np.zeros((H, W), bool)
+    body[70:90, 110:130] = True
+    zone = shadow_zone(body, 20.0)
+    assert zone[body].all()
+    assert zone[80, 110 - 19] and not zone[80, 110 - 22]
+    assert zone[70 - 19, 120] and not zone[70 - 22, 120]
+    assert not shadow_zone(np.zeros((H, W), bool), 20.0).any()
+    assert not shadow_zone(body, 0.0).any()
+
+
+@pytest.mark.parametrize("gain", [0.6, 0.8, 1.25])
+def test_a_grey_shadow_with_a_sharp_edge_changes_blocks_that_the_shade_explains(gain):
+    E = _surface()
+    photo = _noisy(_shadow(E, gain), 1)
+    zone = np.ones((H, W), bool)
+    change, shaded = _judge(photo, _noisy(E, 2), zone)
+    assert change.changed.sum() >= 5  # the scene channel alone reports the shadow (its edge at least)
+    assert (shaded <= change.changed).all()
+    assert shaded.sum() >= 0.9 * change.changed.sum()
+
+
+def test_outside_the_zone_nothing_is_explained():
+    E = _surface()
+    photo = _noisy(_shadow(E, 0.6), 1)
+    change, shaded = _judge(photo, _noisy(E, 2), np.zeros((H, W), bool))
+    assert change.changed.any() and not shaded.any()
+
+
+def test_a_strand_of_another_colour_is_not_shade():
+    """A grey-white strand over the orange floor: its gains differ between the channels."""
+    E = _surface()
+    photo = E.copy()
+    yy, xx = np.mgrid[0:H, 0:W]
+    strand = np.abs(yy - (40 + 0.4 * xx)) < 2.5
+    photo[strand] = (150.0, 150.0, 150.0)
+    change, shaded = _judge(_noisy(photo, 1), _noisy(E, 2), np.ones((H, W), bool))
+    assert change.changed.sum() >= 5 and not shaded.any()
+
+
+def test_a_strand_of_the_floors_own_colour_keeps_its_texture_and_is_not_shade():
+    """An orange strand on the orange floor (grey gain): its own highlights and shade lines remain."""
+    E = _surface()
+    photo = E.copy()
+    yy, xx = np.mgrid[0:H, 0:W]
+    d = yy - (40 + 0.4 * xx)
+    for off in (0.0, 5.0, 10.0, 15.0):  # a few loops of filament, lit on top and dark at their edges
+        dd = np.abs(d - off)
+        photo = np.where((dd < 2.0)[..., None], photo * np.where(dd < 1.0, 1.3, 0.5)[..., None], photo)
+    change, shaded = _judge(_noisy(np.clip(photo, 0, 255), 1), _noisy(E, 2), np.ones((H, W), bool))
+    assert change.changed.sum() >= 5
+    assert shaded.sum() <= 0.2 * change.changed.sum()
+
+
+def test_a_dark_object_deeper_than_any_shadow_is_not_shade():
+    E = _surface(rgb=(1.0, 0.95, 0.9), level=120.0)
+    photo = E.copy()
+    photo[60:100, 80:140] *= 0.5 * MIN_GAIN  # a black lump on a grey sheet
+    change, shaded = _judge(_noisy(photo, 1), _noisy(E, 2), np.ones((H, W), bool))
+    assert change.changed.sum() >= 20 and not shaded.any()
+
+
+def test_a_bright_screw_on_a_dark_sheet_is_not_a_shadow_receding():
+    E = _surface(rgb=(1.0, 0.95, 0.9), level=30.0)
+    photo = E.copy()
+    photo[60:100, 80:140] = np.clip(photo[60:100, 80:140] * 5.0, 0, 255)
+    change, shaded = _judge(_noisy(photo, 1), _noisy(E, 2), np.ones((H, W), bool))
+    assert change.changed.sum() >= 20 and not shaded.any()
+
+
+def test_a_clipped_red_channel_is_left_out_and_the_shade_still_explained():
+    """A lit orange floor whose red channel clipped: the shade shows in green and blue (red is gone from the fit)."""
+    E = _surface(rgb=(1.0, 0.6, 0.25), level=200.0)
+    E[..., 0] = 255.0  # clipped all over
+    photo = _noisy(_shadow(E, 0.6), 1)
+    photo[..., 0] = 255.0  # still clipped in the shade (the red channel's true value is above 255 / 0.6)
+    scored = np.ones((H, W), bool)
+    ratio = np.ones((H, W, 3), np.float32)
+    clipped = np.zeros((H, W, 3), bool)
+    clipped[..., 0] = True
+    change = change_blocks(photo, E, scored, ratio, SceneSettings(enabled=True), expected_clipped=clipped)
+    shaded = explained_by_shade(change, photo, E.copy(), scored, np.ones((H, W), bool), clipped)
+    assert change.changed.sum() >= 3
+    assert shaded.sum() >= 0.9 * change.changed.sum()
