@@ -173,16 +173,36 @@ def shade_height(height, z_top, px_per_mm, lights, ambient, depth_scale, depth_d
     flat = max(flat / k, 1e-6)
     half_s = 0.5 * px_per_mm
     level = _lambert(0.0, 0.0, lights, ambient, k, flat)  # a level pixel (most of the bed and of top surfaces)
+    # a row at a time: slopes, normals, then the lights one after the other over the whole row (loops without
+    # branches that the compiler vectorises), then the light factor: per pixel the operations of _lambert in its
+    # order (each light's term added in turn when positive), so the values are the pixel-at-a-time ones
+    gx, gy = np.empty(W), np.empty(W)
+    nx, ny, nz, diff = np.empty(W), np.empty(W), np.empty(W), np.empty(W)
     for v in range(H):
         vm = max(v - 1, 0)
         vp = min(v + 1, H - 1)
         for u in range(W):
             um = max(u - 1, 0)
             up = min(u + 1, W - 1)
-            gx = (height[v, up] - height[v, um]) * half_s * (2.0 / max(up - um, 1))
+            gx[u] = (height[v, up] - height[v, um]) * half_s * (2.0 / max(up - um, 1))
             # image rows grow towards -Y of the bed
-            gy = -(height[vp, u] - height[vm, u]) * half_s * (2.0 / max(vp - vm, 1))
-            light = level if gx == 0.0 and gy == 0.0 else _lambert(gx, gy, lights, ambient, k, flat)
+            gy[u] = -(height[vp, u] - height[vm, u]) * half_s * (2.0 / max(vp - vm, 1))
+        for u in range(W):
+            n = 1.0 / math.sqrt(gx[u] * gx[u] + gy[u] * gy[u] + 1.0)
+            nx[u] = -gx[u] * n
+            ny[u] = -gy[u] * n
+            nz[u] = n
+            diff[u] = 0.0
+        for j in range(k):
+            lx, ly, lz = lights[j, 0], lights[j, 1], lights[j, 2]
+            for u in range(W):
+                d = nx[u] * lx + ny[u] * ly + nz[u] * lz
+                diff[u] = diff[u] + d if d > 0.0 else diff[u]
+        for u in range(W):
+            light = ambient + (1.0 - ambient) * diff[u] / (k * flat)
+            light = 1.0 if light > 1.0 else light
+            if gx[u] == 0.0 and gy[u] == 0.0:
+                light = level
             h = height[v, u]
             if h > 0.0:
                 depth = z_top - h
