@@ -88,6 +88,9 @@ def hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out, zero=Non
     fr, fc, mag = np.empty(width), np.empty(width), np.empty(width)
     count, close = np.empty(width, np.int32), np.empty(width, np.int32)
     inner = min(width, w - 1)  # columns 1..inner-1 have both neighbours
+    cell_of = np.empty(width, np.int64)  # each column's cell (no division per pixel)
+    for c in range(width):
+        cell_of[c] = c // cell_px
     for ci in range(n_cr):
         acc[:] = 0.0
         flat[:] = 0.0
@@ -118,7 +121,7 @@ def hist_from_image(img, cell_px, n_cr, n_cc, cos_e, sin_e, edges, out, zero=Non
                     close[c] |= abs(t) <= 1e-9 * mag[c]
             for c in range(width):
                 gr, gc = grs[c], gcs[c]
-                cj = c // cell_px
+                cj = cell_of[c]
                 if gr == 0.0:
                     flat[cj] += abs(gc)
                     if gc == 0.0:
