@@ -205,6 +205,46 @@ def test_final_approach_over_bare_bed_is_the_full_march_bit_for_bit(cam, monkeyp
                 np.testing.assert_array_equal(a, b)
 
 
+def test_skip_and_clear_maps_on_the_printed_box_are_the_whole_maps():
+    """``skip_map`` and ``clear_map`` given the box outside which the heights are 0 equal the whole maps: boxes
+    inside, on each edge and corner, the whole view, one pixel and none; two skip sizes and reaches."""
+    from layerwatch.render import volume
+    from layerwatch.render.camera_view import skip_map
+
+    rng = np.random.default_rng(13)
+    H, W = 90, 110
+    boxes = [(30, 50, 40, 70), (0, 20, 0, 25), (70, 90, 95, 110), (0, 90, 50, 60), (40, 41, 0, 110), (0, 90, 0, 110),
+             (45, 46, 55, 56), (20, 20, 30, 60), (3, 9, 104, 110)]
+    for box in boxes:
+        r0, r1, c0, c1 = box
+        h = np.zeros((H, W), np.float32)
+        h[r0:r1, c0:c1] = np.where(rng.random((r1 - r0, c1 - c0)) < 0.6, rng.random((r1 - r0, c1 - c0)) * 4, 0.0)
+        for skip in (8, 3):
+            whole, boxed = skip_map(h, skip), skip_map(h, skip, box)
+            assert np.array_equal(whole, boxed), (box, skip)
+            for reach in (skip, skip + 3):
+                assert np.array_equal(volume.clear_map(whole, skip, reach), volume.clear_map(boxed, skip, reach, box))
+
+
+def test_the_march_given_the_renderers_printed_box_is_the_march_without_it():
+    """The renderer passes its printed box (heights are 0 outside it) to the march: the same image and hit heights
+    as without it, float for float, layer after layer."""
+    for tp in (blocks_part(WINDOW_WALL), blocks_part(BRIDGE)):
+        r = StackRenderer(tp, TV, RenderSettings(reference="volume"))
+        for index in range(tp.n_layers):
+            lit = r.render(index, None).light
+            z = tp.layers[index].z
+            bed = np.full(TV.shape, 0.12, np.float32)
+            height = r.height
+            rows, cols = np.flatnonzero(height.any(axis=1)), np.flatnonzero(height.any(axis=0))
+            r0, r1, c0, c1 = r._hbox
+            assert rows.size == 0 or (r0 <= rows[0] and rows[-1] < r1 and c0 <= cols[0] and cols[-1] < c1)
+            boxed = view_through_volume(height, lit, r.volume, bed, CAM, TV, z, printed_box=r._hbox)
+            whole = view_through_volume(height, lit, r.volume, bed, CAM, TV, z)
+            for a, b in zip(boxed, whole, strict=True):
+                np.testing.assert_array_equal(a, b)
+
+
 def _job(source: str, shared_data):
     """The example part on its own top view, or a slicer's file on a 150 mm square at 3 px/mm around it."""
     from layerwatch.examples import PART_CONFIG, PART_GCODE

@@ -35,7 +35,7 @@ from numba import njit
 
 from layerwatch.geometry.topview import TopView
 
-__all__ = ["DEFAULT_LOOK", "SKIP_PX", "WallLook", "bilinear", "ray_setup", "skip_map", "view_from_camera", "wall_light"]
+__all__ = ["DEFAULT_LOOK", "SKIP_PX", "WallLook", "bilinear", "grown_box", "ray_setup", "skip_map", "view_from_camera", "wall_light"]
 
 #: half-side (px) of the square over which :func:`skip_map` takes the maximum height
 SKIP_PX = 8
@@ -285,7 +285,27 @@ def ray_setup(center_mm, topview: TopView, z: float, step_px: float, max_depth_m
     return c, float(cu), float(cv), max_steps
 
 
-def skip_map(height: np.ndarray, skip: int = SKIP_PX) -> np.ndarray:
-    """``height`` dilated over squares of half-side ``skip`` px: lets a ray skip empty space."""
+def skip_map(height: np.ndarray, skip: int = SKIP_PX, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """``height`` dilated over squares of half-side ``skip`` px: lets a ray skip empty space.
+
+    ``box`` ``(r0, r1, c0, c1)``: rows and columns outside which ``height`` is 0 (a renderer's printed box; None:
+    anywhere). Only the box grown by ``skip + 1`` is dilated and the rest is 0: the whole dilation's values (every
+    square that reaches the box lies in the grown box, whose replicated border is 0 as the map beyond it is, or is
+    the map's own border), for the box's cost.
+    """
     k = np.ones((2 * skip + 1, 2 * skip + 1), np.uint8)
-    return cv2.dilate(height, k, borderType=cv2.BORDER_REPLICATE)
+    if box is None:
+        return cv2.dilate(height, k, borderType=cv2.BORDER_REPLICATE)
+    out = np.zeros_like(height)
+    g = grown_box(box, skip + 1, height.shape)
+    if g is not None:
+        out[g] = cv2.dilate(np.ascontiguousarray(height[g]), k, borderType=cv2.BORDER_REPLICATE)
+    return out
+
+
+def grown_box(box: tuple[int, int, int, int], by: int, shape: tuple[int, ...]) -> tuple[slice, slice] | None:
+    """Rows and columns of ``box`` ``(r0, r1, c0, c1)`` grown by ``by`` px within ``shape``; None when it is empty."""
+    r0, r1, c0, c1 = box
+    if r1 <= r0 or c1 <= c0:
+        return None
+    return slice(max(r0 - by, 0), min(r1 + by, shape[0])), slice(max(c0 - by, 0), min(c1 + by, shape[1]))

@@ -444,7 +444,7 @@ class StackRenderer:
             return self.rays.view(self.height, img, self._bed, self.volume, z, shading)
         return view_through_volume(
             self.height, img, self.volume, self._bed, center_mm, self.topview, z, look=look, hidden_value=self._mat,
-            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening,
+            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening, printed_box=self._hbox,
         )[0]
 
 

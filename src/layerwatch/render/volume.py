@@ -55,6 +55,7 @@ from layerwatch.render.camera_view import (
     SKIP_PX,
     WallLook,
     bilinear,
+    grown_box,
     ray_setup,
     skip_map,
     wall_light,
@@ -225,7 +226,7 @@ def _facing(bits, r0, b0, tops, xi, yi, z, du, dv, L, H, W):
     return max((gx * du + gy * dv) / (g * L), 0.0)
 
 
-def clear_map(hmax: np.ndarray, skip_px: int, reach_px: int) -> np.ndarray:
+def clear_map(hmax: np.ndarray, skip_px: int, reach_px: int, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """Pixels with nothing printed within ``reach_px`` (Chebyshev) and at least ``reach_px`` inside the square.
 
     Parameters
@@ -234,6 +235,10 @@ def clear_map(hmax: np.ndarray, skip_px: int, reach_px: int) -> np.ndarray:
         The height map dilated over squares of half-side ``skip_px`` (:func:`skip_map`).
     skip_px, reach_px : int
         Half-side of ``hmax``'s squares and the reach wanted (>= ``skip_px``), px.
+    box : (int, int, int, int), optional
+        ``(r0, r1, c0, c1)``: rows and columns outside which the height map is 0 (``hmax`` is 0 beyond it grown by
+        ``skip_px``): only that part is eroded, the rest is bare (the whole erosion's values, as in
+        :func:`skip_map`).
 
     Returns
     -------
@@ -242,16 +247,28 @@ def clear_map(hmax: np.ndarray, skip_px: int, reach_px: int) -> np.ndarray:
         farther than ``reach_px``, else 0.
     """
     grow = max(int(reach_px) - int(skip_px), 0)
-    bare = (hmax <= 0.0).view(np.uint8)
-    if grow:  # a square of half-side reach: the skip squares grown by the rest (erosion of the bare pixels)
-        kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
-        bare = np.asarray(cv2.erode(bare, kernel, borderType=cv2.BORDER_REPLICATE), np.uint8)
+    if box is None:
+        bare = _bare(hmax, grow)
+    else:  # bare beyond the box grown by both reaches; eroded within it (nothing printed: bare everywhere)
+        bare = np.ones(hmax.shape, np.uint8)
+        g = grown_box(box, int(skip_px) + grow + 1, hmax.shape)
+        if g is not None:
+            bare[g] = _bare(np.ascontiguousarray(hmax[g]), grow)
     r = int(reach_px)
     out = np.zeros_like(bare)
     H, W = bare.shape
     if H > 2 * r and W > 2 * r:
         out[r:H - r, r:W - r] = bare[r:H - r, r:W - r]
     return out
+
+
+def _bare(hmax: np.ndarray, grow: int) -> np.ndarray:
+    """1 where ``hmax`` is 0 within ``grow`` px (a square of half-side ``grow``: erosion of the bare pixels), uint8."""
+    bare = (hmax <= 0.0).view(np.uint8)
+    if grow:  # a square of half-side reach: the skip squares grown by the rest (erosion of the bare pixels)
+        kernel = np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)
+        bare = np.asarray(cv2.erode(bare, kernel, borderType=cv2.BORDER_REPLICATE), np.uint8)
+    return bare
 
 
 def approach_reach_px(skip_px: float, step_px: float) -> int:
@@ -350,6 +367,7 @@ def view_through_volume(
     hidden_value: float = 0.7,
     depth_scale_mm: float = 0.6,
     depth_darkening: float = 0.2,
+    printed_box: tuple[int, int, int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The scene as the camera sees it through the plane ``Z = z``, with what lies in windows and under overhangs.
 
@@ -376,6 +394,9 @@ def view_through_volume(
     depth_scale_mm, depth_darkening : float
         A hidden top surface loses ``depth_darkening`` of its brightness at
         ``depth_scale_mm`` (or more) below ``z``, as lower layers do in the top view.
+    printed_box : (int, int, int, int), optional
+        ``(r0, r1, c0, c1)``: rows and columns outside which ``height`` is 0 (the renderer's printed box): the
+        march's skip and clear maps are computed there only (:func:`skip_map`, :func:`clear_map`; the same maps).
 
     Returns
     -------
@@ -398,8 +419,8 @@ def view_through_volume(
     hit = np.empty_like(h)
     shading = np.array([look.wall_value, look.wall_ambient, look.wall_line_contrast, look.layer_height_mm,
                         hidden_value, depth_scale_mm, depth_darkening], np.float64)
-    hmax = skip_map(h, SKIP_PX)
-    clear = clear_map(hmax, SKIP_PX, approach_reach_px(SKIP_PX, look.step_px))
+    hmax = skip_map(h, SKIP_PX, printed_box)
+    clear = clear_map(hmax, SKIP_PX, approach_reach_px(SKIP_PX, look.step_px), printed_box)
     r0, b0 = volume.origin
     _march_volume(h, hmax, float(SKIP_PX), s, np.ascontiguousarray(bed, np.float32), volume.bits, int(r0), int(b0),
                   volume.tops, cu, cv, float(c[2]), float(z), float(look.step_px), max_steps, shading, out, hit, clear)
