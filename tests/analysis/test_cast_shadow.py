@@ -53,9 +53,10 @@ def test_the_zone_reaches_the_given_distance_from_the_body_and_nothing_without_a
 
 
 @pytest.mark.parametrize("gain", [0.6, 0.8, 1.25])
-def test_a_grey_shadow_with_a_sharp_edge_changes_blocks_that_the_shade_explains(gain):
-    E = _surface()
-    photo = _noisy(_shadow(E, gain), 1)
+def test_a_grey_shadow_whose_sharp_edge_advanced_changes_blocks_that_the_shade_explains(gain):
+    """The shadow was in ``E`` already; its edge moved 4 px (a taller wall, or the lamp's sway)."""
+    E = _shadow(_surface(), gain, x0=104)
+    photo = _noisy(_shadow(_surface(), gain, x0=100), 1)
     zone = np.ones((H, W), bool)
     change, shaded = _judge(photo, _noisy(E, 2), zone)
     assert change.changed.sum() >= 5  # the scene channel alone reports the shadow (its edge at least)
@@ -63,9 +64,19 @@ def test_a_grey_shadow_with_a_sharp_edge_changes_blocks_that_the_shade_explains(
     assert shaded.sum() >= 0.9 * change.changed.sum()
 
 
-def test_outside_the_zone_nothing_is_explained():
+def test_a_fresh_shadow_over_whole_blocks_is_not_explained_inside_them():
+    """A shadow that covers whole blocks at once (an overhang's, printed in one layer) looks like a clump that
+    landed there: its inner blocks stay changes (the module's note: the price of catching such clumps)."""
     E = _surface()
-    photo = _noisy(_shadow(E, 0.6), 1)
+    change, shaded = _judge(_noisy(_shadow(E, 0.6), 1), _noisy(E, 2), np.ones((H, W), bool))
+    inner = change.changed.copy()
+    inner[:, : (100 + int(0.3 * H)) // B + 2] = False  # right of the edge's last block
+    assert inner.sum() >= 10 and not (shaded & inner).any()
+
+
+def test_outside_the_zone_nothing_is_explained():
+    E = _shadow(_surface(), 0.6, x0=104)
+    photo = _noisy(_shadow(_surface(), 0.6, x0=100), 1)
     change, shaded = _judge(photo, _noisy(E, 2), np.zeros((H, W), bool))
     assert change.changed.any() and not shaded.any()
 
@@ -115,7 +126,9 @@ def test_a_clipped_red_channel_is_left_out_and_the_shade_still_explained():
     """A lit orange floor whose red channel clipped: the shade shows in green and blue (red is gone from the fit)."""
     E = _surface(rgb=(1.0, 0.6, 0.25), level=200.0)
     E[..., 0] = 255.0  # clipped all over
-    photo = _noisy(_shadow(E, 0.6), 1)
+    E = _shadow(E, 0.6, x0=104)
+    E[..., 0] = 255.0
+    photo = _noisy(_shadow(_surface(rgb=(1.0, 0.6, 0.25), level=200.0), 0.6, x0=100), 1)
     photo[..., 0] = 255.0  # still clipped in the shade (the red channel's true value is above 255 / 0.6)
     scored = np.ones((H, W), bool)
     ratio = np.ones((H, W, 3), np.float32)
