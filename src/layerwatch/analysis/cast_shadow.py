@@ -162,17 +162,15 @@ def explained_by_shade(change: ChangeMap, photo: np.ndarray, pred: np.ndarray, s
             continue
         wv = valid * use
         ratio = ((img * wv).sum(-1) + 1.0) / ((prd * wv).sum(-1) + 1.0)
-        ratio = np.where(wv.any(-1), ratio, float(g.mean()))
-        ratio = ratio.astype(np.float32)
-        ratio_raw = ratio
-        ratio = cv2.medianBlur(ratio, MEDIAN_PX)
+        raw = np.where(wv.any(-1), ratio, float(g.mean())).astype(np.float32)
+        smooth = cv2.medianBlur(raw, MEDIAN_PX)
         wi = wv[inner]
-        seen = ratio[inner][wi.any(-1)]
-        if seen.min() < MIN_GAIN or seen.max() > 1.0 / MIN_GAIN:  # part of the block deeper or brighter than a shade
+        seen = wi.any(-1)  # the block's pixels with a channel that tells
+        if smooth[inner][seen].min() < MIN_GAIN or smooth[inner][seen].max() > 1.0 / MIN_GAIN:  # deeper or brighter than a shade
             continue
         level = float((prd[inner] * wi).sum() / max(int(wi.sum()), 1))
-        if not _one_way(ratio_raw[inner][wi.any(-1)], max(ONE_WAY_LOG, noise / max(level, 1.0))):
+        if not _one_way(raw[inner][seen], max(ONE_WAY_LOG, noise / max(level, 1.0))):
             continue
-        res = np.abs(img - prd * ratio[..., None])[inner]
+        res = np.abs(img - prd * smooth[..., None])[inner]
         out[r, c] = float((res * wi).sum() / max(int(wi.sum()), 1)) <= TEXTURE_K * change.threshold
     return out

@@ -66,7 +66,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 
-__all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_maps",
+__all__ = ["ChangeMap", "change_blocks", "change_regions", "changed_beside", "channel_max", "channel_mean", "image_rays", "photometric_fit", "plane_coords", "plane_maps",
            "predicted_change", "rays_over", "to_working", "top_coords", "working_crop", "working_size", "working_to_top"]
 
 #: log-ratio distance from its cell's mean beyond which a pixel is left out of the fit (~ 20 %)
@@ -238,6 +238,22 @@ def top_coords(maps: tuple[np.ndarray, np.ndarray], z: float) -> tuple[np.ndarra
     return A[0] + z32 * B[0], A[1] + z32 * B[1]
 
 
+def plane_coords(maps: tuple[np.ndarray, np.ndarray], z: float,
+                 coords: dict[float, tuple[np.ndarray, np.ndarray]] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`top_coords` of the plane ``Z = z``, kept in ``coords`` (by height) for the next caller of that plane.
+
+    A plane found in ``coords`` is not computed again; one that is not is computed and added (``None``: computed,
+    not kept).
+    """
+    z = float(z)
+    if coords is not None and z in coords:
+        return coords[z]
+    mx, my = top_coords(maps, z)
+    if coords is not None:
+        coords[z] = (mx, my)
+    return mx, my
+
+
 def rays_over(maps: tuple[np.ndarray, np.ndarray], rect_px: tuple[float, float, float, float],
               z0: float, z1: float) -> np.ndarray:
     """Pixels whose ray, between the heights ``z0`` and ``z1`` (mm), passes over a top-view rectangle.
@@ -330,12 +346,7 @@ def predicted_change(
         fp = _morph_near(fp, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)), dilate=margin_mm > 0)
     out = np.zeros(maps[0].shape[1:], np.uint8)
     for z in (float(v) for v in np.asarray(z_planes, float).ravel()):
-        if coords is not None and z in coords:
-            mx, my = coords[z]
-        else:
-            mx, my = top_coords(maps, z)
-            if coords is not None:
-                coords[z] = (mx, my)
+        mx, my = plane_coords(maps, z, coords)
         out |= np.asarray(cv2.remap(fp, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0),
                           np.uint8)
     return out.astype(bool)
@@ -417,9 +428,6 @@ class ChangeMap:
     noise : float
         Robust spread of the block scores (1.4826 MAD), grey levels.
     block_px : int
-    shaded : ndarray, bool, shape (n, m), optional
-        Blocks above the threshold that the part's cast shadow explains
-        (:mod:`layerwatch.analysis.cast_shadow`), not in ``changed``; ``None`` when none were.
     """
 
     score: np.ndarray
@@ -428,7 +436,6 @@ class ChangeMap:
     threshold: float
     noise: float
     block_px: int
-    shaded: np.ndarray | None = None
 
     @property
     def changed_share(self) -> float:

@@ -58,9 +58,9 @@ from layerwatch.analysis.first_layer import inspect_first_layer
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import (
     image_rays,
+    plane_coords,
     plane_maps,
     rays_over,
-    top_coords,
     working_size,
 )
 from layerwatch.gcode.toolpath import Toolpath
@@ -422,10 +422,7 @@ class JobChecks:
         if k > 1:
             inner = cv2.erode(inner, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
         area = float(np.count_nonzero(inner)) / self.topview.px_per_mm ** 2
-        planes = self.planes()
-        if float(z) not in planes:
-            planes[float(z)] = top_coords(maps, z)
-        mx, my = planes[float(z)]
+        mx, my = plane_coords(maps, z, self.planes())
         H, W = self.topview.shape
         surface = cv2.remap(inner, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
         return area, surface & (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)

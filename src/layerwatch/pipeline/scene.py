@@ -380,8 +380,9 @@ class SceneModel:
         self.maps = (np.ascontiguousarray(A[:, self.reach_box[0], self.reach_box[1]]),
                      np.ascontiguousarray(B[:, self.reach_box[0], self.reach_box[1]]))
         #: working-image px per mm on the bed across the view (the larger of its two scales, at the view's
-        #: median): how far a cast shadow may reach in the image (:mod:`layerwatch.analysis.cast_shadow`)
-        self.px_per_mm = _working_px_per_mm(mx, self.observed, topview)
+        #: median): how far a cast shadow may reach in the image (:mod:`layerwatch.analysis.cast_shadow`);
+        #: 0 when that test is off (``shadow_reach`` 0: nothing reads it, so a new print does not pay for it)
+        self.px_per_mm = _working_px_per_mm(mx, self.observed, topview) if self.settings.shadow_reach > 0 else 0.0
         self.reset(bed_photo)
 
     def _reach_box(self, A: np.ndarray, B: np.ndarray, reach_mm: tuple[float, float, float, float] | None,
@@ -578,7 +579,7 @@ class SceneModel:
             zone = shadow_zone(obs.body, st.shadow_reach * z_top * self.px_per_mm)
             shaded = explained_by_shade(obs.change, img, np.minimum(E * obs.ratio, 255.0), scored, zone, clipped)
             if shaded.any():
-                obs.change = replace(obs.change, changed=obs.change.changed & ~shaded, shaded=shaded)
+                obs.change = replace(obs.change, changed=obs.change.changed & ~shaded)
         share = obs.change.changed_share
         if share > st.max_changed_share:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "
