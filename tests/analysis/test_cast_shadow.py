@@ -138,3 +138,15 @@ def test_a_clipped_red_channel_is_left_out_and_the_shade_still_explained():
     shaded = explained_by_shade(change, photo, E.copy(), scored, np.ones((H, W), bool), clipped)
     assert change.changed.sum() >= 3
     assert shaded.sum() >= 0.9 * change.changed.sum()
+
+
+@pytest.mark.parametrize("value", ["-1.0", "25.0", "nan"])
+def test_a_shadow_reach_out_of_range_is_refused_naming_the_setting(tmp_path, value):
+    from layerwatch.errors import ConfigError
+    from layerwatch.pipeline.config import load_config
+
+    job = tmp_path / "job.toml"
+    job.write_text(f"[scene]\nshadow_reach = {value}\n")
+    with pytest.raises(ConfigError, match="shadow_reach") as err:
+        load_config(job)
+    assert "\n" not in str(err.value).strip()
