@@ -65,6 +65,8 @@ def test_reference_matches_independent_render(job, pipe):
     [
         np.zeros((4, 4), np.uint8),  # too small
         np.zeros((720, 1280, 3), np.float64),  # wrong dtype
+        np.full((720, 1280, 3), 100.0, np.float32),  # float pixels: 0..1 or 0..255 cannot be told
+        np.full((720, 1280, 3), np.nan, np.float32),
         np.zeros((500, 500, 3), np.uint8),  # other aspect ratio than the calibration
         "not an image",
         None,
@@ -81,6 +83,30 @@ def test_bad_photo_gives_error_status(pipe, photo):
 def test_bad_layer_index_is_error_not_exception(job, pipe):
     res = pipe.process(_frame(job).photo, 10_000)
     assert res.status == "error" and "does not exist" in res.message
+    for index in ("7", 7.0, None, True):
+        res = pipe.process(_frame(job).photo, index)
+        assert res.status == "error" and "layer index must be an integer" in res.message
+
+
+def test_a_bug_inside_the_analysis_is_raised_not_reported_as_a_bad_photo(job, monkeypatch):
+    """An exception from layerwatch's own code is a bug (the CLI's exit 70, the monitor's pipeline fault),
+    not a layer whose photo "could not be analysed"; running out of memory is the layer's error."""
+    tp, cam, cfg, _ = job
+    photo = _frame(job).photo
+
+    def broken(*args, **kwargs):
+        raise TypeError("unsupported operand type(s) for +: 'NoneType' and 'int'")
+
+    monkeypatch.setattr("layerwatch.pipeline.step.analyze_layer", broken)
+    with pytest.raises(TypeError, match="NoneType"):
+        LayerPipeline(tp, cam, cfg).process(photo, LAYER)
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr("layerwatch.pipeline.step.analyze_layer", no_memory)
+    res = LayerPipeline(tp, cam, cfg).process(photo, LAYER)
+    assert res.status == "error" and "out of memory" in res.message and "\n" not in res.message
 
 
 def test_all_metrics_and_match_camera(job):

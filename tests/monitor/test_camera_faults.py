@@ -190,3 +190,27 @@ def test_every_hold_is_released_after_the_photo_also_when_the_camera_fails(kind)
                   wait_for_verdict=True)
     mon.run(poll_s=0.001)
     assert printer.released == list(range(N_LAYERS))  # one release per layer, in order, faults included
+
+
+class BuggyPipeline(PausingPipeline):
+    """A pipeline with a bug on layers 4 and 5 (raises as a coding error would, not a layer's error record)."""
+
+    def process(self, photo, layer_index):
+        if layer_index in (4, 5):
+            self.seen.append(layer_index)
+            raise TypeError("unsupported operand type(s) for +: 'NoneType' and 'int'")
+        return super().process(photo, layer_index)
+
+
+def test_a_pipeline_bug_is_recorded_and_the_monitor_goes_on_without_pausing():
+    pipe, rec, hist = BuggyPipeline(), Recorder(), History(":memory:")
+    job = hist.start_job("virtual", "part.gcode")
+    mon = Monitor(VirtualPrinter(_gcode()), SimCamera(_good), pipe, PausePolicy(PolicySettings(skip_first_layers=0)),
+                  notifier=rec, history=hist, job_id=job, faults=FaultSettings(camera_alert_after=3))
+    rep = mon.run(poll_s=0.001)
+    assert rep.outcome == "done" and rep.pauses == 0
+    assert [r.layer for r in rep.results] == list(range(N_LAYERS))  # every layer after the bug analysed
+    failed = [(r.layer, r.message) for r in rep.results if r.status == "error"]
+    assert [layer for layer, _ in failed] == [4, 5] and all("NoneType" in m for _, m in failed)
+    assert not any(d.stops for d in rep.decisions)  # an alert at most, never a pause
+    assert any("pipeline failed" in m for _, m in rec.sent)  # the operator is told

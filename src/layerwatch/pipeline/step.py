@@ -88,7 +88,7 @@ from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_
 from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
-from layerwatch.geometry.warp import TopViewWarper
+from layerwatch.geometry.warp import TopViewWarper, check_image
 from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
 from layerwatch.pipeline.layer_change import LayerChange
@@ -451,10 +451,17 @@ class LayerPipeline:
         LayerResult
             ``status`` ``"ok"``/``"skipped"``, or ``"error"`` with ``message``
             when the photo cannot be used (wrong type/shape, rejected by the
-            frame gate, failed warp, nothing visible); ``timings_ms`` has
+            frame gate, failed warp, nothing visible, out of memory); ``timings_ms`` has
             ``reference``, ``warp``, ``analysis`` (and the analysis' own ``hog``,
             ``metric``, ``regions``), ``scene`` (when on) and ``total``. :attr:`last_top` and
             :attr:`last_valid` hold the top view of an analysed photo.
+
+        Raises
+        ------
+        Exception
+            Anything else raised inside the analysis is a bug in layerwatch, not a property of the photo, and is
+            not turned into a layer's error: the CLI exits 70 on it, the monitor records it as a pipeline fault
+            and keeps watching (``monitor.service.pipeline_error``).
         """
         t0 = time.perf_counter()
         st = self.config.analysis
@@ -464,6 +471,11 @@ class LayerPipeline:
         timings: dict[str, float] = {}
         self.last_top = self.last_valid = None
         try:
+            if not isinstance(layer_index, (int, np.integer)) or isinstance(layer_index, bool):
+                raise LayerwatchError(f"layer index must be an integer, got {type(layer_index).__name__}.")
+            photo = check_image(photo)  # the photo at the edge: an array of a camera frame's type and shape
+            if photo.dtype not in (np.uint8, np.uint16):
+                raise LayerwatchError(f"photo has dtype {photo.dtype}; pass an 8-bit image (as cv2.imread gives).")
             reason = self._frame_rejected(photo)
             if reason is not None:
                 return self._error(base, f"frame rejected: {reason}", timings, t0)
@@ -507,8 +519,9 @@ class LayerPipeline:
                     self.layer_change.judge(res, photo, index, self.footprint)
         except LayerwatchError as exc:
             return self._error(base, str(exc), timings, t0)
-        except (ValueError, TypeError, IndexError, AttributeError, MemoryError) as exc:  # odd input
-            return self._error(base, f"could not analyse the photo ({type(exc).__name__}: {exc}).", timings, t0)
+        except MemoryError:
+            return self._error(base, "out of memory analysing the photo; lower the camera resolution or close other "
+                               "programs.", timings, t0)
         # what the next photo's typing reads of this one (a copy of the print's surroundings, ~0.3 MB)
         self._before = PreviousView.keep(index, ref.z, top, valid, self._typing_area, shift)
         t3 = time.perf_counter()
