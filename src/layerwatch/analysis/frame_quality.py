@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from layerwatch.analysis.area_reduce import area_resize
 from layerwatch.analysis.histogram import middle_values, percentiles
 from layerwatch.percentile import lerp, linear_index, median, order_statistics
 from layerwatch.settings_base import Section
@@ -158,7 +159,7 @@ def _shrunk(grey: np.ndarray, width: int = WORK_WIDTH) -> np.ndarray:
     """``grey`` area-averaged to ``width`` px wide (not enlarged), uint8 as given."""
     h, w = grey.shape
     if w > width:
-        grey = cv2.resize(grey, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+        grey = area_resize(grey, (width, max(1, round(h * width / w))))
     return grey
 
 

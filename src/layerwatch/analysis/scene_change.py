@@ -58,6 +58,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from layerwatch.analysis.area_reduce import area_resize
 from layerwatch.analysis.block_masks import blocks_to_pixels, components
 from layerwatch.analysis.result import Region
 from layerwatch.analysis.settings import SceneSettings
@@ -114,7 +115,7 @@ def to_working(photo: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         arr = cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR)
     elif arr.shape[2] == 4:
         arr = arr[..., :3]
-    small = cv2.resize(arr, size, interpolation=cv2.INTER_AREA) if (w, h) != tuple(size) else arr
+    small = area_resize(arr, size) if (w, h) != tuple(size) else arr
     return cv2.GaussianBlur(small.astype(np.float32), (0, 0), 0.7)
 
 
