@@ -31,7 +31,8 @@ The scene (:mod:`layerwatch.simulate.photoreal_scene`, run inside Blender):
 Limits: the cells are meshed at the simulator's grid (0.125 mm), one vertex a
 cell, so a wall is as sharp as the raster's and bead layer lines on walls are only
 the grid's; the air under a bridge, an overhang or a window's lintel (the
-simulator's one ``gap`` a cell) is kept open (:func:`scene_meshes`). Cycles takes
+simulator's one ``gap`` a cell) is kept open where a camera could see into it, sealed
+pockets (sparse infill under a top skin) are solid (:func:`scene_meshes`). Cycles takes
 seconds per frame (about 10-40 s at 1280 x 720 and 32 samples on two cores):
 the mode is for photoreal checks and benchmarks, not the routine evaluation.
 """
@@ -57,7 +58,7 @@ from layerwatch.simulate.photo import Photographer, fold_ledges
 from layerwatch.simulate.settings import SimSettings
 from layerwatch.simulate.shade import bed_albedo_at
 
-__all__ = ["BlenderPhotographer", "blender_camera", "scene_meshes", "SCENE_SCRIPT"]
+__all__ = ["BlenderPhotographer", "blender_camera", "open_air", "scene_meshes", "SCENE_SCRIPT"]
 
 SCENE_SCRIPT = Path(__file__).with_name("photoreal_scene.py")
 
@@ -276,7 +277,10 @@ def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[
     the height field of ``lo`` on such cells and ``h`` elsewhere (so the air is open: a window shows
     what is behind it); the slab is the material from ``hi`` to ``h`` over the cells with a gap, a
     closed shell (top, underside facing down, walls at its border). One vertex a cell at the cell's
-    centre; a quad joins four neighbouring cells (the slab's: four cells with a gap).
+    centre; a quad joins four neighbouring cells (the slab's: four cells with a gap). Air sealed on
+    every side (:func:`open_air`: the pockets of sparse infill under a top skin) is meshed solid: no
+    camera sees it, and opened it left a groove one cell wide and millimetres deep beside every
+    infill line, which Cycles drew as the infill's pattern on the top surface.
 
     Parameters
     ----------
@@ -295,7 +299,7 @@ def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[
     n, m = h.shape
     idx = np.arange(n * m).reshape(n, m)
     lo, hi = (np.zeros((n, m)), np.zeros((n, m))) if gap is None else (gap[..., 0], gap[..., 1])
-    air = hi > 0
+    air = open_air(h, hi)
     ground = np.where(air, lo, h).astype(np.float64)
     # counter-clockwise seen from +z: a cell, the one below it (y decreases with rows), then to the right
     a = idx[:-1, :-1].ravel()
@@ -321,6 +325,49 @@ def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[
     border = edges[count[inv.ravel()] == 1]
     faces.append(np.column_stack([border[:, 1], border[:, 0], border[:, 0] + k, border[:, 1] + k]))
     return out + [(verts, np.concatenate(faces), np.concatenate([cells, cells]))]
+
+
+def open_air(h: np.ndarray, hi: np.ndarray, tol_mm: float = 0.05) -> np.ndarray:
+    """The cells whose air under printed material a camera could see: their pocket is open to the side.
+
+    A pocket is a 4-connected set of cells with air (``hi > 0``). It is open when one of its cells
+    has a neighbour without air whose top lies below that cell's air (``h < hi - tol_mm``: the bed in
+    front of a window, the space beside an overhang or under a bridge's end) or lies on the grid's
+    border; else it is sealed (the sparse infill under a top skin, enclosed by the infill lines and
+    the perimeters) and only its slab's top can be seen.
+
+    Parameters
+    ----------
+    h : ndarray, float, shape (n, m)
+        Height of each cell's top, mm.
+    hi : ndarray, float, shape (n, m)
+        Top of each cell's air, mm (0: no air).
+    tol_mm : float
+        A neighbour this far below the air's top still closes it, mm.
+
+    Returns
+    -------
+    ndarray, bool, shape (n, m)
+        Air cells of open pockets.
+    """
+    air = np.asarray(hi) > 0
+    if not air.any():
+        return air
+    n, m = air.shape
+    pad_h = np.pad(np.asarray(h, np.float64), 1, constant_values=-np.inf)  # beyond the grid: open
+    pad_air = np.pad(air, 1, constant_values=False)
+    seen = np.zeros_like(air)
+    for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        nb_h = pad_h[1 + dv:n + 1 + dv, 1 + du:m + 1 + du]
+        nb_air = pad_air[1 + dv:n + 1 + dv, 1 + du:m + 1 + du]
+        seen |= air & ~nb_air & (nb_h < hi - tol_mm)
+    if not seen.any():
+        return seen
+    count, labels = cv2.connectedComponents(air.view(np.uint8), connectivity=4)
+    open_label = np.zeros(count, bool)
+    open_label[labels[seen]] = True
+    open_label[0] = False  # the background (no air)
+    return open_label[labels]
 
 
 def _roughness(shininess: np.ndarray | float) -> np.ndarray:
