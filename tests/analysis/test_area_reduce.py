@@ -1,4 +1,4 @@
-"""analysis/area_reduce: OpenCV's INTER_AREA values, bit for bit, on every input the farm reduces by 3."""
+"""analysis/area_reduce: OpenCV's INTER_AREA values, bit for bit, on every input the farm reduces by 3 or 1.5."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from layerwatch.analysis.area_reduce import _reduce3, area_resize
+from layerwatch.analysis.area_reduce import _pair_weights, _reduce3, area_resize
+from layerwatch.analysis.extrusion import box_texture, highpass
 from layerwatch.analysis.frame_quality import compact_previous
 from layerwatch.analysis.scene_change import to_working, working_crop
 
@@ -102,3 +103,44 @@ def test_callers_give_opencvs_values() -> None:
     box = (slice(91, 326), slice(116, 524))
     crop, (y0, x0) = working_crop(frame, (640, 360), box)
     assert np.array_equal(crop[91 - y0:326 - y0, 116 - x0:524 - x0], want[box])
+
+
+@pytest.mark.parametrize("shape,size", [((1080, 1920), (1280, 720)), ((1080, 1920, 3), (1280, 720)),
+                                        ((612, 852, 3), (568, 408)), ((9, 15, 3), (10, 6)), ((3, 3), (2, 2)),
+                                        ((21, 33, 3), (22, 14)), ((6, 9), (6, 4))])
+def test_by_one_and_a_half(shape: tuple[int, ...], size: tuple[int, int]) -> None:
+    """The nothing-extruded check's working image (1920 -> 1280 px): random, extreme and smooth values."""
+    rng = np.random.default_rng(sum(shape))
+    assert _pair_weights(shape[1], size[0]) is not None and _pair_weights(shape[0], size[1]) is not None
+    for img in (rng.integers(0, 256, shape, dtype=np.uint8), np.full(shape, 255, np.uint8),
+                np.full(shape, 1, np.uint8), rng.integers(250, 256, shape, dtype=np.uint8),
+                (np.indices(shape).sum(0) % 256).astype(np.uint8)):
+        assert np.array_equal(area_resize(img, size), _opencv(img, size))
+
+
+@pytest.mark.parametrize("offset", [(0, 0), (1, 3), (222, 534), (7, 5)])
+def test_by_one_and_a_half_on_crops(offset: tuple[int, int]) -> None:
+    rng = np.random.default_rng(5)
+    frame = cv2.GaussianBlur(rng.integers(0, 256, (1080, 1920, 3), dtype=np.uint8), (0, 0), 1.0)
+    y, x = offset
+    for crop, size in ((frame[y:y + 612, x:x + 852], (568, 408)), (frame[y:y + 99, x:x + 201], (134, 66))):
+        assert np.array_equal(area_resize(crop, size), _opencv(crop, size))
+
+
+def test_other_tables_are_opencvs() -> None:
+    """Scales whose tables are not two taps of 2/3 and 1/3 (1.25, 1.9, 2.5, 4) go to OpenCV, with its values."""
+    rng = np.random.default_rng(9)
+    for shape, size in (((100, 125, 3), (100, 80)), ((190, 190), (100, 100)), ((50, 125, 3), (50, 20)),
+                        ((64, 64), (16, 16))):
+        assert _pair_weights(shape[1], size[0]) is None or _pair_weights(shape[0], size[1]) is None
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+        assert np.array_equal(area_resize(img, size), _opencv(img, size))
+
+
+def test_box_texture_is_the_whole_images() -> None:
+    """The nothing-extruded check's texture of a box (1280 x 720 working image) as on the whole image."""
+    rng = np.random.default_rng(13)
+    frame = cv2.GaussianBlur(rng.integers(0, 256, (1080, 1920, 3), dtype=np.uint8), (0, 0), 1.5)
+    size, box = (1280, 720), (slice(160, 544), slice(368, 912))
+    whole = highpass(cv2.GaussianBlur(_opencv(frame, size).astype(np.float32), (0, 0), 0.7))
+    assert np.array_equal(box_texture(frame, size, box), whole[box])
