@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -11,8 +12,9 @@ import pytest
 from layerwatch.errors import RenderError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.render.blender import MissingBlenderError
-from layerwatch.simulate import Failure, PrintSimulator
-from layerwatch.simulate.photoreal import blender_camera, open_air, scene_meshes
+from layerwatch.simulate import Failure, PrintSimulator, photoreal
+from layerwatch.simulate.parts import window_part
+from layerwatch.simulate.photoreal import blender_camera, ground_materials, open_air, scene_meshes
 from layerwatch.simulate.raster import solid_area
 from layerwatch.simulate.settings import SimSettings
 
@@ -76,6 +78,48 @@ def test_sealed_air_is_meshed_solid_and_air_open_to_a_side_is_not():
     z = scene_meshes(xy, h, gap)[0][0][:, 2].reshape(n, m)
     assert np.all(z[3:9, 3:15] == 4.0) and np.all(z[10:17, 3:16] == 1.0)
     assert not open_air(h, np.zeros((n, m), np.float32)).any()
+
+
+def test_the_bed_under_a_bridge_is_the_bed_and_the_sill_under_a_lintel_is_the_part():
+    mat = np.full((4, 5), 3, np.uint8)  # the top's material: filament 3 everywhere
+    mat[3] = 0  # bare bed
+    ground = np.full((4, 5), 10.0)  # solid cells: the ground mesh at their top
+    ground[1] = 0.0  # opened down to the bed under a bridge's deck
+    ground[2] = 5.0  # opened down to a window's sill under its lintel
+    ground[3] = 0.0
+    got = ground_materials(mat, ground)
+    assert np.all(got[[1, 3]] == 0) and np.all(got[[0, 2]] == 3)  # the bed under the deck, the part elsewhere
+    assert got.dtype == mat.dtype
+
+
+def test_the_photoreal_ground_under_an_overhang_has_the_beds_albedo_not_the_filaments(camera, topview, monkeypatch,
+                                                                                     tmp_path):
+    """The window part's ledge and bridge stand over the bed: Cycles must see the bed under them (it saw the
+    filament's colour there, which a clean print showed as a change beside the print)."""
+    monkeypatch.setattr(photoreal, "find_blender", lambda executable=None: "blender")  # no render is run
+    sim = PrintSimulator(window_part(), camera, topview, seed=3, settings=SimSettings(renderer="blender"))
+    cam = sim.cam
+    assert isinstance(cam, photoreal.BlenderPhotographer)
+    seen = {}
+
+    def radiance(h, mat, layer_h, gap, light):  # the meshes Blender would get, then a black frame
+        seen.update(cam._field(h, mat, gap, tmp_path))
+        return np.zeros((camera.image_size[1], camera.image_size[0], 3), np.float32)
+
+    monkeypatch.setattr(cam, "radiance", radiance)
+    sim.frame(44)  # the ledge (x 19..23, y -8..-2, z 7..9) and the bridge's deck (x -19..-11, z 8..10) printed
+    ground = seen["meshes"][0]
+    verts = np.frombuffer(Path(ground["verts"]).read_bytes(), "<f4").reshape(-1, 3)
+    albedo = np.frombuffer(Path(ground["albedo"]).read_bytes(), "<f4").reshape(-1, 4)[:, :3]
+    for x0, y0, x1, y1 in ((19.5, -7.5, 22.5, -2.5), (-18.5, -2.5, -11.5, 2.5)):  # under the ledge, under the deck
+        under = (verts[:, 0] > x0) & (verts[:, 0] < x1) & (verts[:, 1] > y0) & (verts[:, 1] < y1)
+        assert under.sum() > 100 and np.all(verts[under, 2] == 0.0)
+        assert np.allclose(albedo[under], cam._bed_albedo(verts[under, 0], verts[under, 1]), atol=1e-6)
+    slab = seen["meshes"][1]  # the material over the air keeps the filament's albedo
+    sv = np.frombuffer(Path(slab["verts"]).read_bytes(), "<f4").reshape(-1, 3)
+    sa = np.frombuffer(Path(slab["albedo"]).read_bytes(), "<f4").reshape(-1, 4)[:, :3]
+    ledge = (sv[:, 0] > 19.5) & (sv[:, 0] < 22.5) & (sv[:, 1] > -7.5) & (sv[:, 1] < -2.5)
+    assert ledge.any() and np.all(sa[ledge, 0] - sa[ledge, 2] > 0.2)  # orange: red well above blue
 
 
 def test_non_square_pixels_are_refused_in_one_line(camera):

@@ -18,7 +18,9 @@ The scene (:mod:`layerwatch.simulate.photoreal_scene`, run inside Blender):
 
 * the printed cells as a height-field mesh (one vertex a cell of the
   simulator's grid, bed mm, on the box of the printed cells), each vertex with
-  its material's albedo, specular weight and roughness;
+  its material's albedo, specular weight and roughness; where a bridge, an
+  overhang or a ledge stands over the bed, the ground under it is the bed's
+  (:func:`ground_materials`: a cell's material is its top's);
 * the bed as a plane textured with the bed's albedo (sheet texture, white dot
   markers: the same function the raster draws it with), a dark floor beyond;
 * a spot of ``radius 5 mm`` where the frame's spot is, an overhead sun for the
@@ -58,7 +60,7 @@ from layerwatch.simulate.photo import Photographer, fold_ledges
 from layerwatch.simulate.settings import SimSettings
 from layerwatch.simulate.shade import bed_albedo_at
 
-__all__ = ["BlenderPhotographer", "blender_camera", "open_air", "scene_meshes", "SCENE_SCRIPT"]
+__all__ = ["BlenderPhotographer", "blender_camera", "ground_materials", "open_air", "scene_meshes", "SCENE_SCRIPT"]
 
 SCENE_SCRIPT = Path(__file__).with_name("photoreal_scene.py")
 
@@ -176,6 +178,17 @@ class BlenderPhotographer(Photographer):
         cv2.imwrite(str(path), np.round(np.clip(rgb[..., ::-1], 0, 1) * 65535).astype(np.uint16))
         return path
 
+    def _surface(self, m: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Albedo RGB (n, m, 3) and Cycles (specular, roughness) (n, m, 2) of cells of material ``m`` at bed
+        points ``xy`` (n, m, 2) mm: the material's, the bed's texture where ``m`` is 0 (bare bed)."""
+        albedo = np.empty((*m.shape, 3), np.float32)
+        albedo[:] = self.albedo[m]
+        bed = m == 0
+        if bed.any():
+            albedo[bed] = self._bed_albedo(xy[bed][:, 0], xy[bed][:, 1])
+        spec = np.stack([np.minimum(2 * self.spec[m, 0], 1.0), _roughness(self.spec[m, 1])], axis=-1)
+        return albedo, spec
+
     def _bed_albedo(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Albedo RGB of the bare bed at bed points (mm), float32 (n, 3)."""
         st = self.settings
@@ -248,15 +261,11 @@ class BlenderPhotographer(Photographer):
         vv, uu = np.mgrid[box]
         xy = self.grid.to_mm(np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)).reshape(*vv.shape, 2)
         m = mat[box]
-        albedo = np.empty((*m.shape, 3), np.float32)
-        albedo[:] = self.albedo[m]
-        bed = m == 0
-        if bed.any():
-            albedo[bed] = self._bed_albedo(xy[bed][:, 0], xy[bed][:, 1])
-        spec = np.stack([np.minimum(2 * self.spec[m, 0], 1.0), _roughness(self.spec[m, 1])], axis=-1)
         g = None if gap is None else gap[box]
         out = []
         for k, (verts, quads, at) in enumerate(scene_meshes(xy, fold_ledges(h)[box], g)):
+            # the ground mesh is one vertex a cell (k = 0); where it lies on the bed it is the bed
+            albedo, spec = self._surface(ground_materials(m, verts[:, 2].reshape(m.shape)) if k == 0 else m, xy)
             arrays = {"verts": verts.astype("<f4"), "quads": quads.astype("<i4"),
                       "albedo": np.column_stack([albedo.reshape(-1, 3)[at], np.ones(len(at))]).astype("<f4"),
                       "spec": spec.reshape(-1, 2)[at].astype("<f4")}
@@ -267,6 +276,29 @@ class BlenderPhotographer(Photographer):
                 entry[name] = str(path)
             out.append(entry)
         return {"meshes": out}
+
+
+def ground_materials(mat: np.ndarray, ground_z: np.ndarray) -> np.ndarray:
+    """The material of each cell's vertex in the ground mesh (:func:`scene_meshes`): the bed's (0) where
+    the mesh lies on the bed, the cell's own elsewhere.
+
+    A cell's material (``mat``) is that of its top. Under a bridge, an overhang or a ledge the ground
+    mesh is opened down to the bed (its air's ``lo`` is 0), so it takes the bed's albedo and gloss; under
+    a window's lintel it is the sill, the part's material.
+
+    Parameters
+    ----------
+    mat : ndarray, int, shape (n, m)
+        Material index per cell (0: bare bed).
+    ground_z : ndarray, float, shape (n, m)
+        Height of the ground mesh's vertex of each cell, mm.
+
+    Returns
+    -------
+    ndarray, shape (n, m)
+        ``mat`` with 0 where ``ground_z`` is at the bed (0 or below).
+    """
+    return np.where(np.asarray(ground_z) <= 0.0, 0, mat).astype(mat.dtype)
 
 
 def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
