@@ -47,36 +47,38 @@ def test_the_air_under_a_lintel_stays_open_and_the_slab_over_it_is_closed():
     h = np.full((n, m), 3.0, np.float32)  # a block 3 mm tall ...
     h[:, 11:] = 0.0  # ... with the bed in front of it ...
     gap = np.zeros((n, m, 2), np.float32)
-    gap[3:9, 4:11] = (1.0, 2.0)  # ... and air from 1 to 2 mm under part of it, open to the front (a window)
+    gap[2:11, 4:11] = (1.0, 2.0)  # ... and air from 1 to 2 mm under part of it, open to the front (a window)
     (ground, gq, gcells), (slab, sq, scells) = scene_meshes(xy, h, gap)
     z = ground[:, 2].reshape(n, m)
-    assert np.all(z[3:9, 4:11] == 1.0) and np.all(z[:3, :11] == 3.0)  # open down to the sill, solid elsewhere
+    assert np.all(z[2:11, 4:11] == 1.0) and np.all(z[:2, :11] == 3.0)  # open down to the sill, solid elsewhere
     assert len(gq) == (n - 1) * (m - 1) and np.array_equal(gcells, np.arange(n * m))
-    assert set(np.round(slab[:, 2], 3)) == {2.0, 3.0} and len(slab) == 2 * 6 * 7 and len(scells) == len(slab)
+    assert set(np.round(slab[:, 2], 3)) == {2.0, 3.0} and len(slab) == 2 * 9 * 7 and len(scells) == len(slab)
     # a closed shell: every edge of the slab's quads is shared by exactly two of them, in opposite directions
     e = np.concatenate([sq[:, [0, 1]], sq[:, [1, 2]], sq[:, [2, 3]], sq[:, [3, 0]]])
     assert len({tuple(x) for x in e}) == len(e) and {tuple(x) for x in e} == {tuple(x) for x in e[:, ::-1]}
     # the top faces up (counter-clockwise seen from +z), the underside down
     p = slab[sq[:, :3]]
     normal_z = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 1])[:, 2]
-    assert (normal_z[:30] > 0).all() and (normal_z[30:60] < 0).all()
+    assert (normal_z[:48] > 0).all() and (normal_z[48:96] < 0).all()
     assert len(scene_meshes(xy, h, None)) == 1
 
 
 def test_sealed_air_is_meshed_solid_and_air_open_to_a_side_is_not():
     """Sparse infill under a top skin: pockets of air closed by the infill lines and the perimeters; no camera
     sees them, so they are solid (opened, every infill line left a deep groove in the top surface's mesh)."""
-    n, m = 20, 24
+    n, m = 24, 24
     xy = np.stack(np.meshgrid(np.arange(m) * 0.125, -np.arange(n) * 0.125), axis=-1)
     h = np.zeros((n, m), np.float32)
-    h[2:18, 2:16] = 4.0  # a plate 4 mm tall
+    h[2:22, 2:16] = 4.0  # a plate 4 mm tall
     gap = np.zeros((n, m, 2), np.float32)
-    gap[3:9, 3:8] = gap[3:9, 9:15] = gap[10:17, 3:15] = (1.0, 3.4)  # three pockets between infill lines
-    gap[10:17, 15] = (1.0, 3.4)  # ... the third breaks through the perimeter: open to the bed beside
+    gap[3:9, 3:8] = gap[3:9, 9:15] = gap[10:21, 3:15] = (1.0, 3.4)  # three pockets between infill lines
+    gap[10:21, 15] = (1.0, 3.4)  # ... the third breaks through the perimeter over 11 cells: open to the bed
+    gap[3:6, 15] = (1.0, 3.4)  # ... the second over 3 cells: a pinhole the grid left, not an opening
     assert not open_air(h, gap[..., 1])[3:9].any()
-    assert open_air(h, gap[..., 1])[10:17, 3:16].all()
+    assert open_air(h, gap[..., 1])[10:21, 3:16].all()
+    assert open_air(h, gap[..., 1], min_opening=3)[3:6, 9:16].all()
     z = scene_meshes(xy, h, gap)[0][0][:, 2].reshape(n, m)
-    assert np.all(z[3:9, 3:15] == 4.0) and np.all(z[10:17, 3:16] == 1.0)
+    assert np.all(z[3:9, 3:15] == 4.0) and np.all(z[10:21, 3:16] == 1.0)
     assert not open_air(h, np.zeros((n, m), np.float32)).any()
 
 

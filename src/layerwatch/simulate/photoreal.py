@@ -70,6 +70,9 @@ SENSOR_WIDTH_MM = 36.0
 LAMP_RADIUS_MM = 5.0
 #: cells of bare bed kept around the printed cells in the height-field mesh
 FIELD_BORDER_CELLS = 2
+#: the shortest rim through which a camera sees into air under printed material (a window, an overhang), mm;
+#: shorter ones are pinholes the grid left in a skin (:func:`open_air`)
+OPENING_MM = 1.0
 #: bed texture resolution, px/mm, at most (and at most 4096 px a side)
 BED_TEXTURE_PX_PER_MM = 8.0
 
@@ -331,7 +334,8 @@ def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[
     n, m = h.shape
     idx = np.arange(n * m).reshape(n, m)
     lo, hi = (np.zeros((n, m)), np.zeros((n, m))) if gap is None else (gap[..., 0], gap[..., 1])
-    air = open_air(h, hi)
+    cell_mm = float(np.hypot(*(xy[0, 1] - xy[0, 0]))) if m > 1 else 0.125
+    air = open_air(h, hi, min_opening=int(np.ceil(OPENING_MM / max(cell_mm, 1e-3))))
     ground = np.where(air, lo, h).astype(np.float64)
     # counter-clockwise seen from +z: a cell, the one below it (y decreases with rows), then to the right
     a = idx[:-1, :-1].ravel()
@@ -359,14 +363,17 @@ def scene_meshes(xy: np.ndarray, h: np.ndarray, gap: np.ndarray | None) -> list[
     return out + [(verts, np.concatenate(faces), np.concatenate([cells, cells]))]
 
 
-def open_air(h: np.ndarray, hi: np.ndarray, tol_mm: float = 0.05) -> np.ndarray:
+def open_air(h: np.ndarray, hi: np.ndarray, min_opening: int = 8, tol_mm: float = 0.05) -> np.ndarray:
     """The cells whose air under printed material a camera could see: their pocket is open to the side.
 
-    A pocket is a 4-connected set of cells with air (``hi > 0``). It is open when one of its cells
-    has a neighbour without air whose top lies below that cell's air (``h < hi - tol_mm``: the bed in
-    front of a window, the space beside an overhang or under a bridge's end) or lies on the grid's
-    border; else it is sealed (the sparse infill under a top skin, enclosed by the infill lines and
-    the perimeters) and only its slab's top can be seen.
+    A pocket is a 4-connected set of cells with air (``hi > 0``) after a 3 x 3 morphological opening
+    (channels and slivers one or two cells wide, 0.25 mm at the simulator's grid, are the grid's
+    rendering of beads that touch: they neither join pockets nor stay open). It is open when one of
+    at least ``min_opening`` of its cells have a neighbour whose top lies below that cell's air
+    (``h < hi - tol_mm``: the bed in front of a window, the space beside an overhang or under a
+    bridge's end) or lie on the grid's border; else it is sealed (the sparse infill under a top skin,
+    enclosed by the infill lines and the perimeters; a pinhole in the skin, where the jittered beads
+    left a cell or two uncovered, does not open it) and only its slab's top can be seen.
 
     Parameters
     ----------
@@ -374,6 +381,8 @@ def open_air(h: np.ndarray, hi: np.ndarray, tol_mm: float = 0.05) -> np.ndarray:
         Height of each cell's top, mm.
     hi : ndarray, float, shape (n, m)
         Top of each cell's air, mm (0: no air).
+    min_opening : int
+        Cells of a pocket's rim that must look out for it to be open (8: 1 mm at the simulator's grid).
     tol_mm : float
         A neighbour this far below the air's top still closes it, mm.
 
@@ -382,7 +391,9 @@ def open_air(h: np.ndarray, hi: np.ndarray, tol_mm: float = 0.05) -> np.ndarray:
     ndarray, bool, shape (n, m)
         Air cells of open pockets.
     """
-    air = np.asarray(hi) > 0
+    # pockets joined or opened only through channels one or two cells wide are the grid's quantisation of
+    # beads that touch (a hairline between an infill line's capsules), not openings: they are left out
+    air = cv2.morphologyEx((np.asarray(hi) > 0).view(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     if not air.any():
         return air
     n, m = air.shape
@@ -392,12 +403,11 @@ def open_air(h: np.ndarray, hi: np.ndarray, tol_mm: float = 0.05) -> np.ndarray:
     for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
         nb_h = pad_h[1 + dv:n + 1 + dv, 1 + du:m + 1 + du]
         nb_air = pad_air[1 + dv:n + 1 + dv, 1 + du:m + 1 + du]
-        seen |= air & ~nb_air & (nb_h < hi - tol_mm)
+        seen |= air & ~nb_air & (nb_h < hi - tol_mm)  # a neighbour in the pocket's own air is no opening
     if not seen.any():
         return seen
     count, labels = cv2.connectedComponents(air.view(np.uint8), connectivity=4)
-    open_label = np.zeros(count, bool)
-    open_label[labels[seen]] = True
+    open_label = np.bincount(labels[seen], minlength=count) >= max(int(min_opening), 1)
     open_label[0] = False  # the background (no air)
     return open_label[labels]
 
