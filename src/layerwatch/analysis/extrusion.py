@@ -46,6 +46,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_moments import block_moments
 from layerwatch.analysis.scene_change import channel_mean, working_crop
 
 __all__ = ["HIGHPASS_SIGMA", "MIN_PARALLAX_PX", "block_ncc", "box_texture", "highpass", "rise_parallax_px", "shifted",
@@ -110,18 +111,13 @@ def block_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, block_px: int,
     """
     h, w = mask.shape
     n, m = h // block_px, w // block_px
-    crop = (slice(0, n * block_px), slice(0, m * block_px))
-    k = np.ascontiguousarray(mask[crop]).astype(np.float32)
-    x, y = np.ascontiguousarray(a[crop]), np.ascontiguousarray(b[crop])
-
-    def mean(v: np.ndarray) -> np.ndarray:
-        return cv2.resize(v * k, (m, n), interpolation=cv2.INTER_AREA)
-
+    k = np.ascontiguousarray(mask[:n * block_px, :m * block_px]).astype(np.float32)
     frac = cv2.resize(k, (m, n), interpolation=cv2.INTER_AREA)
     f = np.maximum(frac, 1e-6)
-    mx, my = mean(x) / f, mean(y) / f
-    vx, vy = np.maximum(mean(x * x) / f - mx * mx, 0), np.maximum(mean(y * y) / f - my * my, 0)
-    cov = mean(x * y) / f - mx * my
+    sx, sy, sxx, syy, sxy = block_moments(a, b, block_px, mask.astype(np.float32))  # each mean(v * k), one pass
+    mx, my = sx / f, sy / f
+    vx, vy = np.maximum(sxx / f - mx * mx, 0), np.maximum(syy / f - my * my, 0)
+    cov = sxy / f - mx * my
     ncc = np.where(vx * vy > 0, cov / np.sqrt(np.maximum(vx * vy, 1e-12)), 0.0).astype(np.float32)
     texture = np.sqrt(np.maximum(vx, vy))
     return np.clip(ncc, -1, 1), (frac >= min_share) & (texture > MIN_TEXTURE)

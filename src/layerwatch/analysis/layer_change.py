@@ -84,6 +84,7 @@ import numpy as np
 from pydantic import Field
 
 from layerwatch.analysis.block_masks import block_tiles, components
+from layerwatch.analysis.block_moments import block_moments
 from layerwatch.analysis.region_outline import outline_mask
 from layerwatch.analysis.result import LayerResult, Region
 from layerwatch.analysis.scene_change import change_regions, top_coords
@@ -199,10 +200,8 @@ def _block_sum(v: np.ndarray, bp: int) -> np.ndarray:
 
 def _moments(a: np.ndarray, b: np.ndarray, bp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-block variances of ``a`` and ``b`` and their covariance (whole blocks)."""
-    ma, mb = _block_sum(a, bp), _block_sum(b, bp)
-    va = np.maximum(_block_sum(a * a, bp) - ma * ma, 0)
-    vb = np.maximum(_block_sum(b * b, bp) - mb * mb, 0)
-    return va, vb, _block_sum(a * b, bp) - ma * mb
+    ma, mb, maa, mbb, mab = block_moments(a, b, bp)  # the five block means in one pass (OpenCV's values)
+    return np.maximum(maa - ma * ma, 0), np.maximum(mbb - mb * mb, 0), mab - ma * mb
 
 
 def parallax_px(maps: tuple[np.ndarray, np.ndarray], z: float, dz: float, step: int = 4) -> tuple[float, float]:
