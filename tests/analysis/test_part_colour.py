@@ -64,6 +64,35 @@ def test_off_colour_ignores_shading_glare_exposure_and_white_balance_but_sees_an
         assert got[21:25, 52:78].mean() > 0.9 and not got[30:].any() and not got[:19].any(), gains
 
 
+def test_deep_shade_in_a_cavity_is_the_part_and_a_dark_object_of_another_hue_is_not():
+    """Deep shade loses colour fidelity: the inside of the bundled part's lattice box in Blender Cycles photos
+    (the lit part RGB (235, 182, 112), 8-bit L* 198) is dark and tinted (RGB (82, 60, 75), (68, 55, 76),
+    (64, 28, 35): the quartiles of the pixels the colour test called another material, 8-bit L* 40-72, hue 15-25
+    deg from the part's); it is the part. A dark object of another hue (a blue, green or purple tool in
+    shade) is not."""
+    fp = np.zeros((96, 96), bool)
+    fp[:, :30] = True
+    cavity = np.zeros_like(fp)
+    cavity[:, 30:] = True
+    rng = np.random.default_rng(1)
+
+    def photo(tool=None):
+        img = np.empty((96, 96, 3), np.float32)
+        img[:] = _bgr((235, 182, 112))  # the printed layer, lit
+        img[:, 30:] = _bgr((140, 100, 80))  # the cavity's walls in half shade
+        img[10:30, 40:90] = _bgr((82, 60, 75))  # its deep shade
+        img[35:50, 40:90] = _bgr((68, 55, 76))
+        img[80:95, 40:90] = _bgr((64, 28, 35))
+        if tool is not None:
+            img[55:75, 45:85] = _bgr(tool)
+        return np.clip(img + rng.normal(0.0, 2.0, img.shape), 0, 255).astype(np.uint8)
+
+    assert not off_colour(photo(), fp, cavity, 8).any()
+    for tool in ((40, 60, 120), (30, 90, 45), (110, 40, 120)):  # dark blue, dark green, dark purple
+        got = off_colour(photo(tool), fp, cavity, 8)
+        assert got[58:72, 48:82].mean() > 0.9 and not got[:50].any(), tool
+
+
 def test_the_colour_test_judges_no_dark_grey_white_or_mixed_part():
     fp = np.ones((96, 96), bool)
     for rgb in ((0.05, 0.05, 0.055), (0.5, 0.5, 0.5), (0.85, 0.85, 0.82)):

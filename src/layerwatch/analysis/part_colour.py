@@ -10,6 +10,14 @@ overexposed pixel lose chroma, not hue) through the part's median chroma,
 measured on the printed layer's footprint, to 1.5 times it (a saturated, lit
 face). Pixels far from that line are another material.
 
+Shade loses colour fidelity: the tolerance round the line widens with a
+pixel's darkness against the part's median lightness, up to
+:data:`DARK_WIDEN` times for black (the inside of a cavity in Blender Cycles
+photos of the bundled part: dark, tinted 15-25 degrees off the part's hue by
+the bed's and the faces' bounced light and the sensor's noise, was taken as
+another material on 20-23 blocks of a clean layer; a dark tool of another hue
+is still off).
+
 The test is normalised by the photo itself: exposure and white balance
 shift the part and the object on it alike (the part's median chroma moves
 with them), so neither counts, and a highlight adds the light's white, which
@@ -86,6 +94,9 @@ MIN_PART_CHROMA = 12.0
 #: a pixel is off-colour when its (a*, b*) lies farther from the part's shading line than
 #: ``max(OFF_LINE_MIN, OFF_LINE_SHARE * chroma)`` (CIELAB units)
 OFF_LINE_MIN, OFF_LINE_SHARE = 10.0, 0.3
+#: how much wider the shading line's tolerance is for a black pixel than for one as light as the part
+#: (linear in between; :func:`_off_part_line`)
+DARK_WIDEN = 1.0
 #: share of a cell's pixels (cell_px x cell_px window) that must be off-colour for them to count
 OFF_CELL_SHARE = 0.3
 #: share of a block's tile (the cell at its centre) that must be off-colour for the block to count
@@ -130,9 +141,28 @@ def _line_tolerance(part: np.ndarray) -> float:
     return max(OFF_LINE_MIN, OFF_LINE_SHARE * float(np.hypot(*part)))
 
 
-def _part(lab: np.ndarray, footprint: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The part's median chroma over ``footprint`` of ``lab`` (uint8 (h, w, 3)) and each pixel's distance from
-    its shading line, float32 (h, w); None when the part cannot be judged (:func:`part_chroma`)."""
+def _off_part_line(lab: np.ndarray, dist: np.ndarray, part: np.ndarray, part_lightness: float) -> np.ndarray:
+    """Pixels whose chroma lies off the part's shading line by more than the tolerance at their lightness.
+
+    The tolerance (:func:`_line_tolerance`) holds for the part as lit; it widens by up to
+    :data:`DARK_WIDEN` times as a pixel gets darker than the part's median lightness (``1 - L / L_part``,
+    from 0 as lit to 1 at black): in shade and in a cavity the colour drifts (light bounced between the
+    part's own faces turns an orange part red, the ambient's and the bed's colour add, the sensor's noise
+    and black level weigh more). A lit object of another hue stays off (the hue test as before); a dark one
+    is off when its hue is far from the part's.
+
+    ``lab`` (h, w, 3) uint8 CIELAB; ``dist`` (h, w) float32: :func:`_off_line`; ``part``: the part's
+    median chroma; ``part_lightness``: its median L (8-bit). Returns bool (h, w).
+    """
+    tol = np.float32(_line_tolerance(part))
+    dark = np.clip(np.float32(1.0) - lab[..., 0].astype(np.float32) / np.float32(max(part_lightness, 1.0)), 0.0, 1.0)
+    return dist > tol * (np.float32(1.0) + np.float32(DARK_WIDEN) * dark)
+
+
+def _part(lab: np.ndarray, footprint: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The part's median chroma over ``footprint`` of ``lab`` (uint8 (h, w, 3)), each pixel's distance from
+    its shading line, float32 (h, w), and the part's median lightness (8-bit L); None when the part cannot
+    be judged (:func:`part_chroma`)."""
     if np.count_nonzero(footprint) < 100:
         return None
     part = np.array([_median_u8(lab[..., 1][footprint]), _median_u8(lab[..., 2][footprint])], np.float32) - 128.0
@@ -141,7 +171,7 @@ def _part(lab: np.ndarray, footprint: np.ndarray) -> tuple[np.ndarray, np.ndarra
     dist = _off_line(lab[..., 1:].astype(np.float32) - 128.0, part)
     if np.count_nonzero(dist[footprint] <= _line_tolerance(part)) < ON_LINE_SHARE * np.count_nonzero(footprint):
         return None
-    return part, dist
+    return part, dist, _median_u8(lab[..., 0][footprint])
 
 
 def part_chroma(top_bgr: np.ndarray, footprint: np.ndarray) -> np.ndarray | None:
@@ -162,12 +192,19 @@ def part_chroma(top_bgr: np.ndarray, footprint: np.ndarray) -> np.ndarray | None
         grey, white filament) or less than :data:`ON_LINE_SHARE` of the footprint on
         its own shading line (a multi-colour or patterned part).
     """
+    got = _part_of(top_bgr, footprint)
+    return None if got is None else got[1][0]
+
+
+def _part_of(top_bgr: np.ndarray, footprint: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, float]] | None:
+    """The CIELAB of ``top_bgr`` and :func:`_part` of it over ``footprint``; None as :func:`part_chroma`."""
     img = np.asarray(top_bgr)
     fp = np.asarray(footprint, bool)
     if img.ndim != 3 or img.shape[2] != 3 or fp.shape != img.shape[:2]:
         return None
-    got = _part(_lab(img), fp)
-    return None if got is None else got[0]
+    lab = _lab(img)
+    got = _part(lab, fp)
+    return None if got is None else (lab, got)
 
 
 def _off_pixels(img: np.ndarray, off_line: np.ndarray, judged: np.ndarray, cell_px: int) -> np.ndarray:
@@ -205,10 +242,10 @@ def off_colour(top_bgr: np.ndarray, footprint: np.ndarray, judged: np.ndarray, c
         Off-colour pixels of ``judged`` eroded by half a cell (its borders show walls and
         the bed beside them); None when :func:`part_chroma` cannot judge the part.
     """
-    part = part_chroma(top_bgr, footprint)
-    if part is None:
+    got = _part_of(top_bgr, footprint)
+    if got is None:
         return None
-    tol = _line_tolerance(part)
+    lab, (part, dist, lightness) = got
     c = max(int(cell_px), 1)
     inner = cv2.erode(np.asarray(judged, np.uint8), np.ones((c // 2 * 2 + 1,) * 2, np.uint8)) > 0
     if not inner.any():
@@ -217,8 +254,7 @@ def off_colour(top_bgr: np.ndarray, footprint: np.ndarray, judged: np.ndarray, c
     box = (slice(max(ys.min() - c, 0), ys.max() + c + 1), slice(max(xs.min() - c, 0), xs.max() + c + 1))
     img = np.asarray(top_bgr)[box]
     out = np.zeros(inner.shape, bool)
-    ab = _lab(img)[..., 1:].astype(np.float32) - 128.0
-    out[box] = _off_pixels(img, _off_line(ab, part) > tol, inner[box], c)
+    out[box] = _off_pixels(img, _off_part_line(lab[box], dist[box], part, lightness), inner[box], c)
     return out
 
 
@@ -301,10 +337,11 @@ def off_colour_blocks(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndar
     crop, seen_c = img[y0:y1, x0:x1], seen[y0:y1:f, x0:x1:f]
     if f > 1:
         crop = cv2.resize(crop, (seen_c.shape[1], seen_c.shape[0]), interpolation=cv2.INTER_AREA)
-    got = _part(_lab(crop), seen_c)
+    lab = _lab(crop)
+    got = _part(lab, seen_c)
     if got is None:
         return None
-    part, dist = got
+    part, dist, lightness = got
     cf = max(c // f, 1)
     inner = cv2.erode(seen_c.view(np.uint8), np.ones((cf // 2 * 2 + 1,) * 2, np.uint8)) > 0
     # the tiles inside the part (gaps of the footprint closed), on the decimated top view
@@ -320,7 +357,7 @@ def off_colour_blocks(top_bgr: np.ndarray, footprint: np.ndarray, valid: np.ndar
         judged &= seen_mask[y0:y1:f, x0:x1:f]
     off = np.zeros((shape[0] // f, shape[1] // f), bool)
     off[y0 // f: y0 // f + inner.shape[0], x0 // f: x0 // f + inner.shape[1]] = _off_pixels(
-        crop, dist > _line_tolerance(part), judged, cf)
+        crop, _off_part_line(lab, dist, part, lightness), judged, cf)
     if not off.any():
         return np.zeros((n, m), bool)
     return _tile_shares(off, lo, (n, m), cf) >= OFF_TILE_SHARE
