@@ -56,6 +56,7 @@ from fractions import Fraction
 
 import cv2
 import numpy as np
+from numba import njit
 from scipy import ndimage
 
 from layerwatch.analysis.area_reduce import area_resize
@@ -517,18 +518,85 @@ def _censored_absdiff(img: np.ndarray, pred: np.ndarray,
     return res
 
 
+@njit(cache=True)
+def _unclipped_pass(img, expected, ratio, usable, in_expected, b, pred, res, sxy, syy):
+    """:func:`_roi_scores`' per-pixel work in one pass, where no usable pixel has a clipped channel.
+
+    ``pred = min(expected ratio, 255)``, ``res = |img - pred|`` (``cv2.absdiff``) and the block means of
+    ``img pred ok`` and ``pred pred ok`` (``ok``: ``usable`` as 0/1), each the same float32 operation as
+    NumPy's, each block's sum in OpenCV's area-fast order (``cv2.resize(..., INTER_AREA)`` by a whole
+    factor: the block's values of a channel row by row, four at a time as ``((v0 + v1) + v2) + v3``, the
+    rest one at a time, times ``1.f / b^2``). Returns True, leaving the outputs unfinished, at the first
+    usable pixel with a channel at :data:`SATURATED` or above in ``img`` or set in ``in_expected`` (the
+    caller then takes the general path). ``img``, ``expected``, ``ratio`` (h, w, 3) float32, ``usable`` (h, w)
+    bool, ``in_expected`` (h, w, 3) bool, ``h`` and ``w`` multiples of ``b``; ``pred``, ``res`` (h, w, 3),
+    ``sxy``, ``syy`` (h / b, w / b, 3) float32.
+    """
+    n, m = sxy.shape[0], sxy.shape[1]
+    grouped = b * b // 4 * 4
+    scale = np.float32(1.0) / np.float32(b * b)
+    top, sat = np.float32(255.0), np.float32(SATURATED)
+    gx = np.zeros(3, np.float32)  # a block's group sums and sums, per channel, of img pred ok and pred pred ok
+    gy = np.zeros(3, np.float32)
+    sx = np.zeros(3, np.float32)
+    sy = np.zeros(3, np.float32)
+    for i in range(n):
+        for j in range(m):
+            sx[:] = 0.0
+            sy[:] = 0.0
+            k = 0
+            for y in range(i * b, (i + 1) * b):
+                for x in range(j * b, (j + 1) * b):
+                    ok = usable[y, x]
+                    f = np.float32(1.0) if ok else np.float32(0.0)
+                    for c in range(3):
+                        v, p = img[y, x, c], expected[y, x, c] * ratio[y, x, c]
+                        if p > top:  # np.minimum(pred, 255) (a NaN stays)
+                            p = top
+                        if ok and (v >= sat or in_expected[y, x, c]):
+                            return True
+                        pred[y, x, c], res[y, x, c] = p, abs(v - p)
+                        a1, a2 = (v * p) * f, (p * p) * f
+                        if k < grouped:
+                            if k % 4 == 0:
+                                gx[c], gy[c] = a1, a2
+                            else:
+                                gx[c], gy[c] = gx[c] + a1, gy[c] + a2
+                            if k % 4 == 3:
+                                sx[c], sy[c] = sx[c] + gx[c], sy[c] + gy[c]
+                        else:
+                            sx[c], sy[c] = sx[c] + a1, sy[c] + a2
+                    k += 1
+            for c in range(3):
+                sxy[i, j, c], syy[i, j, c] = sx[c] * scale, sy[c] * scale
+    return False
+
+
 def _roi_scores(photo: np.ndarray, expected: np.ndarray, usable: np.ndarray, ratio: np.ndarray,
                 b: int, expected_clipped: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`)."""
+    """Block scores, scored blocks and shade-free scores of a block-aligned crop (:func:`change_blocks`).
+
+    Without a clipped channel on a usable pixel (most frames) the residual, the prediction and the gain's
+    sums come from one pass (:func:`_unclipped_pass`: the same values); otherwise as below, with the
+    clipped channels' one-sided residuals.
+    """
     h, w = usable.shape
     n, m = h // b, w // b
-    pred = expected * ratio
-    np.minimum(pred, 255.0, out=pred)  # the camera clips too
     img = np.ascontiguousarray(photo)
     okf = usable.astype(np.float32)
     frac = cv2.resize(okf, (m, n), interpolation=cv2.INTER_AREA)
-    in_photo = img >= SATURATED
     in_expected = expected >= SATURATED if expected_clipped is None else expected_clipped
+    if b > 2 and img.dtype == expected.dtype == ratio.dtype == np.float32:
+        pred, res = np.empty_like(img), np.empty_like(img)
+        sxy, syy = np.empty((n, m, 3), np.float32), np.empty((n, m, 3), np.float32)
+        if not _unclipped_pass(img, expected, ratio, usable, in_expected, b, pred, res, sxy, syy):
+            score = _block_mean(channel_mean(res), okf, frac)
+            g = cv2.resize(sxy / np.maximum(syy, 1e-6), (m * b, n * b), interpolation=cv2.INTER_NEAREST)
+            shade_free = _block_mean(channel_mean(cv2.absdiff(img, g * pred)), okf, frac)
+            return score, frac >= 0.5, shade_free
+    pred = expected * ratio
+    np.minimum(pred, 255.0, out=pred)  # the camera clips too
+    in_photo = img >= SATURATED
     any_clip = channel_max(in_photo | in_expected) & usable  # (unusable pixels weigh 0 whatever their residual)
     okc = okf[..., None]
     clipped = None
