@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from layerwatch.analysis.cast_shadow import MIN_GAIN, explained_by_shade, shadow_zone
+from layerwatch.analysis.cast_shadow import MIN_GAIN, explained_by_shade, roof_area, shadow_zone
 from layerwatch.analysis.scene_change import change_blocks
 from layerwatch.analysis.settings import SceneSettings
 
@@ -26,11 +26,11 @@ def _noisy(img: np.ndarray, seed: int, sigma: float = 1.5) -> np.ndarray:
     return np.clip(img + np.random.default_rng(seed).normal(0, sigma, img.shape), 0, 255).astype(np.float32)
 
 
-def _judge(photo: np.ndarray, expected: np.ndarray, zone: np.ndarray):
+def _judge(photo: np.ndarray, expected: np.ndarray, zone: np.ndarray, whole: np.ndarray | None = None):
     scored = np.ones((H, W), bool)
     ratio = np.ones((H, W, 3), np.float32)
     change = change_blocks(photo, expected, scored, ratio, SceneSettings(enabled=True))
-    shaded = explained_by_shade(change, photo, np.minimum(expected * ratio, 255.0), scored, zone)
+    shaded = explained_by_shade(change, photo, np.minimum(expected * ratio, 255.0), scored, zone, whole=whole)
     return change, shaded
 
 
@@ -72,6 +72,86 @@ def test_a_fresh_shadow_over_whole_blocks_is_not_explained_inside_them():
     inner = change.changed.copy()
     inner[:, : (100 + int(0.3 * H)) // B + 2] = False  # right of the edge's last block
     assert inner.sum() >= 10 and not (shaded & inner).any()
+
+
+def test_under_a_roof_a_fresh_shadow_over_whole_blocks_is_shade():
+    """The same fresh shadow under a roof of the part (a bridge's deck closing over the bed): the shade does
+    cover whole blocks at once there, so they may move entirely (grey, in range, texture kept, one way)."""
+    E = _surface()
+    under = np.zeros((H, W), bool)
+    under[:, 100:] = True  # the roof's zone: right of the shadow's edge
+    change, shaded = _judge(_noisy(_shadow(E, 0.6), 1), _noisy(E, 2), np.ones((H, W), bool), whole=under)
+    inner = change.changed.copy()
+    inner[:, : (100 + int(0.3 * H)) // B + 2] = False
+    assert inner.sum() >= 10 and (shaded & inner).sum() >= 0.9 * inner.sum()
+
+
+def _strands(E: np.ndarray) -> np.ndarray:
+    """A few loops of filament of the floor's own colour over ``E``, lit on top and dark at their edges."""
+    photo = E.copy()
+    yy, xx = np.mgrid[0:H, 0:W]
+    d = yy - (40 + 0.4 * xx)
+    for off in (0.0, 5.0, 10.0, 15.0):
+        dd = np.abs(d - off)
+        photo = np.where((dd < 2.0)[..., None], photo * np.where(dd < 1.0, 1.3, 0.5)[..., None], photo)
+    return np.clip(photo, 0, 255).astype(np.float32)
+
+
+def _screw(E: np.ndarray) -> np.ndarray:
+    photo = E.copy()
+    photo[60:100, 80:140] = np.clip(photo[60:100, 80:140] * 5.0, 0, 255)
+    return photo
+
+
+def _lump(E: np.ndarray) -> np.ndarray:
+    photo = E.copy()
+    photo[60:100, 80:140] *= 0.5 * MIN_GAIN
+    return photo
+
+
+@pytest.mark.parametrize(("floor", "put", "most"), [
+    ({}, _strands, 0.2),  # an orange clump on the orange floor: its texture stays
+    ({"rgb": (1.0, 0.95, 0.9), "level": 30.0}, _screw, 0.0),  # a bright screw on a dark sheet: a gain of 5
+    ({"rgb": (1.0, 0.95, 0.9), "level": 120.0}, _lump, 0.0),  # a black lump: deeper than a shadow
+])
+def test_under_a_roof_material_is_still_not_shade(floor, put, most):
+    """The roof lifts only the whole-block cap: what the other tests refuse stays a change under a bridge too."""
+    E = _surface(**floor)
+    change, shaded = _judge(_noisy(put(E), 1), _noisy(E, 2), np.ones((H, W), bool), whole=np.ones((H, W), bool))
+    assert change.changed.sum() >= 5
+    assert shaded.sum() <= most * change.changed.sum()
+
+
+def test_a_roof_is_material_printed_over_air_wider_than_a_bead():
+    px = 8.0  # px/mm
+    below = np.zeros((200, 300), bool)
+    below[40:160, 20:60] = below[40:160, 140:180] = True  # two pillars
+    deck = below.copy()
+    deck[40:160, 60:140] = True  # a bridge's deck between them
+    roof = roof_area(deck, below, 1.5, px)
+    assert roof[100, 74:126].all() and not roof[100, :70].any() and not roof[100, 130:].any()  # 1.5 mm off each
+    assert roof.sum() >= 0.8 * (120 * 80 - 2 * 12 * 120)  # all but the margin along each pillar
+    lean = np.zeros_like(below)
+    lean[38:162, 18:62] = True  # the pillar one bead (0.25 mm) wider all round: a wall leaning out
+    assert not roof_area(lean, below, 1.5, px).any()
+    infill = below.copy()
+    infill[98:102, 60:140] = True  # a sparse infill line (0.5 mm) crossing the gap
+    assert not roof_area(infill, below, 1.5, px).any()
+    lintel = below.copy()
+    lintel[100:114, 60:140] = True  # a window's lintel: a wall 1.75 mm thick over the window
+    assert roof_area(lintel, below, 1.5, px)[107, 80:120].all()
+    assert not roof_area(below, below, 1.5, px).any()
+    ring = np.zeros_like(below)
+    ring[40:160, 20:180] = True
+    ring[60:140, 40:160] = False  # perimeters round sparse infill's pocket ...
+    skin = np.zeros_like(below)
+    skin[40:160, 20:180] = True  # ... closed by a top skin: no camera sees under it
+    assert not roof_area(skin, ring, 1.5, px).any()
+    skin[100:104, 180:220] = True  # the same skin with a bridge out of its side is a roof there, and only there
+    assert not roof_area(skin, ring, 1.5, px).any()  # (a bead-wide one is not)
+    skin[90:114, 180:220] = True
+    got = roof_area(skin, ring, 1.5, px)
+    assert got[100, 195:218].all() and not got[:, :190].any()
 
 
 def test_outside_the_zone_nothing_is_explained():

@@ -165,7 +165,8 @@ class SceneSettings(Section):
         How far from the printed body a change may still be the part's own cast shadow, in heights of
         the print (the cotangent of the lowest lamp elevation allowed for: 2 is 27 deg); such a change
         is judged by :mod:`layerwatch.analysis.cast_shadow` (grey, within a shadow's range, texture
-        kept, one way, not the whole block) and not counted when it is shade. 0 (the default) turns it
+        kept, one way, not the whole block unless under a roof of the part: a bridge, an overhang) and
+        not counted when it is shade. 0 (the default) turns it
         off: on the simulator's Simplify3D part, 2 cost series spaghetti AUROC 0.992 -> 0.947 (a clump
         of the part's colour landing on a floor just printed, taken as shade; docs/evaluation/README.md,
         session 20). Set 2 where a lamp throws the part's shadow beside it.

@@ -74,7 +74,7 @@ import cv2
 import numpy as np
 
 from layerwatch.analysis.block_masks import blocks_to_pixels
-from layerwatch.analysis.cast_shadow import explained_by_shade, shadow_zone
+from layerwatch.analysis.cast_shadow import explained_by_shade, roof_area, shadow_zone
 from layerwatch.analysis.result import LayerResult, SceneStats
 from layerwatch.analysis.scene_change import (
     SATURATED,
@@ -114,6 +114,8 @@ ALIGN_SHIFT_PX = 0.1
 ALIGN_ROUNDS = 4
 #: rejected frames in a row after which the current view becomes the baseline (camera moved for good)
 REBASE_AFTER = 3
+#: spacing of the planes a roof's footprint is projected on, from the bed to the roof (what lies under it), mm
+ROOF_PLANE_STEP_MM = 0.5
 
 #: ``footprint(j) -> (top-view bool mask of layer j, z bottom, z top)``
 FootprintFn = Callable[[int], "tuple[np.ndarray, float, float]"]
@@ -425,6 +427,12 @@ class SceneModel:
         #: working-image pixels (bool, full working size) of a failure that stays: ``E`` keeps its old view
         #: there and they are judged even on the body's walls (:meth:`hold_failing`); ``None``: none
         self.held: np.ndarray | None = None
+        #: what the camera sees under the part's roofs so far (bridges, overhangs, lintels: material printed over
+        #: air), on :attr:`reach_box`: a shade may cover whole blocks there
+        #: (:mod:`layerwatch.analysis.cast_shadow`); kept only with ``shadow_reach`` > 0
+        self.roofs = np.zeros(self.maps[0].shape[1:], bool)
+        #: the last layer whose footprint :meth:`_add_roof` saw, and that footprint (the next layer's "below")
+        self._below: tuple[int, np.ndarray] | None = None
         if bed_photo is not None:
             self.expected = self._crop(to_working(check_bed_photo(bed_photo, self.camera), self.size))
             self.clipped = self.expected >= SATURATED
@@ -538,6 +546,8 @@ class SceneModel:
         for j in range(first, obs.layer + 1):
             fp, z0, z1 = footprints(j)
             z_top = max(z_top, float(z1))
+            if st.shadow_reach > 0:
+                self._add_roof(j, fp, float(z0), footprints)
             planes = {z: c for z, c in planes.items() if z == float(z0)}  # (the last layer's top: this one's bottom)
             band = self._predicted(fp, np.array([z0, z1]), st.margin_mm, planes)
             predicted |= band
@@ -577,13 +587,29 @@ class SceneModel:
         obs.change = change_blocks(img, E, scored, obs.ratio, st, expected_clipped=clipped)
         if st.shadow_reach > 0 and obs.change.changed.any():  # the part's own cast shadow is light, not material
             zone = shadow_zone(obs.body, st.shadow_reach * z_top * self.px_per_mm)
-            shaded = explained_by_shade(obs.change, img, np.minimum(E * obs.ratio, 255.0), scored, zone, clipped)
+            shaded = explained_by_shade(obs.change, img, np.minimum(E * obs.ratio, 255.0), scored, zone, clipped,
+                                        self._full(self.roofs) if self.roofs.any() else None)
             if shaded.any():
                 obs.change = replace(obs.change, changed=obs.change.changed & ~shaded)
         share = obs.change.changed_share
         if share > st.max_changed_share:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "
                             "or the light changed")
+
+    def _add_roof(self, j: int, footprint: np.ndarray, z0: float, footprints: FootprintFn) -> None:
+        """Add what the camera sees under layer ``j``'s roof (:func:`~layerwatch.analysis.cast_shadow.roof_area`
+        against layer ``j - 1``) to :attr:`roofs`: the roof's footprint, grown by the margin, projected on
+        planes every :data:`ROOF_PLANE_STEP_MM` from the bed up to the layer's bottom ``z0`` (whatever
+        floor lies under it)."""
+        below = self._below[1] if self._below is not None and self._below[0] == j - 1 else (
+            footprints(j - 1)[0] if j > 0 else None)
+        self._below = (j, footprint)
+        if below is None or z0 <= 0 or self.maps[0].size == 0:
+            return
+        roof = roof_area(footprint, below, self.settings.margin_mm, self.topview.px_per_mm)
+        if roof.any():
+            planes = np.append(np.arange(0.0, z0, ROOF_PLANE_STEP_MM), z0)
+            self.roofs |= predicted_change(roof, planes, self.maps, self.topview, self.settings.margin_mm)
 
     @staticmethod
     def _view_shift(img: np.ndarray, E: np.ndarray, usable: np.ndarray) -> tuple[float, float] | None:
