@@ -369,26 +369,36 @@ class JobChecks:
         why = f"texture similarity {sim:.2f} >= {st.min_similarity:.2f}"
         t = st.min_similarity
         confidence = float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1))
-        if sim < st.min_similarity:
-            # a faint surface: flagged when it did not rise (its texture fits the earlier photo in place, not
-            # moved by the parallax of the two layers' height)
-            if sim < st.still_similarity:
+        if sim < st.still_similarity:
+            return
+        # flagged when the surface did not rise: its texture fits the earlier photo in place better than moved
+        # by the parallax of the layers' height. A faint surface (under min_similarity) only so; a similar one
+        # (under sure_similarity) on its similarity alone only where the camera sees too little parallax to
+        # tell: a twin layer (the same infill direction two layers up) can look as alike as a surface nothing
+        # was added to (ExtrusionSettings.sure_similarity)
+        d = None if sim >= st.sure_similarity else self._parallax(fp, z, index, footprint, 2)
+        if d is None:
+            if sim < st.min_similarity:
                 return
-            d = self._parallax(fp, z, index, footprint, 2)
-            if d is None:
-                return
+        else:
             self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
             if not self.still >= st.still_share:
                 return
             # not even one layer's rise: a camera one layer late shows exactly one (the frame it slips on
             # repeats the previous picture, which is one layer above the photo two layers back)
             one = self._parallax(fp, z, index, footprint, 1)
-            if one is None or not still_share(texture, earlier[1], surface, st.block_px, one, scored, share,
-                                              in_place=ncc) >= st.still_share:
+            if one is None:
+                if sim < st.min_similarity:
+                    return
+            elif not still_share(texture, earlier[1], surface, st.block_px, one, scored, share,
+                                 in_place=ncc) >= st.still_share:
                 return
-            why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the blocks "
-                   f"fit it in place better than raised by one or two layers' height")
-            confidence = float(np.clip((self.still - st.still_share) / max(1.0 - st.still_share, 1e-6), 0, 1))
+            if sim < st.min_similarity:
+                why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the "
+                       f"blocks fit it in place better than raised by one or two layers' height")
+                confidence = float(np.clip((self.still - st.still_share) / max(1.0 - st.still_share, 1e-6), 0, 1))
+            else:
+                why += f", and {self.still:.0%} of the blocks fit it in place better than raised by the layers' height"
         res.failed_check = NOTHING_EXTRUDED
         region = self._footprint_region(fp, area, sim, confidence)
         res.check_regions = [*res.check_regions, region]

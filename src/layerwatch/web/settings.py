@@ -86,6 +86,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "extrusion.min_similarity": (0.0, 1.0, "(NCC)"), "extrusion.min_area_mm2": (0.0, 2500.0, "mm^2"),
     "extrusion.margin_mm": (0.0, 10.0, "mm"), "extrusion.block_px": (2, 64, "px"),
     "extrusion.working_px": (160, 4096, "px"), "extrusion.still_similarity": (0.0, 1.0, "(NCC)"),
+    "extrusion.sure_similarity": (0.0, 1.0, "(NCC)"),
     "extrusion.still_share": (0.0, 1.0, ""),
     "layer_change.min_area_mm2": (0.0, 2500.0, "mm^2"), "layer_change.min_ncc": (0.0, 1.0, "(NCC)"),
     "layer_change.min_gain": (0.0, 2.0, "(NCC)"), "layer_change.min_parallax_change": (0.0, 2.0, "(1 - NCC)"),
