@@ -272,17 +272,22 @@ def test_copy_where_is_numpy_s_masked_copy_into_a_view_of_the_image():
         assert np.array_equal(got, want)
 
 
+def _shaded(cam, corners_mm: np.ndarray, photo: np.ndarray, gain: float, blur_px: float) -> np.ndarray:
+    """``photo`` darkened by ``gain`` inside the bed polygon ``corners_mm`` ((k, 3) bed mm), soft-edged."""
+    uv = cv2.projectPoints(corners_mm, cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(-1, 2)
+    mask = np.zeros(photo.shape[:2], np.float32)
+    cv2.fillPoly(mask, [np.round(uv).astype(np.int32)], 1.0)
+    mask = cv2.GaussianBlur(mask, (0, 0), blur_px)
+    return np.clip(photo * (1.0 - (1.0 - gain) * mask[..., None]), 0, 255).astype(np.uint8)
+
+
 def _cast_shadow(cam, length_mm: float, photo: np.ndarray, gain: float = 0.6) -> np.ndarray:
     """``photo`` with the plate's cast shadow on the bed right of it, ``length_mm`` long, soft-edged (a lamp
     low on the left), darkening the bed by ``gain``."""
     z_mm = length_mm / 2.0
     x0, x1, y0, y1 = 130.0, 130.0 + length_mm, 80.0, 120.0  # the plate spans x 90-130, y 80-120
     corners = np.array([[x0, y0, 0.0], [x1, y0 + 0.3 * z_mm, 0.0], [x1, y1 + 0.3 * z_mm, 0.0], [x0, y1, 0.0]])
-    uv = cv2.projectPoints(corners, cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(-1, 2)
-    mask = np.zeros(photo.shape[:2], np.float32)
-    cv2.fillPoly(mask, [np.round(uv).astype(np.int32)], 1.0)
-    mask = cv2.GaussianBlur(mask, (0, 0), 2.0)
-    return np.clip(photo * (1.0 - (1.0 - gain) * mask[..., None]), 0, 255).astype(np.uint8)
+    return _shaded(cam, corners, photo, gain, 2.0)
 
 
 @pytest.mark.parametrize("reach", [0.0, 2.0])
@@ -315,11 +320,7 @@ def _under_the_deck(cam, photo: np.ndarray, gain: float = 0.55) -> np.ndarray:
     """``photo`` with the window part's bridge deck's shade on the bed under it (x 91.5-98.5, y 97.5-102.5 mm for
     the part centred at (110, 100)), soft-edged: the whole opening darkens at once when the deck closes."""
     corners = np.array([[91.5, 97.5, 0.0], [98.5, 97.5, 0.0], [98.5, 102.5, 0.0], [91.5, 102.5, 0.0]])
-    uv = cv2.projectPoints(corners, cam.rvec, cam.tvec, cam.K, cam.dist)[0].reshape(-1, 2)
-    mask = np.zeros(photo.shape[:2], np.float32)
-    cv2.fillPoly(mask, [np.round(uv).astype(np.int32)], 1.0)
-    mask = cv2.GaussianBlur(mask, (0, 0), 1.5)
-    return np.clip(photo * (1.0 - (1.0 - gain) * mask[..., None]), 0, 255).astype(np.uint8)
+    return _shaded(cam, corners, photo, gain, 1.5)
 
 
 @pytest.mark.parametrize("reach", [0.0, 2.0])
