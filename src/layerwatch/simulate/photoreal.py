@@ -368,8 +368,8 @@ def open_air(h: np.ndarray, hi: np.ndarray, min_opening: int = 8, tol_mm: float 
 
     A pocket is a 4-connected set of cells with air (``hi > 0``) after a 3 x 3 morphological opening
     (channels and slivers one or two cells wide, 0.25 mm at the simulator's grid, are the grid's
-    rendering of beads that touch: they neither join pockets nor stay open). It is open when one of
-    at least ``min_opening`` of its cells have a neighbour whose top lies below that cell's air
+    rendering of beads that touch: they neither join pockets nor stay open). It is open when at
+    least ``min_opening`` of its cells have a neighbour whose top lies below that cell's air
     (``h < hi - tol_mm``: the bed in front of a window, the space beside an overhang or under a
     bridge's end) or lie on the grid's border; else it is sealed (the sparse infill under a top skin,
     enclosed by the infill lines and the perimeters; a pinhole in the skin, where the jittered beads
