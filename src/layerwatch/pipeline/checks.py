@@ -371,6 +371,7 @@ class JobChecks:
         confidence = float(np.clip((sim - t) / max(1.0 - t, 1e-6), 0, 1))
         if sim < st.still_similarity:
             return
+        faint = sim < st.min_similarity
         # flagged when the surface did not rise: its texture fits the earlier photo in place better than moved
         # by the parallax of the layers' height. A faint surface (under min_similarity) only so; a similar one
         # (under sure_similarity) on its similarity alone only where the camera sees too little parallax to
@@ -378,7 +379,7 @@ class JobChecks:
         # was added to (ExtrusionSettings.sure_similarity)
         d = None if sim >= st.sure_similarity else self._parallax(fp, z, index, footprint, 2)
         if d is None:
-            if sim < st.min_similarity:
+            if faint:
                 return
         else:
             self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
@@ -388,12 +389,12 @@ class JobChecks:
             # repeats the previous picture, which is one layer above the photo two layers back)
             one = self._parallax(fp, z, index, footprint, 1)
             if one is None:
-                if sim < st.min_similarity:
+                if faint:
                     return
             elif not still_share(texture, earlier[1], surface, st.block_px, one, scored, share,
                                  in_place=ncc) >= st.still_share:
                 return
-            if sim < st.min_similarity:
+            if faint:
                 why = (f"texture similarity {sim:.2f} >= {st.still_similarity:.2f}, and {self.still:.0%} of the "
                        f"blocks fit it in place better than raised by one or two layers' height")
                 confidence = float(np.clip((self.still - st.still_share) / max(1.0 - st.still_share, 1e-6), 0, 1))
