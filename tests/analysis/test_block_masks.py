@@ -13,6 +13,7 @@ from layerwatch.analysis.block_masks import (
     close_gaps,
     components,
     fill_holes,
+    touching,
     whole_blocks,
 )
 
@@ -97,3 +98,63 @@ def test_components_of_an_empty_mask_are_the_background_alone():
     n, lab, stats, origin = components(np.zeros((10, 12), bool))
     assert n == 1 and lab.size == 0 and origin == (0, 0)
     assert stats.shape == (1, 5) and stats[0, cv2.CC_STAT_AREA] == 120
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("connectivity", [4, 8])
+@pytest.mark.parametrize("min_seeds", [1, 3])
+def test_touching_keeps_the_areas_holding_enough_seeds_as_scipys_labels_count_them(seed, connectivity, min_seeds):
+    rng = np.random.default_rng(seed)
+    mask = np.zeros((90, 110), bool)
+    mask[5:80, 7:100] = rng.random((75, 93)) < 0.45  # many small areas, some joined by corners only; a margin
+    seeds = rng.random(mask.shape) < 0.05  # on and off the mask
+    structure = np.ones((3, 3), bool) if connectivity == 8 else ndimage.generate_binary_structure(2, 1)
+    labels, n = ndimage.label(mask, structure=structure)
+    want = np.zeros(mask.shape, bool)
+    for k in range(1, n + 1):
+        area = labels == k
+        if np.count_nonzero(area & seeds) >= min_seeds:
+            want |= area
+    assert 0 < np.count_nonzero(want) < np.count_nonzero(mask)  # some areas kept, some not
+    got = touching(mask, seeds, connectivity=connectivity, min_seeds=min_seeds)
+    assert got.dtype == bool and np.array_equal(got, want)
+    assert np.array_equal(touching(mask.astype(np.uint8) * 255, seeds.astype(np.float32), connectivity, min_seeds), want)
+
+
+def test_touching_joins_pixels_that_share_a_corner_only_at_connectivity_8():
+    mask = np.zeros((6, 6), bool)
+    mask[1:3, 1:3] = mask[3:5, 3:5] = True  # two squares meeting at a corner
+    seeds = np.zeros_like(mask)
+    seeds[1, 1] = True
+    assert np.array_equal(touching(mask, seeds, connectivity=8), mask)
+    only_first = np.zeros_like(mask)
+    only_first[1:3, 1:3] = True
+    assert np.array_equal(touching(mask, seeds, connectivity=4), only_first)
+
+
+def test_touching_counts_the_seeds_on_each_area_against_min_seeds():
+    mask = np.zeros((5, 12), bool)
+    mask[1:4, 1:5] = mask[1:4, 7:11] = True
+    seeds = np.zeros_like(mask)
+    seeds[2, 1:3] = True  # two on the first area
+    seeds[2, 7:10] = True  # three on the second
+    seeds[0, :] = True  # off the mask: no area's
+    second = np.zeros_like(mask)
+    second[1:4, 7:11] = True
+    assert np.array_equal(touching(mask, seeds, min_seeds=2), mask)
+    assert np.array_equal(touching(mask, seeds, min_seeds=3), second)
+    assert not touching(mask, seeds, min_seeds=4).any()
+    assert not touching(mask, ~mask).any()  # seeds beside an area are not in it
+    assert not touching(np.zeros_like(mask), seeds).any()
+
+
+@pytest.mark.parametrize(("mask", "seeds", "kwargs"), [
+    (np.zeros((4, 5), bool), np.zeros((5, 4), bool), {}),
+    (np.zeros((2, 4, 5), bool), np.zeros((2, 4, 5), bool), {}),
+    (np.zeros((4, 5), bool), np.zeros((4, 5), bool), {"connectivity": 6}),
+    (np.zeros((4, 5), bool), np.zeros((4, 5), bool), {"min_seeds": 0}),
+    (np.zeros((4, 5), bool), np.zeros((4, 5), bool), {"min_seeds": 1.5}),
+])
+def test_touching_refuses_masks_of_other_shapes_and_bad_options(mask, seeds, kwargs):
+    with pytest.raises(ValueError, match="touching"):
+        touching(mask, seeds, **kwargs)

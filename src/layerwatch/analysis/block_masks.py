@@ -12,7 +12,9 @@ pixel. Two layouts occur:
 
 :func:`close_gaps` and :func:`fill_holes` are the morphology such masks (and
 footprints) get: gaps of sparse infill closed, the inside of an outline filled;
-:func:`components` labels a mask's connected areas on its bounding box only.
+:func:`components` labels a mask's connected areas on its bounding box only;
+:func:`touching` keeps the areas that hold seeds (a pocket open to the side, the
+part's pieces that reach the layer, an object's pieces in its box).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["block_tiles", "blocks_to_pixels", "close_gaps", "components", "fill_holes", "whole_blocks"]
+__all__ = ["block_tiles", "blocks_to_pixels", "close_gaps", "components", "fill_holes", "touching", "whole_blocks"]
 
 
 def blocks_to_pixels(values: np.ndarray, block_px: int, shape: tuple[int, int], fill=0) -> np.ndarray:
@@ -153,3 +155,51 @@ def components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, tuple[int
     stats[1:, cv2.CC_STAT_LEFT] += u0
     stats[1:, cv2.CC_STAT_TOP] += v0
     return n, labels, stats, (v0, u0)
+
+
+def touching(mask: np.ndarray, seeds: np.ndarray, connectivity: int = 8, min_seeds: int = 1) -> np.ndarray:
+    """The connected areas of ``mask`` that hold at least ``min_seeds`` seed pixels, bool (H, W).
+
+    A seed counts where ``mask`` is set too (a seed outside it belongs to no
+    area). The areas are labelled on the mask's bounding box only (an area
+    lies inside it whole, so the box gives the whole image's areas), and no
+    labelling is done when no seed lies on the mask.
+
+    Parameters
+    ----------
+    mask : ndarray, bool or numeric (non-zero: set), shape (H, W)
+    seeds : ndarray, bool or numeric (non-zero: set), shape (H, W)
+    connectivity : {4, 8}
+        Neighbours that join two pixels into one area: the 4 sharing a side, or the 8 sharing a side or a corner.
+    min_seeds : int
+        Seed pixels an area must hold to be kept, >= 1.
+
+    Returns
+    -------
+    ndarray, bool, shape (H, W)
+        The kept areas' pixels (a subset of ``mask``).
+
+    Raises
+    ------
+    ValueError
+        When ``mask`` is not 2-D, ``seeds`` has another shape, ``connectivity`` is not 4 or 8,
+        or ``min_seeds`` is below 1.
+    """
+    m, s = np.asarray(mask), np.asarray(seeds)
+    if m.ndim != 2 or s.shape != m.shape:
+        raise ValueError(f"touching: mask and seeds must be 2-D of one shape, got {m.shape} and {s.shape}")
+    if connectivity not in (4, 8):
+        raise ValueError(f"touching: connectivity must be 4 or 8, got {connectivity!r}")
+    if int(min_seeds) != min_seeds or min_seeds < 1:
+        raise ValueError(f"touching: min_seeds must be an integer >= 1, got {min_seeds!r}")
+    m = np.ascontiguousarray(m.view(np.uint8) if m.dtype == bool else (m != 0).astype(np.uint8))
+    out = np.zeros(m.shape, bool)
+    u, v, w, h = cv2.boundingRect(m)
+    box = (slice(v, v + h), slice(u, u + w))
+    on = (s[box] if s.dtype == bool else s[box] != 0) & m[box].view(bool)  # the seeds on the mask
+    if not on.any():
+        return out
+    count, labels = cv2.connectedComponents(np.ascontiguousarray(m[box]), connectivity=connectivity)
+    kept = np.bincount(labels[on], minlength=count) >= int(min_seeds)  # the background counts no seed: dropped
+    out[box] = kept[labels]
+    return out

@@ -119,7 +119,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from layerwatch.analysis.block_masks import close_gaps, fill_holes
+from layerwatch.analysis.block_masks import close_gaps, fill_holes, touching
 from layerwatch.analysis.failure_kinds import MOVED_KINDS, UNKNOWN
 from layerwatch.analysis.histogram import middle_values
 from layerwatch.analysis.part_registration import (
@@ -363,9 +363,7 @@ class _Scene:
             return _hist_median(_lab_hist(self.lab_u8[crop], inner))
         below = self._below() if self._failing and self._below is not None else None
         if below is not None and below.any():
-            _, labels = cv2.connectedComponents(below.view(np.uint8), connectivity=8)
-            ids = np.unique(labels[self.fp & below])
-            others = (labels > 0) & ~np.isin(labels, ids[ids > 0])
+            others = below & ~touching(below, self.fp)
             found = mask_box(others)
             if found is not None:  # eroded on its box (padded: the erosion's border is the box's, not the view's)
                 rows, cols = pad_box(found, self.k, self.shape)
@@ -481,9 +479,7 @@ class _Scene:
         if rest is None and self._below is not None:
             rest = self._below()
         if rest is not None and rest.any():
-            _, labels = cv2.connectedComponents((rest | part).view(np.uint8), connectivity=8)
-            ids = np.unique(labels[part])
-            part |= rest & np.isin(labels, ids[ids > 0])
+            part |= rest & touching(rest | part, part)
         carried = cv2.warpAffine(part.view(np.uint8), top_from_plan(motion, self.topview), self.shape[::-1],
                                  flags=cv2.INTER_NEAREST).astype(bool)
         return part | carried
@@ -537,8 +533,7 @@ class _Scene:
         k = max(3, int(round(OBJECT_CLOSE_MM * self.topview.px_per_mm)) | 1)
         obj = ((dist > thr) & seen).view(np.uint8)  # up to 2 ring widths out: an object reaches beyond its blocks
         obj = fill_holes(close_gaps(obj, k))
-        _, labels = cv2.connectedComponents(obj.view(np.uint8), connectivity=8)
-        obj = np.isin(labels, np.unique(labels[inner & obj]))  # the parts that reach into the region's box
+        obj = touching(obj, inner)  # the parts that reach into the region's box
         px_mm2 = self.topview.px_per_mm ** 2
         n_obj = int(np.count_nonzero(obj))
         if n_obj < OBJECT_MIN_MM2 * px_mm2 or 2 * np.count_nonzero(dist[obj] > thr) <= n_obj:

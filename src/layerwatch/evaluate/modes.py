@@ -26,10 +26,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from layerwatch.analysis.block_masks import block_tiles
+from layerwatch.analysis.block_masks import block_tiles, touching
 from layerwatch.analysis.failure_kinds import FAILURE_KINDS, MOVED_KINDS
 from layerwatch.analysis.overlay import anomalous_blocks
 from layerwatch.analysis.region_outline import outline_mask, region_box
@@ -101,10 +100,7 @@ def marked_area(res: LayerResult, topview: TopView) -> np.ndarray:
     for r in outlined:
         if r.kind in MOVED_KINDS:
             moved[_box(r, topview, shape)] = True
-    if moved.any() and out.any():
-        _, labels = cv2.connectedComponents(out.view(np.uint8), connectivity=8)
-        ids = np.unique(labels[moved & out])
-        out &= ~np.isin(labels, ids[ids > 0])
+    out &= ~touching(out, moved)
     for r in outlined:
         out[_box(r, topview, shape)] = False
     for r in res.outside_regions:

@@ -52,6 +52,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import touching
 from layerwatch.errors import RenderError
 from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
@@ -404,12 +405,7 @@ def open_air(h: np.ndarray, hi: np.ndarray, min_opening: int = 8, tol_mm: float 
         nb_h = pad_h[1 + dv:n + 1 + dv, 1 + du:m + 1 + du]
         nb_air = pad_air[1 + dv:n + 1 + dv, 1 + du:m + 1 + du]
         seen |= air & ~nb_air & (nb_h < hi - tol_mm)  # a neighbour in the pocket's own air is no opening
-    if not seen.any():
-        return seen
-    count, labels = cv2.connectedComponents(air.view(np.uint8), connectivity=4)
-    open_label = np.bincount(labels[seen], minlength=count) >= max(int(min_opening), 1)
-    open_label[0] = False  # the background (no air)
-    return open_label[labels]
+    return touching(air, seen, connectivity=4, min_seeds=max(int(min_opening), 1))
 
 
 def _roughness(shininess: np.ndarray | float) -> np.ndarray:
