@@ -62,6 +62,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from layerwatch.analysis.block_masks import touching
 from layerwatch.analysis.scene_change import SATURATED, ChangeMap
 
 __all__ = ["GREY_SPREAD", "MEDIAN_PX", "MIN_GAIN", "EDGE_SHARE", "ONE_WAY_LOG", "ONE_WAY_SHARE", "TEXTURE_K", "explained_by_shade",
@@ -141,14 +142,10 @@ def roof_area(footprint: np.ndarray, below: np.ndarray, margin_mm: float, px_per
         return np.zeros(fp.shape, bool)
     over_air = fp & ~cv2.dilate(under.view(np.uint8), disc(2 * margin_mm)).astype(bool)
     roof = cv2.morphologyEx(over_air.view(np.uint8), cv2.MORPH_OPEN, disc(ROOF_MIN_WIDTH_MM))
-    count, labels = cv2.connectedComponents(roof, connectivity=8)
-    if count <= 1:
+    if not roof.any():
         return roof.astype(bool)
-    rim = (roof > 0) & cv2.dilate((~fp).view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)  # next to the outside
-    open_label = np.zeros(count, bool)
-    open_label[labels[rim]] = True
-    open_label[0] = False
-    return open_label[labels]
+    rim = cv2.dilate((~fp).view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)  # next to the outside
+    return touching(roof, rim)
 
 
 def _one_way(ratio: np.ndarray, tol: float, edge_share: float = EDGE_SHARE) -> bool:
