@@ -293,12 +293,12 @@ def _cast_shadow(cam, length_mm: float, photo: np.ndarray, gain: float = 0.6) ->
 @pytest.mark.parametrize("reach", [0.0, 2.0])
 def test_the_plates_own_cast_shadow_growing_beside_it_is_light_not_a_change(reach):
     """A lamp 27 deg above the bed: the plate's shadow grows 0.6 mm a layer. Without the cast-shadow test (reach 0)
-    (the default) the scene channel reports it beside the print from layer 4 on (and keeps it, as a failure that
-    stays); with reach 2 it reports nothing there. (A lamp that sways by a millimetre between photos is only partly
+    the scene channel reports it beside the print from layer 4 on (and keeps it, as a failure that stays); with
+    reach 2 (the default) it reports nothing there. (A lamp that sways by a millimetre between photos is only partly
     forgiven: docs/evaluation/README.md, session 20.)"""
     tp = read_toolpath(PART_GCODE)
     cfg = recommended_config(PART_CONFIG)
-    assert cfg.scene.shadow_reach == 0.0  # off unless a job turns it on (its price: docs/evaluation/README.md)
+    assert cfg.scene.shadow_reach == 2.0  # on unless a job turns it off (its price: docs/evaluation/README.md)
     cfg = cfg.model_copy(update={"scene": cfg.scene.model_copy(update={"shadow_reach": reach})})
     tv = cfg.topview.topview()
     cam = default_camera(tv)
@@ -329,7 +329,7 @@ def test_the_shade_under_a_new_bridge_deck_is_light_not_a_change(reach):
     darkens to 0.55 over whole blocks at once, which the cast-shadow test alone takes for a clump that landed there
     (the 80 % cap). The deck is a roof of the part (material printed over air: cast_shadow.roof_area), so with
     shadow_reach 2 the shade under it is light and nothing is reported beside the print; without the cast-shadow
-    test (0, the default) it is reported and kept (Cycles photos: docs/evaluation/README.md, session 21)."""
+    test (0) it is reported and kept (Cycles photos: docs/evaluation/README.md, session 21)."""
     from layerwatch.simulate.parts import window_part
 
     cfg = recommended_config(PART_CONFIG)

@@ -166,10 +166,11 @@ class SceneSettings(Section):
         the print (the cotangent of the lowest lamp elevation allowed for: 2 is 27 deg); such a change
         is judged by :mod:`layerwatch.analysis.cast_shadow` (grey, within a shadow's range, texture
         kept, one way, not the whole block unless under a roof of the part: a bridge, an overhang) and
-        not counted when it is shade. 0 (the default) turns it
-        off: on the simulator's Simplify3D part, 2 cost series spaghetti AUROC 0.992 -> 0.947 (a clump
-        of the part's colour landing on a floor just printed, taken as shade; docs/evaluation/README.md,
-        session 20). Set 2 where a lamp throws the part's shadow beside it.
+        not counted when it is shade. Default 2 (since session 22): real lamps throw the part's shadow
+        beside it, and on Blender Cycles photos of clean prints those shadows were the changes beside the
+        print and a pause (docs/evaluation/README.md, sessions 20-22). Its price on the raster simulator,
+        which draws no cast shadows: Simplify3D series spaghetti AUROC 0.992 -> 0.947 (strands of the
+        part's colour on its first millimetres, on a floor just printed, taken as shade). 0 turns it off.
     """
 
     enabled: bool = False
@@ -180,4 +181,4 @@ class SceneSettings(Section):
     min_change: float = Field(8.0, ge=0, le=255)
     min_region_mm2: float = Field(4.0, ge=0)
     max_changed_share: float = Field(0.35, gt=0, le=1)
-    shadow_reach: float = Field(0.0, ge=0, le=20)
+    shadow_reach: float = Field(2.0, ge=0, le=20)
