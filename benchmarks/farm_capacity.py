@@ -236,7 +236,7 @@ class Runner:
             p.mon.close()
             p.mon.pipeline.close()
         ctx = JobContext(f"bench/{p.index}/{p.job}", self.scene.toolpath, self.scene.camera, self.scene.cfg,
-                         share_references=p.same_file)
+                         share_references=p.same_file, printer=f"bench/{p.index}")  # as a farm station's job
         cfg = self.scene.cfg
         p.cam = SnapshotBytes()
         p.mon = FarmMonitor(VirtualPrinter(b"G1 Z0.2\n"), p.cam, PoolPipeline(self.pool, ctx.pipeline(), ctx),

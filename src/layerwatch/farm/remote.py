@@ -51,11 +51,12 @@ from layerwatch.monitor.cameras import EncodedFrame, StaleCheck
 from layerwatch.monitor.frame_checks import CAMERA_FAULT, FrameChecks
 from layerwatch.monitor.service import camera_error, frame_problem, pipeline_error
 from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.job_geometry import PrinterGeometries
 from layerwatch.pipeline.policy import PolicySettings
 from layerwatch.pipeline.shared_references import SharedReferences
 from layerwatch.pipeline.step import LayerPipeline, Reference
 
-__all__ = ["SHARED_REFERENCES", "FrameRules", "FrameVerdict", "JobContext", "Verdict", "WorkerJob", "analyse_on", "analyse_remote",
+__all__ = ["GEOMETRY", "SHARED_REFERENCES", "FrameRules", "FrameVerdict", "JobContext", "Verdict", "WorkerJob", "analyse_on", "analyse_remote",
            "forget_pipeline", "judge_on", "judge_remote", "MEMO", "PIPELINES_PER_WORKER", "THUMB_WIDTH", "Thumbnail", "WARP_MAPS"]
 
 log = logging.getLogger("layerwatch.farm")
@@ -72,6 +73,11 @@ WARP_MAPS = 1
 #: printing the same file with the same camera model render each layer once; each Dask worker process has its own),
 #: at most 256 MB (~230 references at 600 x 600 px)
 SHARED_REFERENCES = SharedReferences(max_mb=256.0)
+
+#: the job geometry of each printer whose jobs this process builds (:mod:`layerwatch.pipeline.job_geometry`: a
+#: printer's next job with the same file and camera takes its view maps, ~60 ms of a job start with the example
+#: camera; each Dask worker process has its own). A printer's entries are the arrays its current job holds.
+GEOMETRY = PrinterGeometries(max_printers=1024)
 
 #: pipelines a Dask worker process keeps (one per job it analyses)
 PIPELINES_PER_WORKER = 1024
@@ -97,6 +103,9 @@ class JobContext:
     share_references : bool
         The job's pipelines read and store their references in the process's :data:`SHARED_REFERENCES`
         (the farm service's jobs do; records are the same either way).
+    printer : str or None
+        The printer whose job it is: its job geometry (:data:`GEOMETRY`) is kept for its next job
+        (``None``: nothing kept; records are the same either way).
     """
 
     key: str
@@ -104,12 +113,14 @@ class JobContext:
     camera: CameraModel
     config: JobConfig
     share_references: bool = False
+    printer: str | None = None
 
     def pipeline(self) -> LayerPipeline:
         """A new pipeline for this job (:data:`MEMO` references, :data:`WARP_MAPS` remap tables kept; the process's
-        shared references with :attr:`share_references`)."""
+        shared references with :attr:`share_references`; the printer's :data:`GEOMETRY` with :attr:`printer`)."""
         pipe = LayerPipeline(self.toolpath, self.camera, self.config, memo=MEMO,
-                             shared=SHARED_REFERENCES if self.share_references else None)
+                             shared=SHARED_REFERENCES if self.share_references else None,
+                             geometry=None if self.printer is None else GEOMETRY.of(self.printer))
         pipe.warper.cache_size = WARP_MAPS
         return pipe
 

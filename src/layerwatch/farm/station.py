@@ -294,7 +294,8 @@ class Station:
         """
         job = self.history.start_job(self.spec.name, path, hashlib.sha256(data).hexdigest(), config=cfg)
         ctx = JobContext(f"{self.spec.name}/{job}/{time.time_ns()}", toolpath, model, cfg,
-                         share_references=True)  # a file printed again, or on a twin printer: rendered once
+                         share_references=True,  # a file printed again, or on a twin printer: rendered once
+                         printer=self.spec.name)  # the printer's view maps kept for its next job of this file
         self._set(job=Path(path).name, job_id=job, layers=toolpath.n_layers, layer=None, ratio=None, alarm=None)
         with self._lock:
             self._ratios.clear()

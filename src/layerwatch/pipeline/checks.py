@@ -68,6 +68,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.topview import TopView
 from layerwatch.geometry.warp import TopViewWarper
 from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.job_geometry import JobGeometry, geometry_key
 
 __all__ = ["EMPTY_BED", "FIRST_LAYER", "NOTHING_EXTRUDED", "JobChecks", "print_reach_mm", "print_top_z_mm"]
 
@@ -118,12 +119,17 @@ class JobChecks:
         textures only on the working-image box whose rays can meet that prism (a
         block-aligned crop: the same blocks and the same result as the whole image, a
         fraction of the memory). Without them the whole image is kept.
+    geometry : JobGeometry, optional
+        The printer's job geometry (:mod:`layerwatch.pipeline.job_geometry`): the box and plane maps
+        are taken from it when an earlier job with the same camera, settings and reach made them.
     """
 
     def __init__(self, camera: CameraModel, topview: TopView, warper: TopViewWarper, config: JobConfig,
                  bed_photo: np.ndarray | None = None, *,
-                 reach_mm: tuple[float, float, float, float] | None = None, top_z_mm: float | None = None) -> None:
+                 reach_mm: tuple[float, float, float, float] | None = None, top_z_mm: float | None = None,
+                 geometry: JobGeometry | None = None) -> None:
         self.camera, self.topview, self.warper, self.config = camera, topview, warper, config
+        self.geometry = geometry
         #: the image the nothing-extruded check compares textures on (``[extrusion] working_px``)
         self.size = working_size(camera.image_size, config.extrusion.working_px)
         self._reach = (reach_mm, top_z_mm)
@@ -161,8 +167,15 @@ class JobChecks:
         the stored one to ~1e-4 px). A box with a ray that does not go down keeps ``A`` too.
         """
         if self._maps is None:
-            self.box, (a, b) = self._box_maps()
-            self._maps = (a if bool((a <= -1e5).any()) else None, b)
+            if self.geometry is None:
+                self.box, self._maps = self._kept_maps()
+            else:
+                reach, top = self._reach
+                key = geometry_key("checks", self.camera, self.topview, size=list(self.size),
+                                   block_px=int(self.config.extrusion.block_px),
+                                   reach_mm=None if reach is None else [float(v) for v in reach],
+                                   top_z_mm=None if top is None else float(top))
+                self.box, self._maps = self.geometry.get(key, self._kept_maps)
         stored, b = self._maps
         if stored is not None:
             return stored, b
@@ -175,6 +188,11 @@ class JobChecks:
         if self._in_frame:  # the nothing-extruded check and the layer-change channel read it in the same frame
             self._frame_maps = out
         return out
+
+    def _kept_maps(self) -> tuple[tuple[slice, slice], tuple[np.ndarray | None, np.ndarray]]:
+        """:meth:`_box_maps` as :attr:`maps` keeps them: the box, and ``A`` only where a ray does not go down."""
+        box, (a, b) = self._box_maps()
+        return box, (a if bool((a <= -1e5).any()) else None, b)
 
     @contextmanager
     def frame(self) -> Iterator[None]:

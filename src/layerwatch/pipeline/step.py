@@ -91,6 +91,7 @@ from layerwatch.geometry.camera import CameraModel
 from layerwatch.geometry.warp import TopViewWarper, check_image
 from layerwatch.pipeline.checks import JobChecks, print_reach_mm, print_top_z_mm
 from layerwatch.pipeline.config import JobConfig
+from layerwatch.pipeline.job_geometry import JobGeometry
 from layerwatch.pipeline.layer_change import LayerChange
 from layerwatch.pipeline.policy import Decision, PausePolicy, layer_alarm
 from layerwatch.pipeline.previous_view import PreviousView, typing_area
@@ -172,6 +173,10 @@ class LayerPipeline:
         References shared with other pipelines of the process (a farm's printers printing the same
         file with the same camera model, :mod:`layerwatch.pipeline.shared_references`): a layer another
         pipeline rendered is read, not rendered; a layer rendered here is stored.
+    geometry : JobGeometry, optional
+        The printer's job geometry (:mod:`layerwatch.pipeline.job_geometry`): the scene channel's view
+        maps and the checks' box maps of an earlier job of the printer with the same camera, settings and
+        print reach are taken, not computed again (a farm printer's job start; the same values).
 
     Raises
     ------
@@ -192,6 +197,7 @@ class LayerPipeline:
         frame_gate: FrameGate | None = None,
         bed_photo: np.ndarray | None = None,
         shared: SharedReferences | None = None,
+        geometry: JobGeometry | None = None,
     ) -> None:
         if toolpath.n_layers == 0:
             raise RenderError(f"{toolpath.source} has no layers; check the G-code has extrusion moves.")
@@ -216,16 +222,19 @@ class LayerPipeline:
         self.last_valid: np.ndarray | None = None
         #: the scene channel's model (``None`` when ``[scene] enabled`` is off)
         reach, top_z = print_reach_mm(toolpath), print_top_z_mm(toolpath)
-        self.scene = (SceneModel(camera, self.topview, self.config.scene, bed_photo,
-                                 reach_mm=_grown(reach, 0.5 * float(np.nanmax(toolpath.width))), top_z_mm=top_z)
-                      if self.config.scene.enabled else None)
+        scene_reach = _grown(reach, 0.5 * float(np.nanmax(toolpath.width)))
+        self.scene = (None if not self.config.scene.enabled
+                      else SceneModel(camera, self.topview, self.config.scene, bed_photo, reach_mm=scene_reach, top_z_mm=top_z)
+                      if geometry is None
+                      else geometry.scene(camera, self.topview, self.config.scene, bed_photo, reach_mm=scene_reach,
+                                          top_z_mm=top_z))
         #: the residual camera shift undone before the comparison (``[analysis] register_mm``)
         self.view_shift = ViewShift(self.config.analysis.register_mm * self.topview.px_per_mm)
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview, camera.center_mm if camera.has_pose else None)
         #: the empty-bed, first-layer and nothing-extruded checks
         self.checks = JobChecks(camera, self.topview, self.warper, self.config, bed_photo,
-                                reach_mm=reach, top_z_mm=top_z)
+                                reach_mm=reach, top_z_mm=top_z, geometry=geometry)
         #: the "changed as predicted" channel (``None`` when ``[layer_change] enabled`` is off)
         self.layer_change = (LayerChange(self.checks, self.topview, self.warper, toolpath, self.config.layer_change,
                                          lambda: self.config.policy.min_area_mm2)  # live: the policy's current value
