@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from layerwatch.analysis.block_masks import touching
 from layerwatch.analysis.failure_kinds import MOVED_KINDS
 from layerwatch.analysis.hog import block_energy, hog_blocks, hog_cell_histograms, normalize_blocks
 from layerwatch.analysis.metrics import similarity, similarity_all
@@ -357,14 +358,7 @@ def grow_regions(seeds: np.ndarray, loose: np.ndarray) -> np.ndarray:
     -------
     ndarray, shape (N, M), bool
     """
-    allowed = loose | seeds
-    labels, n = ndimage.label(allowed, structure=np.ones((3, 3), dtype=bool))
-    if n == 0:
-        return seeds.copy()
-    keep = np.zeros(n + 1, bool)
-    keep[np.unique(labels[seeds])] = True
-    keep[0] = False
-    return keep[labels]
+    return touching(loose | seeds, seeds)
 
 
 def tile_share(footprint: np.ndarray, grid_shape: tuple[int, int], cell_px: int, block_cells: int,
