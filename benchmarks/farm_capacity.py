@@ -18,12 +18,17 @@ What is measured
   gain and JPEG-encoded: the camera's part, not timed).
 * **Steady state.** A printer joins the farm in the middle of a job (its phase and
   its layer uniform). As it joins, its monitor analyses the layer before its first
-  trigger, which builds what a farm that watched the job from its start holds (scene
-  baseline, reference stack, one-time maps); that frame is not charged, every trigger
-  after it is. A printer that finished the part starts it again as a
-  new job: building its monitor and pipeline is charged with that job's first frame
-  (job starts thus come at a farm's steady-state rate; the example part has 33
-  layers, so set-up weighs more here than on real prints of hundreds). Charging the
+  trigger, which builds the reference stack and the one-time maps a farm that watched the
+  job from its start holds; that frame is not charged, every trigger after it is. Its scene
+  channel, though, starts from that mid-job photo, and on this clean part most printers that
+  join past the first layers then report changes beside the print (and pause) where the same
+  printer watched from layer 0 reports none, at ~5-8 ms a frame more over a window
+  (``farm_joins.py``; docs/farm.md, session 22). A printer that finished the part starts it again as a
+  new job: building its monitor and pipeline is charged with that job's first frame, the
+  printer's view maps kept from its last job as a farm station keeps them
+  (:mod:`layerwatch.pipeline.job_geometry`; job starts thus come at a farm's steady-state
+  rate; the example part has 33 layers, so set-up weighs more here than on real prints of
+  hundreds; the G-code is parsed once for all, where a station parses each job's, ~10 ms). Charging the
   joins instead would make every ramp step a wave of job starts (a third of the
   frames of a 20 s window), which no farm sees.
 * **The clock is virtual.** Printers print one layer per minute (a share,
