@@ -9,7 +9,7 @@ runs caught within 2 layers, 0 false alarms.
 
 Run: ``python benchmarks/eval_checks.py [--clean 200 --objects 200 --runs 160 --first 24 --seed 1]``
 (about 15 minutes on one core; ``--clean 0 --objects 0 --first 0``: the nothing-extruded trials alone, a few
-minutes; ``--baseline`` judges the same nothing-extruded photos also with the parallax rule off, the check as
+minutes; ``--width``: their photos' width, 1280 by default, as the thresholds were chosen; ``--baseline`` judges the same nothing-extruded photos also with the parallax rule off, the check as
 it was before it).
 """
 
@@ -42,10 +42,14 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=24)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clean-prints", type=int, default=2, help="clean prints (seeds) per G-code")
+    ap.add_argument("--width", type=int, default=1280,
+                    help="photo width px of the nothing-extruded trials (16:9; the thresholds were chosen at 1280)")
     ap.add_argument("--baseline", action="store_true",
                     help="judge the same nothing-extruded photos also with the parallax rule off "
                          "([extrusion] still_similarity = 1: the check before it)")
     a = ap.parse_args()
+    if not 160 <= a.width <= 8192:
+        ap.error("--width must be in [160, 8192] px")
     t = time.perf_counter()
     false, caught = bed_check_trials(PART_GCODE, a.clean, a.objects, a.seed)
     print(false.line("empty bed: false holds over clean starts (light changed)"))
@@ -56,7 +60,8 @@ def main() -> None:
     variants = {"": ExtrusionSettings(enabled=True)}
     if a.baseline:
         variants[" (parallax rule off)"] = ExtrusionSettings(enabled=True, still_similarity=1.0)
-    results = extrusion_trials_compared(prints, a.runs, list(variants.values()), a.seed, clean_prints=a.clean_prints)
+    results = extrusion_trials_compared(prints, a.runs, list(variants.values()), a.seed, clean_prints=a.clean_prints,
+                                        size=(a.width, a.width * 9 // 16))
     for tag, (caught, false) in zip(variants, results, strict=True):
         print(caught.line(f"nothing extruded{tag}: runs caught within 2 layers"))
         print(false.line(f"nothing extruded{tag}: false alarms over clean layers"))

@@ -120,10 +120,11 @@ class ExtrusionSettings(Section):
         See ``still_similarity``.
     sure_similarity : float
         From this similarity on a layer is flagged on its similarity alone. Between ``min_similarity``
-        and this, only when the surface did not rise either (the ``still_share`` test, where the camera
-        sees the layers' parallax): a twin layer (the same infill direction two layers up) can look as
-        alike as a surface nothing was added to (0.86 on the window part's floor in Blender Cycles photos
-        at 640 px, a pause on a clean print), while the second layer of a nothing-extruded run was above
+        and this, only when the surface did not rise either (the ``still_share`` test); where the camera
+        sees less than a pixel of the layers' parallax, not at all (a 640 x 360 camera, 2 px a bed mm: a
+        clean KISSlicer print paused at 0.85-0.89 before session 22, docs/checks.md): a twin layer (the
+        same infill direction two layers up) can look as alike as a surface nothing was added to (0.86 on
+        the window part's floor in Blender Cycles photos at 640 px, a pause on a clean print), while the second layer of a nothing-extruded run was above
         0.89 in 95 % of the simulator's runs (seed 1; the two runs the rise test alone missed, on the mini
         cube, were at 0.93 and 0.96). 1: the rise test applies to every similarity.
     """

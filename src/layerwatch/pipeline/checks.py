@@ -391,13 +391,12 @@ class JobChecks:
             return
         faint = sim < st.min_similarity
         # flagged when the surface did not rise: its texture fits the earlier photo in place better than moved
-        # by the parallax of the layers' height. A faint surface (under min_similarity) only so; a similar one
-        # (under sure_similarity) on its similarity alone only where the camera sees too little parallax to
-        # tell: a twin layer (the same infill direction two layers up) can look as alike as a surface nothing
-        # was added to (ExtrusionSettings.sure_similarity)
+        # by the parallax of the layers' height. Under sure_similarity only so: a twin layer (the same infill
+        # direction two layers up) can look as alike as a surface nothing was added to, and where the camera
+        # sees too little parallax to tell, nothing tells them apart (ExtrusionSettings.sure_similarity)
         d = None if sim >= st.sure_similarity else self._parallax(fp, z, index, footprint, 2)
         if d is None:
-            if faint:
+            if sim < st.sure_similarity:  # too little parallax to tell
                 return
         else:
             self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
