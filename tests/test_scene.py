@@ -349,3 +349,39 @@ def test_the_shade_under_a_new_bridge_deck_is_light_not_a_change(reach):
     else:
         assert beside == [0.0] * 10, beside
         assert pipe.scene is not None and pipe.scene.roofs.any()
+
+
+def test_the_plan_footprint_is_the_references_without_rendering():
+    """What a baseline photo of a print under way takes the body from (``LayerPipeline.plan_footprint``) is the
+    footprint of the layer's reference, pixel for pixel, and renders nothing."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview())
+    pipe = LayerPipeline(tp, cam, cfg)
+    for i in (0, 7, 20, tp.n_layers - 1):
+        done = pipe.renderer.done
+        plan = pipe.plan_footprint(i)
+        assert pipe.renderer.done == done  # the renderer's stack did not move
+        want = pipe.footprint(i)
+        np.testing.assert_array_equal(plan[0], want[0])
+        assert plan[1:] == want[1:]
+
+
+@pytest.mark.parametrize("join", [12, 20])
+def test_a_monitor_that_joins_a_print_under_way_knows_the_part_already_printed(join):
+    """A monitor (or a farm service) started while a clean print is under way takes its first photo, at layer
+    ``join``, as the scene's baseline. That photo shows the part of layers 0..join: the scene model must know
+    that body (its walls are not the scene beside the print, its floors are ledges), as a model that watched
+    from layer 0 does. Before session 22 it knew only the layers after the join: the part's lower walls were
+    scored as the bed beside it, and the clean print reported 14-95 mm^2 changed beside it and paused (layer
+    24 when joined at 12, 22 when joined at 20)."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    sim = SimPrint(tp, cfg, None, 0, 1, keep=4)
+    pipe = LayerPipeline(tp, sim.located, cfg)
+    frames = ((i, sim.frame(i)) for i in range(join, min(join + 13, tp.n_layers)))
+    judged = list(judge_layers(pipe, PausePolicy(cfg.policy), frames))
+    assert all(res.status == "ok" for res, _ in judged)
+    assert pipe.scene.baseline == "first photo"
+    assert [res.outside_anomalous_mm2 for res, _ in judged] == [0.0] * len(judged)
+    assert not any(d.stops for _, d in judged)

@@ -278,6 +278,10 @@ class SceneObservation:
     held : ndarray, bool, shape (h, w) or None
         Pixels where ``E`` keeps its old view although the layer printed there: the failing blocks of a
         layer whose comparison alarmed (:meth:`SceneModel.hold_failing`); ``None``: none.
+    printed : tuple of two ndarray, bool, shape (h, w), or None
+        A baseline photo taken after layer ``layer >= 0`` (a monitor that joined a print under way, or a
+        view re-based): the body ``P`` and its ledges of layers ``0..layer``, which the photo shows and
+        the next comparisons must know (else the part's walls are scored as the scene beside it).
     ms : float
     """
 
@@ -294,6 +298,7 @@ class SceneObservation:
     baseline: str = ""
     note: str = ""
     held: np.ndarray | None = None
+    printed: tuple[np.ndarray, np.ndarray] | None = None
     ms: float = 0.0
 
     def stats(self) -> SceneStats:
@@ -431,7 +436,8 @@ class SceneModel:
         #: air), on :attr:`reach_box`: a shade may cover whole blocks there
         #: (:mod:`layerwatch.analysis.cast_shadow`); kept only with ``shadow_reach`` > 0
         self.roofs = np.zeros(self.maps[0].shape[1:], bool)
-        #: the last layer whose footprint :meth:`_add_roof` saw, and that footprint (the next layer's "below")
+        #: the last layer whose footprint :meth:`_add_roof` saw, and that footprint (the next layer's "below"),
+        #: as bits (np.packbits: 45 kB at 600 x 600 px instead of 360 kB held between layers)
         self._below: tuple[int, np.ndarray] | None = None
         if bed_photo is not None:
             self.expected = self._crop(to_working(check_bed_photo(bed_photo, self.camera), self.size))
@@ -477,17 +483,22 @@ class SceneModel:
         return out
 
     # ------------------------------------------------------------ per photo
-    def observe(self, photo: np.ndarray, layer: int, footprints: FootprintFn) -> SceneObservation:
+    def observe(self, photo: np.ndarray, layer: int, footprints: FootprintFn,
+                plan: FootprintFn | None = None) -> SceneObservation:
         """Compare the photo of layer ``layer`` with ``E`` outside the predicted change.
 
         ``footprints(j)`` gives the top-view footprint of layer ``j`` and its
         bottom and top heights (the pipeline's references); it is called for
-        every layer printed since the last accepted photo.
+        every layer printed since the last accepted photo. ``plan(j)`` gives the
+        same without rendering (:func:`~layerwatch.render.mask.gcode_mask`): a
+        baseline photo of a print under way takes the body of every layer before
+        it from it (default: ``footprints``).
         """
         t0 = time.perf_counter()
         if self.expected is None:  # a baseline is judged on the whole frame
             obs = SceneObservation(int(layer), to_working(photo, self.size), baseline=self.baseline)
             obs.rejected = self._unusable_baseline(obs.image)
+            self._baseline_body(obs, plan or footprints)
         else:
             obs = SceneObservation(int(layer), self._working(photo), baseline=self.baseline)
             self._compare(obs, footprints)
@@ -498,6 +509,7 @@ class SceneModel:
                 obs.predicted = obs.change = None
                 obs.image = to_working(photo, self.size)
                 obs.baseline, obs.rejected = "", self._unusable_baseline(obs.image)
+                self._baseline_body(obs, plan or footprints)
             elif obs.rejected:
                 self._rejections += 1
                 if self._rejections >= REBASE_AFTER:
@@ -507,6 +519,7 @@ class SceneModel:
                     obs.predicted = obs.change = None
                     obs.image = to_working(photo, self.size)
                     obs.rejected = self._unusable_baseline(obs.image)
+                    self._baseline_body(obs, plan or footprints)
         obs.ms = (time.perf_counter() - t0) * 1e3
         return obs
 
@@ -539,22 +552,7 @@ class SceneModel:
         assert self.expected is not None, "_compare runs only with a baseline"
         E = self._expected_full()
         first = self.body_layer + 1 if self.body_layer < obs.layer else obs.layer
-        predicted = np.zeros(self.observed.shape, bool)
-        ledges = self._full(self.ledges)
-        planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # the planes' top-view coordinates, computed once
-        z_top = 0.0
-        for j in range(first, obs.layer + 1):
-            fp, z0, z1 = footprints(j)
-            z_top = max(z_top, float(z1))
-            if st.shadow_reach > 0:
-                self._add_roof(j, fp, float(z0), footprints)
-            planes = {z: c for z, c in planes.items() if z == float(z0)}  # (the last layer's top: this one's bottom)
-            band = self._predicted(fp, np.array([z0, z1]), st.margin_mm, planes)
-            predicted |= band
-            ledges &= ~band
-            if j == obs.layer:  # lower floors inside M: no earlier photo of this series showed them
-                obs.hidden_ledges = ledges & predicted
-            ledges |= self._predicted(fp, np.array([z1]), -st.margin_mm, planes)
+        predicted, ledges, z_top = self._printed(first, obs, footprints)
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
@@ -596,14 +594,52 @@ class SceneModel:
             obs.rejected = (f"{share:.0%} of the view beside the print changed: camera moved or covered, "
                             "or the light changed")
 
+    def _printed(self, first: int, obs: SceneObservation, footprints: FootprintFn,
+                 ledges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+        """Where layers ``first..obs.layer`` may change the image (``M``), the ledges then in view, and the top.
+
+        Returns ``(predicted, ledges, z_top)``: bool (h, w) working images (the ledges grow from ``ledges``,
+        by default the model's own) and the highest layer top among them, mm; sets ``obs.hidden_ledges``
+        (the lower floors inside ``M``) and adds the layers' roofs (:meth:`_add_roof`, with
+        ``shadow_reach`` > 0).
+        """
+        st = self.settings
+        predicted = np.zeros(self.observed.shape, bool)
+        ledges = self._full(self.ledges) if ledges is None else ledges
+        planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # the planes' top-view coordinates, computed once
+        z_top = 0.0
+        for j in range(first, obs.layer + 1):
+            fp, z0, z1 = footprints(j)
+            z_top = max(z_top, float(z1))
+            if st.shadow_reach > 0:
+                self._add_roof(j, fp, float(z0), footprints)
+            planes = {z: c for z, c in planes.items() if z == float(z0)}  # (the last layer's top: this one's bottom)
+            band = self._predicted(fp, np.array([z0, z1]), st.margin_mm, planes)
+            predicted |= band
+            ledges &= ~band
+            if j == obs.layer:  # lower floors inside M: no earlier photo of this series showed them
+                obs.hidden_ledges = ledges & predicted
+            ledges |= self._predicted(fp, np.array([z1]), -st.margin_mm, planes)
+        return predicted, ledges, z_top
+
+    def _baseline_body(self, obs: SceneObservation, footprints: FootprintFn) -> None:
+        """A usable baseline photo of a print under way (``obs.layer >= 0``): the body and ledges of every layer
+        printed so far into ``obs.printed`` (the photo shows them: later comparisons leave the body's walls out
+        of the scene and take its ledges as floors, as a model that watched from layer 0 does)."""
+        if obs.rejected is not None or obs.layer < 0 or self.observed.size == 0:
+            return
+        predicted, ledges, _ = self._printed(0, obs, footprints, np.zeros(self.observed.shape, bool))
+        obs.hidden_ledges = None  # (no comparison: nothing inside M is judged on this photo)
+        obs.printed = (predicted, ledges)
+
     def _add_roof(self, j: int, footprint: np.ndarray, z0: float, footprints: FootprintFn) -> None:
         """Add what the camera sees under layer ``j``'s roof (:func:`~layerwatch.analysis.cast_shadow.roof_area`
         against layer ``j - 1``) to :attr:`roofs`: the roof's footprint, grown by the margin, projected on
         planes every :data:`ROOF_PLANE_STEP_MM` from the bed up to the layer's bottom ``z0`` (whatever
         floor lies under it)."""
-        below = self._below[1] if self._below is not None and self._below[0] == j - 1 else (
-            footprints(j - 1)[0] if j > 0 else None)
-        self._below = (j, footprint)
+        below = (np.unpackbits(self._below[1], count=footprint.size).view(bool).reshape(footprint.shape)
+                 if self._below is not None and self._below[0] == j - 1 else (footprints(j - 1)[0] if j > 0 else None))
+        self._below = (j, np.packbits(footprint))
         if below is None or z0 <= 0 or self.maps[0].size == 0:
             return
         roof = roof_area(footprint, below, self.settings.margin_mm, self.topview.px_per_mm)
@@ -661,6 +697,8 @@ class SceneModel:
         if self.expected is None:
             self.expected, self.baseline = self._crop(obs.image), "first photo"
             self.clipped = self.expected >= SATURATED
+            if obs.printed is not None:  # a print under way: its body is in the photo, and known
+                self.body, self.ledges = obs.printed[0][self.reach_box].copy(), obs.printed[1][self.reach_box].copy()
         elif obs.body is not None:
             assert obs.predicted is not None and obs.ledges is not None  # set with obs.body by _compare
             take = obs.predicted | (obs.body & ~obs.ledges) | self._quiet(obs)

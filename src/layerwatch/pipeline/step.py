@@ -101,6 +101,7 @@ from layerwatch.pipeline.shared_references import SharedReferences, reference_id
 from layerwatch.render.cache import ReferenceCache, toolpath_hash
 from layerwatch.render.camera_match import match_camera as camera_matched
 from layerwatch.render.fast import StackRenderer
+from layerwatch.render.mask import gcode_mask
 
 __all__ = ["FrameGate", "LayerPipeline", "Reference", "judge_layers"]
 
@@ -369,8 +370,16 @@ class LayerPipeline:
 
     def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
         """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
+        return self.reference(index).footprint, *self._layer_heights(index)
+
+    def plan_footprint(self, index: int) -> tuple[np.ndarray, float, float]:
+        """:meth:`footprint` from the plan alone (:func:`~layerwatch.render.mask.gcode_mask`, the beads rasterised
+        as the renderer does): nothing rendered, wherever the renderer's stack stands."""
+        return gcode_mask(self.toolpath, index, self.topview), *self._layer_heights(index)
+
+    def _layer_heights(self, index: int) -> tuple[float, float]:
         lay = self.toolpath.layers[index]
-        return self.reference(index).footprint, float(lay.z - (lay.height if lay.height > 0 else 0.2)), float(lay.z)
+        return float(lay.z - (lay.height if lay.height > 0 else 0.2)), float(lay.z)
 
     def new_print(self, bed_photo: np.ndarray | None = None) -> None:
         """Forget the scene of the previous print (the scene channel starts again from ``bed_photo``)."""
@@ -492,7 +501,7 @@ class LayerPipeline:
             self._keep(index, ref)
             obs = None
             if self.scene is not None:
-                obs = self.scene.observe(photo, index, self.footprint)
+                obs = self.scene.observe(photo, index, self.footprint, self.plan_footprint)
                 timings["scene"] = obs.ms
                 if obs.rejected is not None:
                     res = self._error(base, f"frame rejected: {obs.rejected}", timings, t0)
