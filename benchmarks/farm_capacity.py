@@ -20,10 +20,10 @@ What is measured
   its layer uniform). As it joins, its monitor analyses the layer before its first
   trigger, which builds the reference stack and the one-time maps a farm that watched the
   job from its start holds; that frame is not charged, every trigger after it is. Its scene
-  channel, though, starts from that mid-job photo, and on this clean part most printers that
-  join past the first layers then report changes beside the print (and pause) where the same
-  printer watched from layer 0 reports none, at ~5-8 ms a frame more over a window
-  (``farm_joins.py``; docs/farm.md, session 22). A printer that finished the part starts it again as a
+  channel takes that mid-job photo as its baseline, with the printed body of the layers before
+  it from the plan (until c4b8200 it knew only the layers after the join, and most printers that
+  joined past the first layers reported changes beside the print, ~5-8 ms a frame more over a
+  window: ``farm_joins.py``; docs/farm.md, session 22). A printer that finished the part starts it again as a
   new job: building its monitor and pipeline is charged with that job's first frame, the
   printer's view maps kept from its last job as a farm station keeps them
   (:mod:`layerwatch.pipeline.job_geometry`; job starts thus come at a farm's steady-state
