@@ -122,7 +122,10 @@ def test_simulator_measurement():
     for kind, r in rows.items():
         assert r["pauses_gate_on"] == 0 and r["refused"] + r["lagged"] >= 1 and r["refused_clean"] == 0, (kind, r)
     for kind in ("lagged_whole_print", "lagged_whole_print_fresh", "bumped_whole_print"):
-        assert rows[kind]["pauses_gate_off"] >= 1 and rows[kind]["alerts"] >= 1, (kind, rows[kind])
+        assert rows[kind]["alerts"] >= 1, (kind, rows[kind])  # a fault that lasts the whole print is said
+    # without the gate a bumped camera pauses; a camera one layer late for the whole print paused too until c4b8200
+    # (session 22: the scene's first photo now brings the body of the layers it is said to show), and no longer
+    assert rows["bumped_whole_print"]["pauses_gate_off"] >= 1, rows["bumped_whole_print"]
     assert sum(r["pauses_gate_off"] for r in rows.values()) >= 5  # the faults do pause without the gate
     for name, (pauses, stop, seen) in bench.failure_pauses(cfg, tp, truth, pipe, gcode, bed).items():
         assert pauses == 1 and stop is not None and seen <= stop <= seen + 2, (name, pauses, stop)
