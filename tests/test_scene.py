@@ -385,3 +385,37 @@ def test_a_monitor_that_joins_a_print_under_way_knows_the_part_already_printed(j
     assert pipe.scene.baseline == "first photo"
     assert [res.outside_anomalous_mm2 for res, _ in judged] == [0.0] * len(judged)
     assert not any(d.stops for _, d in judged)
+
+
+def _counted(fn, calls: list):
+    """``fn`` that appends 1 to ``calls`` each time it is called."""
+    def wrapped(*args, **kwargs):
+        calls.append(1)
+        return fn(*args, **kwargs)
+    return wrapped
+
+
+def test_a_frame_after_skipped_layers_takes_their_footprints_from_the_plan_with_the_same_verdicts():
+    """Layers printed since the last accepted photo but never photographed (a skipped frame, a parked farm printer
+    joining again) enter ``M`` by their footprints. Taken from the plan they are the references' masks, so every
+    record is the one the rendered footprints gave; and the renderer, already at the photographed layer, is not
+    started again from the first layer to render the skipped ones."""
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    sim = SimPrint(tp, cfg, "spaghetti", 8, 2, keep=20)
+    layers = [*range(0, 6), 10, 11, 12]
+    out = {}
+    for how in ("plan", "rendered"):
+        pipe = LayerPipeline(tp, sim.located, cfg)
+        if how == "rendered":
+            pipe.plan_footprint = pipe.footprint  # type: ignore[method-assign]
+        resets: list[int] = []
+        pipe.renderer.reset = _counted(pipe.renderer.reset, resets)  # type: ignore[method-assign]
+        records = [pipe.process(sim.frame(i), i).to_dict() for i in layers]
+        for r in records:  # (the time taken differs: that is the point)
+            r.pop("timings_ms", None)
+            r["scene"].pop("ms", None)
+        out[how] = (records, len(resets))
+    assert out["plan"][0] == out["rendered"][0]
+    assert out["plan"][1] == 0 < out["rendered"][1]
+    assert any(r["outside_anomalous_mm2"] > 0 or r["anomaly_ratio"] > 0 for r in out["plan"][0][6:])  # (can fail)

@@ -501,7 +501,7 @@ class SceneModel:
             self._baseline_body(obs, plan or footprints)
         else:
             obs = SceneObservation(int(layer), self._working(photo), baseline=self.baseline)
-            self._compare(obs, footprints)
+            self._compare(obs, footprints, plan)
             if obs.rejected and self.baseline == "bed photo" and not self._confirmed:
                 obs.note = (f"the bed photo does not match this camera view ({obs.rejected}); "
                             "the first photo is the baseline instead")
@@ -547,12 +547,12 @@ class SceneModel:
             return "the frame is too dark, flat or overexposed to be the scene's baseline"
         return None
 
-    def _compare(self, obs: SceneObservation, footprints: FootprintFn) -> None:
+    def _compare(self, obs: SceneObservation, footprints: FootprintFn, plan: FootprintFn | None = None) -> None:
         st = self.settings
         assert self.expected is not None, "_compare runs only with a baseline"
         E = self._expected_full()
         first = self.body_layer + 1 if self.body_layer < obs.layer else obs.layer
-        predicted, ledges, z_top = self._printed(first, obs, footprints)
+        predicted, ledges, z_top = self._printed(first, obs, footprints, plan=plan)
         obs.predicted, obs.body, obs.ledges = predicted, self._full(self.body) | predicted, ledges
         img = obs.image
         walls = obs.body & ~ledges
@@ -595,24 +595,27 @@ class SceneModel:
                             "or the light changed")
 
     def _printed(self, first: int, obs: SceneObservation, footprints: FootprintFn,
-                 ledges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+                 ledges: np.ndarray | None = None, plan: FootprintFn | None = None) -> tuple[np.ndarray, np.ndarray, float]:
         """Where layers ``first..obs.layer`` may change the image (``M``), the ledges then in view, and the top.
 
         Returns ``(predicted, ledges, z_top)``: bool (h, w) working images (the ledges grow from ``ledges``,
         by default the model's own) and the highest layer top among them, mm; sets ``obs.hidden_ledges``
         (the lower floors inside ``M``) and adds the layers' roofs (:meth:`_add_roof`, with
-        ``shadow_reach`` > 0).
+        ``shadow_reach`` > 0). The layers before ``obs.layer`` take their footprints from ``plan`` when
+        given (the same masks: a frame after skipped layers renders none of them, and the renderer's
+        stack, already at ``obs.layer``, is not started again from the first layer for them).
         """
         st = self.settings
+        earlier = footprints if plan is None else plan
         predicted = np.zeros(self.observed.shape, bool)
         ledges = self._full(self.ledges) if ledges is None else ledges
         planes: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # the planes' top-view coordinates, computed once
         z_top = 0.0
         for j in range(first, obs.layer + 1):
-            fp, z0, z1 = footprints(j)
+            fp, z0, z1 = (footprints if j == obs.layer else earlier)(j)
             z_top = max(z_top, float(z1))
             if st.shadow_reach > 0:
-                self._add_roof(j, fp, float(z0), footprints)
+                self._add_roof(j, fp, float(z0), earlier)
             planes = {z: c for z, c in planes.items() if z == float(z0)}  # (the last layer's top: this one's bottom)
             band = self._predicted(fp, np.array([z0, z1]), st.margin_mm, planes)
             predicted |= band
