@@ -394,11 +394,10 @@ class JobChecks:
         # by the parallax of the layers' height. Under sure_similarity only so: a twin layer (the same infill
         # direction two layers up) can look as alike as a surface nothing was added to, and where the camera
         # sees too little parallax to tell, nothing tells them apart (ExtrusionSettings.sure_similarity)
-        d = None if sim >= st.sure_similarity else self._parallax(fp, z, index, footprint, 2)
-        if d is None:
-            if sim < st.sure_similarity:  # too little parallax to tell
+        if sim < st.sure_similarity:
+            d = self._parallax(fp, z, index, footprint, 2)
+            if d is None:  # too little parallax to tell
                 return
-        else:
             self.still = still_share(texture, earlier[1], surface, st.block_px, d, scored, share, in_place=ncc)
             if not self.still >= st.still_share:
                 return
