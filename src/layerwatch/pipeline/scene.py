@@ -497,31 +497,29 @@ class SceneModel:
         t0 = time.perf_counter()
         if self.expected is None:  # a baseline is judged on the whole frame
             obs = SceneObservation(int(layer), to_working(photo, self.size), baseline=self.baseline)
-            obs.rejected = self._unusable_baseline(obs.image)
-            self._baseline_body(obs, plan or footprints)
+            self._judge_baseline(obs, plan or footprints)
         else:
             obs = SceneObservation(int(layer), self._working(photo), baseline=self.baseline)
             self._compare(obs, footprints, plan)
             if obs.rejected and self.baseline == "bed photo" and not self._confirmed:
                 obs.note = (f"the bed photo does not match this camera view ({obs.rejected}); "
                             "the first photo is the baseline instead")
-                self.expected, self.clipped, self.baseline = None, None, ""
-                obs.predicted = obs.change = None
-                obs.image = to_working(photo, self.size)
-                obs.baseline, obs.rejected = "", self._unusable_baseline(obs.image)
-                self._baseline_body(obs, plan or footprints)
+                self._rebase(obs, photo, plan or footprints)
             elif obs.rejected:
                 self._rejections += 1
                 if self._rejections >= REBASE_AFTER:
                     obs.note = (f"{self._rejections} frames in a row did not match the scene: the current view "
                                 "is the new baseline (camera moved?)")
-                    self.expected, self.clipped, self.baseline, obs.baseline = None, None, "", ""
-                    obs.predicted = obs.change = None
-                    obs.image = to_working(photo, self.size)
-                    obs.rejected = self._unusable_baseline(obs.image)
-                    self._baseline_body(obs, plan or footprints)
+                    self._rebase(obs, photo, plan or footprints)
         obs.ms = (time.perf_counter() - t0) * 1e3
         return obs
+
+    def _rebase(self, obs: SceneObservation, photo: np.ndarray, footprints: FootprintFn) -> None:
+        """Drop the baseline: ``obs`` (its comparison undone) is judged as the next one, on the whole frame."""
+        self.expected, self.clipped, self.baseline, obs.baseline = None, None, "", ""
+        obs.predicted = obs.change = None
+        obs.image = to_working(photo, self.size)
+        self._judge_baseline(obs, footprints)
 
     def _working(self, photo: np.ndarray) -> np.ndarray:
         """The working image as a comparison with ``E`` reads it: :func:`to_working` on :attr:`box`, 0 elsewhere.
@@ -625,10 +623,12 @@ class SceneModel:
             ledges |= self._predicted(fp, np.array([z1]), -st.margin_mm, planes)
         return predicted, ledges, z_top
 
-    def _baseline_body(self, obs: SceneObservation, footprints: FootprintFn) -> None:
-        """A usable baseline photo of a print under way (``obs.layer >= 0``): the body and ledges of every layer
-        printed so far into ``obs.printed`` (the photo shows them: later comparisons leave the body's walls out
-        of the scene and take its ledges as floors, as a model that watched from layer 0 does)."""
+    def _judge_baseline(self, obs: SceneObservation, footprints: FootprintFn) -> None:
+        """Whether ``obs`` can be the baseline (``obs.rejected``), and, a usable photo of a print under way
+        (``obs.layer >= 0``), the body and ledges of every layer printed so far into ``obs.printed`` (the photo
+        shows them: later comparisons leave the body's walls out of the scene and take its ledges as floors,
+        as a model that watched from layer 0 does)."""
+        obs.rejected = self._unusable_baseline(obs.image)
         if obs.rejected is not None or obs.layer < 0 or self.observed.size == 0:
             return
         predicted, ledges, _ = self._printed(0, obs, footprints, np.zeros(self.observed.shape, bool))
