@@ -129,3 +129,35 @@ def test_a_camera_moved_by_three_pixels_is_registered_before_the_comparison():
     moved = shifts[cfg.analysis.register_mm]
     assert shifts[0.0] == (0, 0) and max(moved) >= 1 and min(moved) >= 0  # the photo lies down-right
     assert ratios[0.0] > cfg.policy.pause_ratio > 2 * ratios[cfg.analysis.register_mm]
+
+
+def test_the_dead_zone_is_a_distance_not_a_component():
+    """A camera moved diagonally by ~1.9 px (1.33, 1.32) is undone by (1, 1): each component under
+    DEAD_ZONE_PX left it in place, and the example part's clean layer 12 read 2.8 % (a pause)."""
+    vs = ViewShift(max_px=4.0)
+    assert vs.update((1.33, 1.32)) == (1, 1)
+    vs.reset()
+    assert vs.update((1.3, -0.7)) == (0, 0)  # 1.48 px: within the rendering's own disagreement
+    vs.reset()
+    assert vs.update((0.4, 1.6)) == (0, 2)
+
+
+@pytest.mark.slow
+def test_a_monitor_that_joins_a_print_under_a_moved_camera_does_not_pause_it():
+    """A monitor joins the clean example print at layer 10 (a farm service restarted, a job picked up late),
+    the 1080p camera 1 px right and 3 px down of its calibrated pose: its first estimates lie at about
+    (1.3, 1.3) top-view px, so only a distance dead zone undoes them; before, layer 12 paused."""
+    from layerwatch.pipeline.policy import PausePolicy
+    from layerwatch.pipeline.step import judge_layers
+
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1920, 1080))
+    sim = PrintSimulator(tp, cam, cfg.topview.topview(), (), seed=1)
+    pipe = LayerPipeline(tp, cam, cfg.for_camera(cam), memo=2)
+    frames = ((i, np.roll(sim.frame(i).photo, (3, 1), axis=(0, 1))) for i in range(10, 14))
+    out = [(res.anomaly_ratio, res.view_shift_px, dec.action)
+           for res, dec in judge_layers(pipe, PausePolicy(cfg.policy), frames)]
+    assert all(action == "none" for _, _, action in out), out
+    assert all(r < cfg.policy.pause_ratio for r, _, _ in out), out
+    assert any(s != (0, 0) for _, s, _ in out[1:])
