@@ -40,7 +40,8 @@ from layerwatch.percentile import lerp, linear_index, median, order_statistics
 from layerwatch.settings_base import Section
 
 __all__ = ["FrameQuality", "FrameQualitySettings", "assess_frame", "compact_previous", "grey_of", "noise_sigma", "blockiness",
-           "sharpness", "change_from", "gain_fit", "marker_shift_px", "REPEATED_FRAME"]
+           "sharpness", "change_from", "gain_fit", "marker_offset_px", "marker_search_px", "marker_shift_px",
+           "REPEATED_FRAME"]
 
 #: width of the reduced grey image the exposure, sharpness and change checks use, px
 WORK_WIDTH = 640
@@ -315,6 +316,25 @@ def _median_and_percentile(values: np.ndarray, q: float) -> tuple[float, float]:
     return med, lerp(got[lo], got[hi], t)
 
 
+def marker_search_px(shape: tuple[int, ...]) -> float:
+    """How far from its expected place (px) a marker detected in a frame of ``shape`` = (h, w, ...) is taken for it:
+    8 % of the frame's diagonal."""
+    return 0.08 * float(np.hypot(shape[0], shape[1]))
+
+
+def _marker_displacements(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> np.ndarray:
+    """``found - expected`` of each expected marker whose nearest detection lies within ``search_px``, shape (n, 2) px."""
+    found = np.asarray(found_px, np.float64).reshape(-1, 2)
+    expected = np.asarray(expected_px, np.float64).reshape(-1, 2)
+    if len(found) == 0 or len(expected) == 0:
+        return np.zeros((0, 2))
+    diff = found[None, :, :] - expected[:, None, :]
+    d = np.linalg.norm(diff, axis=2)
+    nearest = d.argmin(axis=1)
+    rows = np.arange(len(expected))
+    return diff[rows, nearest][d[rows, nearest] <= search_px]
+
+
 def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> float | None:
     """Median distance of the markers seen to their expected places, px; None when fewer than 2 are seen.
 
@@ -327,13 +347,21 @@ def marker_shift_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: fl
     search_px : float
         Only markers within this distance of an expected place count as seen.
     """
-    found = np.asarray(found_px, np.float64).reshape(-1, 2)
-    expected = np.asarray(expected_px, np.float64).reshape(-1, 2)
-    if len(found) == 0 or len(expected) == 0:
-        return None
-    d = np.linalg.norm(expected[:, None, :] - found[None, :, :], axis=2).min(axis=1)
-    seen = d[d <= search_px]
+    seen = np.linalg.norm(_marker_displacements(found_px, expected_px, search_px), axis=1)
     return float(np.median(seen)) if len(seen) >= 2 else None
+
+
+def marker_offset_px(found_px: np.ndarray, expected_px: np.ndarray, search_px: float) -> tuple[float, float] | None:
+    """How far the camera's image moved, from the bed markers: the median ``(du, dv)`` of the markers seen, px.
+
+    The markers lie on the bed, which does not move: a common offset of theirs is the camera's (a bumped or
+    sagging mount), whatever the part did. Arguments as :func:`marker_shift_px`; None when fewer than 2 are seen.
+    """
+    d = _marker_displacements(found_px, expected_px, search_px)
+    if len(d) < 2:
+        return None
+    du, dv = np.median(d, axis=0)
+    return float(du), float(dv)
 
 
 def _exposure_reasons(small: np.ndarray, s: FrameQualitySettings, fig: dict[str, float],
@@ -431,7 +459,7 @@ def assess_frame(image_bgr: np.ndarray, previous: np.ndarray | Sequence[np.ndarr
             reasons.append(f"{REPEATED_FRAME} (change {fig['change']:.1f} grey levels): "
                            "the stream is lagging or frozen")
     if markers_px is not None and expected_markers_px is not None:
-        shift = marker_shift_px(markers_px, expected_markers_px, 0.08 * float(np.hypot(*grey.shape)))
+        shift = marker_shift_px(markers_px, expected_markers_px, marker_search_px(grey.shape))
         if shift is not None:
             fig["marker_shift_px"] = shift
             if shift > s.max_marker_shift_px:

@@ -24,6 +24,14 @@ channel has the same problem with its bed photo (:mod:`layerwatch.pipeline.scene
   displacement, a layer shift or a detached part of a few mm, is never
   registered away). Whole pixels keep the photo's pixels as they are (no
   resampling blur); the residual of half a pixel is far below an 8-px HOG cell.
+* The bed markers (the monitor's camera-fault gate finds them in every frame)
+  say how far the camera itself moved: :func:`marker_offset_top_px` turns their
+  photo offset into the top view's, and :class:`ViewShift` keeps the estimates
+  as residuals to it, so a camera bumped by more than ``max_px`` (up to the
+  gate's limit) is undone from its first photo, and a part that moved on the bed
+  (which the markers do not show) is still never registered away. Before
+  session 23 a clean print under a camera 3 px off at 1080p (a top-view move
+  just over ``max_px``) paused at layer 2 (the farm benchmark's printer 318).
 
 References
 ----------
@@ -40,8 +48,12 @@ import numpy as np
 
 from layerwatch.analysis.part_registration import edges, mask_box, pad_box
 from layerwatch.errors import AnalysisError
+from layerwatch.geometry.camera import CameraModel
+from layerwatch.geometry.synthetic import project_points
+from layerwatch.geometry.topview import TopView
 
-__all__ = ["DEAD_ZONE_PX", "MEMORY", "MIN_PIXELS", "NEAR_PX", "ViewShift", "masked_phase_shift", "measure_view_shift", "moved_back"]
+__all__ = ["DEAD_ZONE_PX", "MEMORY", "MIN_PIXELS", "NEAR_PX", "ViewShift", "marker_offset_top_px", "masked_phase_shift",
+           "measure_view_shift", "moved_back"]
 
 #: fewest usable pixels (and a spread of at least ``MIN_STD`` in both images) to measure a shift
 MIN_PIXELS = 1000
@@ -145,34 +157,94 @@ class ViewShift:
     Parameters
     ----------
     max_px : float
-        Largest shift undone, top-view px; 0 turns registration off.
+        Largest shift undone beyond what the bed markers say the camera moved, top-view px; 0 turns
+        registration off.
     """
 
     def __init__(self, max_px: float) -> None:
         self.max_px = max(float(max_px), 0.0)
+        #: the last estimates less the markers' offset of their photo (the part against the bed), px
         self._seen: deque[tuple[float, float]] = deque(maxlen=MEMORY)
 
     def reset(self) -> None:
         """A new print: forget the estimates."""
         self._seen.clear()
 
-    def update(self, estimate: tuple[float, float] | None) -> tuple[int, int]:
+    def update(self, estimate: tuple[float, float] | None,
+               markers: tuple[float, float] | None = None) -> tuple[int, int]:
         """Take one layer's estimate (``None``: none) and return the whole-pixel ``(dx, dy)`` to undo.
 
-        Estimates beyond ``max_px`` are not kept (a real displacement, or no
-        reliable estimate); ``(0, 0)`` while the median is beyond it or off.
+        Parameters
+        ----------
+        estimate : (float, float) or None
+            :func:`measure_view_shift` of this layer's photo, top-view px.
+        markers : (float, float), optional
+            How far the bed markers say this photo's camera moved, in top-view px at the print
+            (:func:`marker_offset_top_px`); ``None``: not known (no markers, or not seen), taken as 0.
+
+        Returns
+        -------
+        (int, int)
+            The markers' offset plus the median of the last estimates' residuals to it, rounded, when that is
+            at least :data:`DEAD_ZONE_PX` long; ``(0, 0)`` while off or nothing is known.
+
+        Notes
+        -----
+        An estimate farther than ``max_px`` from the markers' offset is not kept: the part moved on the bed (a
+        layer shift, a detached part) or the estimate is unreliable. With the markers a camera moved by more than
+        ``max_px`` (up to the gate's ``max_marker_shift_px``) is undone at once, and its residual stays small; a
+        layer shift, which the markers do not show, is still never registered away.
         """
         if self.max_px <= 0:
             return 0, 0
-        if estimate is not None and np.all(np.isfinite(estimate)) and np.hypot(*estimate) <= self.max_px:
-            self._seen.append((float(estimate[0]), float(estimate[1])))
-        if not self._seen:
+        m = np.zeros(2) if markers is None or not np.all(np.isfinite(markers)) else np.asarray(markers, float)
+        if estimate is not None and np.all(np.isfinite(estimate)) and np.hypot(*(estimate - m)) <= self.max_px:
+            self._seen.append((float(estimate[0] - m[0]), float(estimate[1] - m[1])))
+        if not self._seen and markers is None:
             return 0, 0
-        med = np.median(np.asarray(self._seen), axis=0)
-        if not DEAD_ZONE_PX <= np.hypot(*med) <= self.max_px:  # the model's own disagreement, or a real move
+        residual = np.median(np.asarray(self._seen), axis=0) if self._seen else np.zeros(2)
+        if np.hypot(*residual) > self.max_px:
             return 0, 0
-        whole = np.round(med)
+        total = m + residual
+        if np.hypot(*total) < DEAD_ZONE_PX:  # the model's own disagreement
+            return 0, 0
+        whole = np.round(total)
         return int(whole[0]), int(whole[1])
+
+
+def marker_offset_top_px(camera: CameraModel, topview: TopView, at_mm: tuple[float, float], z: float,
+                         offset_px: tuple[float, float], photo_size: tuple[int, int]) -> tuple[float, float]:
+    """The camera's move seen by the bed markers, as a shift of the top view of the plane ``Z = z`` at a point.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        The calibrated, posed camera.
+    topview : TopView
+    at_mm : (float, float)
+        Bed point (mm) where the shift is taken: the print's centre (the photo moved as a whole, the top view of a
+        plane moves by about the same amount near one point).
+    z : float
+        Height of the plane, mm.
+    offset_px : (float, float)
+        ``(du, dv)``: median offset of the markers in the photo (:func:`~layerwatch.analysis.frame_quality.marker_offset_px`),
+        photo px.
+    photo_size : (int, int)
+        ``(w, h)`` of the photo the offset was measured on.
+
+    Returns
+    -------
+    (float, float)
+        ``(dx, dy)`` top-view px: where the top view shows what the calibrated camera would have shown at
+        ``at_mm``, less where it should be (the sign of :func:`measure_view_shift`).
+    """
+    cam = camera.scaled_to(photo_size)
+    x, y = float(at_mm[0]), float(at_mm[1])
+    p = project_points(cam, np.array([[x, y, z], [x + 1.0, y, z], [x, y + 1.0, z]]))
+    jac = np.column_stack([p[1] - p[0], p[2] - p[0]])  # photo px per bed mm
+    d_mm = np.linalg.solve(jac, np.asarray(offset_px, float))
+    d = topview.to_px(np.array([x, y]) + d_mm) - topview.to_px(np.array([x, y]))
+    return float(d[0]), float(d[1])
 
 
 def moved_back(shift: tuple[int, int], top: np.ndarray, valid: np.ndarray,

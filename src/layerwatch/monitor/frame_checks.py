@@ -25,6 +25,8 @@ from layerwatch.analysis.frame_quality import (
     assess_frame,
     compact_previous,
     grey_of,
+    marker_offset_px,
+    marker_search_px,
 )
 from layerwatch.analysis.result import LayerResult
 from layerwatch.geometry.camera import CameraModel
@@ -63,6 +65,16 @@ def _roi_source(pipeline: Any) -> tuple[CameraModel, TopView, float, tuple[float
     return (cam, topview, top, print_reach_mm(toolpath)) if top is not None and np.isfinite(top) else None
 
 
+def _markers_sink(pipeline: Any) -> Any:
+    """The job's ``LayerPipeline.markers_moved``: on ``pipeline``, through an image store's wrapper, or on a farm's
+    pool pipeline's ``local`` one; None when there is none (another pipeline)."""
+    for p in (pipeline, getattr(pipeline, "local", None)):
+        sink = getattr(p, "markers_moved", None)
+        if callable(sink):
+            return sink
+    return None
+
+
 class FrameChecks:
     """The camera-fault gate, bed-marker watch and late-stream series of one job.
 
@@ -93,6 +105,9 @@ class FrameChecks:
         #: whole frame
         self._roi_of = _roi_source(pipeline) if self.frame_quality is not None and self.frame_quality.roi else None
         self._roi: dict[tuple[int, int], tuple[slice, slice] | None] = {}
+        #: the job's :meth:`LayerPipeline.markers_moved <layerwatch.pipeline.step.LayerPipeline.markers_moved>`, told
+        #: where the markers of each frame the gate passes lie (None: no markers, or a pipeline without it)
+        self._markers_to = _markers_sink(pipeline) if self.markers is not None else None
 
     def gate(self, layer: int, z: float, photo: np.ndarray) -> LayerResult | None:
         """The camera-fault gate: a ``camera_fault`` record for a frame unfit for analysis, else None.
@@ -105,13 +120,17 @@ class FrameChecks:
             grey = grey_of(photo)  # converted once: the gate's checks, the markers and the next frame's "previous"
             box = self.roi(grey.shape)
             small = compact_previous(grey)  # reduced once: the gate's and, if it passes, the next frame's previous
-            quality = assess_frame(grey, self.last_good, self.frame_quality, small=small, box=box,
-                                   **self.marker_positions(grey))
+            markers = self.marker_positions(grey)
+            quality = assess_frame(grey, self.last_good, self.frame_quality, small=small, box=box, **markers)
         except Exception:  # noqa: BLE001 - a gate bug must not blind the monitor: analyse the frame
             log.exception("frame-quality gate failed on layer %d; the frame is analysed unchecked", layer)
             return None
         if quality.ok:
             self.last_good = small
+            if self._markers_to is not None:  # where the camera's image is: the analysis' view shift starts from it
+                self._markers_to(marker_offset_px(markers["markers_px"], markers["expected_markers_px"],
+                                                  marker_search_px(grey.shape)) if markers else None,
+                                 (int(grey.shape[1]), int(grey.shape[0])))
             return None
         res = LayerResult(layer=layer, z=z, status=CAMERA_FAULT, message="unusable frame: " + "; ".join(quality.reasons))
         res.frame_quality = {k: round(float(v), 3) for k, v in quality.figures.items()}

@@ -84,7 +84,12 @@ from layerwatch.analysis.result import LayerResult
 from layerwatch.analysis.scene_change import change_regions, working_to_top
 from layerwatch.analysis.scoring import analyze_layer, grey_u8, near_footprint, reference_hog
 from layerwatch.analysis.settings import AnalysisSettings
-from layerwatch.analysis.view_shift import ViewShift, measure_view_shift, moved_back
+from layerwatch.analysis.view_shift import (
+    ViewShift,
+    marker_offset_top_px,
+    measure_view_shift,
+    moved_back,
+)
 from layerwatch.errors import LayerwatchError, RenderError
 from layerwatch.gcode.toolpath import Toolpath
 from layerwatch.geometry.camera import CameraModel
@@ -231,6 +236,10 @@ class LayerPipeline:
                                           top_z_mm=top_z))
         #: the residual camera shift undone before the comparison (``[analysis] register_mm``)
         self.view_shift = ViewShift(self.config.analysis.register_mm * self.topview.px_per_mm)
+        #: where the markers' offset is turned into the top view's: the print's centre, bed mm
+        self._centre_mm = None if reach is None else (0.5 * (reach[0] + reach[2]), 0.5 * (reach[1] + reach[3]))
+        #: the bed markers' offset in the photo :meth:`process` analyses next (:meth:`markers_moved`)
+        self._markers: tuple[tuple[float, float], tuple[int, int]] | None = None
         #: types the failing regions of each analysed photo (:mod:`layerwatch.analysis.failure_typing`)
         self.typer = FailureTyper(toolpath, self.topview, camera.center_mm if camera.has_pose else None)
         #: the empty-bed, first-layer and nothing-extruded checks
@@ -414,6 +423,31 @@ class LayerPipeline:
         return 0 if self.scene is None else self.scene.acknowledge()
 
     # ------------------------------------------------------------ analysis
+    def markers_moved(self, offset_px: tuple[float, float] | None, photo_size: tuple[int, int]) -> None:
+        """How far the bed markers lie from their calibrated places in the photo :meth:`process` analyses next.
+
+        The monitor's camera-fault gate finds the markers in each frame
+        (:func:`~layerwatch.analysis.frame_quality.marker_offset_px`); a camera that moved moves them, a part that
+        moved on the bed does not, so the view shift undone starts from it (:class:`~layerwatch.analysis.view_shift.ViewShift`).
+
+        Parameters
+        ----------
+        offset_px : (float, float) or None
+            Median ``(du, dv)`` of the markers in the photo, px; ``None``: not seen (nothing is assumed).
+        photo_size : (int, int)
+            ``(w, h)`` of that photo.
+        """
+        ok = offset_px is not None and len(offset_px) == 2 and bool(np.all(np.isfinite(offset_px)))
+        self._markers = ((float(offset_px[0]), float(offset_px[1])), (int(photo_size[0]), int(photo_size[1]))) \
+            if ok and offset_px is not None else None
+
+    def _markers_top_px(self, markers: tuple[tuple[float, float], tuple[int, int]] | None,
+                        z: float) -> tuple[float, float] | None:
+        """The markers' offset handed for a photo (:meth:`markers_moved`) as the top view's (:func:`marker_offset_top_px`)."""
+        if markers is None or self._centre_mm is None:
+            return None
+        return marker_offset_top_px(self.camera, self.topview, self._centre_mm, z, *markers)
+
     def top_view(self, photo: np.ndarray, z: float,
                  box: tuple[slice, slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The photo warped to the top view of the plane ``Z = z`` as the analysis reads it.
@@ -488,6 +522,7 @@ class LayerPipeline:
         base = {"layer": index, "z": z, "metric": st.metric, "threshold": float(st.threshold)}
         timings: dict[str, float] = {}
         self.last_top = self.last_valid = None
+        markers, self._markers = self._markers, None  # handed for this photo only
         try:
             if not isinstance(layer_index, (int, np.integer)) or isinstance(layer_index, bool):
                 raise LayerwatchError(f"layer index must be an integer, got {type(layer_index).__name__}.")
@@ -511,7 +546,7 @@ class LayerPipeline:
             timings["reference"] = (t1 - t0) * 1e3 - timings.get("scene", 0.0)
             top_bgr, top, valid = self._top_views(photo, ref.z)
             shift = self.view_shift.update(measure_view_shift(top, ref.image, ref.footprint, valid)
-                                           if self.view_shift.max_px > 0 else None)
+                                           if self.view_shift.max_px > 0 else None, self._markers_top_px(markers, ref.z))
             top, valid, top_bgr = moved_back(shift, top, valid, top_bgr)
             t2 = time.perf_counter()
             timings["warp"] = (t2 - t1) * 1e3
