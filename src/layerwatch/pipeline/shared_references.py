@@ -48,6 +48,7 @@ class Reference(Protocol):
     image: np.ndarray
     footprint: np.ndarray
     hog: tuple[np.ndarray, np.ndarray] | None
+    registration: np.ndarray | None
 
 
 def reference_identity(toolpath: Toolpath, camera: CameraModel, config: JobConfig, topview: TopView,
@@ -79,11 +80,12 @@ def reference_identity(toolpath: Toolpath, camera: CameraModel, config: JobConfi
 
 def _reference_bytes(ref: Reference) -> int:
     hog = ref.hog or ()
-    return int(ref.image.nbytes + ref.footprint.nbytes + sum(a.nbytes for a in hog))
+    reg = 0 if ref.registration is None else ref.registration.nbytes
+    return int(ref.image.nbytes + ref.footprint.nbytes + reg + sum(a.nbytes for a in hog))
 
 
 def _freeze(ref: Reference) -> None:
-    for a in (ref.image, ref.footprint, *(ref.hog or ())):
+    for a in (ref.image, ref.footprint, *(() if ref.registration is None else (ref.registration,)), *(ref.hog or ())):
         a.flags.writeable = False
 
 

@@ -130,13 +130,22 @@ class Reference:
         (:func:`~layerwatch.analysis.scoring.reference_hog` with the
         pipeline's analysis settings), computed with the reference so that a
         prepared layer costs only the photo's HOG.
+    registration : ndarray, shape (H, W), uint8, or None
+        The same view with ``[render] registration_darkening`` as its depth darkening, which the
+        view shift and the part registration read (:attr:`registered`); ``None``: they read ``image``.
     """
 
-    __slots__ = ("image", "footprint", "z", "hog")
+    __slots__ = ("image", "footprint", "z", "hog", "registration")
 
     def __init__(self, image: np.ndarray, footprint: np.ndarray, z: float,
-                 hog: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 hog: tuple[np.ndarray, np.ndarray] | None = None, registration: np.ndarray | None = None) -> None:
         self.image, self.footprint, self.z, self.hog = image, footprint, float(z), hog
+        self.registration = registration
+
+    @property
+    def registered(self) -> np.ndarray:
+        """The grey reference the registrations read: :attr:`registration`, else :attr:`image`."""
+        return self.image if self.registration is None else self.registration
 
 
 class LayerPipeline:
@@ -252,9 +261,9 @@ class LayerPipeline:
         self._memo: OrderedDict[int, Reference] = OrderedDict()
         self._memo_size = max(1, int(memo))
         #: the references of the layer :meth:`process` analysed last and of the one before it, kept past the
-        #: memo (:meth:`reference`): ``(layer, image, footprint bits, z)``
-        self._own: tuple[int, np.ndarray, np.ndarray, float] | None = None
-        self._kept: tuple[int, np.ndarray, np.ndarray, float] | None = None
+        #: memo (:meth:`reference`): ``(layer, image, footprint bits, z, registration image or None)``
+        self._own: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
+        self._kept: tuple[int, np.ndarray, np.ndarray, float, np.ndarray | None] | None = None
         self._cache = None
         self._hash = None
         #: the references shared with the process's other pipelines, and this pipeline's key there (made when first used)
@@ -323,16 +332,18 @@ class LayerPipeline:
         """The reference of layer ``index`` made here: from a kept layer (:meth:`reference`) or rendered."""
         kept = next((k for k in (self._own, self._kept) if k is not None and k[0] == index), None)
         if kept is not None:  # a layer analysed on this or the previous photo, past the memo (docstring)
-            _, kept_image, bits, z = kept
-            image = kept_image.copy()
+            _, kept_image, bits, z, kept_reg = kept
+            image, registration = kept_image.copy(), None if kept_reg is None else kept_reg.copy()
             footprint = np.unpackbits(bits, count=image.size).view(bool).reshape(image.shape)
         else:
             r = self._render(index)
             z = self.toolpath.layers[index].z
-            image, footprint = r.image, r.mask
+            image, footprint, registration = r.image, r.mask, r.registration
             if self.match_camera:
                 image = camera_matched(image, self.camera, self.topview, z)
-        return Reference(image, footprint, z, reference_hog(image, self.config.analysis))
+                if registration is not None:
+                    registration = camera_matched(registration, self.camera, self.topview, z)
+        return Reference(image, footprint, z, reference_hog(image, self.config.analysis), registration)
 
     def prepare(self, layers: Iterable[int] | None = None) -> None:
         """Render references ahead of the print (in increasing order, into the memo/cache).
@@ -375,7 +386,8 @@ class LayerPipeline:
         if self._own is not None and self._own[0] == index:
             return
         self._kept = self._own
-        self._own = (index, ref.image.copy(), np.packbits(np.asarray(ref.footprint, bool), axis=None), ref.z)
+        self._own = (index, ref.image.copy(), np.packbits(np.asarray(ref.footprint, bool), axis=None), ref.z,
+                     None if ref.registration is None else ref.registration.copy())
 
     def footprint(self, index: int) -> tuple[np.ndarray, float, float]:
         """Top-view footprint of layer ``index`` (its reference's) and its bottom and top heights, mm."""
@@ -545,7 +557,7 @@ class LayerPipeline:
             t1 = time.perf_counter()
             timings["reference"] = (t1 - t0) * 1e3 - timings.get("scene", 0.0)
             top_bgr, top, valid = self._top_views(photo, ref.z)
-            shift = self.view_shift.update(measure_view_shift(top, ref.image, ref.footprint, valid)
+            shift = self.view_shift.update(measure_view_shift(top, ref.registered, ref.footprint, valid)
                                            if self.view_shift.max_px > 0 else None, self._markers_top_px(markers, ref.z))
             top, valid, top_bgr = moved_back(shift, top, valid, top_bgr)
             t2 = time.perf_counter()
@@ -563,7 +575,7 @@ class LayerPipeline:
                 self._scene_result(res, obs, photo, ref.z, valid, top_bgr, ref.footprint)
             t_type = time.perf_counter()
             before = self._before if self._before is not None and self._before.layer < index else None
-            self.typer.type_result(res, top_bgr, top, ref.image, ref.footprint, valid,
+            self.typer.type_result(res, top_bgr, top, ref.registered, ref.footprint, valid,
                                    previous=None if before is None else partial(before.top, self.warper, ref.z))
             res.timings_ms["typing"] = (time.perf_counter() - t_type) * 1e3
             with self.checks.frame():  # the checks' plane maps built once for both

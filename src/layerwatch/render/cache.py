@@ -52,7 +52,7 @@ def file_hash(path: str | Path, chunk: int = 1 << 20) -> str:
 
 
 class ReferenceCache:
-    """Folder of rendered layers (``.npz``: image, height, mask, light).
+    """Folder of rendered layers (``.npz``: image, height, mask, light; the registrations' image when rendered).
 
     Parameters
     ----------
@@ -99,6 +99,7 @@ class ReferenceCache:
                 return Rendered(
                     image=z["image"], height=z["height"], mask=z["mask"], layer=int(meta[0]),
                     z=float(meta[1]), light=z["light"], clipped=int(meta[2]),
+                    registration=z["registration"] if "registration" in z.files else None,
                 )
         except Exception:  # corrupt entry: forget it, render again
             p.unlink(missing_ok=True)
@@ -109,11 +110,12 @@ class ReferenceCache:
         p = self.path(key)
         p.parent.mkdir(parents=True, exist_ok=True)
         buf = io.BytesIO()
-        np.savez_compressed(
-            buf, image=rendered.image, height=rendered.height, mask=rendered.mask,
-            light=rendered.light.astype(np.float16),
-            meta=np.array([rendered.layer, rendered.z, rendered.clipped], np.float64),
-        )
+        arrays = {"image": rendered.image, "height": rendered.height, "mask": rendered.mask,
+                  "light": rendered.light.astype(np.float16),
+                  "meta": np.array([rendered.layer, rendered.z, rendered.clipped], np.float64)}
+        if rendered.registration is not None:
+            arrays["registration"] = rendered.registration
+        np.savez_compressed(buf, allow_pickle=False, **arrays)
         fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=".tmp-", suffix=".npz")
         try:
             with os.fdopen(fd, "wb") as f:

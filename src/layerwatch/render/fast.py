@@ -77,6 +77,10 @@ class Rendered:
         stay the top-view rendering of the same scene.
     clipped : int
         Segments of the layer (partly) outside the observed square.
+    registration : ndarray, shape (H, W), uint8, or None
+        The same view rendered with ``registration_darkening`` as its depth darkening
+        (:class:`~layerwatch.render.settings.RenderSettings`): what the registrations read;
+        ``None``: they read ``image`` (no such setting, or the same darkening).
     """
 
     image: np.ndarray
@@ -86,6 +90,12 @@ class Rendered:
     z: float
     light: np.ndarray
     clipped: int = 0
+    registration: np.ndarray | None = None
+
+    @property
+    def registered(self) -> np.ndarray:
+        """The grey reference the registrations read: :attr:`registration`, else :attr:`image`."""
+        return self.image if self.registration is None else self.registration
 
     def rgb(self, settings: RenderSettings | None = None) -> np.ndarray:
         """Colour top view of the scene, shape (H, W, 3), uint8 RGB, from the material/bed colours.
@@ -378,12 +388,14 @@ class StackRenderer:
             reach += int(np.ceil(s.cavity_radius_mm * self.topview.px_per_mm)) + 1
         return reach
 
-    def _light(self, z: float, lh: float, box: tuple[int, int, int, int] | None) -> np.ndarray:
+    def _light(self, z: float, lh: float, box: tuple[int, int, int, int] | None,
+               depth_darkening: float | None = None) -> np.ndarray:
         """Light factor of the top view (float32 (H, W), 0-1): shading, depth darkening and cavities.
 
         With ``box`` (:meth:`_shade_box`) it is computed on the box grown by its own reach (so that every
         value in the box reads the same neighbours as on the whole view) and the rest is the level bed's
         light: the same values as on the whole view, float for float (``tests/render/test_camera_image.py``).
+        ``depth_darkening``: the settings' unless given.
         """
         s = self.settings
         H, W = self.topview.shape
@@ -399,8 +411,8 @@ class StackRenderer:
         surf: np.ndarray = height
         if s.smooth_px > 0:
             surf = cv2.GaussianBlur(surf, (0, 0), s.smooth_px, borderType=cv2.BORDER_REPLICATE)
-        args = (z, self.topview.px_per_mm * s.relief, self._lights, s.ambient, s.layers_visible_below * lh,
-                s.depth_darkening)
+        dark = s.depth_darkening if depth_darkening is None else float(depth_darkening)
+        args = (z, self.topview.px_per_mm * s.relief, self._lights, s.ambient, s.layers_visible_below * lh, dark)
         shade_height(surf, *args, part)
         if s.cavity > 0:
             # ambient occlusion of valleys: how far a pixel lies below its neighbourhood
@@ -420,19 +432,31 @@ class StackRenderer:
                camera_center_mm: np.ndarray | None = None) -> Rendered:
         s = self.settings
         lh = lh if lh > 0 and np.isfinite(lh) else 0.2
-        light = self._light(z, lh, self._shade_box())
+        box = self._shade_box()
+        light = self._light(z, lh, box)
         albedo = np.where(self.height > 0, np.float32(self._mat), self._bed)
-        img: np.ndarray = albedo * light
+        image = self._image(albedo * light, camera_center_mm, z, lh, s.depth_darkening)
+        reg = s.registration_darkening
+        registration = (None if reg is None or reg == s.depth_darkening
+                        else self._image(albedo * self._light(z, lh, box, reg), camera_center_mm, z, lh, reg))
+        return Rendered(image, self.height, mask, index, float(z), light, int(clipped),  # (the render's own map)
+                        registration)
+
+    def _image(self, img: np.ndarray, camera_center_mm: np.ndarray | None, z: float, lh: float,
+               depth_darkening: float) -> np.ndarray:
+        """The grey reference, uint8 (H, W), from the shaded top view ``img`` (albedo x light, float32 (H, W)):
+        seen by the camera (``camera_center_mm``; hidden tops darkened by ``depth_darkening``), blurred."""
+        s = self.settings
         if camera_center_mm is not None:
-            img = self._camera_view(img, camera_center_mm, z, lh)
+            img = self._camera_view(img, camera_center_mm, z, lh, depth_darkening)
         if s.image_blur_px > 0:  # optics: the camera never resolves a bead edge as a step
             img = cv2.GaussianBlur(img, (0, 0), s.image_blur_px, borderType=cv2.BORDER_REPLICATE)
-        image = np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        return Rendered(image, self.height, mask, index, float(z), light, int(clipped))  # (the render's own map)
+        return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
-
-    def _camera_view(self, img: np.ndarray, center_mm: np.ndarray, z: float, lh: float) -> np.ndarray:
-        """The shaded top view ``img`` as the camera at ``center_mm`` sees it through the plane ``Z = z``."""
+    def _camera_view(self, img: np.ndarray, center_mm: np.ndarray, z: float, lh: float,
+                     depth_darkening: float) -> np.ndarray:
+        """The shaded top view ``img`` as the camera at ``center_mm`` sees it through the plane ``Z = z``
+        (a top hidden under something higher darkened by ``depth_darkening`` at the settings' depth)."""
         s = self.settings
         look = WallLook(layer_height_mm=lh, wall_value=s.wall_light * self._mat,
                         wall_line_contrast=s.wall_line_contrast, wall_ambient=s.wall_ambient)
@@ -440,11 +464,11 @@ class StackRenderer:
             return view_from_camera(self.height, img, center_mm, self.topview, z, look=look)[0]
         if self.rays is not None:
             shading = np.array([look.wall_value, look.wall_ambient, look.wall_line_contrast, look.layer_height_mm,
-                                self._mat, s.layers_visible_below * lh, s.depth_darkening], np.float64)
+                                self._mat, s.layers_visible_below * lh, depth_darkening], np.float64)
             return self.rays.view(self.height, img, self._bed, self.volume, z, shading)
         return view_through_volume(
             self.height, img, self.volume, self._bed, center_mm, self.topview, z, look=look, hidden_value=self._mat,
-            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=s.depth_darkening, printed_box=self._hbox,
+            depth_scale_mm=s.layers_visible_below * lh, depth_darkening=depth_darkening, printed_box=self._hbox,
         )[0]
 
 

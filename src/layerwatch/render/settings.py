@@ -67,6 +67,19 @@ class RenderSettings(Section):
         linearly with depth and anything deeper is shown at the darkest level.
     depth_darkening : float
         Brightness lost at ``layers_visible_below`` layers of depth, in [0, 1].
+    registration_darkening : float or None
+        ``depth_darkening`` of a second copy of the reference that the registrations read (the residual
+        view shift, :mod:`layerwatch.analysis.view_shift`, and the part registration of the failure
+        typing, :mod:`layerwatch.analysis.part_registration`), in [0, 1]; ``None``: they read the
+        reference itself. The photos light every level surface alike (a lamp far above), so the
+        comparison's reference is best photo-like (``depth_darkening = 0``), but the registrations
+        correlate the top layer's edges and need the contrast of the lower surfaces below it (floors
+        darkened, walls not: only the render knows which is which). The copy costs a second shading
+        and camera-view march per layer (the example part's render 19 -> 38 ms a layer at 600 x 600 px)
+        and one more grey image per reference (0.36 MB there). Off by default: with
+        ``depth_darkening = 0`` and a copy at 0.2 the raster evaluation kept every moved-part figure
+        and raised thin-wall AUROC, but two parts' clean prints gained a single-layer alarm each
+        (``docs/evaluation/README.md``, "Session 23 (helper light)").
     relief : float
         Exaggeration of the height map's slopes in the shading, so bead
         edges stand out at a few pixels per bead.
@@ -111,6 +124,7 @@ class RenderSettings(Section):
     ambient: float = Field(0.15, ge=0, le=1)
     layers_visible_below: int = Field(3, ge=0)
     depth_darkening: float = Field(0.2, ge=0, le=1)
+    registration_darkening: float | None = Field(None, ge=0, le=1)
     relief: float = Field(1.5, gt=0, le=20)
     smooth_px: float = Field(0.7, ge=0, le=5)
     cavity: float = Field(0.1, ge=0, le=1)
