@@ -79,3 +79,36 @@ def test_a_clean_print_under_a_camera_moved_past_the_registration_limit_does_not
     # undone from the first photo on, toward the right and up (each photo's estimate moves it by a pixel or so)
     assert all(r.view_shift_px[0] >= 1 and r.view_shift_px[1] <= -2 for r in rep.results), \
         [r.view_shift_px for r in rep.results]
+
+
+def test_the_gate_finds_the_pipeline_that_takes_the_markers_through_its_wrappers():
+    """The monitor's pipeline may be an image store's wrapper (attributes passed on) or a farm's pool pipeline (the
+    job's own one as ``local``): the markers' offset reaches the LayerPipeline either way, and a pipeline
+    without ``markers_moved`` (a test double, another driver) gets nothing."""
+    from layerwatch.monitor.frame_checks import _markers_sink
+
+    class Job:
+        def __init__(self):
+            self.got = []
+
+        def markers_moved(self, offset, size):
+            self.got.append((offset, size))
+
+    class Wrapper:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    class Pool:
+        def __init__(self, local):
+            self.local = local
+
+    for make in (lambda j: j, Wrapper, Pool, lambda j: Wrapper(Pool(j))):
+        job = Job()
+        sink = _markers_sink(make(job))
+        assert sink is not None
+        sink((1.0, -2.0), (1920, 1080))
+        assert job.got == [((1.0, -2.0), (1920, 1080))]
+    assert _markers_sink(object()) is None
