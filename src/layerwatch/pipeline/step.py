@@ -449,9 +449,10 @@ class LayerPipeline:
         photo_size : (int, int)
             ``(w, h)`` of that photo.
         """
-        ok = offset_px is not None and len(offset_px) == 2 and bool(np.all(np.isfinite(offset_px)))
-        self._markers = ((float(offset_px[0]), float(offset_px[1])), (int(photo_size[0]), int(photo_size[1]))) \
-            if ok and offset_px is not None else None
+        if offset_px is None or len(offset_px) != 2 or not np.all(np.isfinite(offset_px)):
+            self._markers = None  # not seen, or not a finite offset: nothing is assumed
+            return
+        self._markers = ((float(offset_px[0]), float(offset_px[1])), (int(photo_size[0]), int(photo_size[1])))
 
     def _markers_top_px(self, markers: tuple[tuple[float, float], tuple[int, int]] | None,
                         z: float) -> tuple[float, float] | None:
