@@ -17,6 +17,7 @@ import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -110,12 +111,14 @@ class ReferenceCache:
         p = self.path(key)
         p.parent.mkdir(parents=True, exist_ok=True)
         buf = io.BytesIO()
-        arrays = {"image": rendered.image, "height": rendered.height, "mask": rendered.mask,
-                  "light": rendered.light.astype(np.float16),
-                  "meta": np.array([rendered.layer, rendered.z, rendered.clipped], np.float64)}
+        # (typed Any: NumPy's stubs read any ``**kwds`` as its ``allow_pickle`` flag, which NumPy < 2.1, still
+        # supported, does not have: it would store the flag as one more array)
+        arrays: dict[str, Any] = {"image": rendered.image, "height": rendered.height, "mask": rendered.mask,
+                            "light": rendered.light.astype(np.float16),
+                            "meta": np.array([rendered.layer, rendered.z, rendered.clipped], np.float64)}
         if rendered.registration is not None:
             arrays["registration"] = rendered.registration
-        np.savez_compressed(buf, allow_pickle=False, **arrays)
+        np.savez_compressed(buf, **arrays)
         fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=".tmp-", suffix=".npz")
         try:
             with os.fdopen(fd, "wb") as f:
