@@ -112,3 +112,20 @@ def test_the_gate_finds_the_pipeline_that_takes_the_markers_through_its_wrappers
         sink((1.0, -2.0), (1920, 1080))
         assert job.got == [((1.0, -2.0), (1920, 1080))]
     assert _markers_sink(object()) is None
+
+
+def test_an_offset_that_is_not_a_finite_pair_is_taken_as_no_markers():
+    """Bad input at the edge: a NaN or infinite offset (a detection gone wrong), or not a pair, assumes nothing."""
+    vs, ref = ViewShift(max_px=4.0), ViewShift(max_px=4.0)
+    for bad in ((float("nan"), 1.0), (float("inf"), 0.0)):
+        assert vs.update((2.2, 1.7), markers=bad) == ref.update((2.2, 1.7))
+    tp = read_toolpath(PART_GCODE)
+    cfg = resolve_config(PART_CONFIG).config
+    cam = default_camera(cfg.topview.topview(), image_size=(1920, 1080))
+    pipe = LayerPipeline(tp, cam, cfg.for_camera(cam), memo=2)
+    for bad in ((float("nan"), 1.0), (1.0, 2.0, 3.0), None):
+        pipe.markers_moved((3.0, -2.0), (1920, 1080))
+        pipe.markers_moved(bad, (1920, 1080))
+        assert pipe._markers is None, bad
+    pipe.markers_moved((3.0, -2.0), (1920, 1080))
+    assert pipe._markers == ((3.0, -2.0), (1920, 1080))
